@@ -1,14 +1,35 @@
 """Loaders for the real assets in the shared data folder (ICT, Live Link Face, MediaPipe)."""
 
-from .ict import FACE, ICTFaceModel, ict_identity, load_ict, load_identity_modes
+from .ict import (
+    FACE,
+    ICT_PARTS,
+    ICTFaceModel,
+    ict_identity,
+    load_ict,
+    load_ict_obj_folder,
+    load_identity_modes,
+)
+from .livelinkface import LiveLinkCapture, load_livelinkface
+from .mediapipe import MediaPipeFace, load_mediapipe_face
+from .names import ARKIT_NAMES, RetargetReport, retarget_weights, to_arkit
 from .paths import ENV_VAR, resolve_data_dir
 
 __all__ = [
+    "ARKIT_NAMES",
     "ENV_VAR",
     "FACE",
+    "ICT_PARTS",
     "ICTFaceModel",
+    "LiveLinkCapture",
+    "MediaPipeFace",
+    "RetargetReport",
     "ict_identity",
     "load_ict",
+    "load_ict_obj_folder",
     "load_identity_modes",
+    "load_livelinkface",
+    "load_mediapipe_face",
     "resolve_data_dir",
+    "retarget_weights",
+    "to_arkit",
 ]
