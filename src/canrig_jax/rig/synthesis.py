@@ -51,6 +51,9 @@ class SynthesisOptions:
         min_overlap: two blendshapes overlap when they share at least this many support vertices.
         min_magnitude: (pairs, triplets, quads) keep a corrective whose largest per-vertex
             offset exceeds this.
+        combine_min_magnitude: triplets and quadruplets are built only from pairs whose
+            corrective exceeds this (strong interactions), as production rigs add higher-order
+            shapes only where pairs interact strongly.
         store_tol: offsets below this are not stored (the support-restricted layout).
         exclude: name pairs never combined (default: opposite directions of one control).
     """
@@ -59,6 +62,7 @@ class SynthesisOptions:
     support_tol: float = 0.01
     min_overlap: int = 20
     min_magnitude: tuple[float, float, float] = (0.05, 0.05, 0.05)
+    combine_min_magnitude: float = 0.2
     store_tol: float = 1e-5
     exclude: tuple[tuple[str, str], ...] = MUTUALLY_EXCLUSIVE
 
@@ -146,9 +150,9 @@ def synthesize_correctives(
 ) -> tuple[BlendshapeRig, SynthesisReport]:
     """Add corrective terms of order 2..``max_order`` to a linear rig from the nonlinear blend.
 
-    Candidates: pairs whose supports overlap; triplets and quadruplets whose every pair was
-    kept. A corrective is kept when its largest per-vertex offset exceeds the order's
-    ``min_magnitude``.
+    Candidates: pairs whose supports overlap; triplets and quadruplets whose every pair has
+    a corrective above ``combine_min_magnitude``. A corrective is kept when its largest
+    per-vertex offset exceeds the order's ``min_magnitude``.
 
     Args:
         rig: rig with faces; its correctives, if any, are ignored.
@@ -173,12 +177,12 @@ def synthesize_correctives(
     corner_error = float(
         np.linalg.norm(blend(np.eye(k)) - (neutral + deltas), axis=2).max(initial=0.0)
     )
-    kept_pairs: list[tuple[int, ...]] = []
+    strong_pairs: list[tuple[int, ...]] = []
     for order in range(2, options.max_order + 1):
         combos = (
             overlapping_pairs(deltas, rig.names, options)
             if order == 2
-            else _cliques(kept_pairs, order)
+            else _cliques(strong_pairs, order)
         )
         candidates[order] = len(combos)
         keep_indices, keep_deltas = [], []
@@ -201,7 +205,11 @@ def synthesize_correctives(
             max((np.linalg.norm(d, axis=1).max() for d in keep_deltas), default=0.0)
         )
         if order == 2:
-            kept_pairs = keep_indices
+            strong_pairs = [
+                combo
+                for combo, offset in zip(keep_indices, keep_deltas, strict=True)
+                if np.linalg.norm(offset, axis=1).max() > options.combine_min_magnitude
+            ]
         if keep_indices:
             table = Corrective.from_dense(
                 np.array(keep_indices), np.stack(keep_deltas), support_tol=options.store_tol
