@@ -6,10 +6,17 @@ decomposed F = R S; a pose w blends rotations in log space and stretches linearl
 
     F_t(w) = exp(sum_i w_i log R_ti) (I + sum_i w_i (S_ti - I)),
 
-and vertex positions are recovered from the blended triangle edges by a sparse least-squares
-(Poisson) solve, prefactorised once per mesh; the centroid of every connected component is
-pinned to the linear blend's (the edges do not determine translation). At a single target
-(w = e_i) the blended edges are the target's own, so the target is reproduced exactly.
+and vertex positions are recovered from the blended triangle edges e_t(w) = F_t(w) e_t by a
+sparse least-squares (screened Poisson) solve, prefactorised once per mesh: with D the
+(3T, V) edge-difference operator and x_lin the linear blend,
+
+    x(w) = x_lin + u,   u = argmin ||D (x_lin + u) - e(w)||^2 + lambda ||u||^2.
+
+The small ridge lambda (``screening`` times the mean diagonal of D^T D) fixes translation on
+every connected component and keeps the correction local: far from the triangles that the
+active shapes deform, the nonlinear and linear edges agree and u decays. At a single target
+(w = e_i) the blended edges are the target's own and x_lin is the target, so u = 0 and the
+target is reproduced exactly.
 
 Triangles where the decomposition is unreliable fall back to the linear blend of their edges,
 e_t(w) = e_t + sum_i w_i (e_ti - e_t): degenerate (near-zero area) triangles in the neutral or a
@@ -29,7 +36,6 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from jaxtyping import Array, Float
 
-from .topology import connected_components
 
 _EDGES = ((0, 1), (1, 2), (2, 0))
 
@@ -125,6 +131,8 @@ class DeformationGradientBlend:
         min_area: triangles with area below this (squared rig units) in the neutral or any
             target are degenerate.
         min_angle_to_pi: rotations closer than this (radians) to a half turn fall back.
+        screening: ridge of the solve relative to the mean diagonal of D^T D; larger keeps
+            the nonlinear correction more local (1e-3: it decays over a few tens of edges).
 
     Call it with weights (K,) or (B, K) to get (V, 3) or (B, V, 3) float64 vertices.
     """
@@ -137,6 +145,7 @@ class DeformationGradientBlend:
         *,
         min_area: float = 1e-8,
         min_angle_to_pi: float = np.deg2rad(10.0),
+        screening: float = 1e-3,
     ):
         neutral = np.asarray(neutral, np.float64)
         deltas = np.asarray(deltas, np.float64)
@@ -185,18 +194,10 @@ class DeformationGradientBlend:
             shape=(3 * n_tri, self.n_vertices),
         )
         normal_matrix = (self._difference.T @ self._difference).tocsc()
-        # A tiny ridge only selects a solution in the translation null space; the component
-        # centroids are then set exactly below.
-        scale = normal_matrix.diagonal().mean()
+        ridge = screening * normal_matrix.diagonal().mean()
         self._solve = spla.factorized(
-            (normal_matrix + 1e-10 * scale * sp.identity(self.n_vertices)).tocsc()
+            (normal_matrix + ridge * sp.identity(self.n_vertices)).tocsc()
         )
-        labels = connected_components(faces, self.n_vertices)
-        self._component = sp.csr_matrix(
-            (np.ones(self.n_vertices), (labels, np.arange(self.n_vertices)))
-        )
-        counts = np.asarray(self._component.sum(axis=1)).ravel()
-        self._component_mean = sp.diags(1.0 / np.maximum(counts, 1)) @ self._component
 
     def __call__(self, weights: np.ndarray, batch_size: int = 64) -> np.ndarray:
         weights = np.asarray(weights, np.float64)
@@ -226,12 +227,12 @@ class DeformationGradientBlend:
         )  # (B, T, 3 coords, 3 edges)
         batch = weights.shape[0]
         targets = np.moveaxis(edges, -1, 1).reshape(batch, -1, 3)  # (B, 3T, 3), edge-major
-        rhs = self._difference.T @ np.moveaxis(targets, 0, 1).reshape(targets.shape[1], -1)
-        positions = self._solve(rhs).reshape(self.n_vertices, batch, 3)
         linear = self.neutral[:, None, :] + np.einsum("bk,kvc->vbc", weights, self.deltas)
-        shift = self._component_mean @ (linear - positions).reshape(self.n_vertices, -1)
-        positions = positions + (self._component.T @ shift).reshape(self.n_vertices, batch, 3)
-        return np.moveaxis(positions, 1, 0)
+        mismatch = np.moveaxis(targets, 0, 1).reshape(targets.shape[1], -1) - (
+            self._difference @ linear.reshape(self.n_vertices, -1)
+        )
+        correction = self._solve(self._difference.T @ mismatch)
+        return np.moveaxis(linear + correction.reshape(self.n_vertices, batch, 3), 1, 0)
 
 
 def mesh_fingerprint(*arrays: np.ndarray) -> str:

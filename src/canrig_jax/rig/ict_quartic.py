@@ -22,7 +22,7 @@ from .io import load_rig, save_rig
 from .synthesis import SynthesisOptions, SynthesisReport, synthesize_correctives
 
 CACHE_ENV_VAR = "CANRIG_CACHE"
-SYNTHESIS_VERSION = 1
+SYNTHESIS_VERSION = 2
 """Bump when synthesis changes its output, to invalidate caches."""
 
 
