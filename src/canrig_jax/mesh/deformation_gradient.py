@@ -36,7 +36,6 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from jaxtyping import Array, Float
 
-
 _EDGES = ((0, 1), (1, 2), (2, 0))
 
 
