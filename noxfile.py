@@ -1,0 +1,56 @@
+"""nox sessions: tests, lint, bench, demo, experiments."""
+
+from pathlib import Path
+
+import nox
+
+nox.options.sessions = ["tests", "lint"]
+nox.options.default_venv_backend = "venv"
+
+
+@nox.session
+def tests(session):
+    """Default test run (fast; long experiments are marked slow)."""
+    session.install("-e", ".[dev]")
+    session.run("python", "-m", "pytest", *session.posargs)
+
+
+@nox.session
+def slow(session):
+    """Long tests and full experiments (-m slow)."""
+    session.install("-e", ".[dev]")
+    session.run("python", "-m", "pytest", "-m", "slow", *session.posargs)
+
+
+@nox.session
+def lint(session):
+    session.install("ruff")
+    session.run("ruff", "check", "src", "tests", "experiments", "benchmarks", "noxfile.py")
+    session.run("ruff", "format", "--check", "src", "tests", "experiments", "benchmarks")
+
+
+@nox.session
+def bench(session):
+    """Speed benchmarks against reference implementations, printed as tables."""
+    session.install("-e", ".")
+    for script in sorted(Path("benchmarks").glob("bench_*.py")):
+        session.run("python", str(script))
+
+
+@nox.session
+def demo(session):
+    """Main demo on the default data."""
+    session.install("-e", ".")
+    session.run("python", "-m", "canrig_jax.demo", *session.posargs)
+
+
+@nox.session
+def experiments(session):
+    """Standard-configuration experiments, written under experiments/results/."""
+    session.install("-e", ".")
+    session.run(
+        "python",
+        "experiments/build_quartic_rig.py",
+        "--out",
+        "experiments/results/build_quartic_rig",
+    )
