@@ -69,16 +69,23 @@ class SynthesisOptions:
     def __post_init__(self):
         if self.max_order not in (1, 2, 3, 4):
             raise ValueError(f"max_order: expected 1, 2, 3 or 4, got {self.max_order}")
-        if len(self.min_magnitude) != 3 or min(self.min_magnitude) < 0:
+        if len(self.min_magnitude) != 3 or not all(
+            np.isfinite(m) and m >= 0 for m in self.min_magnitude
+        ):
             raise ValueError(
-                f"min_magnitude: expected three non-negative thresholds (pairs, triplets, "
-                f"quads), got {self.min_magnitude}"
+                f"min_magnitude: expected three finite non-negative thresholds (pairs, "
+                f"triplets, quads), got {self.min_magnitude}"
             )
-        if self.support_tol <= 0 or self.store_tol < 0 or self.min_overlap < 1:
-            raise ValueError(
-                "support_tol must be > 0, store_tol >= 0 and min_overlap >= 1; got "
-                f"{self.support_tol}, {self.store_tol}, {self.min_overlap}"
-            )
+        checks = {
+            "support_tol": self.support_tol > 0,
+            "store_tol": self.store_tol >= 0,
+            "combine_min_magnitude": self.combine_min_magnitude >= 0,
+            "min_overlap": self.min_overlap >= 1,
+        }
+        for name, ok in checks.items():
+            value = getattr(self, name)
+            if not (ok and np.isfinite(value)):
+                raise ValueError(f"{name}: invalid value {value} (finite, in range expected)")
 
 
 @dataclasses.dataclass(frozen=True)
