@@ -46,6 +46,27 @@ def _gram_objective(model, weights, projection, offset_sq, alpha):
     return 0.5 * (a @ model.gram @ a - 2.0 * a @ projection + offset_sq) + alpha * weights.sum()
 
 
+STATIC_ORDERS = ("decreasing", "increasing", "random", "frame_correlation")
+ORDERS = (*STATIC_ORDERS, "iteration_correlation", "gauss_southwell", "max_improvement")
+"""Coordinate orders of Racković et al. section 4.4:
+
+- ``decreasing`` / ``increasing``: by the blendshape norm ||b_i||, fixed for all passes;
+- ``random``: a fresh random permutation each pass;
+- ``frame_correlation``: by |b_i^T (b - b0)| / ||b_i||, the target's correlation with each
+  blendshape, once per frame;
+- ``iteration_correlation``: the same with the current residual, recomputed every pass;
+- ``gauss_southwell``: each step updates the weight with the largest projected gradient;
+- ``max_improvement``: each step makes the single coordinate update that lowers the objective
+  most (K candidate updates per step).
+
+Greedy orders make K updates per pass, possibly revisiting a weight."""
+
+
+def check_order(order: str) -> None:
+    if order not in ORDERS:
+        raise ValueError(f"order: unknown coordinate order {order!r}; expected one of {ORDERS}")
+
+
 class QuarticCD(eqx.Module):
     """Algorithm 1: coordinate descent on the rig with all its correctives.
 
@@ -69,8 +90,9 @@ class QuarticCD(eqx.Module):
         self,
         problem: InverseProblem,
         offset: Float[Array, " N"],
-        order: Int[Array, "T K"],
         init: Float[Array, " K"],
+        order: str = "decreasing",
+        key: jax.Array | None = None,
     ):
         k = problem.n_blendshapes
         model = problem
@@ -82,29 +104,85 @@ class QuarticCD(eqx.Module):
             )
         projection = model.basis.T @ offset
         offset_sq = offset @ offset
+        alpha, upper = self.alpha, self.upper
 
-        def step(weights, i):
+        def directions(weights):
+            """(K, P) g_i = a(w|w_i=1) - a(w|w_i=0) for every i, and (K,) a(w|w_i=0)."""
+            eye = jnp.eye(k, dtype=weights.dtype)
+            low = jax.vmap(model.coefficients)(weights * (1 - eye))
+            high = jax.vmap(model.coefficients)(weights * (1 - eye) + eye)
+            return high - low, low
+
+        def line(weights, i):
+            """Closed-form update of coordinate i: (new value, objective decrease)."""
             low, high = weights.at[i].set(0.0), weights.at[i].set(1.0)
             a_rest = model.coefficients(low)
             g = model.coefficients(high) - a_rest
             qg = model.gram @ g
             curvature = g @ qg
-            slope = qg @ a_rest - g @ projection
+            slope = qg @ a_rest - g @ projection + alpha
             safe = curvature > 1e-12
-            value = jnp.clip((-slope - self.alpha) / jnp.where(safe, curvature, 1.0), 0, self.upper)
-            weights = weights.at[i].set(jnp.where(safe, value, 0.0))
+            value = jnp.clip(-slope / jnp.where(safe, curvature, 1.0), 0.0, upper)
+            value = jnp.where(safe, value, 0.0)
+            old = weights[i]
+            decrease = (old - value) * slope + 0.5 * (old**2 - value**2) * curvature
+            return value, decrease
+
+        def choose(weights):
+            if order == "gauss_southwell":
+                g, _ = directions(weights)
+                a = model.coefficients(weights)
+                gradient = g @ (model.gram @ a - projection) + alpha
+                stuck = ((weights <= 0) & (gradient > 0)) | ((weights >= upper) & (gradient < 0))
+                return jnp.argmax(jnp.where(stuck, 0.0, jnp.abs(gradient)))
+            _, decrease = jax.vmap(line, (None, 0))(weights, jnp.arange(k))
+            return jnp.argmax(decrease)
+
+        def step(weights, i):
+            if order in ("gauss_southwell", "max_improvement"):
+                i = choose(weights)
+            value, _ = line(weights, i)
+            weights = weights.at[i].set(value)
             if not self.trace:
                 return weights, None
-            return weights, _gram_objective(model, weights, projection, offset_sq, self.alpha)
+            return weights, _gram_objective(model, weights, projection, offset_sq, alpha)
 
         def sweep(weights, sequence):
+            if order == "iteration_correlation":
+                a = model.coefficients(weights)
+                residual_projection = (model.gram @ a - projection)[:k]
+                sequence = jnp.argsort(-jnp.abs(residual_projection) / problem.blendshape_norms)
             weights, per_coordinate = jax.lax.scan(step, weights, sequence)
             if self.trace:
                 return weights, per_coordinate
-            return weights, _gram_objective(model, weights, projection, offset_sq, self.alpha)
+            return weights, _gram_objective(model, weights, projection, offset_sq, alpha)
 
-        weights, history = jax.lax.scan(sweep, init, order[: self.passes])
+        sequences = static_order(problem, order, self.passes, offset, key)
+        weights, history = jax.lax.scan(sweep, init, sequences)
         return weights, history.reshape(-1)
+
+
+def static_order(
+    problem: InverseProblem,
+    order: str,
+    passes: int,
+    offset: Float[Array, " N"],
+    key: jax.Array | None = None,
+) -> Int[Array, "T K"]:
+    """(passes, K) int32 coordinate sequence of each pass (placeholder rows for the orders
+    decided during the solve)."""
+    check_order(order)
+    k = problem.n_blendshapes
+    if order == "random":
+        keys = jax.random.split(jax.random.key(0) if key is None else key, passes)
+        return jax.vmap(lambda kk: jax.random.permutation(kk, k))(keys).astype(jnp.int32)
+    if order == "frame_correlation":
+        score = jnp.abs(problem.basis[:, :k].T @ offset) / problem.blendshape_norms
+    elif order == "increasing":
+        score = -problem.blendshape_norms
+    else:
+        score = problem.blendshape_norms
+    return jnp.tile(jnp.argsort(-score).astype(jnp.int32), (passes, 1))
 
 
 class LinearCD(QuarticCD):
@@ -118,8 +196,9 @@ class Seol(eqx.Module):
     bound, w_i = max(0, b_i^T r / ||b_i||^2), r <- r - w_i b_i; computed in vertex space,
     independently of the coefficient-space coordinate descent."""
 
-    def __call__(self, problem, offset, order, init):
+    def __call__(self, problem, offset, init, order="decreasing", key=None):
         shapes = problem.basis[:, : problem.n_blendshapes]
+        sequence = static_order(problem, order, 1, offset, key)[0]
 
         def step(carry, i):
             weights, residual = carry
@@ -127,5 +206,5 @@ class Seol(eqx.Module):
             value = jnp.maximum(column @ residual / (column @ column), 0.0)
             return (weights.at[i].set(value), residual - value * column), None
 
-        (weights, _), _ = jax.lax.scan(step, (jnp.zeros_like(init), offset), order[0])
+        (weights, _), _ = jax.lax.scan(step, (jnp.zeros_like(init), offset), sequence)
         return weights, None

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 class Joshi(eqx.Module):
     """Joshi et al. 2006: pseudoinverse least squares w = B^+ (b - b0), clipped to [0, 1]."""
 
-    def __call__(self, problem, offset, order, init):
+    def __call__(self, problem, offset, init, order=None, key=None):
         return jnp.clip(problem.pseudoinverse @ offset, 0.0, 1.0), None
 
 
@@ -22,7 +22,7 @@ class Cetinaslan(eqx.Module):
         if not self.alpha >= 0:
             raise ValueError(f"alpha: expected a non-negative regulariser, got {self.alpha}")
 
-    def __call__(self, problem, offset, order, init):
+    def __call__(self, problem, offset, init, order=None, key=None):
         k = problem.n_blendshapes
         system = problem.gram[:k, :k] + 2.0 * self.alpha * jnp.eye(k)
         weights = jnp.linalg.solve(system, problem.basis[:, :k].T @ offset)

@@ -32,6 +32,10 @@ class InverseProblem(eqx.Module):
         blendshape_norms: (K,) ||b_i||, used to order coordinates.
         pseudoinverse: (K, 3V) float32 B^+ of the linear blendshape matrix, computed in
             float64 (the linear Gram matrix of ICT is too ill-conditioned for float32).
+        pair_hessian_bounds: (3V, 3) for every mesh coordinate k, the smallest and largest
+            eigenvalue and the spectral norm of the K x K pair-corrective Hessian block
+            H_k (H_k[i, j] = H_k[j, i] = b^{ij}_k / 2), for LMMM's majoriser.
+        rig: the rig itself, for solvers that call ``evaluate`` directly.
     """
 
     neutral: Float[Array, "V 3"]
@@ -40,6 +44,8 @@ class InverseProblem(eqx.Module):
     combinations: tuple[Int[Array, "C n"], ...]
     blendshape_norms: Float[Array, " K"]
     pseudoinverse: Float[Array, "K N"]
+    pair_hessian_bounds: Float[Array, "N 3"]
+    rig: BlendshapeRig
 
     @property
     def n_blendshapes(self) -> int:
@@ -63,7 +69,7 @@ def prepare(rig: BlendshapeRig) -> InverseProblem:
     """Precompute M and Q for ``rig`` (float64 accumulation; about a second for ict-quartic)."""
     k, v = rig.n_blendshapes, rig.n_vertices
     columns = [np.asarray(rig.deltas, np.float64).reshape(k, -1)]
-    tables = [c for c in rig.correctives if c.indices.shape[0]]
+    tables = sorted((c for c in rig.correctives if c.indices.shape[0]), key=lambda c: c.order)
     for table in tables:
         columns.append(table.to_dense(v).reshape(table.indices.shape[0], -1).astype(np.float64))
     basis = np.concatenate(columns).T
@@ -80,4 +86,26 @@ def prepare(rig: BlendshapeRig) -> InverseProblem:
         combinations=tuple(jnp.asarray(t.indices) for t in tables),
         blendshape_norms=jnp.asarray(norms, jnp.float32),
         pseudoinverse=jnp.asarray(np.linalg.pinv(basis[:, :k]), jnp.float32),
+        pair_hessian_bounds=jnp.asarray(_pair_hessian_bounds(rig, k), jnp.float32),
+        rig=rig,
     )
+
+
+def _pair_hessian_bounds(rig: BlendshapeRig, k: int, chunk: int = 2048) -> np.ndarray:
+    pairs = rig.corrective(2)
+    n = 3 * rig.n_vertices
+    if pairs is None or pairs.indices.shape[0] == 0:
+        return np.zeros((n, 3))
+    rows, cols = np.asarray(pairs.indices).T
+    dense = pairs.to_dense(rig.n_vertices).reshape(len(rows), -1).astype(np.float64)
+    bounds = np.empty((n, 3))
+    for start in range(0, n, chunk):
+        block = dense[:, start : start + chunk].T  # (chunk, C2)
+        hessian = np.zeros((block.shape[0], k, k))
+        hessian[:, rows, cols] = block / 2
+        hessian[:, cols, rows] = block / 2
+        eig = np.linalg.eigvalsh(hessian)
+        bounds[start : start + chunk] = np.stack(
+            [eig[:, 0], eig[:, -1], np.abs(eig).max(axis=1)], axis=1
+        )
+    return bounds

@@ -8,30 +8,15 @@ import optimistix as optx
 from jaxtyping import ArrayLike, Float
 
 from ..rig.blendshape import BlendshapeRig, _check_finite
-from .coordinate_descent import QuarticCD, objective
+from .coordinate_descent import ORDERS, QuarticCD, check_order, objective
+from .jaxopt_solver import JaxoptLBFGSB
+from .lmmm import LMMM
 from .problem import InverseProblem, prepare
 from .solution import Solution
 
-ORDERS = ("decreasing", "increasing", "random")
-"""Coordinate orders (Racković et al. section 4.4): by decreasing or increasing ||b_i||, or a
-random permutation per pass."""
-
-
-def coordinate_order(
-    problem: InverseProblem, order: str, passes: int, key: jax.Array | None = None
-) -> jax.Array:
-    """(passes, K) int32 coordinate sequence of each pass."""
-    if order not in ORDERS:
-        raise ValueError(f"order: unknown coordinate order {order!r}; expected one of {ORDERS}")
-    k = problem.n_blendshapes
-    if order == "random":
-        key = jax.random.key(0) if key is None else key
-        keys = jax.random.split(key, passes)
-        return jax.vmap(lambda kk: jax.random.permutation(kk, k))(keys).astype(jnp.int32)
-    ranking = jnp.argsort(problem.blendshape_norms)
-    if order == "decreasing":
-        ranking = ranking[::-1]
-    return jnp.tile(ranking.astype(jnp.int32), (passes, 1))
+L1_METHODS = (QuarticCD, LMMM, JaxoptLBFGSB)
+"""Methods minimising the L1-penalised objective; the reported objective includes alpha 1^T w
+for them and is the plain data term for the others."""
 
 
 def solve(
@@ -55,7 +40,7 @@ def solve(
         key: PRNG key for ``order="random"``.
 
     Batch a take with ``jax.vmap(lambda b: solve(problem, b, method))(targets)``. The
-    returned objective is 1/2 ||f(w) - b||^2 (+ alpha 1^T w for coordinate descent) under the
+    returned objective is 1/2 ||f(w) - b||^2 (+ alpha 1^T w for ``L1_METHODS``) under the
     full rig, whatever rig the method assumed.
     """
     if isinstance(problem, BlendshapeRig):
@@ -74,11 +59,10 @@ def solve(
     else:
         _check_finite("init", init)
         init = jnp.clip(jnp.asarray(init, problem.basis.dtype), 0.0, getattr(method, "upper", 1.0))
-    passes = getattr(method, "passes", 1)
-    sequence = coordinate_order(problem, order, passes, key)
+    check_order(order)
     offset = (jnp.asarray(target, problem.basis.dtype) - problem.neutral).reshape(-1)
-    weights, history = method(problem, offset, sequence, init)
-    l1 = method.alpha if isinstance(method, QuarticCD) else 0.0
+    weights, history = method(problem, offset, init, order, key)
+    l1 = method.alpha if isinstance(method, L1_METHODS) else 0.0
     value = objective(problem, weights, offset, l1)
     history = value[None] if history is None else history
     finite = jnp.all(jnp.isfinite(weights))
@@ -112,4 +96,4 @@ def solve_sequence(
     return solutions
 
 
-__all__ = ["ORDERS", "coordinate_order", "solve", "solve_sequence"]
+__all__ = ["ORDERS", "solve", "solve_sequence"]
