@@ -404,7 +404,7 @@ class SparseMatrix(eqx.Module):
     cols: Int[Array, " nnz"]
     values: Float[Array, " nnz"]
 
-    def __call__(self, x: Float[Array, "V *C"]) -> Float[Array, "V *C"]:
+    def __call__(self, x: Float[Array, "V ..."]) -> Float[Array, "V ..."]:
         gathered = x[self.cols] * self.values.reshape((-1,) + (1,) * (x.ndim - 1))
         return jax.ops.segment_sum(gathered, self.rows, num_segments=x.shape[0])
 
