@@ -1,0 +1,269 @@
+"""Deformation transfer (Sumner & Popović 2004): a source rig's expressions onto a new head.
+
+For every source triangle s and expression k the deformation gradient
+Q_ks = [v1 - v0, v2 - v0, n~]_k [v1 - v0, v2 - v0, n~]_0^{-1} (Sumner & Popović's frame with
+the scaled normal n~ = n / sqrt|n|, the foundation's ``deformation_gradient`` code) is applied
+to the edges of the corresponding target triangle t, and the target's positions are found by
+one sparse least-squares solve, prefactorised once per target mesh:
+
+    u_k = argmin_u  || D (x0 + u) - Q_{k s(t)} E0_t ||^2  +  lambda || u - a_k ||^2,
+
+with D the (3T, V) edge-difference operator, E0 the target's rest edges, and a_k the source
+deltas carried to the target vertices by the correspondence's surface map. The small ridge
+(``screening`` times the mean diagonal of D^T D) only fixes what edges cannot: the
+translation of each connected component (jaw-driven lower teeth translate as a whole).
+
+The correspondence is a ``TriangleCorrespondence``: a source triangle for every target
+triangle plus a surface map of the target vertices on the source. On identical topology it is
+the identity (``identity_correspondence``); otherwise ``closest_point_correspondence`` aligns
+the source to the target by a similarity transform on landmarks (Umeyama), warps it with a
+thin-plate spline through the same landmarks (a non-rigid alignment), matches connected
+components by vote and takes closest points component by component.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from scipy.interpolate import RBFInterpolator
+from scipy.spatial import cKDTree
+
+from .deformation_gradient import _frames
+from .operators import check_mesh
+from .remesh import SurfaceMap, _vertex_map, closest_surface_points
+from .topology import connected_components
+
+_EDGES = ((0, 1), (1, 2), (2, 0))
+
+
+@dataclasses.dataclass(frozen=True)
+class TriangleCorrespondence:
+    """Which source triangle drives each target triangle, and where target vertices lie on
+    the source.
+
+    Attributes:
+        source_triangle: (T,) source face per target face.
+        vertex_map: ``SurfaceMap`` of the target vertices on the source mesh.
+        target_faces: (T, 3) the target triangles.
+        method: "identity" or "closest_point".
+    """
+
+    source_triangle: np.ndarray
+    vertex_map: SurfaceMap
+    target_faces: np.ndarray
+    method: str
+
+    @property
+    def n_target_vertices(self) -> int:
+        return int(self.vertex_map.n_points)
+
+
+def identity_correspondence(faces: np.ndarray, n_vertices: int) -> TriangleCorrespondence:
+    """The correspondence of a mesh with itself (same topology, any shape)."""
+    faces = np.asarray(faces, np.int64)
+    return TriangleCorrespondence(
+        np.arange(faces.shape[0]),
+        _vertex_map(faces, n_vertices, np.arange(n_vertices)),
+        faces,
+        "identity",
+    )
+
+
+def similarity_transform(
+    source_points: np.ndarray, target_points: np.ndarray
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares scale s, rotation R and translation t with target ~ s R source + t
+    (Umeyama 1991). Points are (L, 3), L >= 3."""
+    x = np.asarray(source_points, np.float64)
+    y = np.asarray(target_points, np.float64)
+    if x.shape != y.shape or x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 3:
+        raise ValueError(
+            f"source_points, target_points: expected equal shapes (L, 3) with L >= 3, got "
+            f"{x.shape} and {y.shape}"
+        )
+    mx, my = x.mean(0), y.mean(0)
+    xc, yc = x - mx, y - my
+    u, sigma, vt = np.linalg.svd(yc.T @ xc / x.shape[0])
+    sign = np.eye(3)
+    sign[2, 2] = np.sign(np.linalg.det(u @ vt)) or 1.0
+    rotation = u @ sign @ vt
+    scale = float(np.trace(np.diag(sigma) @ sign) / np.mean(np.sum(xc**2, axis=1)))
+    return scale, rotation, my - scale * rotation @ mx
+
+
+def closest_point_correspondence(
+    source_vertices: np.ndarray,
+    source_faces: np.ndarray,
+    target_vertices: np.ndarray,
+    target_faces: np.ndarray,
+    source_landmarks: np.ndarray,
+    target_landmarks: np.ndarray,
+    *,
+    nonrigid: bool = True,
+    match_components: bool = True,
+) -> TriangleCorrespondence:
+    """Correspondence of two heads of different topology from landmarks and closest points.
+
+    Args:
+        source_vertices, source_faces: the source head (the rig's neutral).
+        target_vertices, target_faces: the target head.
+        source_landmarks, target_landmarks: (L,) vertex indices of the same L >= 3 landmarks
+            (e.g. ICT's Multi-PIE 68) on each mesh.
+        nonrigid: after the similarity alignment, warp the source by a thin-plate spline that
+            takes its landmarks onto the target's.
+        match_components: restrict each target component to the source component most of its
+            vertices are nearest to (keeps teeth on teeth, eyes on eyes).
+    """
+    sv, sf = check_mesh(source_vertices, source_faces)
+    tv, tf = check_mesh(target_vertices, target_faces)
+    sl = np.asarray(source_landmarks, np.int64)
+    tl = np.asarray(target_landmarks, np.int64)
+    if sl.shape != tl.shape or sl.ndim != 1 or sl.size < 3:
+        raise ValueError(
+            f"source_landmarks, target_landmarks: expected equal (L,) vertex lists with L >= 3, "
+            f"got {sl.shape} and {tl.shape}"
+        )
+    for name, ids, n in (("source_landmarks", sl, len(sv)), ("target_landmarks", tl, len(tv))):
+        if ids.min() < 0 or ids.max() >= n:
+            raise ValueError(f"{name}: vertex indices must lie in [0, {n})")
+    scale, rotation, shift = similarity_transform(sv[sl], tv[tl])
+    aligned = scale * sv @ rotation.T + shift
+    if nonrigid:
+        warp = RBFInterpolator(aligned[sl], tv[tl] - aligned[sl], kernel="thin_plate_spline")
+        aligned = aligned + warp(aligned)
+
+    source_labels = connected_components(sf, len(sv))
+    target_labels = connected_components(tf, len(tv))
+    if not match_components:
+        source_labels = np.zeros_like(source_labels)
+        target_labels = np.zeros_like(target_labels)
+    _, nearest = cKDTree(aligned).query(tv)
+    source_face_label = source_labels[sf[:, 0]]
+    target_face_label = target_labels[tf[:, 0]]
+    triangle = np.zeros(len(tv), np.int64)
+    barycentric = np.zeros((len(tv), 3))
+    distance = np.zeros(len(tv))
+    source_triangle = np.zeros(len(tf), np.int64)
+    centroids = tv[tf].mean(axis=1)
+    for label in np.unique(target_labels):
+        members = np.flatnonzero(target_labels == label)
+        votes = np.bincount(source_labels[nearest[members]])
+        chosen = np.flatnonzero(source_face_label == np.argmax(votes))
+        sub = closest_surface_points(tv[members], aligned, sf[chosen])
+        triangle[members] = chosen[sub.triangle]
+        barycentric[members] = sub.barycentric
+        distance[members] = sub.distance
+        faces_here = np.flatnonzero(target_face_label == label)
+        source_triangle[faces_here] = chosen[
+            closest_surface_points(centroids[faces_here], aligned, sf[chosen]).triangle
+        ]
+    vertex_map = SurfaceMap(triangle, barycentric, sf, len(sv), distance)
+    return TriangleCorrespondence(source_triangle, vertex_map, tf, "closest_point")
+
+
+def _difference_operator(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
+    """(3T, V): row (e, t) = x[faces[t, b]] - x[faces[t, a]] for edge e = (a, b), edge-major."""
+    n_tri = faces.shape[0]
+    rows = np.arange(3 * n_tri)
+    heads = np.concatenate([faces[:, b] for _, b in _EDGES])
+    tails = np.concatenate([faces[:, a] for a, _ in _EDGES])
+    return sp.csr_matrix(
+        (np.r_[np.ones(3 * n_tri), -np.ones(3 * n_tri)], (np.r_[rows, rows], np.r_[heads, tails])),
+        shape=(3 * n_tri, n_vertices),
+    )
+
+
+def deformation_transfer(
+    source_rig,
+    target_neutral: np.ndarray,
+    correspondence: TriangleCorrespondence,
+    *,
+    screening: float = 1e-3,
+    min_area: float = 1e-10,
+    batch_size: int = 8,
+):
+    """Transfer every blendshape of ``source_rig`` onto ``target_neutral``.
+
+    Args:
+        source_rig: a ``BlendshapeRig`` with faces (its neutral is the source rest shape).
+        target_neutral: (V, 3) target rest vertices, triangulated by
+            ``correspondence.target_faces``.
+        correspondence: from ``identity_correspondence`` or ``closest_point_correspondence``.
+        screening: ridge towards the carried source deltas, relative to the mean diagonal of
+            D^T D (fixes each component's translation; small keeps shape from gradients).
+        min_area: source triangles below this area (squared rig units) in the neutral or an
+            expression keep the identity deformation.
+        batch_size: expressions per solve batch.
+
+    Returns:
+        A linear ``BlendshapeRig`` on the target (same names, target faces). Correctives of
+        the source are not transferred (a warning says so).
+    """
+    from ..rig.blendshape import BlendshapeRig
+
+    if source_rig.faces is None:
+        raise ValueError("source_rig: deformation transfer needs a rig with faces")
+    target_faces = np.asarray(correspondence.target_faces, np.int64)
+    tv, target_faces = check_mesh(target_neutral, target_faces)
+    if correspondence.vertex_map.n_source != source_rig.n_vertices:
+        raise ValueError(
+            f"correspondence: maps onto a source of {correspondence.vertex_map.n_source} "
+            f"vertices, source_rig has {source_rig.n_vertices}"
+        )
+    if correspondence.n_target_vertices != tv.shape[0]:
+        raise ValueError(
+            f"target_neutral: {tv.shape[0]} vertices, the correspondence maps "
+            f"{correspondence.n_target_vertices}"
+        )
+    if screening <= 0 or not np.isfinite(screening):
+        raise ValueError(f"screening: expected a positive ridge, got {screening}")
+    if source_rig.correctives:
+        warnings.warn(
+            "source_rig: correctives are not transferred; the result is the linear rig",
+            stacklevel=2,
+        )
+    source_neutral = np.asarray(source_rig.neutral, np.float64)
+    source_deltas = np.asarray(source_rig.deltas, np.float64)
+    source_faces = np.asarray(source_rig.faces, np.int64)[correspondence.source_triangle]
+
+    rest_frame, rest_area = _frames(source_neutral, source_faces)
+    rest_ok = rest_area >= min_area
+    inverse_rest = np.linalg.inv(np.where(rest_ok[:, None, None], rest_frame, np.eye(3)))
+    target_edges = np.stack(
+        [tv[target_faces[:, b]] - tv[target_faces[:, a]] for a, b in _EDGES], axis=-1
+    )  # (T, 3 coords, 3 edges)
+
+    n_vertices = tv.shape[0]
+    difference = _difference_operator(target_faces, n_vertices)
+    normal_matrix = (difference.T @ difference).tocsc()
+    ridge = screening * normal_matrix.diagonal().mean()
+    solve = spla.factorized((normal_matrix + ridge * sp.identity(n_vertices)).tocsc())
+    rest_difference = difference @ tv  # (3T, 3)
+
+    deltas = np.zeros((source_deltas.shape[0], n_vertices, 3))
+    for start in range(0, source_deltas.shape[0], batch_size):
+        chunk = source_deltas[start : start + batch_size]
+        frame, area = _frames(source_neutral[None] + chunk, source_faces)
+        gradient = frame @ inverse_rest  # (B, T, 3, 3)
+        keep = rest_ok[None] & (area >= min_area)
+        gradient = np.where(keep[..., None, None], gradient, np.eye(3))
+        edges = gradient @ target_edges  # (B, T, 3 coords, 3 edges)
+        wanted = np.moveaxis(edges, -1, 1).reshape(chunk.shape[0], -1, 3)  # (B, 3T, 3)
+        anchor = correspondence.vertex_map.carry(chunk)  # (B, V, 3)
+        rhs = difference.T @ np.moveaxis(wanted - rest_difference, 0, 1).reshape(
+            wanted.shape[1], -1
+        ) + ridge * np.moveaxis(anchor, 0, 1).reshape(n_vertices, -1)
+        deltas[start : start + chunk.shape[0]] = np.moveaxis(
+            solve(rhs).reshape(n_vertices, chunk.shape[0], 3), 1, 0
+        )
+    return BlendshapeRig(
+        tv.astype(np.float32),
+        deltas.astype(np.float32),
+        (),
+        source_rig.names,
+        target_faces.astype(np.int32),
+    )
