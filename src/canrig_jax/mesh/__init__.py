@@ -7,7 +7,33 @@ from .deformation_gradient import (
     mesh_fingerprint,
     triangle_edges,
 )
+from .operators import (
+    MeshGeometry,
+    MeshOperators,
+    SparseMatrix,
+    check_mesh,
+    mesh_geometry,
+    mesh_operators,
+    pad_vertices,
+    stack_operators,
+)
+from .remesh import (
+    Remeshed,
+    SurfaceMap,
+    closest_surface_points,
+    decimate,
+    flip_quad_split,
+    remesh_rig,
+    subdivide,
+)
 from .topology import connected_components, vertex_adjacency
+from .transfer import (
+    TriangleCorrespondence,
+    closest_point_correspondence,
+    deformation_transfer,
+    identity_correspondence,
+    similarity_transform,
+)
 
 __all__ = [
     "DeformationGradientBlend",
@@ -17,4 +43,27 @@ __all__ = [
     "mesh_fingerprint",
     "triangle_edges",
     "vertex_adjacency",
+]
+
+__all__ += [
+    "MeshGeometry",
+    "MeshOperators",
+    "Remeshed",
+    "SparseMatrix",
+    "SurfaceMap",
+    "TriangleCorrespondence",
+    "check_mesh",
+    "closest_point_correspondence",
+    "closest_surface_points",
+    "decimate",
+    "deformation_transfer",
+    "flip_quad_split",
+    "identity_correspondence",
+    "mesh_geometry",
+    "mesh_operators",
+    "pad_vertices",
+    "remesh_rig",
+    "similarity_transform",
+    "stack_operators",
+    "subdivide",
 ]
