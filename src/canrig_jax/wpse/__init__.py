@@ -1,0 +1,90 @@
+"""Weighted pose space editing (Seol et al.), plain PSE, search, layering and the FSM baseline.
+
+```python
+from canrig_jax import wpse
+data = wpse.prepare_edits(rig, poses, edits)          # (P, K) poses, (P, V, 3) sculpted offsets
+fit = wpse.fit_sigma(data)                             # leave-one-out default width (optimistix)
+model = wpse.fit_prepared(data, fit.sigma)             # or wpse.fit_pose_space_edit(..., sigma=)
+mesh = wpse.apply(model, w, evaluate(rig, w))          # jit / vmap over frames
+```
+"""
+
+from .frames import LocalFrames, frame_matrices, local_frames, to_local, to_world
+from .fsm import coactivation_pairs, fix_shape_rig
+from .layers import LayeredEdits, apply_layered, assign_layers, fit_layered
+from .metric import (
+    blendshape_metric,
+    euclidean_metric,
+    gaussian_kernel,
+    pairwise_pose_distance_sq,
+    pose_distance_sq,
+)
+from .pse import (
+    DUPLICATE_DISTANCE,
+    EditData,
+    PoseSpaceEdit,
+    apply,
+    basis_matrices,
+    correction,
+    duplicate_groups,
+    edited_mesh,
+    fit_pose_space_edit,
+    fit_prepared,
+    prepare_edits,
+    solve_coefficients,
+)
+from .search import SearchResult, region_energy, search_edits
+from .sigma import (
+    GUI_MIN,
+    GUI_OFFSET,
+    GUI_SCALE,
+    SigmaFit,
+    fit_sigma,
+    gui_from_sigma,
+    loo_error,
+    loo_residuals,
+    sigma_from_gui,
+)
+
+__all__ = [
+    "DUPLICATE_DISTANCE",
+    "GUI_MIN",
+    "GUI_OFFSET",
+    "GUI_SCALE",
+    "EditData",
+    "LayeredEdits",
+    "LocalFrames",
+    "PoseSpaceEdit",
+    "SearchResult",
+    "SigmaFit",
+    "apply",
+    "apply_layered",
+    "assign_layers",
+    "basis_matrices",
+    "blendshape_metric",
+    "coactivation_pairs",
+    "correction",
+    "duplicate_groups",
+    "edited_mesh",
+    "euclidean_metric",
+    "fit_layered",
+    "fit_pose_space_edit",
+    "fit_prepared",
+    "fit_sigma",
+    "fix_shape_rig",
+    "frame_matrices",
+    "gaussian_kernel",
+    "gui_from_sigma",
+    "local_frames",
+    "loo_error",
+    "loo_residuals",
+    "pairwise_pose_distance_sq",
+    "pose_distance_sq",
+    "prepare_edits",
+    "region_energy",
+    "search_edits",
+    "sigma_from_gui",
+    "solve_coefficients",
+    "to_local",
+    "to_world",
+]

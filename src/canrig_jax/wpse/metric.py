@@ -1,0 +1,65 @@
+"""Per-vertex pose-space metrics: the weighted distance of WPSE and the Euclidean one of PSE.
+
+Seol et al., "Weighted pose space editing", eq. (6): the distance between poses w and w_i seen
+from vertex v weights each blendshape by how much it moves v,
+
+    ||w - w_i||_v = (sum_j alpha_{v,j} (w_j - w_{j,i})^2)^(1/2),
+    alpha_{v,j} = (l_{v,j} + epsilon) / sum_j (l_{v,j} + epsilon),
+
+with l_{v,j} the length of blendshape j's offset at v. The small ``epsilon`` (relative to the
+largest offset of the rig) gives every blendshape a little weight everywhere, so two distinct
+poses are never at distance zero and no per-vertex basis matrix is singular.
+
+A metric is stored as a (S, K) array of per-vertex weights, or (1, K) when every vertex shares
+it (PSE: all ones, the Euclidean distance), so one code path serves both.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+
+def blendshape_metric(
+    deltas: Float[ArrayLike, "K V 3"], epsilon: float = 1e-3
+) -> Float[np.ndarray, "V K"]:
+    """alpha (V, K): per-vertex blendshape influence normalised to sum 1 (WPSE eq. (6)).
+
+    ``epsilon`` is added to every offset length, in units of the largest offset length of
+    the rig, before normalising (so vertices no shape moves get the uniform metric 1/K).
+    """
+    if not np.isfinite(epsilon) or epsilon <= 0:
+        raise ValueError(f"epsilon: expected a finite value > 0, got {epsilon}")
+    deltas = np.asarray(deltas, np.float64)
+    if deltas.ndim != 3 or deltas.shape[2] != 3:
+        raise ValueError(f"deltas: expected shape (K, V, 3), got {deltas.shape}")
+    length = np.linalg.norm(deltas, axis=2).T  # (V, K)
+    length = length + epsilon * max(float(length.max(initial=0.0)), 1e-30)
+    return (length / length.sum(axis=1, keepdims=True)).astype(np.float32)
+
+
+def euclidean_metric(n_blendshapes: int) -> Float[np.ndarray, "1 K"]:
+    """The metric of plain PSE (Lewis et al. 2000): unit weight on every blendshape."""
+    return np.ones((1, n_blendshapes), np.float32)
+
+
+def pose_distance_sq(
+    metric: Float[Array, "S K"], weights: Float[Array, " K"], poses: Float[Array, "P K"]
+) -> Float[Array, "S P"]:
+    """Squared per-vertex distances sum_j alpha_{v,j} (w_j - w_{j,i})^2 as one matmul."""
+    return metric @ ((weights[None, :] - poses) ** 2).T
+
+
+def pairwise_pose_distance_sq(
+    metric: Float[Array, "S K"], poses: Float[Array, "P K"]
+) -> Float[Array, "S P P"]:
+    """Squared per-vertex distances between all pairs of poses (the basis matrices' input)."""
+    diff_sq = (poses[:, None, :] - poses[None, :, :]) ** 2  # (P, P, K)
+    p = poses.shape[0]
+    return (metric @ diff_sq.reshape(p * p, -1).T).reshape(-1, p, p)
+
+
+def gaussian_kernel(distance_sq: Array, sigma: float | Array) -> Array:
+    """phi(r) = exp(-r^2 / (2 sigma^2))."""
+    return jnp.exp(-distance_sq / (2.0 * jnp.square(sigma)))
