@@ -9,7 +9,10 @@ one sparse least-squares solve, prefactorised once per target mesh:
     u_k = argmin_u  || D (x0 + u) - Q_{k s(t)} E0_t ||^2  +  lambda || u - a_k ||^2,
 
 with D the (3T, V) edge-difference operator, E0 the target's rest edges, and a_k the source
-deltas carried to the target vertices by the correspondence's surface map. The small ridge
+deltas carried to the target vertices by the correspondence's surface map. Gradients and
+anchors are first rotated into the target's orientation, Q -> R Q R^T and a -> s R a, with
+(s, R) the similarity between the carried source neutral and the target, so the transfer
+commutes with a rigid motion or scaling of the target. The small ridge
 (``screening`` times the mean diagonal of D^T D) only fixes what edges cannot: the
 translation of each connected component (jaw-driven lower teeth translate as a whole).
 
@@ -207,17 +210,21 @@ def deformation_transfer(
 
     if source_rig.faces is None:
         raise ValueError("source_rig: deformation transfer needs a rig with faces")
-    target_faces = np.asarray(correspondence.target_faces, np.int64)
-    tv, target_faces = check_mesh(target_neutral, target_faces)
-    if correspondence.vertex_map.n_source != source_rig.n_vertices:
-        raise ValueError(
-            f"correspondence: maps onto a source of {correspondence.vertex_map.n_source} "
-            f"vertices, source_rig has {source_rig.n_vertices}"
-        )
+    tv = np.asarray(target_neutral, np.float64)
+    if tv.ndim != 2 or tv.shape[1] != 3:
+        raise ValueError(f"target_neutral: expected shape (V, 3), got {tv.shape}")
+    if not np.all(np.isfinite(tv)):
+        raise ValueError("target_neutral: contains non-finite positions")
     if correspondence.n_target_vertices != tv.shape[0]:
         raise ValueError(
             f"target_neutral: {tv.shape[0]} vertices, the correspondence maps "
             f"{correspondence.n_target_vertices}"
+        )
+    tv, target_faces = check_mesh(tv, np.asarray(correspondence.target_faces, np.int64))
+    if correspondence.vertex_map.n_source != source_rig.n_vertices:
+        raise ValueError(
+            f"correspondence: maps onto a source of {correspondence.vertex_map.n_source} "
+            f"vertices, source_rig has {source_rig.n_vertices}"
         )
     if screening <= 0 or not np.isfinite(screening):
         raise ValueError(f"screening: expected a positive ridge, got {screening}")
@@ -243,6 +250,12 @@ def deformation_transfer(
     ridge = screening * normal_matrix.diagonal().mean()
     solve = spla.factorized((normal_matrix + ridge * sp.identity(n_vertices)).tocsc())
     rest_difference = difference @ tv  # (3T, 3)
+    # Source gradients and anchor deltas are expressed in the target's orientation (and the
+    # anchors in its size): the similarity taking the source neutral, carried to the target
+    # vertices, onto the target neutral. Without it a rotated target would be deformed along
+    # the source's axes (Sumner & Popović assume aligned meshes).
+    scale, rotation, _ = similarity_transform(correspondence.vertex_map.carry(source_neutral), tv)
+    anchor_map = scale * rotation
 
     deltas = np.zeros((source_deltas.shape[0], n_vertices, 3))
     for start in range(0, source_deltas.shape[0], batch_size):
@@ -251,9 +264,10 @@ def deformation_transfer(
         gradient = frame @ inverse_rest  # (B, T, 3, 3)
         keep = rest_ok[None] & (area >= min_area)
         gradient = np.where(keep[..., None, None], gradient, np.eye(3))
+        gradient = rotation @ gradient @ rotation.T  # in the target's orientation
         edges = gradient @ target_edges  # (B, T, 3 coords, 3 edges)
         wanted = np.moveaxis(edges, -1, 1).reshape(chunk.shape[0], -1, 3)  # (B, 3T, 3)
-        anchor = correspondence.vertex_map.carry(chunk)  # (B, V, 3)
+        anchor = correspondence.vertex_map.carry(chunk) @ anchor_map.T  # (B, V, 3)
         rhs = difference.T @ np.moveaxis(wanted - rest_difference, 0, 1).reshape(
             wanted.shape[1], -1
         ) + ridge * np.moveaxis(anchor, 0, 1).reshape(n_vertices, -1)
