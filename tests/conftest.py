@@ -62,3 +62,13 @@ def sparse_poses(ict_face):
         active = rng.choice(k, size=rng.integers(3, 11), replace=False)
         row[active] = rng.uniform(0.05, 1.0, active.size)
     return poses
+
+
+@pytest.fixture(scope="session")
+def ict_face_blend(ict_face):
+    """The deformation-gradient blend of all 53 ICT expressions on the face part (~7 s)."""
+    from canrig_jax.mesh import DeformationGradientBlend
+
+    return DeformationGradientBlend(
+        np.asarray(ict_face.neutral), np.asarray(ict_face.deltas), np.asarray(ict_face.faces)
+    )

@@ -36,9 +36,13 @@ def objective(
     offset: Float[Array, " N"],
     alpha: float,
 ) -> Float[Array, ""]:
-    """1/2 ||f(w) - b||^2 + alpha 1^T w under the full rig; ``offset`` = (b - b0).ravel()."""
-    residual = problem.basis @ problem.coefficients(weights) - offset
-    return 0.5 * residual @ residual + alpha * weights.sum()
+    """1/2 ||f(w) - b||^2 + alpha 1^T w under the full rig; ``offset`` = (b - b0).ravel().
+
+    Computed in coefficient space, 1/2 (a^T Q a - 2 a^T M^T (b - b0) + ||b - b0||^2), which
+    shares the projection M^T (b - b0) with the solvers instead of forming a second 3V-vector
+    (float32: absolute error ~1e-7 ||b - b0||^2)."""
+    projection = problem.basis.T @ offset
+    return _gram_objective(problem, weights, projection, offset @ offset, alpha)
 
 
 def _gram_objective(model, weights, projection, offset_sq, alpha):
@@ -94,33 +98,32 @@ class QuarticCD(eqx.Module):
         order: str = "decreasing",
         key: jax.Array | None = None,
     ):
-        k = problem.n_blendshapes
-        model = problem
-        if self.linear:
-            model = eqx.tree_at(
-                lambda p: (p.basis, p.gram, p.combinations),
-                problem,
-                (problem.basis[:, :k], problem.gram[:k, :k], ()),
-            )
-        projection = model.basis.T @ offset
+        model = linear_part(problem) if self.linear else problem
+        k, width = problem.n_blendshapes, model.gram.shape[0]
+        # the full projection, sliced, so XLA shares it with ``solve``'s final objective
+        projection = (problem.basis.T @ offset)[:width]
         offset_sq = offset @ offset
         alpha, upper = self.alpha, self.upper
 
-        def directions(weights):
-            """(K, P) g_i = a(w|w_i=1) - a(w|w_i=0) for every i, and (K,) a(w|w_i=0)."""
-            eye = jnp.eye(k, dtype=weights.dtype)
-            low = jax.vmap(model.coefficients)(weights * (1 - eye))
-            high = jax.vmap(model.coefficients)(weights * (1 - eye) + eye)
-            return high - low, low
+        def derivative(weights, i):
+            """(m,) d a / d w_i on the support of i: the product of the other weights of each
+            combination (1 for column i itself); a(w) is affine in w_i with this slope."""
+            extended = jnp.append(weights, jnp.ones((1,), weights.dtype))
+            g = jnp.prod(extended[model.support_others[i]], axis=-1)
+            return jnp.where(model.support_valid[i], g, 0.0)
 
         def line(weights, i):
-            """Closed-form update of coordinate i: (new value, objective decrease)."""
-            low, high = weights.at[i].set(0.0), weights.at[i].set(1.0)
-            a_rest = model.coefficients(low)
-            g = model.coefficients(high) - a_rest
-            qg = model.gram @ g
-            curvature = g @ qg
-            slope = qg @ a_rest - g @ projection + alpha
+            """Closed-form update of coordinate i: (new value, objective decrease).
+
+            Only the columns that depend on w_i enter: with S = support_i and
+            g = d a / d w_i (zero off S), ||phi_i||^2 = g_S^T Q[S, S] g_S and
+            phi_i^T psi_i = g_S^T (Q[S, :] a(w|w_i=0) - p_S), an m x P product."""
+            g = derivative(weights, i)
+            rows = model.support_gram[i]  # (m, P) = Q[support_i, :]
+            support = model.support[i]
+            a_rest = model.coefficients(weights.at[i].set(0.0))
+            curvature = g @ rows[:, support] @ g
+            slope = g @ (rows @ a_rest - projection[support]) + alpha
             safe = curvature > 1e-12
             value = jnp.clip(-slope / jnp.where(safe, curvature, 1.0), 0.0, upper)
             value = jnp.where(safe, value, 0.0)
@@ -130,29 +133,33 @@ class QuarticCD(eqx.Module):
 
         def choose(weights):
             if order == "gauss_southwell":
-                g, _ = directions(weights)
-                a = model.coefficients(weights)
-                gradient = g @ (model.gram @ a - projection) + alpha
-                stuck = ((weights <= 0) & (gradient > 0)) | ((weights >= upper) & (gradient < 0))
-                return jnp.argmax(jnp.where(stuck, 0.0, jnp.abs(gradient)))
+                gradient = model.gram @ model.coefficients(weights) - projection
+                slopes = jax.vmap(lambda i: derivative(weights, i) @ gradient[model.support[i]])(
+                    jnp.arange(k)
+                )
+                slopes = slopes + alpha
+                stuck = ((weights <= 0) & (slopes > 0)) | ((weights >= upper) & (slopes < 0))
+                return jnp.argmax(jnp.where(stuck, 0.0, jnp.abs(slopes)))
             _, decrease = jax.vmap(line, (None, 0))(weights, jnp.arange(k))
             return jnp.argmax(decrease)
 
         def step(weights, i):
             if order in ("gauss_southwell", "max_improvement"):
                 i = choose(weights)
-            value, _ = line(weights, i)
-            weights = weights.at[i].set(value)
+            weights = weights.at[i].set(line(weights, i)[0])
             if not self.trace:
                 return weights, None
-            return weights, _gram_objective(model, weights, projection, offset_sq, alpha)
+            # in vertex space: the coefficient-space form loses ~1e-7 ||b - b0||^2 to
+            # cancellation, more than late coordinate updates gain
+            residual = model.basis @ model.coefficients(weights) - offset
+            return weights, 0.5 * residual @ residual + alpha * weights.sum()
 
         def sweep(weights, sequence):
             if order == "iteration_correlation":
                 a = model.coefficients(weights)
-                residual_projection = (model.gram @ a - projection)[:k]
-                sequence = jnp.argsort(-jnp.abs(residual_projection) / problem.blendshape_norms)
-            weights, per_coordinate = jax.lax.scan(step, weights, sequence)
+                correlation = model.gram[:k] @ a - projection[:k]  # B^T (f(w) - b)
+                sequence = jnp.argsort(-jnp.abs(correlation) / problem.blendshape_norms)
+            weights, per_coordinate = jax.lax.scan(step, weights, sequence.astype(jnp.int32))
             if self.trace:
                 return weights, per_coordinate
             return weights, _gram_objective(model, weights, projection, offset_sq, alpha)
@@ -160,6 +167,32 @@ class QuarticCD(eqx.Module):
         sequences = static_order(problem, order, self.passes, offset, key)
         weights, history = jax.lax.scan(sweep, init, sequences)
         return weights, history.reshape(-1)
+
+
+def linear_part(problem: InverseProblem) -> InverseProblem:
+    """The problem of the rig without correctives (its first K columns)."""
+    k = problem.n_blendshapes
+    return eqx.tree_at(
+        lambda p: (
+            p.basis,
+            p.gram,
+            p.combinations,
+            p.support,
+            p.support_others,
+            p.support_valid,
+            p.support_gram,
+        ),
+        problem,
+        (
+            problem.basis[:, :k],
+            problem.gram[:k, :k],
+            (),
+            problem.support[:, :1],
+            problem.support_others[:, :1],
+            problem.support_valid[:, :1],
+            problem.support_gram[:, :1, :k],
+        ),
+    )
 
 
 def static_order(

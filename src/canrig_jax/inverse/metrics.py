@@ -59,3 +59,14 @@ def summarize(rig: BlendshapeRig, weights: np.ndarray, clean: np.ndarray) -> dic
         "cardinality": float(m["cardinality"].mean()),
         "l1": float(m["l1"].mean()),
     }
+
+
+def select_alpha(sweep: list[dict], tolerance: float = 0.05) -> dict:
+    """The sweep row chosen for a method: the largest alpha whose mean RMSE is within
+    ``tolerance`` (relative) of the best mean RMSE of the sweep, i.e. the sparsest solution
+    that is practically as accurate as the best one."""
+    if not sweep:
+        raise ValueError("sweep: expected at least one row")
+    best = min(row["rmse_mean_mm"] for row in sweep)
+    near = [row for row in sweep if row["rmse_mean_mm"] <= (1.0 + tolerance) * best]
+    return max(near, key=lambda row: row["alpha"])

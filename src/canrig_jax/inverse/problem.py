@@ -16,7 +16,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from ..rig.blendshape import BlendshapeRig, combination_coefficients
 
@@ -35,6 +35,13 @@ class InverseProblem(eqx.Module):
         pair_hessian_bounds: (3V, 3) for every mesh coordinate k, the smallest and largest
             eigenvalue and the spectral norm of the K x K pair-corrective Hessian block
             H_k (H_k[i, j] = H_k[j, i] = b^{ij}_k / 2), for LMMM's majoriser.
+        support: (K, m) int32 the columns of M that depend on weight i: i itself first, then
+            every combination containing i (padded with column i, marked invalid).
+        support_others: (K, m, n) int32 for each of those columns, the other weights of the
+            combination (padded with K, which stands for a weight of 1).
+        support_valid: (K, m) bool, False on padding.
+        support_gram: (K, m, P) float32 rows Q[support_i, :], zero on padding: coordinate
+            descent updates the gradient Q a - p with one of these blocks per coordinate.
         rig: the rig itself, for solvers that call ``evaluate`` directly.
     """
 
@@ -45,6 +52,10 @@ class InverseProblem(eqx.Module):
     blendshape_norms: Float[Array, " K"]
     pseudoinverse: Float[Array, "K N"]
     pair_hessian_bounds: Float[Array, "N 3"]
+    support: Int[Array, "K m"]
+    support_others: Int[Array, "K m n"]
+    support_valid: Bool[Array, "K m"]
+    support_gram: Float[Array, "K m P"]
     rig: BlendshapeRig
 
     @property
@@ -79,16 +90,49 @@ def prepare(rig: BlendshapeRig) -> InverseProblem:
             f"rig: blendshapes {np.flatnonzero(norms == 0).tolist()} have zero norm; the "
             "coordinate update divides by ||b_i||^2, remove them first"
         )
+    gram = basis.T @ basis
+    support, others, valid = _coordinate_supports(k, [np.asarray(t.indices) for t in tables])
+    support_gram = np.where(valid[..., None], gram[support], 0.0)
     return InverseProblem(
         neutral=jnp.asarray(rig.neutral),
         basis=jnp.asarray(basis, jnp.float32),
-        gram=jnp.asarray(basis.T @ basis, jnp.float32),
+        gram=jnp.asarray(gram, jnp.float32),
         combinations=tuple(jnp.asarray(t.indices) for t in tables),
         blendshape_norms=jnp.asarray(norms, jnp.float32),
         pseudoinverse=jnp.asarray(np.linalg.pinv(basis[:, :k]), jnp.float32),
         pair_hessian_bounds=jnp.asarray(_pair_hessian_bounds(rig, k), jnp.float32),
+        support=jnp.asarray(support),
+        support_others=jnp.asarray(others),
+        support_valid=jnp.asarray(valid),
+        support_gram=jnp.asarray(support_gram, jnp.float32),
         rig=rig,
     )
+
+
+def _coordinate_supports(
+    k: int, tables: list[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For every weight i, the columns of M whose coefficient depends on w_i (column i and the
+    combinations containing i, in column order) and the other weights of each; padded to the
+    largest count m. The coefficient of such a column is w_i times the product of the others,
+    so d a / d w_i is that product on these columns and zero elsewhere."""
+    n_others = max([t.shape[1] - 1 for t in tables] + [1])
+    entries: list[list[tuple[int, list[int]]]] = [[(i, [])] for i in range(k)]
+    column = k
+    for table in tables:
+        for row in table.tolist():
+            for i in row:
+                entries[i].append((column, [j for j in row if j != i]))
+            column += 1
+    m = max(len(e) for e in entries)
+    support = np.repeat(np.arange(k, dtype=np.int32)[:, None], m, axis=1)
+    others = np.full((k, m, n_others), k, np.int32)
+    valid = np.zeros((k, m), bool)
+    for i, rows in enumerate(entries):
+        for slot, (col, rest) in enumerate(rows):
+            support[i, slot], valid[i, slot] = col, True
+            others[i, slot, : len(rest)] = rest
+    return support, others, valid
 
 
 def _pair_hessian_bounds(rig: BlendshapeRig, k: int, chunk: int = 2048) -> np.ndarray:

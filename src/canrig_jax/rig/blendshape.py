@@ -39,7 +39,8 @@ class Corrective(eqx.Module):
 
     Attributes:
         indices: (C, n) int32 blendshape indices of each combination, distinct within a row.
-        vertices: (S,) int32 distinct vertices moved by any corrective of this order.
+        vertices: (S,) int32 strictly increasing vertices moved by any corrective of this
+            order (S = V means every vertex, and ``evaluate`` then skips the scatter).
         deltas: (C, S, 3) corrective offsets on ``vertices`` (rig units).
     """
 
@@ -66,8 +67,8 @@ class Corrective(eqx.Module):
                 bad = np.flatnonzero(np.any(rows[:, 1:] == rows[:, :-1], axis=1))[:5]
                 raise ValueError(f"indices: rows {bad.tolist()} repeat a blendshape index")
         if _is_concrete(self.vertices) and s:
-            if np.unique(np.asarray(self.vertices)).size != s:
-                raise ValueError("vertices: support vertices must be distinct")
+            if np.any(np.diff(np.asarray(self.vertices)) <= 0):
+                raise ValueError("vertices: support vertices must be strictly increasing")
         _check_finite("deltas", self.deltas)
 
     @property
@@ -222,8 +223,11 @@ def evaluate(rig: BlendshapeRig, weights: Float[ArrayLike, " K"]) -> Float[Array
     for table in rig.correctives:
         if table.indices.shape[0] == 0:
             continue
-        coefficients = combination_coefficients(weights, table.indices)
-        mesh = mesh.at[table.vertices].add(
-            jnp.tensordot(coefficients, table.deltas, axes=1), unique_indices=True
-        )
+        offsets = jnp.tensordot(combination_coefficients(weights, table.indices), table.deltas, 1)
+        if table.vertices.shape[0] == mesh.shape[0]:  # sorted and distinct: all vertices
+            mesh = mesh + offsets
+        else:
+            mesh = mesh.at[table.vertices].add(
+                offsets, indices_are_sorted=True, unique_indices=True
+            )
     return mesh
