@@ -9,7 +9,14 @@ mesh = wpse.apply(model, w, evaluate(rig, w))          # jit / vmap over frames
 ```
 """
 
-from .frames import LocalFrames, frame_matrices, local_frames, to_local, to_world
+from .frames import (
+    LocalFrames,
+    frame_matrices,
+    local_frames,
+    local_to_world,
+    to_local,
+    to_world,
+)
 from .fsm import coactivation_pairs, fix_shape_rig
 from .layers import LayeredEdits, apply_layered, assign_layers, fit_layered
 from .metric import (
@@ -19,6 +26,7 @@ from .metric import (
     pairwise_pose_distance_sq,
     pose_distance_sq,
 )
+from .protocol import retained_fraction, select_edit_frames
 from .pse import (
     DUPLICATE_DISTANCE,
     EditData,
@@ -76,13 +84,16 @@ __all__ = [
     "gaussian_kernel",
     "gui_from_sigma",
     "local_frames",
+    "local_to_world",
     "loo_error",
     "loo_residuals",
     "pairwise_pose_distance_sq",
     "pose_distance_sq",
     "prepare_edits",
     "region_energy",
+    "retained_fraction",
     "search_edits",
+    "select_edit_frames",
     "sigma_from_gui",
     "solve_coefficients",
     "to_local",

@@ -15,6 +15,7 @@ function of the posed vertices, evaluated only at the edited vertices.
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
@@ -25,13 +26,15 @@ class LocalFrames(eqx.Module):
 
     Attributes:
         vertices: (S,) vertices that get a frame.
-        faces: (S, D, 3) incident triangles of each vertex, padded by repeating one.
+        faces: (T, 3) the triangles incident to any of them (normals are computed once each).
+        incident: (S, D) rows of ``faces`` incident to each vertex, padded by repeating one.
         weight: (S, D) 1 for a real incident triangle, 0 for padding.
         neighbour: (S,) the neighbour whose edge gives the tangent.
     """
 
     vertices: Int[Array, " S"]
-    faces: Int[Array, "S D 3"]
+    faces: Int[Array, "T 3"]
+    incident: Int[Array, "S D"]
     weight: Float[Array, "S D"]
     neighbour: Int[Array, " S"]
 
@@ -69,34 +72,46 @@ def local_frames(
     slot = np.minimum(np.arange(width)[None, :], degree[:, None] - 1)
     corner = order[starts[vertices][:, None] + slot]  # (S, D) flat corner indices
     face_index = corner // 3
-    # Rotate each incident triangle so that the vertex comes first: (v, a, b) keeps the
-    # triangle's orientation and makes cross(a - v, b - v) its normal.
-    position = corner % 3
-    rolled = np.stack([faces[face_index, (position + j) % 3] for j in range(3)], axis=-1)
-    neighbour = rolled[:, 0, 1]
+    # the next corner of the vertex's first triangle (a fixed neighbour along an edge)
+    first = corner[:, 0]
+    neighbour = faces[first // 3, (first % 3 + 1) % 3] if vertices.size else vertices
+    used, incident = np.unique(face_index, return_inverse=True)
     weight = (np.arange(width)[None, :] < degree[:, None]).astype(np.float32)
     return LocalFrames(
         jnp.asarray(vertices, jnp.int32),
-        jnp.asarray(rolled, jnp.int32),
+        jnp.asarray(faces[used].reshape(-1, 3), jnp.int32),
+        jnp.asarray(incident.reshape(face_index.shape), jnp.int32),
         jnp.asarray(weight),
         jnp.asarray(neighbour, jnp.int32),
     )
 
 
+def _frame_axes(frames: LocalFrames, posed: Float[Array, "V 3"]):
+    def gather(x, index):
+        return x.at[index].get(mode="promise_in_bounds")
+
+    p0, p1, p2 = (gather(posed, frames.faces[:, j]) for j in range(3))
+    face_normal = jnp.cross(p1 - p0, p2 - p0)  # (T, 3), twice the area
+    normal = jnp.einsum("sd,sdc->sc", frames.weight, gather(face_normal, frames.incident))
+    normal = normal * jax.lax.rsqrt(jnp.sum(normal * normal, axis=-1, keepdims=True))
+    edge = gather(posed, frames.neighbour) - gather(posed, frames.vertices)
+    tangent = edge - jnp.sum(edge * normal, axis=-1, keepdims=True) * normal
+    tangent = tangent * jax.lax.rsqrt(jnp.sum(tangent * tangent, axis=-1, keepdims=True))
+    return tangent, jnp.cross(normal, tangent), normal
+
+
 def frame_matrices(frames: LocalFrames, posed: Float[Array, "V 3"]) -> Float[Array, "S 3 3"]:
     """(S, 3, 3) orthonormal frames; columns are tangent, bitangent, normal in world space."""
-    corners = posed[frames.faces]  # (S, D, 3 corners, 3)
-    normal = jnp.einsum(
-        "sd,sdc->sc",
-        frames.weight,
-        jnp.cross(corners[:, :, 1] - corners[:, :, 0], corners[:, :, 2] - corners[:, :, 0]),
-    )
-    normal = normal / jnp.linalg.norm(normal, axis=-1, keepdims=True)
-    edge = posed[frames.neighbour] - posed[frames.vertices]
-    tangent = edge - jnp.sum(edge * normal, axis=-1, keepdims=True) * normal
-    tangent = tangent / jnp.linalg.norm(tangent, axis=-1, keepdims=True)
-    bitangent = jnp.cross(normal, tangent)
-    return jnp.stack([tangent, bitangent, normal], axis=-1)
+    return jnp.stack(_frame_axes(frames, posed), axis=-1)
+
+
+def local_to_world(
+    frames: LocalFrames, posed: Float[Array, "V 3"], local: Float[Array, "S 3"]
+) -> Float[Array, "S 3"]:
+    """Frame coordinates at ``frames.vertices`` of the mesh ``posed`` into world offsets
+    (``to_world(frame_matrices(...), local)`` without forming the matrices)."""
+    tangent, bitangent, normal = _frame_axes(frames, posed)
+    return local[:, :1] * tangent + local[:, 1:2] * bitangent + local[:, 2:] * normal
 
 
 def to_local(rotation: Float[Array, "S 3 3"], world: Float[Array, "S 3"]) -> Float[Array, "S 3"]:

@@ -29,7 +29,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ..rig.blendshape import BlendshapeRig, _check_finite, evaluate
-from .frames import LocalFrames, frame_matrices, local_frames, to_local, to_world
+from .frames import LocalFrames, frame_matrices, local_frames, local_to_world, to_local
 from .metric import (
     blendshape_metric,
     euclidean_metric,
@@ -49,7 +49,8 @@ class PoseSpaceEdit(eqx.Module):
         poses: (P, K) edit poses.
         vertices: (S,) edited vertices (strictly increasing).
         metric: (S, K) per-vertex blendshape weights (WPSE) or (1, K) shared (PSE).
-        coefficients: (S, P, 3) RBF coefficients per vertex, in local frames or world axes.
+        coefficients: (S, 3, P) RBF coefficients per vertex (X_v transposed, the fast layout
+            for the run-time contraction), in local-frame or world axes.
         sigma: Gaussian width, in the units of the metric's distance.
         frames: local-frame topology at ``vertices``, or None for world-space displacements.
         n_vertices: vertex count of the rig (static).
@@ -58,7 +59,7 @@ class PoseSpaceEdit(eqx.Module):
     poses: Float[Array, "P K"]
     vertices: Int[Array, " S"]
     metric: Float[Array, "S K"]
-    coefficients: Float[Array, "S P 3"]
+    coefficients: Float[Array, "S 3 P"]
     sigma: Float[Array, ""]
     frames: LocalFrames | None
     n_vertices: int = eqx.field(static=True)
@@ -246,7 +247,7 @@ def fit_prepared(data: EditData, sigma, ridge: float = 1e-6) -> PoseSpaceEdit:
         poses=data.poses,
         vertices=data.vertices,
         metric=data.metric,
-        coefficients=coefficients,
+        coefficients=jnp.swapaxes(coefficients, 1, 2),
         sigma=sigma,
         frames=data.frames,
         n_vertices=data.n_vertices,
@@ -294,11 +295,13 @@ def correction(
     r2 = pose_distance_sq(model.metric, weights, model.poses)  # (S, P) or (1, P)
     phi = gaussian_kernel(r2, model.sigma)
     offsets = jnp.einsum(
-        "sp,spc->sc", jnp.broadcast_to(phi, model.coefficients.shape[:2]), model.coefficients
+        "sp,scp->sc",
+        jnp.broadcast_to(phi, (model.coefficients.shape[0], phi.shape[1])),
+        model.coefficients,
     )
     if model.frames is None:
         return offsets
-    return to_world(frame_matrices(model.frames, posed), offsets)
+    return local_to_world(model.frames, posed, offsets)
 
 
 def check_pose(model: PoseSpaceEdit, weights, posed) -> None:

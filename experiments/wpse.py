@@ -1,0 +1,480 @@
+"""Weighted pose space editing against PSE, the fix-shape method and the ict-quartic rig.
+
+    python experiments/wpse.py --out experiments/results/wpse
+
+The linear ICT face rig driven by the Live Link capture and random sparse poses; what the
+artist wants is the deformation-gradient blend. Edits are sculpted at the most problematic
+frames; every other frame is held out. Writes results.json (keys of issue 4), table.md and
+PNG figures to --out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+import warnings
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import matplotlib.pyplot as plt
+import numpy as np
+
+from canrig_jax import wpse
+from canrig_jax.data import load_livelinkface
+from canrig_jax.io import save_json, save_text
+from canrig_jax.mesh import DeformationGradientBlend
+from canrig_jax.metrics import CM_TO_MM, per_vertex_distance
+from canrig_jax.render import plot_vertex_scalar, save_figure
+from canrig_jax.rig import evaluate, ict_linear_rig, ict_quartic_rig
+from canrig_jax.rig.poses import random_sparse_poses
+from canrig_jax.wpse.reference import NumpyEditEvaluator
+
+BUDGETS = (10, 50)
+MIN_EDIT_DISTANCE = 0.5  # weight units between edited frames ("spread out")
+SUPPORT_TOL_CM = 1e-4  # vertices whose edits all stay below 1 micrometre are not stored
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, required=True, help="output folder")
+    parser.add_argument("--data-dir", default=None, help="data folder (else $CANRIG_DATA)")
+    parser.add_argument("--quick", action="store_true", help="100 random poses, no head timing")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(args.seed)
+
+    rig = ict_linear_rig(args.data_dir)
+    quartic, _ = ict_quartic_rig(args.data_dir, progress=False)
+    names, faces = rig.names, np.asarray(rig.faces)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*TongueOut", category=UserWarning)
+        capture = load_livelinkface(args.data_dir).weights_for(names, missing="zero")
+    n_random = 100 if args.quick else 400
+    poses = np.concatenate([capture, random_sparse_poses(rng, n_random, names)])
+    blend = DeformationGradientBlend(rig.neutral, rig.deltas, faces)
+    desired = blend(poses).astype(np.float32)
+    batch = jax.jit(jax.vmap(evaluate, (None, 0)))
+    linear = np.asarray(batch(rig, poses))
+    frame_error = per_vertex_distance(linear, desired).mean(axis=1)
+    edit_frames = wpse.select_edit_frames(frame_error, poses, max(BUDGETS), MIN_EDIT_DISTANCE)
+    held_out = np.setdiff1d(np.arange(len(poses)), edit_frames)
+    print(f"{len(poses)} frames, {len(held_out)} held out, edits at the worst spread-out frames")
+
+    def stats(meshes):
+        err = per_vertex_distance(meshes, desired[held_out]) * CM_TO_MM
+        return {"mean_mm": float(err.mean()), "p95_mm": float(np.percentile(err, 95))}, err
+
+    def edited(model, frames=held_out):
+        run = jax.jit(jax.vmap(wpse.apply, (None, 0, 0)))
+        return np.asarray(run(model, jnp.asarray(poses[frames]), jnp.asarray(linear[frames])))
+
+    errors = {m: {} for m in ("linear", "pse", "wpse", "wpse_global_frames", "fsm", "quartic")}
+    maps, sigma, models, sweep = {}, {}, {}, {}
+    quartic_meshes = np.asarray(batch(quartic, poses[held_out]))
+    for budget in BUDGETS:
+        key = f"p{budget}"
+        chosen = edit_frames[:budget]
+        edits = desired[chosen] - linear[chosen]
+        errors["linear"][key], maps["linear"] = stats(linear[held_out])
+        errors["quartic"][key], maps["quartic"] = stats(quartic_meshes)
+        for method, metric, frames in (
+            ("pse", "euclidean", True),
+            ("wpse", "weighted", True),
+            ("wpse_global_frames", "weighted", False),
+        ):
+            data = wpse.prepare_edits(
+                rig,
+                poses[chosen],
+                edits,
+                metric=metric,
+                local_frames=frames,
+                support_tol=SUPPORT_TOL_CM,
+            )
+            start = time.perf_counter()
+            fit = wpse.fit_sigma(data)
+            fit_seconds = time.perf_counter() - start
+            model = wpse.fit_prepared(data, fit.sigma)
+            models[method, budget] = model
+            errors[method][key], maps[method] = stats(edited(model))
+            sigma[f"{method}_{key}"] = {
+                "loo_sigma": fit.sigma,
+                "gui_value": wpse.gui_from_sigma(fit.sigma),
+                "loo_rms_mm": fit.loo_rms * CM_TO_MM,
+                "bfgs_successful": fit.successful,
+                "bfgs_steps": fit.steps,
+                "fit_seconds": fit_seconds,
+            }
+            if method != "wpse_global_frames":  # the oracle: width chosen on held-out frames
+                sweep[f"{method}_{key}"] = [
+                    (float(s), stats(edited(wpse.fit_prepared(data, s)))[0]["mean_mm"])
+                    for s in fit.sigma * np.geomspace(0.25, 2.0, 7)
+                ]
+        triggers = wpse.coactivation_pairs(poses, budget, names)
+        fsm = wpse.fix_shape_rig(rig, triggers, blend)
+        models["fsm", budget] = fsm
+        errors["fsm"][key], maps["fsm"] = stats(np.asarray(batch(fsm, poses[held_out])))
+        print(key, {m: round(errors[m][key]["mean_mm"], 4) for m in errors})
+
+    locality = _locality(rig, models, poses, edit_frames, linear, blend, rng)
+    overshoot = _overshoot(rig, models, blend, sigma, args.out)
+    layering = _layering(rig, poses, edit_frames, linear, blend, sigma["wpse_p50"]["loo_sigma"])
+    search = _search(rig, poses, edit_frames, held_out, linear, args.out)
+    timing = _timing(rig, poses, edit_frames, linear, desired, args, sigma)
+    _error_maps(maps, desired[held_out], faces, args.out)
+
+    results = {
+        "errors": errors,
+        "locality": locality,
+        "overshoot": overshoot,
+        "layering": layering,
+        "search": search,
+        "timing": timing,
+        "sigma": sigma,
+        "sigma_sweep_held_out_mean_mm": sweep,
+        "protocol": {
+            "frames": len(poses),
+            "capture_frames": len(capture),
+            "random_poses": n_random,
+            "edit_frames": edit_frames.tolist(),
+            "held_out_frames": len(held_out),
+            "min_edit_distance": MIN_EDIT_DISTANCE,
+            "support_tol_cm": SUPPORT_TOL_CM,
+            "quick": args.quick,
+        },
+    }
+    save_json(args.out / "results.json", results)
+    table = _table(results)
+    save_text(args.out / "table.md", table)
+    print(table)
+    print(f"wrote {args.out}/results.json, table.md and PNG figures")
+    return results
+
+
+def _locality(rig, models, poses, edit_frames, linear, blend, rng, draws=4):
+    """Figure 7: an edited pose with the eye weights changed; how much mouth correction stays."""
+    names = rig.names
+    eye = np.array([i for i, n in enumerate(names) if n.startswith("eye")])
+    mouth = np.array([i for i, n in enumerate(names) if n.startswith(("mouth", "jaw"))])
+    alpha = wpse.blendshape_metric(rig.deltas)
+    region = np.flatnonzero(alpha[:, mouth].sum(axis=1) > 0.5)
+    out = {m: [] for m in ("pse", "wpse", "desired")}
+    batch = jax.jit(jax.vmap(evaluate, (None, 0)))
+    for frame in edit_frames:
+        edit_pose = poses[frame]
+        probes = np.repeat(edit_pose[None], draws, axis=0)
+        probes[:, eye] = rng.uniform(0.0, 1.0, (draws, eye.size))
+        probe_linear = np.asarray(batch(rig, probes))
+        desired_probe = blend(probes) - probe_linear
+        desired_edit = blend(edit_pose) - linear[frame]
+        if np.linalg.norm(desired_edit[region], axis=1).max() * CM_TO_MM < 1.0:
+            continue  # the mouth hardly needs correcting at this edit
+        for method in ("pse", "wpse"):
+            model = models[method, 50]
+            at_edit = np.asarray(wpse.apply(model, edit_pose, linear[frame])) - linear[frame]
+            at_probe = (
+                np.asarray(jax.vmap(wpse.apply, (None, 0, 0))(model, probes, probe_linear))
+                - probe_linear
+            )
+            out[method] += [wpse.retained_fraction(at_edit, c, region) for c in at_probe]
+        out["desired"] += [wpse.retained_fraction(desired_edit, c, region) for c in desired_probe]
+    return {
+        "pse_retained": float(np.mean(out["pse"])),
+        "wpse_retained": float(np.mean(out["wpse"])),
+        "desired_retained": float(np.mean(out["desired"])),
+        "probes": len(out["pse"]),
+        "region_vertices": int(region.size),
+        "eye_channels": int(eye.size),
+    }
+
+
+def _overshoot(rig, models, blend, sigma, out_dir):
+    """Figure 9: the top co-activating pair swept 0 -> 1.5; correction magnitude."""
+    fsm = models["fsm", 50]
+    pair = np.asarray(fsm.corrective(2).indices[0])
+    t = np.linspace(0.0, 1.5, 31)
+    sweep = np.zeros((t.size, rig.n_blendshapes), np.float32)
+    sweep[:, pair] = t[:, None]
+    batch = jax.jit(jax.vmap(evaluate, (None, 0)))
+    base = np.asarray(batch(rig, sweep))
+    corner = sweep[np.argmin(np.abs(t - 1.0))]
+    corner_edit = blend(corner)[None] - base[np.argmin(np.abs(t - 1.0))][None]
+    single = wpse.fit_pose_space_edit(
+        rig, corner[None], corner_edit, sigma=sigma["wpse_p50"]["loo_sigma"]
+    )
+    curves = {
+        "desired": blend(sweep) - base,
+        "fsm": np.asarray(batch(fsm, sweep)) - base,
+        "wpse_corner_edit": np.asarray(jax.vmap(wpse.apply, (None, 0, 0))(single, sweep, base))
+        - base,
+        "wpse_p50": np.asarray(jax.vmap(wpse.apply, (None, 0, 0))(models["wpse", 50], sweep, base))
+        - base,
+    }
+    magnitude = {k: (np.linalg.norm(v, axis=2).max(axis=1) * CM_TO_MM) for k, v in curves.items()}
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    for k, v in magnitude.items():
+        ax.plot(t, v, label=k, lw=2 if k == "desired" else 1.5)
+    ax.axvline(1.0, color="grey", lw=0.8, ls=":")
+    ax.set_xlabel(f"w[{rig.names[pair[0]]}] = w[{rig.names[pair[1]]}]")
+    ax.set_ylabel("max correction over vertices (mm)")
+    ax.set_title("Overshoot past the sculpted corner (Seol et al. Fig. 9)", fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, out_dir / "overshoot.png")
+    at = {float(x): int(i) for i, x in enumerate(t)}
+    return {
+        "pair": [rig.names[i] for i in pair],
+        "max_correction_mm": {
+            k: {"t=1.0": float(v[at[1.0]]), "t=1.5": float(v[at[1.5]])}
+            for k, v in magnitude.items()
+        },
+    }
+
+
+def _layering(rig, poses, edit_frames, linear, blend, sigma, step=0.05, exaggerate=1.5):
+    """Figure 10: two different edits at nearly the same pose, one layer against two."""
+    a = poses[edit_frames[0]]
+    b = a.copy()
+    b[int(np.argmax(a))] += step  # the artist re-edits a nearby frame...
+    batch = jax.jit(jax.vmap(evaluate, (None, 0)))
+    two = np.stack([a, b])
+    base = np.asarray(batch(rig, two))
+    fix = blend(two) - base
+    edits = np.stack([fix[0], exaggerate * fix[1]])  # ...and sculpts it differently
+    between = np.linspace(0.0, 1.0, 11)[:, None] * (b - a)[None] + a[None]
+    beyond = np.linspace(-4.0, 5.0, 37)[:, None] * (b - a)[None] + a[None]
+    base_between = np.asarray(batch(rig, between))
+    base_beyond = np.asarray(batch(rig, beyond))
+    # what the artist asked for: the two sculpts, linearly in between
+    target_between = base_between + (
+        np.linspace(0.0, 1.0, 11)[:, None, None] * (edits[1] - edits[0])[None] + edits[0][None]
+    )
+    single = wpse.fit_pose_space_edit(rig, two, edits, sigma=sigma)
+    layered = wpse.fit_layered(rig, two, edits, sigma=sigma, eta=0.1, layer_sigma=sigma / 4)
+    out = {"pose_distance": float(np.linalg.norm(b - a)), "sigma": sigma, "layer_sigma": sigma / 4}
+    for name, run in (
+        ("single_layer", jax.vmap(wpse.apply, (None, 0, 0))),
+        ("layered", jax.vmap(wpse.apply_layered, (None, 0, 0))),
+    ):
+        model = single if name == "single_layer" else layered
+        at_edits = np.asarray(run(model, two, base))
+        mid = np.asarray(run(model, between, base_between))
+        far = np.asarray(run(model, beyond, base_beyond)) - base_beyond
+        err = per_vertex_distance(at_edits, base + edits) * CM_TO_MM
+        err_between = per_vertex_distance(mid, target_between) * CM_TO_MM
+        out[name] = {
+            "edit_a_max_mm": float(err[0].max()),
+            "edit_b_max_mm": float(err[1].max()),
+            "between_max_mm": float(err_between.max()),
+            "max_correction_on_line_mm": float(np.linalg.norm(far, axis=2).max() * CM_TO_MM),
+        }
+    out["largest_sculpt_mm"] = float(np.linalg.norm(edits, axis=2).max() * CM_TO_MM)
+    out["n_layers"] = layered.n_layers
+    return out
+
+
+def _search(rig, poses, edit_frames, held_out, linear, out_dir, top=3):
+    """Section 4: rank the edit library by the mouth ROI and by the eye ROI for one query."""
+    names = rig.names
+    alpha = wpse.blendshape_metric(rig.deltas)
+    groups = {
+        "mouth": [i for i, n in enumerate(names) if n.startswith(("mouth", "jaw"))],
+        "eyes": [i for i, n in enumerate(names) if n.startswith("eye")],
+    }
+    query_frame = int(held_out[0])
+    library = poses[edit_frames]
+    result = {"query_frame": query_frame}
+    fig, axes = plt.subplots(2, top + 1, figsize=(3 * (top + 1), 6.4))
+    for row, (region_name, channels) in enumerate(groups.items()):
+        roi = np.flatnonzero(alpha[:, channels].sum(axis=1) > 0.5)
+        energy = wpse.search_edits(alpha, library, poses[query_frame], roi).energies
+        tau = float(np.percentile(energy, 20))
+        found = wpse.search_edits(alpha, library, poses[query_frame], roi, tau)
+        result[region_name] = {
+            "roi_vertices": int(roi.size),
+            "tau": tau,
+            "candidates": [
+                {"edit_frame": int(edit_frames[i]), "energy": float(e)}
+                for i, e in zip(found.indices, found.energies, strict=True)
+            ],
+        }
+        highlight = np.zeros(rig.n_vertices)
+        highlight[roi] = 4.0
+        plot_vertex_scalar(
+            axes[row, 0],
+            linear[query_frame],
+            rig.faces,
+            highlight,
+            title=f"query frame {query_frame}\n{region_name} ROI ({roi.size} vertices)",
+        )
+        for col in range(top):
+            ax = axes[row, col + 1]
+            if col >= found.indices.size:
+                ax.axis("off")
+                continue
+            frame = int(edit_frames[found.indices[col]])
+            plot_vertex_scalar(
+                ax,
+                linear[frame],
+                rig.faces,
+                highlight,
+                title=f"#{col + 1}: edit frame {frame}\nE = {found.energies[col]:.2f}",
+            )
+    fig.suptitle("Search of sculpted edits by region of interest (ROI in orange)", fontsize=10)
+    save_figure(fig, out_dir / "search.png")
+    return result
+
+
+def _timing(rig, poses, edit_frames, linear, desired, args, sigma, repeats=30):
+    """Table 1 analog: training and per-frame run time, face and head, P = 10 and 50."""
+    rows = []
+    meshes = [("face", rig, linear[edit_frames], desired[edit_frames])]
+    if not args.quick:
+        head = ict_linear_rig(args.data_dir, parts=None)
+        head_blend = DeformationGradientBlend(head.neutral, head.deltas, head.faces)
+        batch = jax.jit(jax.vmap(evaluate, (None, 0)))
+        meshes.append(
+            (
+                "head",
+                head,
+                np.asarray(batch(head, poses[edit_frames])),
+                head_blend(poses[edit_frames]).astype(np.float32),
+            )
+        )
+    probe = poses[np.setdiff1d(np.arange(len(poses)), edit_frames)][:repeats]
+    for part, part_rig, base, target in meshes:
+        posed = np.asarray(jax.vmap(evaluate, (None, 0))(part_rig, probe))
+        for budget in BUDGETS:
+            chosen = slice(0, budget)
+            width = sigma[f"wpse_p{budget}"]["loo_sigma"]
+
+            def train():
+                model = wpse.fit_pose_space_edit(
+                    part_rig,
+                    poses[edit_frames[chosen]],
+                    target[chosen] - base[chosen],
+                    sigma=width,
+                    support_tol=SUPPORT_TOL_CM,
+                )
+                return jax.block_until_ready(model)
+
+            start = time.perf_counter()
+            model = train()
+            first_train = time.perf_counter() - start
+            start = time.perf_counter()
+            model = train()
+            train_s = time.perf_counter() - start
+            run = jax.jit(wpse.apply)
+            jax.block_until_ready(run(model, probe[0], posed[0]))
+            runtime = []
+            for w, mesh in zip(probe, posed, strict=True):
+                w, mesh = jax.device_put(w), jax.device_put(mesh)
+                start = time.perf_counter()
+                jax.block_until_ready(run(model, w, mesh))
+                runtime.append(time.perf_counter() - start)
+            reference = NumpyEditEvaluator(model)
+            numpy_runtime = []
+            for w, mesh in zip(probe, posed, strict=True):
+                start = time.perf_counter()
+                expected = reference(w, mesh)
+                numpy_runtime.append(time.perf_counter() - start)
+            agree = float(np.abs(np.asarray(run(model, probe[-1], posed[-1])) - expected).max())
+            rig_eval = jax.jit(evaluate)
+            jax.block_until_ready(rig_eval(part_rig, probe[0]))
+            start = time.perf_counter()
+            for w in probe:
+                jax.block_until_ready(rig_eval(part_rig, w))
+            rows.append(
+                {
+                    "part": part,
+                    "vertices": part_rig.n_vertices,
+                    "edited_vertices": int(model.vertices.shape[0]),
+                    "edits": budget,
+                    "train_s": train_s,
+                    "first_train_s_with_compile": first_train,
+                    "runtime_ms": 1e3 * float(np.median(runtime)),
+                    "numpy_runtime_ms": 1e3 * float(np.median(numpy_runtime)),
+                    "rig_evaluate_ms": 1e3 * (time.perf_counter() - start) / len(probe),
+                    "max_abs_diff_vs_numpy_cm": agree,
+                }
+            )
+            print("timing", rows[-1])
+    return rows
+
+
+def _error_maps(maps, desired, faces, out_dir):
+    """Before/after per-vertex error on the held-out frame where linear is worst (0-5 mm)."""
+    worst = int(np.argmax(maps["linear"].mean(axis=1)))
+    methods = ("linear", "pse", "wpse", "fsm", "quartic")
+    fig, axes = plt.subplots(1, len(methods), figsize=(3.1 * len(methods), 4.2))
+    for ax, method in zip(axes, methods, strict=True):
+        err = maps[method][worst]
+        mapper = plot_vertex_scalar(
+            ax,
+            desired[worst],
+            faces,
+            err,
+            vmax=5.0,
+            title=f"{method} (50 edits)\nmean {err.mean():.2f}, max {err.max():.2f} mm",
+        )
+    fig.colorbar(mapper, ax=axes, shrink=0.7, label="distance to the nonlinear blend (mm)")
+    save_figure(fig, out_dir / "error_maps.png")
+
+
+def _table(results):
+    lines = ["| method | P=10 mean / p95 (mm) | P=50 mean / p95 (mm) |", "|---|---|---|"]
+    for method, by_budget in results["errors"].items():
+        cells = [
+            f"{by_budget[f'p{b}']['mean_mm']:.3f} / {by_budget[f'p{b}']['p95_mm']:.3f}"
+            for b in BUDGETS
+        ]
+        lines.append(f"| {method} | " + " | ".join(cells) + " |")
+    loc = results["locality"]
+    lines += [
+        "",
+        f"Locality (eye weights changed at {loc['probes']} probes of edited poses, "
+        f"{loc['region_vertices']} mouth vertices): PSE keeps {loc['pse_retained']:.1%}, "
+        f"WPSE keeps {loc['wpse_retained']:.1%} of the mouth correction "
+        f"(the nonlinear blend itself: {loc['desired_retained']:.1%}).",
+        "",
+        "| sigma | LOO sigma | GUI value | LOO RMS (mm) |",
+        "|---|---|---|---|",
+    ]
+    for key, s in results["sigma"].items():
+        lines.append(
+            f"| {key} | {s['loo_sigma']:.4f} | {s['gui_value']:.3f} | {s['loo_rms_mm']:.3f} |"
+        )
+    lines += [
+        "",
+        "| part | vertices (edited) | edits | train (s) | run time (ms/frame) | NumPy (ms/frame) "
+        "| rig evaluate (ms) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for row in results["timing"]:
+        lines.append(
+            f"| {row['part']} | {row['vertices']} ({row['edited_vertices']}) | {row['edits']} | "
+            f"{row['train_s']:.2f} | {row['runtime_ms']:.2f} | {row['numpy_runtime_ms']:.2f} | "
+            f"{row['rig_evaluate_ms']:.2f} |"
+        )
+    over = results["overshoot"]["max_correction_mm"]
+    lines += ["", f"Overshoot, pair {' + '.join(results['overshoot']['pair'])} (max mm):"]
+    lines += [f"- {k}: t=1.0 {v['t=1.0']:.2f}, t=1.5 {v['t=1.5']:.2f}" for k, v in over.items()]
+    lay = results["layering"]
+    lines += [
+        "",
+        f"Layering (two edits {lay['pose_distance']:.3f} apart, sigma {lay['sigma']:.3f}, "
+        f"layer sigma {lay['layer_sigma']:.3f}; max mm):",
+    ]
+    for name in ("single_layer", "layered"):
+        r = lay[name]
+        lines.append(
+            f"- {name}: edit a {r['edit_a_max_mm']:.3f}, edit b {r['edit_b_max_mm']:.3f}, "
+            f"between {r['between_max_mm']:.3f}, max correction on the line "
+            f"{r['max_correction_on_line_mm']:.2f}"
+        )
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    main()
