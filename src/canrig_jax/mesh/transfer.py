@@ -21,7 +21,9 @@ triangle plus a surface map of the target vertices on the source. On identical t
 the identity (``identity_correspondence``); otherwise ``closest_point_correspondence`` aligns
 the source to the target by a similarity transform on landmarks (Umeyama), warps it with a
 thin-plate spline through the same landmarks (a non-rigid alignment), matches connected
-components by vote and takes closest points component by component.
+components (similar area, smallest mean distance) and takes closest points component by
+component; each target triangle is driven by the source triangles under four points inside
+it (centroid and towards each corner), their gradients averaged with source-area weights.
 """
 
 from __future__ import annotations
@@ -49,7 +51,9 @@ class TriangleCorrespondence:
     the source.
 
     Attributes:
-        source_triangle: (T,) source face per target face.
+        source_triangle: (T,) source face per target face, or (T, S) S source faces
+            sampled inside each target face (their gradients are averaged, weighted by
+            source area).
         vertex_map: ``SurfaceMap`` of the target vertices on the source mesh.
         target_faces: (T, 3) the target triangles.
         method: "identity" or "closest_point".
@@ -98,6 +102,42 @@ def similarity_transform(
     return scale, rotation, my - scale * rotation @ mx
 
 
+_SAMPLES = np.array(
+    [[1 / 3, 1 / 3, 1 / 3], [2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]]
+)
+"""Barycentric points sampled in each target face: the centroid and one towards each corner."""
+
+
+def _component_areas(vertices, faces, labels) -> np.ndarray:
+    cross = np.cross(
+        vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]]
+    )
+    return np.bincount(labels[faces[:, 0]], 0.5 * np.linalg.norm(cross, axis=1), labels.max() + 1)
+
+
+def _match_components(source, source_faces, source_labels, target, target_faces, target_labels):
+    """Source component for each target component: among source components of similar
+    area (ratio within 1/2..2; all when none), the one its vertices are nearest to on
+    average. Area keeps teeth off the lips they sit behind; distance picks left or right."""
+    source_area = _component_areas(source, source_faces, source_labels)
+    target_area = _component_areas(target, target_faces, target_labels)
+    trees: dict[int, cKDTree] = {}
+    match = np.zeros(target_labels.max() + 1, np.int64)
+    for label in np.unique(target_labels):
+        points = target[target_labels == label]
+        ratio = target_area[label] / np.maximum(source_area, 1e-30)
+        candidates = np.flatnonzero((ratio > 0.5) & (ratio < 2.0))
+        if candidates.size == 0:
+            candidates = np.unique(source_labels)
+        cost = []
+        for c in candidates:
+            if c not in trees:
+                trees[c] = cKDTree(source[source_labels == c])
+            cost.append(trees[c].query(points)[0].mean())
+        match[label] = candidates[int(np.argmin(cost))]
+    return match
+
+
 def closest_point_correspondence(
     source_vertices: np.ndarray,
     source_faces: np.ndarray,
@@ -118,8 +158,8 @@ def closest_point_correspondence(
             (e.g. ICT's Multi-PIE 68) on each mesh.
         nonrigid: after the similarity alignment, warp the source by a thin-plate spline that
             takes its landmarks onto the target's.
-        match_components: restrict each target component to the source component most of its
-            vertices are nearest to (keeps teeth on teeth, eyes on eyes).
+        match_components: restrict each target component to one source component of similar
+            area that its vertices are nearest to (keeps teeth on teeth, eyes on eyes).
     """
     sv, sf = check_mesh(source_vertices, source_faces)
     tv, tf = check_mesh(target_vertices, target_faces)
@@ -144,26 +184,26 @@ def closest_point_correspondence(
     if not match_components:
         source_labels = np.zeros_like(source_labels)
         target_labels = np.zeros_like(target_labels)
-    _, nearest = cKDTree(aligned).query(tv)
+    match = _match_components(aligned, sf, source_labels, tv, tf, target_labels)
     source_face_label = source_labels[sf[:, 0]]
     target_face_label = target_labels[tf[:, 0]]
     triangle = np.zeros(len(tv), np.int64)
     barycentric = np.zeros((len(tv), 3))
     distance = np.zeros(len(tv))
-    source_triangle = np.zeros(len(tf), np.int64)
-    centroids = tv[tf].mean(axis=1)
+    source_triangle = np.zeros((len(tf), len(_SAMPLES)), np.int64)
+    samples = np.einsum("sk,tkd->tsd", _SAMPLES, tv[tf])  # (T, S, 3) points in each face
     for label in np.unique(target_labels):
         members = np.flatnonzero(target_labels == label)
-        votes = np.bincount(source_labels[nearest[members]])
-        chosen = np.flatnonzero(source_face_label == np.argmax(votes))
+        chosen = np.flatnonzero(source_face_label == match[label])
         sub = closest_surface_points(tv[members], aligned, sf[chosen])
         triangle[members] = chosen[sub.triangle]
         barycentric[members] = sub.barycentric
         distance[members] = sub.distance
         faces_here = np.flatnonzero(target_face_label == label)
+        points = samples[faces_here].reshape(-1, 3)
         source_triangle[faces_here] = chosen[
-            closest_surface_points(centroids[faces_here], aligned, sf[chosen]).triangle
-        ]
+            closest_surface_points(points, aligned, sf[chosen]).triangle
+        ].reshape(-1, len(_SAMPLES))
     vertex_map = SurfaceMap(triangle, barycentric, sf, len(sv), distance)
     return TriangleCorrespondence(source_triangle, vertex_map, tf, "closest_point")
 
@@ -235,10 +275,15 @@ def deformation_transfer(
         )
     source_neutral = np.asarray(source_rig.neutral, np.float64)
     source_deltas = np.asarray(source_rig.deltas, np.float64)
-    source_faces = np.asarray(source_rig.faces, np.int64)[correspondence.source_triangle]
+    source_triangle = np.asarray(correspondence.source_triangle, np.int64)
+    source_triangle = source_triangle.reshape(source_triangle.shape[0], -1)  # (T, S)
+    n_samples = source_triangle.shape[1]
+    source_faces = np.asarray(source_rig.faces, np.int64)[source_triangle.ravel()]
 
     rest_frame, rest_area = _frames(source_neutral, source_faces)
     rest_ok = rest_area >= min_area
+    sample_weight = np.where(rest_ok, rest_area, 0.0).reshape(-1, n_samples)
+    sample_weight /= np.maximum(sample_weight.sum(axis=1, keepdims=True), 1e-300)
     inverse_rest = np.linalg.inv(np.where(rest_ok[:, None, None], rest_frame, np.eye(3)))
     target_edges = np.stack(
         [tv[target_faces[:, b]] - tv[target_faces[:, a]] for a, b in _EDGES], axis=-1
@@ -264,6 +309,10 @@ def deformation_transfer(
         gradient = frame @ inverse_rest  # (B, T, 3, 3)
         keep = rest_ok[None] & (area >= min_area)
         gradient = np.where(keep[..., None, None], gradient, np.eye(3))
+        gradient = gradient.reshape(chunk.shape[0], -1, n_samples, 3, 3)
+        gradient = np.einsum("btsij,ts->btij", gradient, sample_weight)
+        no_weight = sample_weight.sum(axis=1) == 0
+        gradient[:, no_weight] = np.eye(3)
         gradient = rotation @ gradient @ rotation.T  # in the target's orientation
         edges = gradient @ target_edges  # (B, T, 3 coords, 3 edges)
         wanted = np.moveaxis(edges, -1, 1).reshape(chunk.shape[0], -1, 3)  # (B, 3T, 3)
