@@ -349,21 +349,12 @@ def _timing(rig, poses, edit_frames, linear, desired, args, sigma, repeats=30):
             chosen = slice(0, budget)
             width = sigma[f"wpse_p{budget}"]["loo_sigma"]
 
-            def train():
-                model = wpse.fit_pose_space_edit(
-                    part_rig,
-                    poses[edit_frames[chosen]],
-                    target[chosen] - base[chosen],
-                    sigma=width,
-                    support_tol=SUPPORT_TOL_CM,
-                )
-                return jax.block_until_ready(model)
-
+            train_args = (part_rig, poses[edit_frames[chosen]], target[chosen] - base[chosen])
             start = time.perf_counter()
-            model = train()
+            model = _train(*train_args, width)
             first_train = time.perf_counter() - start
             start = time.perf_counter()
-            model = train()
+            model = _train(*train_args, width)
             train_s = time.perf_counter() - start
             run = jax.jit(wpse.apply)
             jax.block_until_ready(run(model, probe[0], posed[0]))
@@ -401,6 +392,11 @@ def _timing(rig, poses, edit_frames, linear, desired, args, sigma, repeats=30):
             )
             print("timing", rows[-1])
     return rows
+
+
+def _train(rig, poses, edits, sigma):
+    model = wpse.fit_pose_space_edit(rig, poses, edits, sigma=sigma, support_tol=SUPPORT_TOL_CM)
+    return jax.block_until_ready(model)
 
 
 def _error_maps(maps, desired, faces, out_dir):

@@ -29,13 +29,12 @@ def loop_wpse(rig, poses, edits, sigma, weights, metric="weighted", epsilon=1e-3
         alpha = np.ones((v, rig.n_blendshapes))
     out = np.zeros((v, 3))
     for vertex in range(v):
-
-        def dist2(a, b):
-            return float(np.sum(alpha[vertex] * (a - b) ** 2))
-
-        phi = np.array([[np.exp(-dist2(a, b) / (2 * sigma**2)) for b in poses] for a in poses])
+        a = alpha[vertex]
+        phi = np.array(
+            [[np.exp(-np.sum(a * (p - q) ** 2) / (2 * sigma**2)) for q in poses] for p in poses]
+        )
         x = np.linalg.solve(phi, edits[:, vertex].astype(np.float64))
-        k = np.array([np.exp(-dist2(weights, p) / (2 * sigma**2)) for p in poses])
+        k = np.array([np.exp(-np.sum(a * (weights - p) ** 2) / (2 * sigma**2)) for p in poses])
         out[vertex] = k @ x
     return out
 

@@ -1,0 +1,79 @@
+"""WPSE on real corrections: the ICT face, Live Link frames, the deformation-gradient blend."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from canrig_jax.metrics import CM_TO_MM
+from canrig_jax.rig import evaluate
+from canrig_jax.wpse import (
+    apply,
+    blendshape_metric,
+    fit_prepared,
+    fit_sigma,
+    frame_matrices,
+    local_frames,
+    prepare_edits,
+    retained_fraction,
+)
+
+
+@pytest.fixture(scope="module")
+def real_models(ict_face, real_edits):
+    models = {}
+    for name, metric in (("pse", "euclidean"), ("wpse", "weighted")):
+        data = prepare_edits(
+            ict_face, real_edits["poses"], real_edits["edits"], metric=metric, support_tol=1e-4
+        )
+        models[name] = fit_prepared(data, fit_sigma(data).sigma)
+    return models
+
+
+def mean_error_mm(meshes, desired):
+    return float(np.linalg.norm(meshes - desired, axis=-1).mean() * CM_TO_MM)
+
+
+def test_frames_are_orthonormal_on_the_whole_face(ict_face):
+    frames = local_frames(ict_face.faces, np.arange(ict_face.n_vertices), ict_face.n_vertices)
+    rotation = np.asarray(frame_matrices(frames, evaluate(ict_face, jnp.full(53, 0.3))))
+    assert np.all(np.isfinite(rotation))
+    np.testing.assert_allclose(
+        rotation @ np.swapaxes(rotation, 1, 2),
+        np.broadcast_to(np.eye(3), rotation.shape),
+        atol=1e-4,
+    )
+
+
+@pytest.mark.parametrize("method", ["pse", "wpse"])
+def test_edits_reproduced_and_held_out_frames_improved(method, real_models, real_edits):
+    model = real_models[method]
+    run = jax.jit(jax.vmap(apply, (None, 0, 0)))
+    at_edits = np.asarray(run(model, real_edits["poses"], real_edits["linear"]))
+    assert mean_error_mm(at_edits, real_edits["linear"] + real_edits["edits"]) < 0.01
+    held_out = np.asarray(run(model, real_edits["test_poses"], real_edits["test_linear"]))
+    before = mean_error_mm(real_edits["test_linear"], real_edits["test_desired"])
+    after = mean_error_mm(held_out, real_edits["test_desired"])
+    assert after < 0.9 * before, (before, after)
+
+
+def test_locality_wpse_keeps_the_mouth_correction_pse_loses_it(ict_face, real_edits, real_models):
+    """Seol et al. Fig. 7: the edited pose with different eye weights keeps its mouth fix."""
+    names = ict_face.names
+    eye = [i for i, n in enumerate(names) if n.startswith("eye")]
+    mouth = [i for i, n in enumerate(names) if n.startswith(("mouth", "jaw"))]
+    region = np.flatnonzero(blendshape_metric(ict_face.deltas)[:, mouth].sum(axis=1) > 0.5)
+    rng = np.random.default_rng(0)
+    kept = {"pse": [], "wpse": []}
+    for pose, base in zip(real_edits["poses"][:4], real_edits["linear"][:4], strict=True):
+        probe = pose.copy()
+        probe[eye] = rng.uniform(0, 1, len(eye))
+        probe_base = evaluate(ict_face, probe)
+        for method, model in real_models.items():
+            at_edit = apply(model, pose, base) - base
+            at_probe = apply(model, probe, probe_base) - probe_base
+            kept[method].append(retained_fraction(at_edit, at_probe, region))
+    assert np.mean(kept["wpse"]) > 0.8, kept
+    assert np.mean(kept["pse"]) < 0.5, kept
