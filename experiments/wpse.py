@@ -64,13 +64,16 @@ def main(argv=None):
 
     def stats(meshes):
         err = per_vertex_distance(meshes, desired[held_out]) * CM_TO_MM
-        return {"mean_mm": float(err.mean()), "p95_mm": float(np.percentile(err, 95))}, err
+        summary = {"mean_mm": float(err.mean()), "p95_mm": float(np.percentile(err, 95))}
+        return {**summary, "max_mm": float(err.max())}, err
 
     def edited(model, frames=held_out):
         run = jax.jit(jax.vmap(wpse.apply, (None, 0, 0)))
         return np.asarray(run(model, jnp.asarray(poses[frames]), jnp.asarray(linear[frames])))
 
-    errors = {m: {} for m in ("linear", "pse", "wpse", "wpse_global_frames", "fsm", "quartic")}
+    methods = ("linear", "pse", "wpse", "wpse_rest_pose", "wpse_global_frames", "fsm", "quartic")
+    errors = {m: {} for m in methods}
+    rest_correction = {}
     maps, sigma, models, sweep = {}, {}, {}, {}
     quartic_meshes = np.asarray(batch(quartic, poses[held_out]))
     for budget in BUDGETS:
@@ -79,10 +82,11 @@ def main(argv=None):
         edits = desired[chosen] - linear[chosen]
         errors["linear"][key], maps["linear"] = stats(linear[held_out])
         errors["quartic"][key], maps["quartic"] = stats(quartic_meshes)
-        for method, metric, frames in (
-            ("pse", "euclidean", True),
-            ("wpse", "weighted", True),
-            ("wpse_global_frames", "weighted", False),
+        for method, metric, frames, rest in (
+            ("pse", "euclidean", True, False),
+            ("wpse", "weighted", True, False),
+            ("wpse_rest_pose", "weighted", True, True),
+            ("wpse_global_frames", "weighted", False, False),
         ):
             data = wpse.prepare_edits(
                 rig,
@@ -91,6 +95,7 @@ def main(argv=None):
                 metric=metric,
                 local_frames=frames,
                 support_tol=SUPPORT_TOL_CM,
+                rest_pose=rest,
             )
             start = time.perf_counter()
             fit = wpse.fit_sigma(data)
@@ -98,6 +103,11 @@ def main(argv=None):
             model = wpse.fit_prepared(data, fit.sigma)
             models[method, budget] = model
             errors[method][key], maps[method] = stats(edited(model))
+            rest_w = np.zeros(rig.n_blendshapes, np.float32)
+            at_rest = wpse.correction(model, rest_w, evaluate(rig, rest_w))
+            rest_correction[f"{method}_{key}"] = float(
+                np.linalg.norm(np.asarray(at_rest), axis=1).max() * CM_TO_MM
+            )
             sigma[f"{method}_{key}"] = {
                 "loo_sigma": fit.sigma,
                 "gui_value": wpse.gui_from_sigma(fit.sigma),
@@ -106,7 +116,7 @@ def main(argv=None):
                 "bfgs_steps": fit.steps,
                 "fit_seconds": fit_seconds,
             }
-            if method != "wpse_global_frames":  # the oracle: width chosen on held-out frames
+            if method in ("pse", "wpse"):  # the oracle: width chosen on held-out frames
                 sweep[f"{method}_{key}"] = [
                     (float(s), stats(edited(wpse.fit_prepared(data, s)))[0]["mean_mm"])
                     for s in fit.sigma * np.geomspace(0.25, 2.0, 7)
@@ -133,6 +143,7 @@ def main(argv=None):
         "timing": timing,
         "sigma": sigma,
         "sigma_sweep_held_out_mean_mm": sweep,
+        "max_correction_at_rest_pose_mm": rest_correction,
         "protocol": {
             "frames": len(poses),
             "capture_frames": len(capture),
@@ -192,7 +203,9 @@ def _locality(rig, models, poses, edit_frames, linear, blend, rng, draws=4):
 def _overshoot(rig, models, blend, sigma, out_dir):
     """Figure 9: the top co-activating pair swept 0 -> 1.5; correction magnitude."""
     fsm = models["fsm", 50]
-    pair = np.asarray(fsm.corrective(2).indices[0])
+    table = fsm.corrective(2)
+    largest = int(np.argmax(np.linalg.norm(np.asarray(table.deltas), axis=2).max(axis=1)))
+    pair = np.asarray(table.indices[largest])
     t = np.linspace(0.0, 1.5, 31)
     sweep = np.zeros((t.size, rig.n_blendshapes), np.float32)
     sweep[:, pair] = t[:, None]
@@ -226,7 +239,7 @@ def _overshoot(rig, models, blend, sigma, out_dir):
     return {
         "pair": [rig.names[i] for i in pair],
         "max_correction_mm": {
-            k: {"t=1.0": float(v[at[1.0]]), "t=1.5": float(v[at[1.5]])}
+            k: {f"t={x}": float(v[at[x]]) for x in (0.0, 0.5, 1.0, 1.5)}
             for k, v in magnitude.items()
         },
     }
@@ -251,8 +264,13 @@ def _layering(rig, poses, edit_frames, linear, blend, sigma, step=0.05, exaggera
         np.linspace(0.0, 1.0, 11)[:, None, None] * (edits[1] - edits[0])[None] + edits[0][None]
     )
     single = wpse.fit_pose_space_edit(rig, two, edits, sigma=sigma)
-    layered = wpse.fit_layered(rig, two, edits, sigma=sigma, eta=0.1, layer_sigma=sigma / 4)
-    out = {"pose_distance": float(np.linalg.norm(b - a)), "sigma": sigma, "layer_sigma": sigma / 4}
+    layer_sigma = sigma / 10
+    layered = wpse.fit_layered(rig, two, edits, sigma=sigma, eta=0.1, layer_sigma=layer_sigma)
+    out = {
+        "pose_distance": float(np.linalg.norm(b - a)),
+        "sigma": sigma,
+        "layer_sigma": layer_sigma,
+    }
     for name, run in (
         ("single_layer", jax.vmap(wpse.apply, (None, 0, 0))),
         ("layered", jax.vmap(wpse.apply_layered, (None, 0, 0))),
@@ -419,10 +437,13 @@ def _error_maps(maps, desired, faces, out_dir):
 
 
 def _table(results):
-    lines = ["| method | P=10 mean / p95 (mm) | P=50 mean / p95 (mm) |", "|---|---|---|"]
+    lines = [
+        "| method | P=10 mean / p95 / max (mm) | P=50 mean / p95 / max (mm) |",
+        "|---|---|---|",
+    ]
     for method, by_budget in results["errors"].items():
         cells = [
-            f"{by_budget[f'p{b}']['mean_mm']:.3f} / {by_budget[f'p{b}']['p95_mm']:.3f}"
+            "{mean_mm:.3f} / {p95_mm:.3f} / {max_mm:.2f}".format(**by_budget[f"p{b}"])
             for b in BUDGETS
         ]
         lines.append(f"| {method} | " + " | ".join(cells) + " |")
@@ -434,13 +455,18 @@ def _table(results):
         f"WPSE keeps {loc['wpse_retained']:.1%} of the mouth correction "
         f"(the nonlinear blend itself: {loc['desired_retained']:.1%}).",
         "",
-        "| sigma | LOO sigma | GUI value | LOO RMS (mm) |",
-        "|---|---|---|---|",
+        "| model | LOO sigma | GUI value | LOO RMS (mm) | max correction at rest pose (mm) |",
+        "|---|---|---|---|---|",
     ]
     for key, s in results["sigma"].items():
+        rest = results["max_correction_at_rest_pose_mm"][key]
         lines.append(
-            f"| {key} | {s['loo_sigma']:.4f} | {s['gui_value']:.3f} | {s['loo_rms_mm']:.3f} |"
+            f"| {key} | {s['loo_sigma']:.4f} | {s['gui_value']:.3f} | {s['loo_rms_mm']:.3f} "
+            f"| {rest:.2f} |"
         )
+    lines += ["", "Held-out mean error (mm) against sigma (oracle sweep, for reference):"]
+    for key, points in results["sigma_sweep_held_out_mean_mm"].items():
+        lines.append(f"- {key}: " + ", ".join(f"{s:.3f}: {e:.4f}" for s, e in points))
     lines += [
         "",
         "| part | vertices (edited) | edits | train (s) | run time (ms/frame) | NumPy (ms/frame) "
@@ -455,7 +481,10 @@ def _table(results):
         )
     over = results["overshoot"]["max_correction_mm"]
     lines += ["", f"Overshoot, pair {' + '.join(results['overshoot']['pair'])} (max mm):"]
-    lines += [f"- {k}: t=1.0 {v['t=1.0']:.2f}, t=1.5 {v['t=1.5']:.2f}" for k, v in over.items()]
+    lines += [
+        f"- {k}: " + ", ".join(f"{t} {value:.2f}" for t, value in v.items())
+        for k, v in over.items()
+    ]
     lay = results["layering"]
     lines += [
         "",

@@ -185,3 +185,24 @@ def test_bad_input(tiny_rig, tiny_edits):
         apply(model, poses[0], posed[:-1])
     with pytest.raises(ValueError, match="posed"):
         apply(model, poses[0], jnp.full_like(posed, jnp.nan))
+
+
+def test_rest_pose_anchor_zeroes_the_correction_at_rest(tiny_rig, tiny_edits):
+    poses, edits = tiny_edits
+    rest = np.zeros(tiny_rig.n_blendshapes, np.float32)
+    plain = fit_pose_space_edit(tiny_rig, poses, edits, sigma=0.4)
+    anchored = fit_pose_space_edit(tiny_rig, poses, edits, sigma=0.4, rest_pose=True)
+    assert anchored.n_edits == plain.n_edits + 1
+    posed = evaluate(tiny_rig, rest)
+    assert np.abs(np.asarray(correction(plain, rest, posed))).max() > 1e-3
+    np.testing.assert_allclose(
+        correction(anchored, rest, posed), 0.0, atol=1e-3 * np.abs(edits).max()
+    )
+    at_edits = jax.vmap(apply, (None, 0, 0))(
+        anchored, poses, jax.vmap(evaluate, (None, 0))(tiny_rig, poses)
+    )
+    np.testing.assert_allclose(
+        at_edits - jax.vmap(evaluate, (None, 0))(tiny_rig, poses),
+        edits,
+        atol=1e-3 * np.abs(edits).max(),
+    )

@@ -125,6 +125,7 @@ def fit_pose_space_edit(
     ridge: float = 1e-6,
     support_tol: float = 0.0,
     duplicates: Literal["raise", "merge"] = "raise",
+    rest_pose: bool = False,
 ) -> PoseSpaceEdit:
     """Fit PSE (``metric="euclidean"``) or WPSE (``metric="weighted"``) to sculpted edits.
 
@@ -140,6 +141,9 @@ def fit_pose_space_edit(
         support_tol: vertices whose largest edit is at most this (rig units) are not stored.
         duplicates: "raise" (ValueError) or "merge" duplicated edit poses into one edit with
             the mean displacement.
+        rest_pose: add the rest pose (all weights 0) as an edit with zero displacement, so the
+            correction vanishes there (not in the paper; off by default). Ignored when an
+            edit already sits at the rest pose.
     """
     check_sigma(sigma)
     data = prepare_edits(
@@ -151,6 +155,7 @@ def fit_pose_space_edit(
         epsilon=epsilon,
         support_tol=support_tol,
         duplicates=duplicates,
+        rest_pose=rest_pose,
     )
     return fit_prepared(data, sigma, ridge)
 
@@ -177,6 +182,7 @@ def prepare_edits(
     epsilon: float = 1e-3,
     support_tol: float = 0.0,
     duplicates: Literal["raise", "merge"] = "raise",
+    rest_pose: bool = False,
 ) -> EditData:
     """Validate edits, restrict them to their support, pick the metric, rotate into local
     frames (arguments as ``fit_pose_space_edit``)."""
@@ -202,6 +208,9 @@ def prepare_edits(
             )
         poses = np.stack([poses[g].mean(axis=0) for g in groups])
         edits = np.stack([edits[g].mean(axis=0) for g in groups])
+    if rest_pose and np.all(np.linalg.norm(poses, axis=1) >= DUPLICATE_DISTANCE):
+        poses = np.concatenate([poses, np.zeros_like(poses[:1])])
+        edits = np.concatenate([edits, np.zeros_like(edits[:1])])
 
     magnitude = np.linalg.norm(edits, axis=2).max(axis=0)
     vertices = np.flatnonzero(magnitude > support_tol).astype(np.int32)
