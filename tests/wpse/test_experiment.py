@@ -1,0 +1,34 @@
+"""The WPSE experiment end to end in --quick mode (slow: about 5 minutes on 2 cores)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "wpse.py"
+
+
+@pytest.mark.slow
+def test_quick_experiment_writes_the_issue_keys(tmp_path):
+    spec = importlib.util.spec_from_file_location("wpse_experiment", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.main(["--quick", "--out", str(tmp_path)])
+    results = json.loads((tmp_path / "results.json").read_text())
+    for method in ("linear", "pse", "wpse", "fsm", "quartic"):
+        for budget in ("p10", "p50"):
+            assert set(results["errors"][method][budget]) >= {"mean_mm", "p95_mm"}
+    assert set(results["locality"]) >= {"pse_retained", "wpse_retained"}
+    for row in results["timing"]:
+        assert set(row) >= {"vertices", "edits", "train_s", "runtime_ms", "numpy_runtime_ms"}
+    assert results["sigma"]
+    for name in ("table.md", "error_maps.png", "overshoot.png", "search.png"):
+        assert (tmp_path / name).exists()
+    # the claims that hold on real data (see the README for the ones that do not)
+    errors = results["errors"]
+    assert errors["wpse"]["p50"]["mean_mm"] < 0.8 * errors["linear"]["p50"]["mean_mm"]
+    assert errors["wpse"]["p50"]["mean_mm"] < errors["fsm"]["p50"]["mean_mm"]
+    assert results["locality"]["wpse_retained"] >= 0.8 > results["locality"]["pse_retained"]
