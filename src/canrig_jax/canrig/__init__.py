@@ -1,0 +1,70 @@
+"""CANRig (Mohammadi, Weiss et al.): geodesic influence masks, masked cross-attention with
+zero-preserving MLPs, the shape-preserving variant, training on real rig shapes."""
+
+from .attention import masked_attention_weights, masked_cross_attention
+from .data import (
+    RADII_CM,
+    ExampleOptions,
+    Examples,
+    TrainingSet,
+    build_training_set,
+    evaluate_poses,
+    held_out_poses,
+    nearby_poses,
+    sample_examples,
+    split_capture,
+)
+from .masks import (
+    CLAMP,
+    correlation_edge_factor,
+    edge_graph,
+    influence_mask,
+    mesh_edges,
+    weighted_geodesic_distance,
+)
+from .mlp import ZeroPreservingMLP
+from .model import CANRig, ShapePreservingCANRig, parameter_count
+from .rig import Handles, NeuralRig, deform
+from .train import (
+    TrainOptions,
+    TrainResult,
+    load_checkpoint,
+    load_model,
+    save_checkpoint,
+    train,
+    train_step,
+)
+
+__all__ = [
+    "CLAMP",
+    "RADII_CM",
+    "CANRig",
+    "ExampleOptions",
+    "Examples",
+    "Handles",
+    "NeuralRig",
+    "ShapePreservingCANRig",
+    "TrainOptions",
+    "TrainResult",
+    "TrainingSet",
+    "ZeroPreservingMLP",
+    "build_training_set",
+    "correlation_edge_factor",
+    "deform",
+    "edge_graph",
+    "evaluate_poses",
+    "influence_mask",
+    "load_checkpoint",
+    "load_model",
+    "masked_attention_weights",
+    "masked_cross_attention",
+    "mesh_edges",
+    "nearby_poses",
+    "parameter_count",
+    "sample_examples",
+    "save_checkpoint",
+    "split_capture",
+    "held_out_poses",
+    "train",
+    "train_step",
+]

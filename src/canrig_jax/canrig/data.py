@@ -1,0 +1,184 @@
+"""Training and test data for CANRig from a blendshape rig with correctives.
+
+Shapes are the rig evaluated at poses (the ict-quartic rig: its correctives give the model
+real nonlinear correlations to learn): the first half of the Live Link capture and random
+sparse poses for training; the second half of the capture and a disjoint set of random poses
+for testing. Each training shape also has a *nearby* pose (the previous capture frame, or the
+random pose's active weights jittered), the paper's "previous frame" base shape.
+
+A training example (``sample_examples``) draws a target shape, a base shape (another random
+pose, a nearby pose or the neutral), 20-200 random handles from a pool of vertices whose
+geodesic distances are precomputed, one radius and falloff, and a random subset of vertices
+on which the loss is evaluated (each vertex's output depends only on its own query and the
+handles, so the loss over a subset is an unbiased estimate of the loss over all vertices).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from ..rig import BlendshapeRig, evaluate
+from ..rig.poses import random_sparse_poses
+from .masks import edge_graph, weighted_geodesic_distance
+
+RADII_CM = {"small": 1.0, "medium": 2.0, "large": 4.0}
+"""Named radii of the evaluation (geodesic cm on the ICT face, about 18 cm wide)."""
+
+
+def split_capture(capture: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(train, test): the first and second half of a capture (contiguous, so that no test
+    frame has a neighbouring frame in the training set)."""
+    half = len(capture) // 2
+    return capture[:half], capture[half:]
+
+
+def nearby_poses(poses: np.ndarray, rng: np.random.Generator, *, sequence: bool, jitter=0.1):
+    """A pose near each pose: the previous frame of a sequence (the next one for frame 0),
+    or the active weights jittered by N(0, jitter) and clipped to [0, 1]."""
+    poses = np.asarray(poses, np.float32)
+    if sequence:
+        if len(poses) < 2:
+            raise ValueError("poses: a sequence needs at least 2 frames")
+        return np.concatenate([poses[1:2], poses[:-1]])
+    noise = rng.normal(0.0, jitter, poses.shape).astype(np.float32)
+    return np.clip(poses + noise * (poses > 0), 0.0, 1.0)
+
+
+def evaluate_poses(rig: BlendshapeRig, poses: np.ndarray, chunk: int = 64) -> np.ndarray:
+    """(N, V, 3) float32 meshes of ``poses`` (N, K), batched with jit(vmap(evaluate))."""
+    batch = jax.jit(jax.vmap(evaluate, (None, 0)))
+    out = [np.asarray(batch(rig, poses[i : i + chunk])) for i in range(0, len(poses), chunk)]
+    return np.concatenate(out) if out else np.zeros((0, rig.n_vertices, 3), np.float32)
+
+
+class TrainingSet(eqx.Module):
+    """Device arrays a jitted training step gathers from.
+
+    Attributes:
+        neutral: (V, 3) canonical shape S_0.
+        shapes: (N, V, 3) training targets.
+        nearby: (N, V, 3) a nearby pose of each target.
+        pool: (P,) handle candidate vertices.
+        pool_distance: (P, V) their weighted geodesic distance (inf beyond the limit).
+    """
+
+    neutral: Float[Array, "V 3"]
+    shapes: Float[Array, "N V 3"]
+    nearby: Float[Array, "N V 3"]
+    pool: Int[Array, " P"]
+    pool_distance: Float[Array, "P V"]
+
+
+def build_training_set(
+    rig: BlendshapeRig,
+    capture_train: np.ndarray,
+    *,
+    n_random: int = 800,
+    n_pool: int = 2048,
+    distance_limit_cm: float = 10.0,
+    seed: int = 0,
+) -> TrainingSet:
+    """Evaluate the rig at the capture's training frames and ``n_random`` random sparse poses
+    (seed ``seed``), their nearby poses, and the distances from ``n_pool`` handle candidates."""
+    rng = np.random.default_rng(seed)
+    random_poses = random_sparse_poses(rng, n_random, rig.names)
+    poses = np.concatenate([capture_train, random_poses]).astype(np.float32)
+    near = np.concatenate(
+        [
+            nearby_poses(capture_train, rng, sequence=True),
+            nearby_poses(random_poses, rng, sequence=False),
+        ]
+    )
+    neutral = np.asarray(rig.neutral, np.float32)
+    pool = np.sort(rng.choice(rig.n_vertices, size=min(n_pool, rig.n_vertices), replace=False))
+    graph = edge_graph(neutral, np.asarray(rig.faces))
+    distance = weighted_geodesic_distance(graph, pool, limit=distance_limit_cm)
+    return TrainingSet(
+        neutral=jnp.asarray(neutral),
+        shapes=jnp.asarray(evaluate_poses(rig, poses)),
+        nearby=jnp.asarray(evaluate_poses(rig, near)),
+        pool=jnp.asarray(pool.astype(np.int32)),
+        pool_distance=jnp.asarray(distance),
+    )
+
+
+def held_out_poses(
+    capture_test: np.ndarray, names, n_random: int = 100, seed: int = 1
+) -> np.ndarray:
+    """Held-out poses: the capture's test half and ``n_random`` random sparse poses drawn
+    with a different seed than training (continuous weights: disjoint almost surely)."""
+    random_poses = random_sparse_poses(np.random.default_rng(10_000 + seed), n_random, names)
+    return np.concatenate([capture_test, random_poses]).astype(np.float32)
+
+
+@dataclasses.dataclass(frozen=True)
+class ExampleOptions:
+    """How training examples are drawn (section 5 of the paper)."""
+
+    batch: int = 8
+    n_vertices: int = 384
+    n_handles: tuple[int, int] = (20, 200)
+    handle_bucket: int = 50  # pad handle arrays to a multiple of this (few compiled shapes)
+    radius_cm: tuple[float, float] = (0.7, 6.0)  # log-uniform
+    falloff_per_cm: tuple[float, float] = (1.5, 6.0)  # uniform
+    p_nearby: float = 0.1
+    p_neutral: float = 0.1
+
+
+class Examples(eqx.Module):
+    """Index arrays of one batch (numpy, drawn on the host; the step gathers on device)."""
+
+    target: Int[Array, " B"]
+    base: Int[Array, " B"]  # index into shapes, or -1 for the neutral
+    base_nearby: Int[Array, " B"]  # 1: the target's nearby pose
+    handles: Int[Array, "B H"]  # indices into the pool
+    handle_valid: Float[Array, "B H"]  # 1 for real handles, 0 for padding
+    vertices: Int[Array, "B Nv"]
+    radius: Float[Array, " B"]
+    falloff: Float[Array, " B"]
+
+
+def sample_examples(
+    rng: np.random.Generator, n_shapes: int, n_pool: int, n_vertices: int, options: ExampleOptions
+) -> Examples:
+    """One batch of example indices; handle arrays are padded to the batch's largest handle
+    count rounded up to ``handle_bucket`` (padding has ``handle_valid`` 0 and no influence)."""
+    b, (lo, hi) = options.batch, options.n_handles
+    if not 1 <= lo <= hi <= n_pool:
+        raise ValueError(
+            f"n_handles: expected 1 <= low <= high <= {n_pool}, got {options.n_handles}"
+        )
+    target = rng.integers(0, n_shapes, b)
+    base = (target + rng.integers(1, max(n_shapes, 2), b)) % max(n_shapes, 1)
+    kind = rng.uniform(size=b)
+    nearby = kind < options.p_nearby
+    neutral = (kind >= options.p_nearby) & (kind < options.p_nearby + options.p_neutral)
+    base = np.where(neutral, -1, base)
+    counts = rng.integers(lo, hi + 1, b)
+    bucket = max(1, options.handle_bucket)
+    width = min(hi, int(-(-counts.max() // bucket) * bucket))
+    handles = np.zeros((b, width), np.int32)
+    valid = np.zeros((b, width), np.float32)
+    for row, count in enumerate(counts):
+        handles[row, :count] = rng.choice(n_pool, size=count, replace=False)
+        valid[row, :count] = 1.0
+    vertices = np.stack(
+        [rng.choice(n_vertices, size=options.n_vertices, replace=False) for _ in range(b)]
+    )
+    log_r = rng.uniform(*np.log(options.radius_cm), b)
+    return Examples(
+        target=target.astype(np.int32),
+        base=base.astype(np.int32),
+        base_nearby=nearby.astype(np.int32),
+        handles=handles,
+        handle_valid=valid,
+        vertices=vertices.astype(np.int32),
+        radius=np.exp(log_r).astype(np.float32),
+        falloff=rng.uniform(*options.falloff_per_cm, b).astype(np.float32),
+    )

@@ -1,0 +1,46 @@
+"""Zero-preserving MLPs (CANRig appendix B): no biases and activations with a(0) = 0, so a
+zero input gives an exactly zero output; the rig then reproduces the base shape exactly when
+every handle displacement is zero."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+from jaxtyping import Array, Float, PRNGKeyArray
+
+
+class ZeroPreservingMLP(eqx.Module):
+    """``n_layers`` bias-free linear layers with ``activation`` between them (none after the
+    last). f(0) = 0 exactly for any weights, provided activation(0) == 0."""
+
+    layers: tuple[eqx.nn.Linear, ...]
+    activation: Callable[[Array], Array] = eqx.field(static=True)
+
+    def __init__(
+        self,
+        in_size: int,
+        out_size: int,
+        *,
+        width: int = 64,
+        n_layers: int = 3,
+        activation: Callable[[Array], Array] = jax.nn.gelu,
+        key: PRNGKeyArray,
+    ):
+        if n_layers < 1:
+            raise ValueError(f"n_layers: expected >= 1, got {n_layers}")
+        if float(activation(jax.numpy.zeros(()))) != 0.0:
+            raise ValueError("activation: expected activation(0) == 0 to preserve zero")
+        sizes = [in_size] + [width] * (n_layers - 1) + [out_size]
+        keys = jax.random.split(key, n_layers)
+        self.layers = tuple(
+            eqx.nn.Linear(a, b, use_bias=False, key=k)
+            for a, b, k in zip(sizes[:-1], sizes[1:], keys, strict=True)
+        )
+        self.activation = activation
+
+    def __call__(self, x: Float[Array, " in_size"]) -> Float[Array, " out_size"]:
+        for layer in self.layers[:-1]:
+            x = self.activation(layer(x))
+        return self.layers[-1](x)

@@ -1,0 +1,276 @@
+"""Training CANRig with optax (Adam, learning rate 1e-3): a jitted step on a random subset of
+vertices per example, the L2 loss (eq. 3) plus the shape-preserving loss (eq. 5), tqdm
+progress, and atomic checkpoints from which training resumes to exactly the same result.
+
+Every step's examples come from ``numpy.random.default_rng([seed, step])``, so a resumed run
+draws the same batches as an uninterrupted one; the checkpoint holds the model, the optimiser
+state, the step, the elapsed time and the loss history, written in one file atomically.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import os
+import time
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jaxtyping import Array, Float
+
+from ..io import atomic_path
+from ..metrics import CM_TO_MM
+from .data import ExampleOptions, Examples, TrainingSet, sample_examples
+from .masks import influence_mask
+from .model import CANRig, ShapePreservingCANRig
+
+VARIANTS = {"canrig": CANRig, "shape_preserving": ShapePreservingCANRig}
+CHECKPOINT_FORMAT = "canrig-checkpoint-1"
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainOptions:
+    variant: str = "shape_preserving"
+    n_heads: int = 4
+    latent: int = 64
+    width: int = 64
+    n_layers: int = 3
+    learning_rate: float = 1e-3
+    steps: int = 20_000
+    max_minutes: float | None = None
+    beta: float = 0.0
+    sp_weight: float = 1.0
+    seed: int = 0
+    checkpoint_every: int = 250
+    log_every: int = 25
+    examples: ExampleOptions = ExampleOptions()
+
+    def __post_init__(self):
+        if self.variant not in VARIANTS:
+            raise ValueError(f"variant: expected one of {sorted(VARIANTS)}, got {self.variant!r}")
+        if not self.learning_rate > 0:
+            raise ValueError(f"learning_rate: expected > 0, got {self.learning_rate}")
+        if self.steps < 0:
+            raise ValueError(f"steps: expected >= 0, got {self.steps}")
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TrainOptions:
+        d = dict(d)
+        ex = d.pop("examples")
+        ex = {k: tuple(v) if isinstance(v, list) else v for k, v in ex.items()}
+        return cls(**d, examples=ExampleOptions(**ex))
+
+
+def make_model(options: TrainOptions, canonical, displacement_scale: float = 1.0) -> CANRig:
+    return VARIANTS[options.variant](
+        np.asarray(canonical),
+        n_heads=options.n_heads,
+        latent=options.latent,
+        width=options.width,
+        n_layers=options.n_layers,
+        displacement_scale=displacement_scale,
+        key=jax.random.PRNGKey(options.seed),
+    )
+
+
+def example_loss(
+    model: CANRig, data: TrainingSet, ex: Examples, beta, sp_weight
+) -> tuple[Float[Array, ""], dict]:
+    """Mean over the batch of (L2 + sp_weight * L_sp) on each example's vertex subset, in
+    mm^2; also the mean per-vertex error (mm) on those vertices."""
+
+    def one(target, base, nearby, handles, valid, vertices, radius, falloff):
+        target_shape = data.shapes[target]
+        base_shape = jnp.where(
+            nearby == 1,
+            data.nearby[target],
+            jnp.where(base < 0, data.neutral, data.shapes[jnp.maximum(base, 0)]),
+        )
+        handle_vertex = data.pool[handles]
+        distance = data.pool_distance[handles][:, vertices]
+        n = handles.shape[0]
+        mask = influence_mask(distance, jnp.full(n, radius), jnp.full(n, falloff), model.clamp)
+        mask = mask * valid[:, None]
+        queries = model.encode_queries(data.neutral[vertices])
+        displacements = (target_shape[handle_vertex] - base_shape[handle_vertex]) * valid[:, None]
+        predicted = model(
+            queries,
+            base_shape[vertices],
+            data.neutral[handle_vertex],
+            base_shape[handle_vertex],
+            displacements,
+            mask,
+            beta,
+        )
+        truth = target_shape[vertices]
+        # eq. (5): outside the region (blend mask from the largest influence) keep the base
+        blend = jnp.max(mask, axis=0)[:, None]
+        blended = blend * truth + (1.0 - blend) * base_shape[vertices]
+        l2 = jnp.mean(jnp.sum((predicted - truth) ** 2, axis=1))
+        l_sp = jnp.mean(jnp.sum((predicted - blended) ** 2, axis=1))
+        error = jnp.mean(jnp.linalg.norm(predicted - truth, axis=1))
+        return l2, l_sp, error
+
+    l2, l_sp, error = jax.vmap(one)(
+        ex.target,
+        ex.base,
+        ex.base_nearby,
+        ex.handles,
+        ex.handle_valid,
+        ex.vertices,
+        ex.radius,
+        ex.falloff,
+    )
+    mm2 = CM_TO_MM**2
+    loss = (jnp.mean(l2) + sp_weight * jnp.mean(l_sp)) * mm2
+    return loss, {"l2_mm2": jnp.mean(l2) * mm2, "error_mm": jnp.mean(error) * CM_TO_MM}
+
+
+@eqx.filter_jit
+def train_step(model, opt_state, data, ex, optimiser, beta, sp_weight):
+    (loss, aux), grads = eqx.filter_value_and_grad(example_loss, has_aux=True)(
+        model, data, ex, beta, sp_weight
+    )
+    updates, opt_state = optimiser.update(grads, opt_state, eqx.filter(model, eqx.is_array))
+    return eqx.apply_updates(model, updates), opt_state, loss, aux
+
+
+# --------------------------------------------------------------------------- checkpoints
+
+
+def save_checkpoint(path, model, opt_state, state: dict) -> Path:
+    """One file, written atomically: a JSON header line (``state``), then the leaves of
+    (model, opt_state) (``eqx.tree_serialise_leaves``)."""
+    buffer = io.BytesIO()
+    eqx.tree_serialise_leaves(buffer, (model, opt_state))
+    header = json.dumps({"format": CHECKPOINT_FORMAT, **state}).encode()
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(header + b"\n")
+        f.write(buffer.getvalue())
+    return Path(path)
+
+
+def read_checkpoint_state(path) -> dict:
+    with open(path, "rb") as f:
+        state = json.loads(f.readline())
+    if state.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"path: {path} is not a CANRig checkpoint")
+    return state
+
+
+def load_checkpoint(path, like_model, like_opt_state):
+    """(model, opt_state, state) from ``save_checkpoint``; ``like_*`` give the structure."""
+    with open(path, "rb") as f:
+        state = json.loads(f.readline())
+        if state.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError(f"path: {path} is not a CANRig checkpoint")
+        leaves = io.BytesIO(f.read())
+    model, opt_state = eqx.tree_deserialise_leaves(leaves, (like_model, like_opt_state))
+    return model, opt_state, state
+
+
+def load_model(path, canonical) -> tuple[CANRig, dict]:
+    """The trained model of a checkpoint (its options are in the header) and the header."""
+    if not os.path.exists(path):
+        raise ValueError(f"path: checkpoint {path} does not exist")
+    state = read_checkpoint_state(path)
+    options = TrainOptions.from_dict(state["options"])
+    like = make_model(options, canonical, state["displacement_scale"])
+    optimiser = optax.adam(options.learning_rate)
+    like_opt = optimiser.init(eqx.filter(like, eqx.is_array))
+    model, _, state = load_checkpoint(path, like, like_opt)
+    return model, state
+
+
+# --------------------------------------------------------------------------- training
+
+
+@dataclasses.dataclass
+class TrainResult:
+    model: CANRig
+    step: int
+    seconds: float
+    history: list
+
+
+def train(
+    data: TrainingSet,
+    options: TrainOptions,
+    *,
+    checkpoint: str | os.PathLike | None = None,
+    displacement_scale: float = 1.0,
+    progress: bool = True,
+    stop_after: int | None = None,
+) -> TrainResult:
+    """Train (or resume from ``checkpoint`` if it exists) until ``options.steps`` steps or
+    ``options.max_minutes`` of accumulated training time. ``stop_after`` ends this call
+    early after that many steps (a simulated interruption, for tests)."""
+    model = make_model(options, data.neutral, displacement_scale)
+    optimiser = optax.adam(options.learning_rate)
+    opt_state = optimiser.init(eqx.filter(model, eqx.is_array))
+    step, seconds, history = 0, 0.0, []
+    if checkpoint is not None and os.path.exists(checkpoint):
+        model, opt_state, state = load_checkpoint(checkpoint, model, opt_state)
+        if state["options"] != options.to_dict():
+            raise ValueError(f"checkpoint: {checkpoint} was written with different options")
+        step, seconds, history = state["step"], state["seconds"], state["history"]
+
+    def save():
+        if checkpoint is not None:
+            state = {
+                "options": options.to_dict(),
+                "displacement_scale": displacement_scale,
+                "step": step,
+                "seconds": seconds,
+                "history": history,
+            }
+            save_checkpoint(checkpoint, model, opt_state, state)
+
+    n_shapes, n_pool, n_vertices = (
+        data.shapes.shape[0],
+        data.pool.shape[0],
+        data.neutral.shape[0],
+    )
+    beta = jnp.asarray(options.beta, jnp.float32)
+    budget = None if options.max_minutes is None else options.max_minutes * 60.0
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=options.steps, initial=step, desc="canrig", dynamic_ncols=True)
+    done_here = 0
+    while step < options.steps and (budget is None or seconds < budget):
+        if stop_after is not None and done_here >= stop_after:
+            break
+        rng = np.random.default_rng([options.seed, step])
+        ex = sample_examples(rng, n_shapes, n_pool, n_vertices, options.examples)
+        start = time.perf_counter()
+        model, opt_state, loss, aux = train_step(
+            model, opt_state, data, ex, optimiser, beta, options.sp_weight
+        )
+        if step % options.log_every == 0 or step + 1 == options.steps:
+            record = {"step": step, "loss": float(loss), "error_mm": float(aux["error_mm"])}
+            history.append(record)
+            if bar is not None:
+                bar.set_postfix(loss=f"{record['loss']:.3f}", err_mm=f"{record['error_mm']:.3f}")
+        else:
+            jax.block_until_ready(loss)
+        seconds += time.perf_counter() - start
+        step += 1
+        done_here += 1
+        if bar is not None:
+            bar.update(1)
+        if step % options.checkpoint_every == 0:
+            save()
+    if bar is not None:
+        bar.close()
+    save()
+    return TrainResult(model=model, step=step, seconds=seconds, history=history)
