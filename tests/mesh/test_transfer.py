@@ -87,7 +87,7 @@ def test_transfer_across_topology_matches_the_carried_ground_truth(data_dir, fac
         face.neutral, face.faces, coarse.vertices, coarse.faces, face.landmarks, landmarks
     )
     distance = correspondence.vertex_map.distance  # cm, after the TPS warp
-    assert np.median(distance) < 0.1 and np.percentile(distance, 99) < 1.0
+    assert np.median(distance) < 0.1 and np.percentile(distance, 99) < 1.0  # measured ~0.05, ~0.6
     out = deformation_transfer(face_rig, coarse.vertices, correspondence)
     truth = coarse.map.carry(face.deltas)
     error_mm = np.linalg.norm(np.asarray(out.deltas) - truth, axis=-1) * MM
