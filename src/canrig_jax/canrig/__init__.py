@@ -67,4 +67,5 @@ __all__ = [
     "held_out_poses",
     "train",
     "train_step",
+    "weighted_geodesic_distance",
 ]

@@ -219,7 +219,7 @@ def train(
     step, seconds, history = 0, 0.0, []
     if checkpoint is not None and os.path.exists(checkpoint):
         model, opt_state, state = load_checkpoint(checkpoint, model, opt_state)
-        if state["options"] != options.to_dict():
+        if TrainOptions.from_dict(state["options"]) != options:
             raise ValueError(f"checkpoint: {checkpoint} was written with different options")
         step, seconds, history = state["step"], state["seconds"], state["history"]
 

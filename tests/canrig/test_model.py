@@ -1,0 +1,133 @@
+"""CANRig and the shape-preserving variant: the two exact properties, cached queries,
+run-time radius/falloff/beta without recompiling, bad input."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from canrig_jax.canrig import (
+    CLAMP,
+    CANRig,
+    NeuralRig,
+    ShapePreservingCANRig,
+    deform,
+    influence_mask,
+)
+
+VARIANTS = [CANRig, ShapePreservingCANRig]
+
+
+@pytest.fixture(scope="module")
+def face(ict_face):
+    return np.asarray(ict_face.neutral, np.float32), np.asarray(ict_face.faces)
+
+
+@pytest.fixture(scope="module", params=VARIANTS, ids=lambda c: c.__name__)
+def neural_rig(request, face):
+    model = request.param(face[0], key=jax.random.PRNGKey(3))
+    return NeuralRig(model, *face)
+
+
+@pytest.fixture(scope="module")
+def placed(neural_rig):
+    index = np.random.default_rng(0).choice(neural_rig.n_vertices, 60, replace=False)
+    return neural_rig.handles(index)
+
+
+def _other_shape(ict_face, sparse_poses):
+    from canrig_jax.rig import evaluate
+
+    return np.asarray(evaluate(ict_face, sparse_poses[0]))
+
+
+def test_zero_displacements_give_the_base_shape_exactly(neural_rig, placed, ict_face, sparse_poses):
+    zeros = np.zeros((placed.n_handles, 3), np.float32)
+    for base in (None, _other_shape(ict_face, sparse_poses)):
+        expected = neural_rig.canonical if base is None else base
+        for radius in (0.5, 2.0, 8.0):
+            out = neural_rig(placed, zeros, radius, 3.0, base=base)
+            assert np.array_equal(np.asarray(out), np.asarray(expected))
+
+
+def test_vertices_outside_every_clamped_mask_do_not_move(
+    neural_rig, placed, ict_face, sparse_poses
+):
+    rng = np.random.default_rng(1)
+    displacements = rng.normal(0, 0.5, (placed.n_handles, 3)).astype(np.float32)
+    base = _other_shape(ict_face, sparse_poses)
+    out = np.asarray(neural_rig(placed, displacements, 1.0, 3.0, base=base, beta=0.5))
+    mask = np.asarray(influence_mask(placed.distance, np.ones(60), np.full(60, 3.0), CLAMP))
+    outside = mask.max(axis=0) == 0.0
+    assert 1000 < outside.sum() < len(base)
+    assert np.array_equal(out[outside], base[outside])
+    assert np.abs(out[~outside] - base[~outside]).max() > 1e-4  # and the region does move
+
+
+def test_cached_queries_equal_uncached(neural_rig):
+    uncached = neural_rig.model.encode_queries(neural_rig.canonical)
+    np.testing.assert_allclose(np.asarray(neural_rig.queries), np.asarray(uncached), atol=1e-6)
+
+
+def test_radius_falloff_beta_change_without_recompiling(neural_rig, placed):
+    displacements = np.full((placed.n_handles, 3), 0.1, np.float32)
+    before = deform._cached._cache_size() if hasattr(deform, "_cached") else None
+    outs = [
+        neural_rig(placed, displacements, r, f, beta=b)
+        for r, f, b in ((1.0, 2.0, 0.0), (3.0, 5.0, 1.0), (2.0, 3.0, -1.0))
+    ]
+    if before is not None:
+        assert deform._cached._cache_size() - before <= 1
+    assert not np.allclose(outs[0], outs[1])
+
+
+def test_handles_positions_come_from_canonical_and_base(face):
+    """Moving the base shape changes the SP output only through the base inputs."""
+    model = ShapePreservingCANRig(face[0], key=jax.random.PRNGKey(0))
+    canonical = jnp.asarray(face[0][:200])
+    queries = eqx.filter_jit(type(model).encode_queries)(model, canonical)
+    d = jnp.ones((5, 3)) * 0.1
+    mask = jnp.full((5, 200), 0.5)
+    call = eqx.filter_jit(lambda m, *args: m(*args))
+    a = call(model, queries, canonical, canonical[:5], canonical[:5], d, mask, 0.0)
+    b = call(model, queries, canonical + 1.0, canonical[:5], canonical[:5] + 1.0, d, mask, 0.0)
+    assert not np.allclose(np.asarray(a), np.asarray(b) - 1.0)  # modulated by the base
+
+
+def _bad_calls(rig, handles):
+    h = handles.n_handles
+    ok = np.zeros((h, 3), np.float32)
+    nan = ok.copy()
+    nan[0, 0] = np.nan
+    return [
+        ("index", lambda: rig.handles(np.array([], np.int64))),
+        ("index", lambda: rig.handles(np.array([0, rig.n_vertices]))),
+        ("index", lambda: rig.handles(np.array([-1]))),
+        ("radius", lambda: rig(handles, ok, 0.0, 3.0)),
+        ("radius", lambda: rig(handles, ok, np.full(h, -1.0), 3.0)),
+        ("falloff", lambda: rig(handles, ok, 1.0, 0.0)),
+        ("falloff", lambda: rig(handles, ok, 1.0, np.ones(h + 1))),
+        ("displacements", lambda: rig(handles, nan, 1.0, 3.0)),
+        ("displacements", lambda: rig(handles, ok[:-1], 1.0, 3.0)),
+        ("base", lambda: rig(handles, ok, 1.0, 3.0, base=np.zeros((10, 3)))),
+        ("base", lambda: rig(handles, ok, 1.0, 3.0, base=np.full((rig.n_vertices, 3), np.inf))),
+        ("handles", lambda: rig(None, ok, 1.0, 3.0)),
+    ]
+
+
+def test_bad_input_raises_before_jit(neural_rig, placed):
+    for name, call in _bad_calls(neural_rig, placed):
+        with pytest.raises(ValueError, match=name):
+            call()
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [({"latent": 30}, "latent"), ({"n_layers": 0}, "n_layers"), ({"clamp": 0.7}, "clamp")],
+)
+def test_bad_hyper_parameters(face, kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        CANRig(face[0], key=jax.random.PRNGKey(0), **kwargs)

@@ -1,0 +1,81 @@
+"""Training: the loss goes down on real shapes, checkpoints are atomic and resuming an
+interrupted run gives exactly the uninterrupted result; example sampling."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import numpy as np
+import pytest
+
+from canrig_jax.canrig import (
+    ExampleOptions,
+    TrainOptions,
+    build_training_set,
+    load_model,
+    sample_examples,
+    split_capture,
+    train,
+)
+
+TINY = ExampleOptions(batch=2, n_vertices=48, n_handles=(3, 12), handle_bucket=12)
+
+
+@pytest.fixture(scope="module")
+def tiny_data(ict_quartic, livelink_weights):
+    capture_train, _ = split_capture(livelink_weights[:12])
+    return build_training_set(ict_quartic, capture_train, n_random=6, n_pool=40, seed=0)
+
+
+def _leaves(model):
+    return [np.asarray(x) for x in jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_array))]
+
+
+def test_resumed_training_equals_uninterrupted(tiny_data, tmp_path):
+    options = TrainOptions(steps=4, checkpoint_every=2, log_every=1, examples=TINY)
+    whole = train(tiny_data, options, checkpoint=tmp_path / "a.eqx", progress=False)
+    first = train(tiny_data, options, checkpoint=tmp_path / "b.eqx", progress=False, stop_after=3)
+    assert first.step == 3  # stopped early (checkpoint at step 3), then resumed
+    resumed = train(tiny_data, options, checkpoint=tmp_path / "b.eqx", progress=False)
+    assert resumed.step == whole.step == 4
+    for a, b in zip(_leaves(whole.model), _leaves(resumed.model), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert resumed.history == whole.history
+    # the checkpoint loads back into the same model, options from its header
+    loaded, state = load_model(tmp_path / "b.eqx", tiny_data.neutral)
+    assert state["step"] == 4
+    for a, b in zip(_leaves(whole.model), _leaves(loaded), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert not list(tmp_path.glob(".*.tmp"))  # atomic writes leave no temporary files
+
+
+def test_checkpoint_with_other_options_is_refused(tiny_data, tmp_path):
+    options = TrainOptions(steps=1, examples=TINY)
+    train(tiny_data, options, checkpoint=tmp_path / "c.eqx", progress=False)
+    with pytest.raises(ValueError, match="checkpoint"):
+        train(
+            tiny_data,
+            dataclasses.replace(options, learning_rate=1e-2),
+            checkpoint=tmp_path / "c.eqx",
+            progress=False,
+        )
+    with pytest.raises(ValueError, match="path"):
+        load_model(tmp_path / "missing.eqx", tiny_data.neutral)
+
+
+def test_sampled_examples_respect_the_options():
+    options = ExampleOptions(batch=64, n_vertices=30, n_handles=(20, 60), handle_bucket=25)
+    ex = sample_examples(np.random.default_rng(0), 10, 100, 500, options)
+    counts = np.asarray(ex.handle_valid).sum(axis=1)
+    assert counts.min() >= 20 and counts.max() <= 60
+    assert ex.handles.shape[1] % 25 == 0 or ex.handles.shape[1] == 60
+    for row, count in zip(np.asarray(ex.handles), counts.astype(int), strict=True):
+        assert len(set(row[:count].tolist())) == count  # distinct handles
+    assert np.all(ex.target != ex.base)  # "another" pose, or -1 for the neutral
+    assert np.all((ex.radius >= 0.7) & (ex.radius <= 6.0))
+    nearby, neutral = np.asarray(ex.base_nearby) == 1, np.asarray(ex.base) < 0
+    assert 0 < nearby.sum() < 20 and 0 < neutral.sum() < 20 and not np.any(nearby & neutral)
+    with pytest.raises(ValueError, match="n_handles"):
+        sample_examples(np.random.default_rng(0), 10, 10, 500, options)
