@@ -37,6 +37,14 @@ def ict_quartic_report(_ict_quartic_build):
 
 
 @pytest.fixture(scope="session")
+def ict_quartic_problem(ict_quartic):
+    """``inverse.prepare(ict_quartic)``: Gram matrix, supports, LMMM bounds (~5 s)."""
+    from canrig_jax import inverse
+
+    return inverse.prepare(ict_quartic)
+
+
+@pytest.fixture(scope="session")
 def ict_face(data_dir):
     """The linear ICT rig on the face part (9,409 vertices, 53 expressions, faces; cm)."""
     from canrig_jax.rig import ict_linear_rig

@@ -9,9 +9,8 @@ import numpy as np
 import pytest
 
 from canrig_jax import inverse
-from canrig_jax.data import load_livelinkface
 from canrig_jax.inverse.metrics import roughness, select_alpha, summarize
-from canrig_jax.rig import evaluate, ict_quartic_rig
+from canrig_jax.rig import evaluate
 from canrig_jax.rig.poses import random_sparse_poses
 
 
@@ -21,11 +20,10 @@ def _weights(problem, targets, method, order="decreasing"):
 
 
 @pytest.fixture(scope="module")
-def take():
-    rig, _ = ict_quartic_rig(progress=False)
-    problem = inverse.prepare(rig)
+def take(ict_quartic, ict_quartic_problem, livelink_weights):
+    rig, problem = ict_quartic, ict_quartic_problem
     rng = np.random.default_rng(1)
-    weights = load_livelinkface().weights_for(rig.names, missing="zero")
+    weights = livelink_weights
     train = random_sparse_poses(rng, 20, rig.names)
     meshes = jax.jit(jax.vmap(evaluate, (None, 0)))
     clean, clean_train = np.asarray(meshes(rig, weights)), np.asarray(meshes(rig, train))

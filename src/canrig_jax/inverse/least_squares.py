@@ -23,7 +23,12 @@ class Cetinaslan(eqx.Module):
             raise ValueError(f"alpha: expected a non-negative regulariser, got {self.alpha}")
 
     def __call__(self, problem, offset, init, order=None, key=None):
-        k = problem.n_blendshapes
-        system = problem.gram[:k, :k] + 2.0 * self.alpha * jnp.eye(k)
-        weights = jnp.linalg.solve(system, problem.basis[:, :k].T @ offset)
-        return jnp.clip(weights, 0.0, 1.0), None
+        return ridge_weights(problem, offset, self.alpha), None
+
+
+def ridge_weights(problem, offset, alpha):
+    """(K,) clip((B^T B + 2 alpha I)^-1 B^T (b - b0), 0, 1); ``alpha`` may be traced."""
+    k = problem.n_blendshapes
+    system = problem.gram[:k, :k] + 2.0 * alpha * jnp.eye(k)
+    weights = jnp.linalg.solve(system, problem.basis[:, :k].T @ offset)
+    return jnp.clip(weights, 0.0, 1.0)

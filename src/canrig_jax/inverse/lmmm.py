@@ -21,7 +21,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .least_squares import Cetinaslan
+from .least_squares import ridge_weights
 from .problem import InverseProblem
 
 
@@ -92,6 +92,6 @@ class LMMM(eqx.Module):
             weights = weights + step
             return weights, objective(weights)
 
-        start, _ = Cetinaslan(alpha=self.alpha)(problem, offset, init)
+        start = ridge_weights(problem, offset, self.alpha)  # Cetinaslan's solution
         weights, history = jax.lax.scan(iterate, start, None, length=self.iterations)
         return weights, history
