@@ -81,17 +81,17 @@ def test_influence_mask_closed_form_and_clamp():
     distance[0, :3] = np.inf
     radius, falloff = rng.uniform(0.5, 3, 6), rng.uniform(1, 6, 6)
     expected = 0.5 * (1 - np.tanh(falloff[:, None] * (distance - radius[:, None])))
-    got = np.asarray(influence_mask(distance, radius, falloff))
+    got = np.asarray(influence_mask(distance.T, radius, falloff)).T
     np.testing.assert_allclose(got, np.nan_to_num(expected, nan=0.0), atol=1e-6)
     assert np.all(got[0, :3] == 0.0)
-    clamped = np.asarray(influence_mask(distance, radius, falloff, CLAMP))
+    clamped = np.asarray(influence_mask(distance.T, radius, falloff, CLAMP)).T
     assert np.all(clamped[got < CLAMP] == 0.0)
     np.testing.assert_array_equal(clamped[got >= CLAMP], got[got >= CLAMP])
 
 
 def test_radius_and_falloff_change_without_recompiling():
     fn = jax.jit(influence_mask)
-    distance = np.linspace(0, 4, 50, dtype=np.float32)[None]
+    distance = np.linspace(0, 4, 50, dtype=np.float32)[:, None]
     a = fn(distance, np.array([1.0], np.float32), np.array([2.0], np.float32))
     b = fn(distance, np.array([3.0], np.float32), np.array([5.0], np.float32))
     assert fn._cache_size() == 1
@@ -111,7 +111,7 @@ def test_lips_do_not_leak_across_the_mouth_gap(ict_face):
     assert gap[u, low] < 0.3  # the lips touch: 1-3 mm apart in 3D
     distance = weighted_geodesic_distance(edge_graph(vertices, ict_face.faces), np.array([handle]))
     assert distance[0, across] > 2.0  # the path goes around the mouth corner
-    mask = np.asarray(influence_mask(distance, np.array([0.5]), np.array([6.0]), CLAMP))[0]
+    mask = np.asarray(influence_mask(distance.T, np.array([0.5]), np.array([6.0]), CLAMP))[:, 0]
     near_lower = lower[np.linalg.norm(vertices[lower] - vertices[handle], axis=1) < 1.5]
     assert near_lower.size > 5
     assert np.all(mask[near_lower] == 0.0)

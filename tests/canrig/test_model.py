@@ -61,7 +61,7 @@ def test_vertices_outside_every_clamped_mask_do_not_move(
     base = _other_shape(ict_face, sparse_poses)
     out = np.asarray(neural_rig(placed, displacements, 1.0, 3.0, base=base, beta=0.5))
     mask = np.asarray(influence_mask(placed.distance, np.ones(60), np.full(60, 3.0), CLAMP))
-    outside = mask.max(axis=0) == 0.0
+    outside = mask.max(axis=1) == 0.0
     assert 1000 < outside.sum() < len(base)
     assert np.array_equal(out[outside], base[outside])
     assert np.abs(out[~outside] - base[~outside]).max() > 1e-4  # and the region does move
@@ -90,7 +90,7 @@ def test_handles_positions_come_from_canonical_and_base(face):
     canonical = jnp.asarray(face[0][:200])
     queries = eqx.filter_jit(type(model).encode_queries)(model, canonical)
     d = jnp.ones((5, 3)) * 0.1
-    mask = jnp.full((5, 200), 0.5)
+    mask = jnp.full((200, 5), 0.5)
     call = eqx.filter_jit(lambda m, *args: m(*args))
     a = call(model, queries, canonical, canonical[:5], canonical[:5], d, mask, 0.0)
     b = call(model, queries, canonical + 1.0, canonical[:5], canonical[:5] + 1.0, d, mask, 0.0)

@@ -65,14 +65,15 @@ class TrainingSet(eqx.Module):
         shapes: (N, V, 3) training targets.
         nearby: (N, V, 3) a nearby pose of each target.
         pool: (P,) handle candidate vertices.
-        pool_distance: (P, V) their weighted geodesic distance (inf beyond the limit).
+        pool_distance: (V, P) weighted geodesic distance of each vertex to each candidate
+            (inf beyond the limit).
     """
 
     neutral: Float[Array, "V 3"]
     shapes: Float[Array, "N V 3"]
     nearby: Float[Array, "N V 3"]
     pool: Int[Array, " P"]
-    pool_distance: Float[Array, "P V"]
+    pool_distance: Float[Array, "V P"]
 
 
 def build_training_set(
@@ -104,7 +105,7 @@ def build_training_set(
         shapes=jnp.asarray(evaluate_poses(rig, poses)),
         nearby=jnp.asarray(evaluate_poses(rig, near)),
         pool=jnp.asarray(pool.astype(np.int32)),
-        pool_distance=jnp.asarray(distance),
+        pool_distance=jnp.asarray(np.ascontiguousarray(distance.T)),
     )
 
 
@@ -182,3 +183,17 @@ def sample_examples(
         radius=np.exp(log_r).astype(np.float32),
         falloff=rng.uniform(*options.falloff_per_cm, b).astype(np.float32),
     )
+
+
+def farthest_point_vertices(vertices: np.ndarray, n: int, start: int = 0) -> np.ndarray:
+    """(n,) vertex indices by farthest-point sampling (Euclidean), from vertex ``start``:
+    evenly spread handles, as an animator would place them."""
+    vertices = np.asarray(vertices, np.float64)
+    if not 1 <= n <= len(vertices):
+        raise ValueError(f"n: expected 1 <= n <= {len(vertices)}, got {n}")
+    chosen = [int(start)]
+    nearest = np.linalg.norm(vertices - vertices[start], axis=1)
+    for _ in range(n - 1):
+        chosen.append(int(np.argmax(nearest)))
+        nearest = np.minimum(nearest, np.linalg.norm(vertices - vertices[chosen[-1]], axis=1))
+    return np.asarray(chosen, np.int32)

@@ -5,7 +5,8 @@ Distances are shortest paths on the mesh's edge graph, each edge weighted by its
 around the mouth corner, never across the mouth gap. Appendix A's correlation prior scales
 each edge by ``1 - |corr(v_i, v_j)|``: vertices that move together are close.
 
-The mask of handle h on vertex v is
+The mask of handle h on vertex v is (arrays are laid out vertices x handles, (V, H), the
+layout the attention consumes)
 
     M_{h,v} = 0.5 (1 - tanh(gamma_h (d(h, v) - r_h)))
 
@@ -118,16 +119,17 @@ def weighted_geodesic_distance(
 
 
 def influence_mask(
-    distance: Float[ArrayLike, "H V"],
+    distance: Float[ArrayLike, "V H"],
     radius: Float[ArrayLike, " H"],
     falloff: Float[ArrayLike, " H"],
     clamp: float = 0.0,
-) -> Float[Array, "H V"]:
-    """Influence M_{h,v} = 0.5 (1 - tanh(falloff_h (d_{h,v} - radius_h))); values below
-    ``clamp`` become exactly 0. Infinite distances give 0. jit/vmap/grad-safe."""
+) -> Float[Array, "V H"]:
+    """Influence M_{h,v} = 0.5 (1 - tanh(falloff_h (d_{h,v} - radius_h))) of each handle
+    (last axis) on each vertex; values below ``clamp`` become exactly 0, infinite distances
+    give 0. jit/vmap/grad-safe."""
     distance = jnp.asarray(distance)
-    radius = jnp.asarray(radius)[..., :, None]
-    falloff = jnp.asarray(falloff)[..., :, None]
+    radius = jnp.asarray(radius)
+    falloff = jnp.asarray(falloff)
     finite = jnp.isfinite(distance)
     scaled = falloff * (jnp.where(finite, distance, 0.0) - radius)
     mask = jnp.where(finite, 0.5 * (1.0 - jnp.tanh(scaled)), 0.0)

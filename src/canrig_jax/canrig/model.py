@@ -122,7 +122,7 @@ class CANRig(eqx.Module):
         handle_canonical: Float[Array, "H 3"],
         handle_base: Float[Array, "H 3"],
         displacements: Float[Array, "H 3"],
-        mask: Float[Array, "H N"],
+        mask: Float[Array, "N H"],
         beta: float | Float[Array, ""] | None = None,
     ) -> Float[Array, "N 3"]:
         """The deformed shape at the N query vertices: base + network output.
@@ -133,7 +133,7 @@ class CANRig(eqx.Module):
         mask = jnp.where(mask < self.clamp, 0.0, mask)
         keys = self.encode_keys(handle_canonical)
         values = self.encode_values(displacements, handle_base)
-        attended = masked_cross_attention(queries, keys, values, mask.T, self._beta(beta))
+        attended = masked_cross_attention(queries, keys, values, mask, self._beta(beta))
         attended = attended.swapaxes(0, 1).reshape(queries.shape[1], -1)
         return base + self.decode(attended, base)
 

@@ -25,10 +25,11 @@ from .model import CANRig
 
 @dataclasses.dataclass(frozen=True)
 class Handles:
-    """Handle vertices and their (H, V) weighted geodesic distance to every vertex."""
+    """Handle vertices and the (V, H) weighted geodesic distance of every vertex to them
+    (kept on the device, so repeated edits do not copy it)."""
 
     index: np.ndarray
-    distance: np.ndarray
+    distance: Array
 
     @property
     def n_handles(self) -> int:
@@ -42,7 +43,7 @@ def deform(
     canonical: Float[Array, "V 3"],
     base: Float[Array, "V 3"],
     handle_index: Int[Array, " H"],
-    distance: Float[Array, "H V"],
+    distance: Float[Array, "V H"],
     displacements: Float[Array, "H 3"],
     radius: Float[Array, " H"],
     falloff: Float[Array, " H"],
@@ -98,7 +99,7 @@ class NeuralRig:
                 f"got {index.min()}..{index.max()}"
             )
         distance = weighted_geodesic_distance(self.graph, index, limit=limit)
-        return Handles(index.astype(np.int32), distance)
+        return Handles(index.astype(np.int32), jnp.asarray(np.ascontiguousarray(distance.T)))
 
     def __call__(
         self,
@@ -116,7 +117,7 @@ class NeuralRig:
         if not isinstance(handles, Handles) or handles.n_handles == 0:
             raise ValueError("handles: expected a non-empty Handles from NeuralRig.handles")
         h = handles.n_handles
-        if handles.distance.shape != (h, self.n_vertices):
+        if tuple(handles.distance.shape) != (self.n_vertices, h):
             raise ValueError(
                 f"handles: distances of shape {handles.distance.shape} do not fit this mesh "
                 f"({self.n_vertices} vertices)"
@@ -148,7 +149,7 @@ class NeuralRig:
             self.canonical,
             jnp.asarray(base),
             jnp.asarray(handles.index),
-            jnp.asarray(handles.distance),
+            handles.distance,
             jnp.asarray(displacements),
             jnp.asarray(radius),
             jnp.asarray(falloff),

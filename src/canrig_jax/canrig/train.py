@@ -10,6 +10,7 @@ state, the step, the elapsed time and the loss history, written in one file atom
 from __future__ import annotations
 
 import dataclasses
+import functools
 import io
 import json
 import os
@@ -69,6 +70,13 @@ class TrainOptions:
         return cls(**d, examples=ExampleOptions(**ex))
 
 
+@functools.lru_cache(maxsize=8)
+def adam(learning_rate: float) -> optax.GradientTransformation:
+    """optax.adam, one object per learning rate: the jitted step (which takes the optimiser
+    as a static argument) then compiles once per process, also across resumed runs."""
+    return optax.adam(learning_rate)
+
+
 def make_model(options: TrainOptions, canonical, displacement_scale: float = 1.0) -> CANRig:
     return VARIANTS[options.variant](
         np.asarray(canonical),
@@ -95,10 +103,10 @@ def example_loss(
             jnp.where(base < 0, data.neutral, data.shapes[jnp.maximum(base, 0)]),
         )
         handle_vertex = data.pool[handles]
-        distance = data.pool_distance[handles][:, vertices]
+        distance = data.pool_distance[vertices][:, handles]
         n = handles.shape[0]
         mask = influence_mask(distance, jnp.full(n, radius), jnp.full(n, falloff), model.clamp)
-        mask = mask * valid[:, None]
+        mask = mask * valid[None, :]
         queries = model.encode_queries(data.neutral[vertices])
         displacements = (target_shape[handle_vertex] - base_shape[handle_vertex]) * valid[:, None]
         predicted = model(
@@ -112,7 +120,7 @@ def example_loss(
         )
         truth = target_shape[vertices]
         # eq. (5): outside the region (blend mask from the largest influence) keep the base
-        blend = jnp.max(mask, axis=0)[:, None]
+        blend = jnp.max(mask, axis=1)[:, None]
         blended = blend * truth + (1.0 - blend) * base_shape[vertices]
         l2 = jnp.mean(jnp.sum((predicted - truth) ** 2, axis=1))
         l_sp = jnp.mean(jnp.sum((predicted - blended) ** 2, axis=1))
@@ -184,7 +192,7 @@ def load_model(path, canonical) -> tuple[CANRig, dict]:
     state = read_checkpoint_state(path)
     options = TrainOptions.from_dict(state["options"])
     like = make_model(options, canonical, state["displacement_scale"])
-    optimiser = optax.adam(options.learning_rate)
+    optimiser = adam(options.learning_rate)
     like_opt = optimiser.init(eqx.filter(like, eqx.is_array))
     model, _, state = load_checkpoint(path, like, like_opt)
     return model, state
@@ -214,7 +222,7 @@ def train(
     ``options.max_minutes`` of accumulated training time. ``stop_after`` ends this call
     early after that many steps (a simulated interruption, for tests)."""
     model = make_model(options, data.neutral, displacement_scale)
-    optimiser = optax.adam(options.learning_rate)
+    optimiser = adam(options.learning_rate)
     opt_state = optimiser.init(eqx.filter(model, eqx.is_array))
     step, seconds, history = 0, 0.0, []
     if checkpoint is not None and os.path.exists(checkpoint):
