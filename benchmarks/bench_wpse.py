@@ -1,0 +1,86 @@
+"""Speed of WPSE training and run time (face and whole ICT head, 10 and 50 edits).
+
+    python benchmarks/bench_wpse.py [--repeats 40] [--out benchmarks/results/bench_wpse.md]
+
+Edits are synthetic (run time depends only on the edited vertex count and the number of
+edits): at random sparse poses, a fraction of the blendshape offsets, on every vertex that
+some blendshape moves by more than 1 micrometre. Run time is one frame per call of
+``jax.jit(wpse.apply)`` given the posed base mesh (local frames included), against
+``NumpyEditEvaluator`` (the same equations in NumPy) in the same process. The 1-minute load
+average is printed: the 2-core machine is shared, and timings scale with it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from canrig_jax import wpse
+from canrig_jax.io import save_text
+from canrig_jax.rig import evaluate, ict_linear_rig
+from canrig_jax.rig.poses import random_sparse_poses
+from canrig_jax.wpse.reference import NumpyEditEvaluator
+
+DEFAULT_OUT = Path(__file__).parent / "results" / "bench_wpse.md"
+
+
+def _fit(rig, poses, edits):
+    model = wpse.fit_pose_space_edit(rig, poses, edits, sigma=0.15, support_tol=1e-4)
+    return jax.block_until_ready(model)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=40)
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    args = parser.parse_args(argv)
+    rng = np.random.default_rng(0)
+    lines = [
+        "| part | vertices (edited) | edits | train (s) | run time median / min (ms) "
+        "| NumPy median (ms) | load average |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for part, parts in (("face", "face"), ("head", None)):
+        rig = ict_linear_rig(parts=parts) if parts is None else ict_linear_rig()
+        probe = random_sparse_poses(rng, args.repeats, rig.names)
+        posed = np.asarray(jax.vmap(evaluate, (None, 0))(rig, probe))
+        for n_edits in (10, 50):
+            poses = random_sparse_poses(rng, n_edits, rig.names)
+            scale = rng.uniform(-0.1, 0.1, (n_edits, rig.n_blendshapes, 1, 1))
+            edits = (scale * np.asarray(rig.deltas)[None]).sum(axis=1).astype(np.float32)
+            _fit(rig, poses, edits)
+            start = time.perf_counter()
+            model = _fit(rig, poses, edits)
+            train = time.perf_counter() - start
+            run = jax.jit(wpse.apply)
+            jax.block_until_ready(run(model, probe[0], posed[0]))
+            times = []
+            for w, mesh in zip(jax.device_put(probe), jax.device_put(posed), strict=True):
+                start = time.perf_counter()
+                jax.block_until_ready(run(model, w, mesh))
+                times.append(time.perf_counter() - start)
+            reference = NumpyEditEvaluator(model)
+            numpy_times = []
+            for w, mesh in zip(probe, posed, strict=True):
+                start = time.perf_counter()
+                reference(w, mesh)
+                numpy_times.append(time.perf_counter() - start)
+            lines.append(
+                f"| {part} | {rig.n_vertices} ({model.vertices.shape[0]}) | {n_edits} | "
+                f"{train:.2f} | {1e3 * np.median(times):.2f} / {1e3 * np.min(times):.2f} | "
+                f"{1e3 * np.median(numpy_times):.2f} | {os.getloadavg()[0]:.1f} |"
+            )
+            print(lines[-1], flush=True)
+    table = "\n".join(lines) + "\n"
+    save_text(args.out, table)
+    print(table)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
