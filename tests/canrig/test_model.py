@@ -76,7 +76,7 @@ def test_radius_falloff_beta_change_without_recompiling(neural_rig, placed):
     displacements = np.full((placed.n_handles, 3), 0.1, np.float32)
     before = deform._cached._cache_size() if hasattr(deform, "_cached") else None
     outs = [
-        neural_rig(placed, displacements, r, f, beta=b)
+        neural_rig(placed, displacements, r, f, beta=b, dense=True)
         for r, f, b in ((1.0, 2.0, 0.0), (3.0, 5.0, 1.0), (2.0, 3.0, -1.0))
     ]
     if before is not None:
@@ -131,3 +131,24 @@ def test_bad_input_raises_before_jit(neural_rig, placed):
 def test_bad_hyper_parameters(face, kwargs, match):
     with pytest.raises(ValueError, match=match):
         CANRig(face[0], key=jax.random.PRNGKey(0), **kwargs)
+
+
+def test_block_sparse_forward_equals_dense(neural_rig, placed, ict_face, sparse_poses):
+    rng = np.random.default_rng(5)
+    displacements = rng.normal(0, 0.5, (placed.n_handles, 3)).astype(np.float32)
+    base = _other_shape(ict_face, sparse_poses)
+    for radius in (0.7, 3.0):
+        blocked = neural_rig(placed, displacements, radius, 3.0, base=base, beta=0.3)
+        dense = neural_rig(placed, displacements, radius, 3.0, base=base, beta=0.3, dense=True)
+        np.testing.assert_allclose(np.asarray(blocked), np.asarray(dense), atol=2e-6)
+
+
+def test_vertex_blocks_partition_the_mesh(face):
+    from canrig_jax.canrig.blocks import vertex_blocks
+
+    blocks = vertex_blocks(face[0], 48)
+    assert blocks.shape[1] <= 48
+    flat = blocks[blocks >= 0]
+    assert np.array_equal(np.sort(flat), np.arange(len(face[0])))
+    extent = [np.ptp(face[0][b[b >= 0]], axis=0).max() for b in blocks]
+    assert max(extent) < 3.0  # compact: a few cm at most on an 18 cm face

@@ -133,11 +133,12 @@ class CANRig(eqx.Module):
         mask = jnp.where(mask < self.clamp, 0.0, mask)
         keys = self.encode_keys(handle_canonical)
         values = self.encode_values(displacements, handle_base)
-        attended = masked_cross_attention(queries, keys, values, mask, self._beta(beta))
+        attended = masked_cross_attention(queries, keys, values, mask, self.attention_beta(beta))
         attended = attended.swapaxes(0, 1).reshape(queries.shape[1], -1)
         return base + self.decode(attended, base)
 
-    def _beta(self, beta):
+    def attention_beta(self, beta):
+        """The extra attention column's logit: none for plain CANRig."""
         return None
 
 
@@ -189,7 +190,8 @@ class ShapePreservingCANRig(CANRig):
         modulated = attended * jax.vmap(self.output_modulation)(self.normalise(base))
         return jax.vmap(self.output_mlp)(modulated) * self.displacement_scale
 
-    def _beta(self, beta):
+    def attention_beta(self, beta):
+        """The extra attention column's logit (default 0, the training value)."""
         return 0.0 if beta is None else beta
 
 

@@ -7,7 +7,9 @@ displacements, radii, falloffs, base shapes and beta, without recompiling.
     shape = rig(handles, displacements, radius=2.0, falloff=3.0)          # from the neutral
     shape = rig(handles, displacements, radius=1.0, falloff=3.0, base=previous, beta=0.0)
 
-Every argument is validated in plain Python before the jitted forward pass.
+Every argument is validated in plain Python before the jitted forward pass. By default the
+forward pass is block-sparse (``blocks.py``: each block of ~48 vertices attends only to the
+handles that influence it, exact); ``dense=True`` runs the dense (V x H) attention instead.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from .blocks import block_handle_counts, blocked_deform, vertex_blocks
 from .masks import check_handle_parameters, edge_graph, influence_mask, weighted_geodesic_distance
 from .model import CANRig
 
@@ -72,6 +75,7 @@ class NeuralRig:
         faces: Int[ArrayLike, "F 3"],
         *,
         edge_factor: np.ndarray | None = None,
+        block_size: int = 48,
     ):
         canonical = np.asarray(canonical, np.float32)
         self.model = model
@@ -79,6 +83,15 @@ class NeuralRig:
         self.canonical = jnp.asarray(canonical)
         self.faces = np.asarray(faces)
         self.queries = eqx.filter_jit(type(model).encode_queries)(model, self.canonical)
+        blocks = vertex_blocks(canonical, block_size)
+        flat = blocks.ravel()
+        position = np.zeros(len(canonical), np.int32)
+        position[flat[flat >= 0]] = np.flatnonzero(flat >= 0)
+        self.blocks = jnp.asarray(blocks)
+        self.block_position = jnp.asarray(position)
+        # queries per block (B, heads, S, d); padding slots get zero queries, mask 0
+        padded = jnp.concatenate([self.queries, jnp.zeros_like(self.queries[:, :1])], axis=1)
+        self.block_queries = jnp.moveaxis(padded[:, self.blocks], 0, 1)
 
     @property
     def n_vertices(self) -> int:
@@ -110,6 +123,7 @@ class NeuralRig:
         *,
         base: Float[ArrayLike, "V 3"] | None = None,
         beta: float | None = None,
+        dense: bool = False,
     ) -> Float[Array, "V 3"]:
         """The shape for ``displacements`` at the handles (relative to ``base``, default the
         neutral); radius and falloff per handle or shared; ``beta`` for the shape-preserving
@@ -143,9 +157,7 @@ class NeuralRig:
             if not np.isfinite(beta):
                 raise ValueError(f"beta: expected a finite number, got {beta}")
             beta = jnp.asarray(beta, jnp.float32)
-        return deform(
-            self.model,
-            self.queries,
+        args = (
             self.canonical,
             jnp.asarray(base),
             jnp.asarray(handles.index),
@@ -154,4 +166,14 @@ class NeuralRig:
             jnp.asarray(radius),
             jnp.asarray(falloff),
             beta,
+        )
+        if dense:
+            return deform(self.model, self.queries, *args)
+        counts = block_handle_counts(
+            self.blocks, handles.distance, args[5], args[6], self.model.clamp
+        )
+        most = max(int(np.max(np.asarray(counts))), 1)
+        width = min(1 << (most - 1).bit_length(), h)  # next power of two: few compilations
+        return blocked_deform(
+            self.model, self.block_queries, self.blocks, self.block_position, *args, width
         )

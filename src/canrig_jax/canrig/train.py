@@ -219,15 +219,18 @@ def train(
     stop_after: int | None = None,
 ) -> TrainResult:
     """Train (or resume from ``checkpoint`` if it exists) until ``options.steps`` steps or
-    ``options.max_minutes`` of accumulated training time. ``stop_after`` ends this call
-    early after that many steps (a simulated interruption, for tests)."""
+    ``options.max_minutes`` of accumulated training time. A checkpoint resumes only with the
+    same options, except the budget (steps, max_minutes), which may be extended. ``stop_after``
+    ends this call early after that many steps (a simulated interruption, for tests)."""
     model = make_model(options, data.neutral, displacement_scale)
     optimiser = adam(options.learning_rate)
     opt_state = optimiser.init(eqx.filter(model, eqx.is_array))
     step, seconds, history = 0, 0.0, []
     if checkpoint is not None and os.path.exists(checkpoint):
         model, opt_state, state = load_checkpoint(checkpoint, model, opt_state)
-        if TrainOptions.from_dict(state["options"]) != options:
+        saved = TrainOptions.from_dict(state["options"])
+        budget = {"steps": options.steps, "max_minutes": options.max_minutes}
+        if dataclasses.replace(saved, **budget) != options:
             raise ValueError(f"checkpoint: {checkpoint} was written with different options")
         step, seconds, history = state["step"], state["seconds"], state["history"]
 
