@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from canrig_jax.canrig import ZeroPreservingMLP
 
 
-@settings(max_examples=4, deadline=None)
+@settings(max_examples=3, deadline=None)
 @given(
     seed=st.integers(0, 2**31 - 1),
     sizes=st.tuples(st.integers(1, 9), st.integers(1, 9), st.integers(1, 33), st.integers(1, 4)),

@@ -1,0 +1,38 @@
+"""The CANRig experiments end to end in --quick mode (slow: a few minutes on 2 cores)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+EXPERIMENTS = Path(__file__).resolve().parents[2] / "experiments"
+
+
+def _load(name):
+    spec = importlib.util.spec_from_file_location(name, EXPERIMENTS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.slow
+def test_quick_train_and_eval_write_the_issue_keys(tmp_path):
+    _load("canrig_train").main(["--quick", "--no-progress", "--out", str(tmp_path)])
+    checkpoint = tmp_path / "checkpoint.eqx"
+    assert checkpoint.exists() and (tmp_path / "train.json").exists()
+    _load("canrig_eval").main(["--quick", "--checkpoint", str(checkpoint), "--out", str(tmp_path)])
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert results["zero_preservation_max_mm"] == 0.0
+    assert results["outside_region_change_max_mm"] == 0.0
+    assert set(results["handles_radius_mm"]) == {"20", "75", "200"}
+    for by_radius in results["handles_radius_mm"].values():
+        assert set(by_radius) == {"small", "medium", "large"}
+    assert len(results["layers_mm"]) == 3
+    for key in ("forward_ms", "train_minutes", "parameters"):
+        assert results[key] > 0
+    assert results["blocked_vs_dense_max_mm"] < 1e-3
+    for name in ("table.md", "mask_radii.png", "heldout_error.png", "training_loss.png"):
+        assert (tmp_path / name).exists()
