@@ -6,10 +6,12 @@
 9,409 vertices, 200 handles (farthest-point spread), medium radius 2 cm, falloff 3/cm,
 warm jit, float32, median over ``--repeats`` calls. Rows, all in one process:
 
-- **NeuralRig call** (the library's entry point): input validation in Python, then the
-  jitted forward with the queries of S_0 cached and the masks computed from the placed
-  handles' distances in the jit (radius and falloff are run-time arrays).
-- **deform only**: the same jitted forward without the Python validation.
+- **NeuralRig call** (the library's entry point): input validation in Python, the count of
+  handles per vertex block (one small device->host read), then the jitted block-sparse
+  forward (``canrig/blocks.py``) with the queries of S_0 cached and the masks computed from
+  the placed handles' distances in the jit (radius and falloff are run-time arrays). Also
+  at the small and large radius (1 and 4 cm), where the block width differs.
+- **dense, cached queries**: ``deform``, the dense (V x H) attention, queries cached.
 - **reference: dense, uncached queries**: the same network with the queries of all 9,409
   vertices recomputed inside every call (the naive prototype of the issue).
 - **handle placement**: the Dijkstra runs from 200 handles (once per placement, not per edit).
@@ -106,11 +108,14 @@ def main(argv=None):
     )
     rows = [
         (
-            "NeuralRig call (cached queries)",
-            _time(lambda: rig(handles, displacements, 2.0, 3.0), args.repeats),
-        ),
+            f"NeuralRig call, block-sparse, radius {r:g} cm",
+            _time(lambda r=r: rig(handles, displacements, r, 3.0), args.repeats),
+        )
+        for r in (2.0, 1.0, 4.0)
+    ]
+    rows += [
         (
-            "deform only (cached queries)",
+            "dense, cached queries (deform)",
             _time(
                 lambda: deform(
                     model,
