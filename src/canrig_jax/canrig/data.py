@@ -83,10 +83,12 @@ def build_training_set(
     n_random: int = 800,
     n_pool: int = 2048,
     distance_limit_cm: float = 10.0,
+    edge_factor: np.ndarray | None = None,
     seed: int = 0,
 ) -> TrainingSet:
     """Evaluate the rig at the capture's training frames and ``n_random`` random sparse poses
-    (seed ``seed``), their nearby poses, and the distances from ``n_pool`` handle candidates."""
+    (seed ``seed``), their nearby poses, and the distances from ``n_pool`` handle candidates
+    (edge lengths times ``edge_factor`` if given, e.g. ``masks.correlation_edge_factor``)."""
     rng = np.random.default_rng(seed)
     random_poses = random_sparse_poses(rng, n_random, rig.names)
     poses = np.concatenate([capture_train, random_poses]).astype(np.float32)
@@ -98,7 +100,7 @@ def build_training_set(
     )
     neutral = np.asarray(rig.neutral, np.float32)
     pool = np.sort(rng.choice(rig.n_vertices, size=min(n_pool, rig.n_vertices), replace=False))
-    graph = edge_graph(neutral, np.asarray(rig.faces))
+    graph = edge_graph(neutral, np.asarray(rig.faces), edge_factor)
     distance = weighted_geodesic_distance(graph, pool, limit=distance_limit_cm)
     return TrainingSet(
         neutral=jnp.asarray(neutral),
