@@ -209,8 +209,8 @@ def _tradeoff_plot(sweep, chosen, path):
             ax.scatter([pick["cardinality"]], [pick[key]], s=120, facecolors="none", edgecolors="k")
         ax.set_xlabel("cardinality (weights > 1e-3)")
         ax.set_ylabel(f"{label} error (mm)")
-        ax.set_title(f"{label} error vs cardinality (dot size: alpha; ring: chosen)")
-    axes[0].legend()
+        ax.set_title(f"{label} error vs cardinality", fontsize=10)
+    axes[0].legend(title="dot size: alpha; ring: chosen", fontsize=8, title_fontsize=8)
     save_figure(fig, path)
 
 
