@@ -1,4 +1,4 @@
-"""The WPSE experiment end to end in --quick mode (slow: about 5 minutes on 2 cores)."""
+"""The WPSE experiment end to end in --quick mode (slow: 5-8 minutes on 2 shared cores)."""
 
 from __future__ import annotations
 
