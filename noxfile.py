@@ -44,13 +44,28 @@ def demo(session):
     session.run("python", "-m", "canrig_jax.demo", *session.posargs)
 
 
+STANDARD_EXPERIMENTS = (
+    ("build_quartic_rig.py", "--out", "experiments/results/build_quartic_rig"),
+    ("inverse_rig.py", "--out", "experiments/results/inverse_rig"),
+    ("wpse.py", "--out", "experiments/results/wpse"),
+    ("mesh_foundations.py", "--out", "experiments/results/mesh_foundations"),
+    ("canrig_train.py", "--out", "experiments/results/canrig", "--minutes", "25"),
+    (
+        "canrig_eval.py",
+        "--checkpoint",
+        "experiments/results/canrig/checkpoint.eqx",
+        "--out",
+        "experiments/results/canrig",
+    ),
+)
+"""The standard configurations whose outputs are committed under experiments/results/."""
+
+
 @nox.session
 def experiments(session):
-    """Standard-configuration experiments, written under experiments/results/."""
+    """Standard-configuration experiments (long: about two hours on 2 cores); pass script
+    names to run a subset, e.g. ``nox -s experiments -- inverse_rig.py``."""
     session.install("-e", ".")
-    session.run(
-        "python",
-        "experiments/build_quartic_rig.py",
-        "--out",
-        "experiments/results/build_quartic_rig",
-    )
+    for script, *arguments in STANDARD_EXPERIMENTS:
+        if not session.posargs or script in session.posargs:
+            session.run("python", f"experiments/{script}", *arguments)
