@@ -118,7 +118,14 @@ def default_order_progress(setup):
     return np.asarray(start), np.asarray(default.objective)
 
 
-@pytest.mark.parametrize("order", inverse.ORDERS)
+# the static orders share one code path with "decreasing"; their runs are in -m slow
+STATIC_TWINS = ("increasing", "random", "frame_correlation")
+
+
+@pytest.mark.parametrize(
+    "order",
+    [pytest.param(o, marks=pytest.mark.slow) if o in STATIC_TWINS else o for o in inverse.ORDERS],
+)
 def test_every_order_gives_a_monotone_descent_to_a_good_fit(setup, default_order_progress, order):
     _, problem, _, targets = setup
     ordered = jax.jit(
