@@ -61,7 +61,7 @@ def main(argv=None) -> None:
 
     noise = np.random.default_rng(0).normal(0.0, np.sqrt(0.03), quartic.shape)
     problem = inverse.prepare(rig)
-    for method in (inverse.QuarticCD(alpha=2.0, passes=5), inverse.Cetinaslan(alpha=0.5)):
+    for method in (inverse.QuarticCD(alpha=5.0, passes=5), inverse.Cetinaslan(alpha=1.0)):
         solution = inverse.solve_sequence(problem, (quartic + noise).astype(np.float32), method)
         scores = summarize(rig, np.asarray(solution.weights), quartic)
         print(
