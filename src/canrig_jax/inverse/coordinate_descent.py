@@ -7,8 +7,9 @@ target) the 1-D problem min_{0<=w_i<=u} 1/2||w_i phi_i + psi_i||^2 + alpha w_i h
     w_i <- clip((-phi_i^T psi_i - alpha) / ||phi_i||^2, 0, u).
 
 All inner products are taken in coefficient space (see ``problem.py``): phi_i = M g_i with
-g_i = a(w|w_i=1) - a(w|w_i=0), so ||phi_i||^2 = g^T Q g and phi_i^T psi_i = g^T (Q a_rest - p),
-a P-vector computation per coordinate, independent of the vertex count.
+g_i = a(w|w_i=1) - a(w|w_i=0), so ||phi_i||^2 = g^T Q g and phi_i^T psi_i = g^T (Q a_rest - p).
+g_i is non-zero only on the m columns that contain weight i, so each update is an m x P
+product, independent of the vertex count.
 """
 
 from __future__ import annotations
@@ -41,13 +42,7 @@ def objective(
     Computed in coefficient space, 1/2 (a^T Q a - 2 a^T M^T (b - b0) + ||b - b0||^2), which
     shares the projection M^T (b - b0) with the solvers instead of forming a second 3V-vector
     (float32: absolute error ~1e-7 ||b - b0||^2)."""
-    projection = problem.basis.T @ offset
-    return _gram_objective(problem, weights, projection, offset @ offset, alpha)
-
-
-def _gram_objective(model, weights, projection, offset_sq, alpha):
-    a = model.coefficients(weights)
-    return 0.5 * (a @ model.gram @ a - 2.0 * a @ projection + offset_sq) + alpha * weights.sum()
+    return problem.objective(weights, problem.basis.T @ offset, offset @ offset, alpha)
 
 
 STATIC_ORDERS = ("decreasing", "increasing", "random", "frame_correlation")
@@ -162,7 +157,7 @@ class QuarticCD(eqx.Module):
             weights, per_coordinate = jax.lax.scan(step, weights, sequence.astype(jnp.int32))
             if self.trace:
                 return weights, per_coordinate
-            return weights, _gram_objective(model, weights, projection, offset_sq, alpha)
+            return weights, model.objective(weights, projection, offset_sq, alpha)
 
         sequences = static_order(problem, order, self.passes, offset, key)
         weights, history = jax.lax.scan(sweep, init, sequences)

@@ -39,13 +39,10 @@ class JaxoptLBFGSB(eqx.Module):
         projection, offset_sq = problem.basis.T @ offset, offset @ offset
 
         def fun(weights):
-            if self.objective == "evaluate":
-                residual = evaluate(rig, weights) - target
-                data = 0.5 * jnp.sum(residual**2)
-            else:
-                a = problem.coefficients(weights)
-                data = 0.5 * (a @ problem.gram @ a - 2.0 * a @ projection + offset_sq)
-            return data + self.alpha * jnp.sum(weights)
+            if self.objective == "gram":
+                return problem.objective(weights, projection, offset_sq, self.alpha)
+            residual = evaluate(rig, weights) - target
+            return 0.5 * jnp.sum(residual**2) + self.alpha * jnp.sum(weights)
 
         solver = jaxopt.LBFGSB(fun=fun, maxiter=self.maxiter, tol=self.tol)
         bounds = (jnp.zeros_like(init), jnp.ones_like(init))

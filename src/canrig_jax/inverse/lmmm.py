@@ -71,11 +71,6 @@ class LMMM(eqx.Module):
         c4 = jnp.maximum(k * jnp.sum(bounds[:, 2] ** 2), 1e-12)
         eye = jnp.eye(k, dtype=offset.dtype)
 
-        def objective(weights):
-            a = model.coefficients(weights)
-            data = 0.5 * (a @ model.gram @ a - 2.0 * a @ projection + offset_sq)
-            return data + self.alpha * weights.sum()
-
         def iterate(weights, _):
             a = model.coefficients(weights)
             low = jax.vmap(model.coefficients)(weights * (1 - eye))
@@ -90,7 +85,7 @@ class LMMM(eqx.Module):
             c2 = jnp.maximum(sigma_sq + split, 0.0)
             step = jnp.clip(_increasing_cubic_root(linear, c2, c4), -weights, self.upper - weights)
             weights = weights + step
-            return weights, objective(weights)
+            return weights, model.objective(weights, projection, offset_sq, self.alpha)
 
         start = ridge_weights(problem, offset, self.alpha)  # Cetinaslan's solution
         weights, history = jax.lax.scan(iterate, start, None, length=self.iterations)

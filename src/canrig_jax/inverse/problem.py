@@ -72,6 +72,18 @@ class InverseProblem(eqx.Module):
             [weights, *(combination_coefficients(weights, c) for c in self.combinations)]
         )
 
+    def objective(
+        self,
+        weights: Float[Array, " K"],
+        projection: Float[Array, " P"],
+        offset_sq: Float[Array, ""],
+        alpha: float,
+    ) -> Float[Array, ""]:
+        """1/2 ||f(w) - b||^2 + alpha 1^T w from p = M^T (b - b0) and ||b - b0||^2:
+        1/2 (a^T Q a - 2 a^T p + ||b - b0||^2) + alpha 1^T w, P x P work."""
+        a = self.coefficients(weights)
+        return 0.5 * (a @ self.gram @ a - 2.0 * a @ projection + offset_sq) + alpha * weights.sum()
+
     def mesh(self, weights: Float[Array, " K"]) -> Float[Array, "V 3"]:
         return self.neutral + (self.basis @ self.coefficients(weights)).reshape(-1, 3)
 
