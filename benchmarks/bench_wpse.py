@@ -24,7 +24,7 @@ from canrig_jax import wpse
 from canrig_jax.io import save_text
 from canrig_jax.rig import evaluate, ict_linear_rig
 from canrig_jax.rig.poses import random_sparse_poses
-from canrig_jax.wpse.reference import NumpyEditEvaluator
+from canrig_jax.wpse.reference import time_runtime
 
 DEFAULT_OUT = Path(__file__).parent / "results" / "bench_wpse.md"
 
@@ -57,19 +57,8 @@ def main(argv=None):
             start = time.perf_counter()
             model = _fit(rig, poses, edits)
             train = time.perf_counter() - start
-            run = jax.jit(wpse.apply)
-            jax.block_until_ready(run(model, probe[0], posed[0]))
-            times = []
-            for w, mesh in zip(jax.device_put(probe), jax.device_put(posed), strict=True):
-                start = time.perf_counter()
-                jax.block_until_ready(run(model, w, mesh))
-                times.append(time.perf_counter() - start)
-            reference = NumpyEditEvaluator(model)
-            numpy_times = []
-            for w, mesh in zip(probe, posed, strict=True):
-                start = time.perf_counter()
-                reference(w, mesh)
-                numpy_times.append(time.perf_counter() - start)
+            timed = time_runtime(model, probe, posed)
+            times, numpy_times = timed["jax_seconds"], timed["numpy_seconds"]
             lines.append(
                 f"| {part} | {rig.n_vertices} ({model.vertices.shape[0]}) | {n_edits} | "
                 f"{train:.2f} | {1e3 * np.median(times):.2f} / {1e3 * np.min(times):.2f} | "

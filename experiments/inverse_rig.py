@@ -48,6 +48,12 @@ def _solve_all(problem, targets, method, order):
     return jax.vmap(lambda b: inverse.solve(problem, b, method, order=order))(targets).weights
 
 
+def take_scores(rig, weights, clean, alpha, seconds):
+    """One table row: the method's alpha, frame metrics, roughness and speed on the take."""
+    scores = {"alpha": alpha, **summarize(rig, weights, clean), "roughness": roughness(weights)}
+    return {**scores, "seconds_per_frame": seconds}
+
+
 def run(problem, targets, method, order="decreasing"):
     """Solve all frames in one jitted vmap; returns weights and seconds per frame."""
     _solve_all(problem, targets, method, order).block_until_ready()  # compile, warm up
@@ -92,12 +98,7 @@ def main(argv=None):
     for name, make in {**SWEEP, **FIXED}.items():
         weights, seconds = run(problem, noisy_test, make(chosen[name]))
         take_weights[name] = weights
-        methods[name] = {
-            "alpha": chosen[name],
-            **summarize(rig, weights, clean_test),
-            "roughness": roughness(weights),
-            "seconds_per_frame": seconds,
-        }
+        methods[name] = take_scores(rig, weights, clean_test, chosen[name], seconds)
         print(f"test {name}: {methods[name]}", flush=True)
     truth = {"alpha": None, **summarize(rig, take, clean_test), "roughness": roughness(take)}
 
@@ -106,24 +107,14 @@ def main(argv=None):
         weights, seconds = run(
             problem, noisy_test, SWEEP["quartic_cd"](chosen["quartic_cd"]), order
         )
-        orderings[order] = {
-            "alpha": chosen["quartic_cd"],
-            **summarize(rig, weights, clean_test),
-            "roughness": roughness(weights),
-            "seconds_per_frame": seconds,
-        }
+        orderings[order] = take_scores(rig, weights, clean_test, chosen["quartic_cd"], seconds)
         print(f"order {order}: {orderings[order]}", flush=True)
 
     passes = {}  # convergence of Algorithm 1 with the number of passes, at the chosen alpha
     for n in (1, 2, 5) if args.quick else (1, 2, 5, 10, 20, 50):
         method = inverse.QuarticCD(alpha=chosen["quartic_cd"], passes=n)
         weights, seconds = run(problem, noisy_test, method)
-        passes[str(n)] = {
-            "alpha": chosen["quartic_cd"],
-            **summarize(rig, weights, clean_test),
-            "roughness": roughness(weights),
-            "seconds_per_frame": seconds,
-        }
+        passes[str(n)] = take_scores(rig, weights, clean_test, chosen["quartic_cd"], seconds)
         print(f"passes {n}: {passes[str(n)]}", flush=True)
 
     reference = measure_reference(

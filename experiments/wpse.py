@@ -29,7 +29,7 @@ from canrig_jax.metrics import CM_TO_MM, per_vertex_distance
 from canrig_jax.render import plot_vertex_scalar, save_figure
 from canrig_jax.rig import evaluate, ict_linear_rig, ict_quartic_rig
 from canrig_jax.rig.poses import random_sparse_poses
-from canrig_jax.wpse.reference import NumpyEditEvaluator
+from canrig_jax.wpse.reference import time_runtime
 
 BUDGETS = (10, 50)
 MIN_EDIT_DISTANCE = 0.5  # weight units between edited frames ("spread out")
@@ -379,21 +379,8 @@ def _timing(rig, poses, edit_frames, linear, desired, args, sigma, repeats=30):
             start = time.perf_counter()
             model = _train(*train_args, width)
             train_s = time.perf_counter() - start
-            run = jax.jit(wpse.apply)
-            jax.block_until_ready(run(model, probe[0], posed[0]))
-            runtime = []
-            for w, mesh in zip(probe, posed, strict=True):
-                w, mesh = jax.device_put(w), jax.device_put(mesh)
-                start = time.perf_counter()
-                jax.block_until_ready(run(model, w, mesh))
-                runtime.append(time.perf_counter() - start)
-            reference = NumpyEditEvaluator(model)
-            numpy_runtime = []
-            for w, mesh in zip(probe, posed, strict=True):
-                start = time.perf_counter()
-                expected = reference(w, mesh)
-                numpy_runtime.append(time.perf_counter() - start)
-            agree = float(np.abs(np.asarray(run(model, probe[-1], posed[-1])) - expected).max())
+            timed = time_runtime(model, probe, posed)
+            runtime, numpy_runtime = timed["jax_seconds"], timed["numpy_seconds"]
             rig_eval = jax.jit(evaluate)
             jax.block_until_ready(rig_eval(part_rig, probe[0]))
             start = time.perf_counter()
@@ -412,7 +399,7 @@ def _timing(rig, poses, edit_frames, linear, desired, args, sigma, repeats=30):
                     "runtime_min_ms": 1e3 * float(np.min(runtime)),
                     "numpy_runtime_ms": 1e3 * float(np.median(numpy_runtime)),
                     "rig_evaluate_ms": 1e3 * (time.perf_counter() - start) / len(probe),
-                    "max_abs_diff_vs_numpy_cm": agree,
+                    "max_abs_diff_vs_numpy_cm": timed["max_abs_diff"],
                 }
             )
             print("timing", rows[-1])

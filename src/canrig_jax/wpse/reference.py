@@ -7,7 +7,12 @@ triangle normals and a neighbour edge.
 
 from __future__ import annotations
 
+import time
+
+import jax
 import numpy as np
+
+from .pse import apply
 
 
 def reference_coefficients(metric, poses, displacements, sigma, ridge=0.0):
@@ -88,3 +93,35 @@ class NumpyEditEvaluator:
         out = posed.copy()
         out[self.vertices] += offsets
         return out
+
+
+def time_runtime(model, weights, posed) -> dict:
+    """Per-frame seconds of ``jax.jit(wpse.apply)`` (compiled first, one frame per call) and
+    of ``NumpyEditEvaluator`` on the same frames, in this process.
+
+    Args:
+        model: a fitted ``PoseSpaceEdit``.
+        weights: (T, K) probe poses; posed: (T, V, 3) the base rig at them.
+
+    Returns ``jax_seconds`` and ``numpy_seconds`` ((T,) arrays) and ``max_abs_diff`` between
+    the two on the last frame (rig units).
+    """
+    run = jax.jit(apply)
+    jax.block_until_ready(run(model, weights[0], posed[0]))
+    jax_seconds = []
+    for w, mesh in zip(jax.device_put(weights), jax.device_put(posed), strict=True):
+        start = time.perf_counter()
+        jax.block_until_ready(run(model, w, mesh))
+        jax_seconds.append(time.perf_counter() - start)
+    reference = NumpyEditEvaluator(model)
+    numpy_seconds = []
+    for w, mesh in zip(weights, posed, strict=True):
+        start = time.perf_counter()
+        expected = reference(w, mesh)
+        numpy_seconds.append(time.perf_counter() - start)
+    difference = np.abs(np.asarray(run(model, weights[-1], posed[-1])) - expected).max()
+    return {
+        "jax_seconds": np.asarray(jax_seconds),
+        "numpy_seconds": np.asarray(numpy_seconds),
+        "max_abs_diff": float(difference),
+    }
