@@ -16,8 +16,13 @@ from canrig_jax.wpse import (
     fit_pose_space_edit,
     frame_matrices,
     local_frames,
+    local_to_world,
 )
-from canrig_jax.wpse.reference import NumpyEditEvaluator, reference_frames
+from canrig_jax.wpse.reference import (
+    NumpyEditEvaluator,
+    reference_frames,
+    reference_vertex_frames,
+)
 
 
 def loop_wpse(rig, poses, edits, sigma, weights, metric="weighted", epsilon=1e-3):
@@ -88,6 +93,48 @@ def test_local_frames_match_reference(tiny_rig):
         got @ np.swapaxes(got, 1, 2), np.broadcast_to(np.eye(3), got.shape), atol=1e-5
     )
     np.testing.assert_allclose(np.linalg.det(got), 1.0, atol=1e-5)
+
+
+def test_local_frames_all_degrees_match_numpy(tiny_rig):
+    """Every vertex of the grid (degrees 1 to 6, so every ring group) against the plain
+    NumPy accumulation, in order, for a subset in scrambled-degree order too."""
+    posed = np.asarray(evaluate(tiny_rig, jnp.array([0.8, 0.1, 0.6, 0.3])))
+    for vertices in (np.arange(tiny_rig.n_vertices), np.array([48, 0, 6, 7, 24, 42, 13])):
+        frames = local_frames(tiny_rig.faces, vertices, tiny_rig.n_vertices)
+        degree = np.bincount(np.asarray(tiny_rig.faces).reshape(-1))[vertices]
+        assert sorted(r.shape[1] for r in frames.rings) == sorted(set(degree.tolist()))
+        got = np.asarray(frame_matrices(frames, posed))
+        expected = reference_vertex_frames(
+            posed, tiny_rig.faces, vertices, np.asarray(frames.neighbour)
+        )
+        np.testing.assert_allclose(got, expected, atol=1e-6)
+        offsets = np.random.default_rng(0).normal(size=(len(vertices), 3)).astype(np.float32)
+        np.testing.assert_allclose(
+            local_to_world(frames, posed, offsets),
+            np.einsum("sij,sj->si", expected, offsets),
+            atol=1e-6,
+        )
+
+
+def test_local_frames_rings_hold_each_vertex_incident_triangles(tiny_rig):
+    vertices = np.array([3, 0, 48, 24, 6])
+    frames = local_frames(tiny_rig.faces, vertices, tiny_rig.n_vertices)
+    stacked = [row for ring in frames.rings for row in np.asarray(ring).tolist()]
+    order = np.asarray(frames.ring_order)
+    assert sorted(order.tolist()) == list(range(len(vertices)))
+    used = np.asarray(frames.faces)
+    for s, v in enumerate(vertices):
+        ring = stacked[order[s]]
+        assert len(ring) == len(set(ring)) == int(np.sum(np.asarray(frames.weight)[s]))
+        assert all(v in used[f] for f in ring)
+        assert set(ring) == set(np.asarray(frames.incident)[s].tolist())
+
+
+def test_local_frames_of_no_vertices(tiny_rig):
+    frames = local_frames(tiny_rig.faces, np.zeros(0, np.int64), tiny_rig.n_vertices)
+    posed = evaluate(tiny_rig, jnp.zeros(4))
+    assert frame_matrices(frames, posed).shape == (0, 3, 3)
+    assert local_to_world(frames, posed, jnp.zeros((0, 3))).shape == (0, 3)
 
 
 def test_local_frame_edit_turns_with_the_mesh(tiny_rig, tiny_edits):

@@ -10,6 +10,12 @@ is the edge to one fixed neighbour of v, projected onto the tangent plane; the b
 completes a right-handed orthonormal frame. Topology (incident faces, the neighbour) is
 computed once per mesh and vertex set, in NumPy; the frames themselves are a jit-able
 function of the posed vertices, evaluated only at the edited vertices.
+
+Run-time layout (what makes the frames cheap on a CPU): each used triangle's normal is
+computed once; the vertices are grouped by their number of incident triangles, and each
+group sums its triangles' normals with one row gather per ring slot (no padded slots, no
+weights); a final gather puts the vertices back in order. The normalisation, tangent and
+bitangent are written per coordinate, so XLA fuses them into one loop.
 """
 
 from __future__ import annotations
@@ -30,6 +36,9 @@ class LocalFrames(eqx.Module):
         incident: (S, D) rows of ``faces`` incident to each vertex, padded by repeating one.
         weight: (S, D) 1 for a real incident triangle, 0 for padding.
         neighbour: (S,) the neighbour whose edge gives the tangent.
+        rings: the same incident rows grouped by vertex degree: one (S_d, d) array per degree
+            d present, the vertices of degree d in increasing order (the run-time layout).
+        ring_order: (S,) row of each vertex of ``vertices`` in the concatenated ``rings``.
     """
 
     vertices: Int[Array, " S"]
@@ -37,6 +46,8 @@ class LocalFrames(eqx.Module):
     incident: Int[Array, "S D"]
     weight: Float[Array, "S D"]
     neighbour: Int[Array, " S"]
+    rings: tuple[Int[Array, "_ _"], ...]
+    ring_order: Int[Array, " S"]
 
     @property
     def n_frames(self) -> int:
@@ -76,33 +87,72 @@ def local_frames(
     first = corner[:, 0]
     neighbour = faces[first // 3, (first % 3 + 1) % 3] if vertices.size else vertices
     used, incident = np.unique(face_index, return_inverse=True)
+    incident = incident.reshape(face_index.shape)
     weight = (np.arange(width)[None, :] < degree[:, None]).astype(np.float32)
+    by_degree = np.argsort(degree, kind="stable")  # vertices grouped by degree, in order
+    rings = tuple(
+        jnp.asarray(incident[by_degree[degree[by_degree] == d], :d], jnp.int32)
+        for d in np.unique(degree)
+    )
+    ring_order = np.empty(len(vertices), np.int64)
+    ring_order[by_degree] = np.arange(len(vertices))
     return LocalFrames(
         jnp.asarray(vertices, jnp.int32),
         jnp.asarray(faces[used].reshape(-1, 3), jnp.int32),
-        jnp.asarray(incident.reshape(face_index.shape), jnp.int32),
+        jnp.asarray(incident, jnp.int32),
         jnp.asarray(weight),
         jnp.asarray(neighbour, jnp.int32),
+        rings,
+        jnp.asarray(ring_order, jnp.int32),
     )
 
 
-def _frame_axes(frames: LocalFrames, posed: Float[Array, "V 3"]):
-    def gather(x, index):
-        return x.at[index].get(mode="promise_in_bounds")
+def _gather(x, index):
+    return x.at[index].get(mode="promise_in_bounds")
 
-    p0, p1, p2 = (gather(posed, frames.faces[:, j]) for j in range(3))
-    face_normal = jnp.cross(p1 - p0, p2 - p0)  # (T, 3), twice the area
-    normal = jnp.einsum("sd,sdc->sc", frames.weight, gather(face_normal, frames.incident))
-    normal = normal * jax.lax.rsqrt(jnp.sum(normal * normal, axis=-1, keepdims=True))
-    edge = gather(posed, frames.neighbour) - gather(posed, frames.vertices)
-    tangent = edge - jnp.sum(edge * normal, axis=-1, keepdims=True) * normal
-    tangent = tangent * jax.lax.rsqrt(jnp.sum(tangent * tangent, axis=-1, keepdims=True))
-    return tangent, jnp.cross(normal, tangent), normal
+
+def _coordinates(x):
+    return x[:, 0], x[:, 1], x[:, 2]
+
+
+def _cross(a, b):
+    (ax, ay, az), (bx, by, bz) = a, b
+    return ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+
+
+def _frame_axes(frames: LocalFrames, posed: Float[Array, "V 3"]):
+    """Tangent, bitangent and normal at ``frames.vertices``, each a tuple of three (S,)
+    coordinate arrays (x, y, z)."""
+    posed = jnp.asarray(posed)
+    p0, p1, p2 = (_gather(posed, frames.faces[:, j]) for j in range(3))
+    face_normal = jnp.cross(p1 - p0, p2 - p0)  # (T, 3), twice the area, once per triangle
+    sums = []
+    for ring in frames.rings:  # vertices of one degree d: d row gathers, summed
+        total = _gather(face_normal, ring[:, 0])
+        for k in range(1, ring.shape[1]):
+            total = total + _gather(face_normal, ring[:, k])
+        sums.append(total)
+    if sums:
+        normal = _gather(jnp.concatenate(sums), frames.ring_order)
+    else:
+        normal = jnp.zeros((0, 3), posed.dtype)
+    nx, ny, nz = _coordinates(normal)
+    scale = jax.lax.rsqrt(nx * nx + ny * ny + nz * nz)
+    nx, ny, nz = nx * scale, ny * scale, nz * scale
+    tip = _coordinates(_gather(posed, frames.neighbour))
+    base = _coordinates(_gather(posed, frames.vertices))
+    ex, ey, ez = (a - b for a, b in zip(tip, base, strict=True))
+    along = ex * nx + ey * ny + ez * nz
+    tx, ty, tz = ex - along * nx, ey - along * ny, ez - along * nz
+    scale = jax.lax.rsqrt(tx * tx + ty * ty + tz * tz)
+    tangent = (tx * scale, ty * scale, tz * scale)
+    normal = (nx, ny, nz)
+    return tangent, _cross(normal, tangent), normal
 
 
 def frame_matrices(frames: LocalFrames, posed: Float[Array, "V 3"]) -> Float[Array, "S 3 3"]:
     """(S, 3, 3) orthonormal frames; columns are tangent, bitangent, normal in world space."""
-    return jnp.stack(_frame_axes(frames, posed), axis=-1)
+    return jnp.stack([jnp.stack(axis, axis=-1) for axis in _frame_axes(frames, posed)], axis=-1)
 
 
 def local_to_world(
@@ -111,7 +161,11 @@ def local_to_world(
     """Frame coordinates at ``frames.vertices`` of the mesh ``posed`` into world offsets
     (``to_world(frame_matrices(...), local)`` without forming the matrices)."""
     tangent, bitangent, normal = _frame_axes(frames, posed)
-    return local[:, :1] * tangent + local[:, 1:2] * bitangent + local[:, 2:] * normal
+    a, b, c = _coordinates(jnp.asarray(local))
+    return jnp.stack(
+        [a * t + b * u + c * n for t, u, n in zip(tangent, bitangent, normal, strict=True)],
+        axis=-1,
+    )
 
 
 def to_local(rotation: Float[Array, "S 3 3"], world: Float[Array, "S 3"]) -> Float[Array, "S 3"]:

@@ -45,6 +45,24 @@ def reference_frames(posed, faces, vertices, neighbour):
     return out
 
 
+def reference_vertex_frames(posed, faces, vertices, neighbour):
+    """(S, 3, 3) frames like ``reference_frames``, vectorised: every triangle's normal
+    accumulated onto its three vertices over the whole mesh (np.add.at), in float64."""
+    posed = np.asarray(posed, np.float64)
+    faces = np.asarray(faces)
+    p0, p1, p2 = (posed[faces[:, j]] for j in range(3))
+    face_normal = np.cross(p1 - p0, p2 - p0)
+    vertex_normal = np.zeros_like(posed)
+    for j in range(3):
+        np.add.at(vertex_normal, faces[:, j], face_normal)
+    normal = vertex_normal[vertices]
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    edge = posed[neighbour] - posed[vertices]
+    tangent = edge - np.sum(edge * normal, axis=1, keepdims=True) * normal
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    return np.stack([tangent, np.cross(normal, tangent), normal], axis=-1)
+
+
 def reference_correction(metric, poses, coefficients, sigma, weights):
     """(S, 3) sum_i x_{v,i} exp(-||w - w_i||_v^2 / (2 sigma^2)) in the coefficients' axes."""
     distance_sq = np.asarray(metric) @ ((np.asarray(weights) - np.asarray(poses)) ** 2).T
