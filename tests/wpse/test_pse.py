@@ -18,6 +18,7 @@ from canrig_jax.wpse import (
     local_frames,
     local_to_world,
 )
+from canrig_jax.wpse import frames as frames_module
 from canrig_jax.wpse.reference import (
     NumpyEditEvaluator,
     reference_frames,
@@ -95,14 +96,20 @@ def test_local_frames_match_reference(tiny_rig):
     np.testing.assert_allclose(np.linalg.det(got), 1.0, atol=1e-5)
 
 
-def test_local_frames_all_degrees_match_numpy(tiny_rig):
-    """Every vertex of the grid (degrees 1 to 6, so every ring group) against the plain
-    NumPy accumulation, in order, for a subset in scrambled-degree order too."""
+@pytest.mark.parametrize("group_cost", [0, 4096, 10**9])
+def test_local_frames_all_degrees_match_numpy(tiny_rig, monkeypatch, group_cost):
+    """Every vertex of the grid (degrees 1 to 6) against the plain NumPy accumulation, in
+    order and in scrambled-degree order, with one ring group per degree (cost 0), the
+    default grouping, and all degrees in one padded group."""
+    monkeypatch.setattr(frames_module, "GROUP_COST", group_cost)
     posed = np.asarray(evaluate(tiny_rig, jnp.array([0.8, 0.1, 0.6, 0.3])))
     for vertices in (np.arange(tiny_rig.n_vertices), np.array([48, 0, 6, 7, 24, 42, 13])):
         frames = local_frames(tiny_rig.faces, vertices, tiny_rig.n_vertices)
         degree = np.bincount(np.asarray(tiny_rig.faces).reshape(-1))[vertices]
-        assert sorted(r.shape[1] for r in frames.rings) == sorted(set(degree.tolist()))
+        if group_cost == 0:
+            assert sorted(r.shape[1] for r in frames.rings) == sorted(set(degree.tolist()))
+        if group_cost == 10**9:
+            assert [r.shape[1] for r in frames.rings] == [degree.max()]
         got = np.asarray(frame_matrices(frames, posed))
         expected = reference_vertex_frames(
             posed, tiny_rig.faces, vertices, np.asarray(frames.neighbour)
@@ -116,7 +123,9 @@ def test_local_frames_all_degrees_match_numpy(tiny_rig):
         )
 
 
-def test_local_frames_rings_hold_each_vertex_incident_triangles(tiny_rig):
+@pytest.mark.parametrize("group_cost", [0, 10**9])
+def test_local_frames_rings_hold_each_vertex_incident_triangles(tiny_rig, monkeypatch, group_cost):
+    monkeypatch.setattr(frames_module, "GROUP_COST", group_cost)
     vertices = np.array([3, 0, 48, 24, 6])
     frames = local_frames(tiny_rig.faces, vertices, tiny_rig.n_vertices)
     stacked = [row for ring in frames.rings for row in np.asarray(ring).tolist()]
@@ -124,7 +133,9 @@ def test_local_frames_rings_hold_each_vertex_incident_triangles(tiny_rig):
     assert sorted(order.tolist()) == list(range(len(vertices)))
     used = np.asarray(frames.faces)
     for s, v in enumerate(vertices):
-        ring = stacked[order[s]]
+        row = stacked[order[s]]
+        ring = [f for f in row if f < len(used)]
+        assert all(f == len(used) for f in row[len(ring) :])  # padding: the zero normal
         assert len(ring) == len(set(ring)) == int(np.sum(np.asarray(frames.weight)[s]))
         assert all(v in used[f] for f in ring)
         assert set(ring) == set(np.asarray(frames.incident)[s].tolist())

@@ -12,10 +12,11 @@ computed once per mesh and vertex set, in NumPy; the frames themselves are a jit
 function of the posed vertices, evaluated only at the edited vertices.
 
 Run-time layout (what makes the frames cheap on a CPU): each used triangle's normal is
-computed once; the vertices are grouped by their number of incident triangles, and each
-group sums its triangles' normals with one row gather per ring slot (no padded slots, no
-weights); a final gather puts the vertices back in order. The normalisation, tangent and
-bitangent are written per coordinate, so XLA fuses them into one loop.
+computed once; the vertices are grouped by their number of incident triangles (neighbouring
+degrees merged into one group where that saves more operations than the padding costs,
+padding pointing at an exact zero normal), and each group sums its triangles' normals with
+one row gather per ring slot, no weights; a final gather puts the vertices back in order.
+The normalisation, tangent and bitangent are written per coordinate, so XLA fuses them.
 """
 
 from __future__ import annotations
@@ -36,8 +37,9 @@ class LocalFrames(eqx.Module):
         incident: (S, D) rows of ``faces`` incident to each vertex, padded by repeating one.
         weight: (S, D) 1 for a real incident triangle, 0 for padding.
         neighbour: (S,) the neighbour whose edge gives the tangent.
-        rings: the same incident rows grouped by vertex degree: one (S_d, d) array per degree
-            d present, the vertices of degree d in increasing order (the run-time layout).
+        rings: the same incident rows grouped by vertex degree (the run-time layout): one
+            (S_g, d_g) array per group of vertices of degree at most d_g (in increasing
+            vertex order), a vertex's slots past its degree pointing at row T (a zero normal).
         ring_order: (S,) row of each vertex of ``vertices`` in the concatenated ``rings``.
     """
 
@@ -88,23 +90,48 @@ def local_frames(
     neighbour = faces[first // 3, (first % 3 + 1) % 3] if vertices.size else vertices
     used, incident = np.unique(face_index, return_inverse=True)
     incident = incident.reshape(face_index.shape)
-    weight = (np.arange(width)[None, :] < degree[:, None]).astype(np.float32)
-    by_degree = np.argsort(degree, kind="stable")  # vertices grouped by degree, in order
-    rings = tuple(
-        jnp.asarray(incident[by_degree[degree[by_degree] == d], :d], jnp.int32)
-        for d in np.unique(degree)
-    )
+    real = np.arange(width)[None, :] < degree[:, None]
+    weight = real.astype(np.float32)
+    padded = np.where(real, incident, len(used))  # past the degree: the zero normal
+    rings, members = [], []
+    for low, high in _degree_groups(degree):
+        group = np.flatnonzero((degree >= low) & (degree <= high))
+        rings.append(jnp.asarray(padded[group, :high], jnp.int32))
+        members.append(group)
     ring_order = np.empty(len(vertices), np.int64)
-    ring_order[by_degree] = np.arange(len(vertices))
+    ring_order[np.concatenate(members or [np.zeros(0, np.int64)])] = np.arange(len(vertices))
     return LocalFrames(
         jnp.asarray(vertices, jnp.int32),
         jnp.asarray(faces[used].reshape(-1, 3), jnp.int32),
         jnp.asarray(incident, jnp.int32),
         jnp.asarray(weight),
         jnp.asarray(neighbour, jnp.int32),
-        rings,
+        tuple(rings),
         jnp.asarray(ring_order, jnp.int32),
     )
+
+
+GROUP_COST = 4096
+"""Cost of one more ring group (a gather-sum loop of its own), in padded gather slots; a
+rough CPU figure, it only decides which neighbouring degrees share a group."""
+
+
+def _degree_groups(degree: np.ndarray) -> list[tuple[int, int]]:
+    """Contiguous ranges (low, high) of the distinct degrees minimising the padded slots
+    (vertices x widest degree, per group) plus ``GROUP_COST`` per group (dynamic programme)."""
+    values, counts = np.unique(degree, return_counts=True)
+    best = [0.0] + [np.inf] * len(values)
+    start = [0] * (len(values) + 1)
+    for j in range(1, len(values) + 1):
+        for i in range(j):
+            cost = best[i] + counts[i:j].sum() * values[j - 1] + GROUP_COST
+            if cost < best[j]:
+                best[j], start[j] = cost, i
+    groups, j = [], len(values)
+    while j > 0:
+        groups.append((int(values[start[j]]), int(values[j - 1])))
+        j = start[j]
+    return groups[::-1]
 
 
 def _gather(x, index):
@@ -126,8 +153,9 @@ def _frame_axes(frames: LocalFrames, posed: Float[Array, "V 3"]):
     posed = jnp.asarray(posed)
     p0, p1, p2 = (_gather(posed, frames.faces[:, j]) for j in range(3))
     face_normal = jnp.cross(p1 - p0, p2 - p0)  # (T, 3), twice the area, once per triangle
+    face_normal = jnp.concatenate([face_normal, jnp.zeros((1, 3), face_normal.dtype)])
     sums = []
-    for ring in frames.rings:  # vertices of one degree d: d row gathers, summed
+    for ring in frames.rings:  # vertices of degree <= d: d row gathers, summed
         total = _gather(face_normal, ring[:, 0])
         for k in range(1, ring.shape[1]):
             total = total + _gather(face_normal, ring[:, k])
