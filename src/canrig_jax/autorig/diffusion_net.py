@@ -32,7 +32,10 @@ OUTPUTS = ("vertices", "faces", "global_mean")
 
 
 def _per_vertex(layer, x):
-    return jax.vmap(layer)(x)
+    """Apply a layer on the last axis of (V, ..., C) features (leading axes flattened)."""
+    flat = x.reshape(-1, x.shape[-1])
+    out = jax.vmap(layer)(flat)
+    return out.reshape(x.shape[:-1] + out.shape[-1:])
 
 
 class SpatialGradientFeatures(eqx.Module):
@@ -57,10 +60,14 @@ class SpatialGradientFeatures(eqx.Module):
         self.with_rotations = with_rotations
 
     def __call__(
-        self, features: Float[Array, "V C"], operators: MeshOperators
-    ) -> Float[Array, "V C"]:
-        grad_x = operators.gradient_x(features)
-        grad_y = operators.gradient_y(features)
+        self, features: Float[Array, "V *N C"], operators: MeshOperators
+    ) -> Float[Array, "V *N C"]:
+        return self.from_gradients(operators.gradient_x(features), operators.gradient_y(features))
+
+    def from_gradients(
+        self, grad_x: Float[Array, "V *N C"], grad_y: Float[Array, "V *N C"]
+    ) -> Float[Array, "V *N C"]:
+        """The features from precomputed gradient components (x, y in the vertex frames)."""
         b_x = _per_vertex(self.real, grad_x)
         b_y = _per_vertex(self.real, grad_y)
         if self.imaginary is not None:
@@ -92,12 +99,15 @@ class DiffusionNetBlock(eqx.Module):
         self.mlp = eqx.nn.MLP(3 * width, width, width, mlp_depth, jax.nn.relu, key=k_mlp)
 
     def __call__(
-        self, features: Float[Array, "V C"], operators: MeshOperators
-    ) -> Float[Array, "V C"]:
-        diffused = self.diffusion(features, operators)
-        gradient = self.gradient_features(diffused, operators)
+        self, features: Float[Array, "V *N C"], operators: MeshOperators
+    ) -> Float[Array, "V *N C"]:
+        """One block on (V, C) features, or (V, N, C): N feature sets on the same mesh
+        (e.g. one per pose), diffused and differentiated together."""
+        diffused, grad_x, grad_y = self.diffusion.with_gradient(features, operators)
+        gradient = self.gradient_features.from_gradients(grad_x, grad_y)
         combined = jnp.concatenate([features, diffused, gradient], axis=-1)
-        return features + _per_vertex(self.mlp, combined) * operators.vertex_mask[:, None]
+        mask = operators.vertex_mask.reshape((-1,) + (1,) * (features.ndim - 1))
+        return features + _per_vertex(self.mlp, combined) * mask
 
 
 class DiffusionNet(eqx.Module):

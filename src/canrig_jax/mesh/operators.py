@@ -445,6 +445,9 @@ class MeshOperators(eqx.Module):
     Attributes:
         mass: (V,) lumped mass; eigenvalues: (k,); eigenvectors: (V, k), M-orthonormal.
         laplacian, gradient_x, gradient_y: ``SparseMatrix`` (V, V).
+        eigenvector_gradients: (V, k, 2) the gradient operators applied to the eigenvectors,
+            so the gradient of a spectrally diffused function Phi c is a dense product
+            (G Phi) c instead of a sparse gather over every channel.
         frames: (V, 3, 3) tangent frames [x, y, normal] (rows).
         faces: (F, 3) int32; vertex_mask: (V,); face_mask: (F,) (1 real, 0 padding/isolated).
     """
@@ -455,6 +458,7 @@ class MeshOperators(eqx.Module):
     laplacian: SparseMatrix
     gradient_x: SparseMatrix
     gradient_y: SparseMatrix
+    eigenvector_gradients: Float[Array, "V k 2"]
     frames: Float[Array, "V 3 3"]
     faces: Int[Array, "F 3"]
     vertex_mask: Float[Array, " V"]
@@ -470,6 +474,15 @@ class MeshOperators(eqx.Module):
             laplacian=SparseMatrix.from_scipy(geometry.laplacian, dtype),
             gradient_x=SparseMatrix.from_scipy(geometry.gradient_x, dtype),
             gradient_y=SparseMatrix.from_scipy(geometry.gradient_y, dtype),
+            eigenvector_gradients=f(
+                np.stack(
+                    [
+                        geometry.gradient_x @ geometry.eigenvectors,
+                        geometry.gradient_y @ geometry.eigenvectors,
+                    ],
+                    axis=-1,
+                )
+            ),
             frames=f(geometry.frames),
             faces=jnp.asarray(geometry.faces, jnp.int32),
             vertex_mask=f(geometry.mass > 0),
@@ -497,6 +510,7 @@ class MeshOperators(eqx.Module):
             laplacian=self.laplacian.pad(nnz["laplacian"]),
             gradient_x=self.gradient_x.pad(nnz["gradient_x"]),
             gradient_y=self.gradient_y.pad(nnz["gradient_y"]),
+            eigenvector_gradients=jnp.pad(self.eigenvector_gradients, ((0, dv), (0, dk), (0, 0))),
             frames=jnp.pad(self.frames, ((0, dv), (0, 0), (0, 0))),
             faces=jnp.pad(self.faces, ((0, df), (0, 0))),
             vertex_mask=jnp.pad(self.vertex_mask, (0, dv)),
