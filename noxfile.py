@@ -49,6 +49,7 @@ STANDARD_EXPERIMENTS = (
     ("inverse_rig.py", "--out", "experiments/results/inverse_rig"),
     ("wpse.py", "--out", "experiments/results/wpse"),
     ("mesh_foundations.py", "--out", "experiments/results/mesh_foundations"),
+    ("autorig.py", "--out", "experiments/results/autorig", "--no-progress"),
     ("canrig_train.py", "--out", "experiments/results/canrig", "--minutes", "25"),
     (
         "canrig_eval.py",

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -78,16 +79,20 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--data-dir", default=None, help="data folder (else $CANRIG_DATA)")
     parser.add_argument("--quick", action="store_true", help="2 identities, 20 steps (tests)")
-    parser.add_argument("--minutes", type=float, default=27.0, help="training budget per model")
-    parser.add_argument("--steps", type=int, default=3000, help="step budget per model")
-    parser.add_argument("--train-identities", type=int, default=32)
+    parser.add_argument("--minutes", type=float, default=25.0, help="training budget per model")
+    parser.add_argument("--steps", type=int, default=2500, help="step budget per model")
+    parser.add_argument("--train-identities", type=int, default=24)
     parser.add_argument("--test-identities", type=int, default=8)
-    parser.add_argument("--learning-rate", type=float, default=1e-4)
+    parser.add_argument("--learning-rate", type=float, default=1e-3)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     progress = not args.no_progress
     args.out.mkdir(parents=True, exist_ok=True)
+    command = " ".join(
+        ["python experiments/autorig.py", *(argv if argv is not None else sys.argv[1:])]
+    )
+    save_text(args.out / "COMMAND", command + "\n")
 
     start = time.perf_counter()
     dataset = ict_autorig_dataset(
@@ -154,8 +159,8 @@ def main(argv=None):
         for name, predictions in predicted_all.items():
             stats = error_stats(np.concatenate(predictions, 1), np.concatenate(truth_all, 1))
             unit = error_stats(
-                np.concatenate([p / s for p, s in zip(predictions, unit_scale)], 1),
-                np.concatenate([t / s for t, s in zip(truth_all, unit_scale)], 1),
+                np.concatenate([p / s for p, s in zip(predictions, unit_scale, strict=True)], 1),
+                np.concatenate([t / s for t, s in zip(truth_all, unit_scale, strict=True)], 1),
                 scale=100.0,  # unit-sphere units x 1000 (error_stats multiplies by CM_TO_MM)
             )
             test[name][split] = {
@@ -201,7 +206,7 @@ def main(argv=None):
                         np.asarray(a.to_dense(exported.n_vertices))
                         - np.asarray(b.to_dense(exported.n_vertices))
                     ).max()
-                    for a, b in zip(reloaded.correctives, exported.correctives)
+                    for a, b in zip(reloaded.correctives, exported.correctives, strict=True)
                 ),
             )
         ),
@@ -245,7 +250,9 @@ def main(argv=None):
 
 def table(r: dict) -> str:
     rows = [
-        "## Table 1 analog: held-out identities, error in mm (ICT cm -> mm; unit-sphere x1000 in brackets)",
+        "## Table 1 analog: held-out identities, vertex error in mm",
+        "",
+        "ICT cm -> mm; in brackets the same on heads normalised to the unit sphere, x 1000.",
         "",
         "| method | same topology MAE | same Q95 | unseen topology MAE | unseen Q95 |",
         "|---|---|---|---|---|",
@@ -260,30 +267,37 @@ def table(r: dict) -> str:
         )
     rows += [
         "",
-        "## Table 2 analog: penetration (fraction of teeth/gums/eyeball vertices outside the skin, mean over poses)",
+        "## Table 2 analog: penetration",
+        "",
+        "Fraction of teeth, gums and eyeball vertices outside the skin (winding number < 1/2),",
+        "mean over poses and held-out heads.",
         "",
         "| | fraction |",
         "|---|---|",
     ]
     rows += [f"| {name} | {value:.4f} |" for name, value in r["penetration"].items()]
     t = r["rig_seconds"]
+    head = f"{t['vertices']} vertices, {t['poses']} poses"
     rows += [
         "",
         "## Table 3 analog: rig generation and size",
         "",
         "| quantity | value |",
         "|---|---|",
-        f"| rig generation, {t['vertices']} vertices, {t['poses']} poses: cold (compile + operators) s | {t['cold']:.2f} |",
-        f"| warm (new head of similar size; operators + network) s | {t['warm']:.2f} ({t['warm_operators']:.2f} + {t['warm_network']:.2f}) |",
+        f"| rig generation ({head}), cold: compile + operators + network (s) | {t['cold']:.2f} |",
+        f"| warm, a new head of similar size: operators + network (s) | {t['warm']:.2f} "
+        f"({t['warm_operators']:.2f} + {t['warm_network']:.2f}) |",
     ]
     rows += [f"| parameters {name} | {n:,} |" for name, n in r["parameters"].items()]
     rows += [
-        f"| training {name}: steps / minutes / final train error mm | {t['steps']} / {t['minutes']:.1f} / {t['final_train_error_mm']:.3f} |"
+        f"| training {name}: steps / minutes / final batch error (mm) | {t['steps']} / "
+        f"{t['minutes']:.1f} / {t['final_train_error_mm']:.3f} |"
         for name, t in r["training"].items()
     ]
     g = r["gltf"]
     rows += [
-        f"| glTF export: morph targets / max abs difference after reload (cm) | {g['morph_targets']} / {g['max_abs_difference_cm']:.2e} |"
+        f"| glTF export: morph targets / max abs difference after reload (cm) | "
+        f"{g['morph_targets']} / {g['max_abs_difference_cm']:.2e} |"
     ]
     return "\n".join(rows) + "\n"
 

@@ -59,6 +59,13 @@ def heads(ict_head, head_displacements, data_dir):
 
 
 @pytest.fixture(scope="module")
+def head_operators(heads):
+    """(unit-sphere vertices, operators with 64 eigenpairs) of the decimated head."""
+    unit, operators, _, _ = head_inputs(heads[0].vertices, heads[0].faces, k=64, cache=False)
+    return unit, operators
+
+
+@pytest.fixture(scope="module")
 def small_model(poses):
     return RigAnyFace(
         poses.n_basis, width=8, global_size=4, global_width=8, key=jax.random.PRNGKey(0)
@@ -120,9 +127,8 @@ def test_remeshed_heads_carry_the_ground_truth_and_the_parts(heads, ict_head):
 # -- model ----------------------------------------------------------------------------------------
 
 
-def test_padding_does_not_change_the_prediction(small_model, heads, poses):
-    head = heads[0]
-    unit, operators, _, _ = head_inputs(head.vertices, head.faces, k=64, cache=False)
+def test_padding_does_not_change_the_prediction(small_model, head_operators, poses):
+    unit, operators = head_operators
     vectors = jnp.asarray(poses.vectors()[:7])
     plain = small_model(vectors, jnp.asarray(unit), operators)
     padded_ops = pad_to_bucket(operators, 512)
@@ -132,10 +138,12 @@ def test_padding_does_not_change_the_prediction(small_model, heads, poses):
     assert np.all(np.asarray(padded[:, unit.shape[0] :]) == 0)
 
 
-def test_only_the_global_encoder_carries_information_across_components(poses, heads, ict_head):
+def test_only_the_global_encoder_carries_information_across_components(
+    poses, heads, head_operators, ict_head
+):
     """Diffusion cannot cross disconnected parts; G_0 can (the paper's motivation)."""
     head = heads[0]
-    unit, operators, _, _ = head_inputs(head.vertices, head.faces, k=64, cache=False)
+    unit, operators = head_operators
     eyeball = head.parts == ict_head.part_names.index("Eyeball left")
     face = head.parts == ict_head.part_names.index("Face")
     moved = unit.copy()
@@ -153,9 +161,8 @@ def test_only_the_global_encoder_carries_information_across_components(poses, he
             assert change == 0.0, change
 
 
-def test_spectral_gradient_shortcut_equals_the_sparse_gradient_of_the_diffusion(heads):
-    head = heads[0]
-    unit, operators, _, _ = head_inputs(head.vertices, head.faces, k=64, cache=False)
+def test_spectral_gradient_shortcut_equals_the_sparse_gradient_of_the_diffusion(head_operators):
+    unit, operators = head_operators
     features = jnp.asarray(
         np.random.default_rng(0).standard_normal((unit.shape[0], 5, 4)), jnp.float32
     )
@@ -277,7 +284,7 @@ def test_training_lowers_the_error_and_resumes_to_the_same_model(heads, poses, t
 # -- bad input ------------------------------------------------------------------------------------
 
 
-def test_bad_input_raises_naming_the_argument(small_model, poses, heads):
+def test_bad_input_raises_naming_the_argument(small_model, poses, heads, head_operators):
     head = heads[0]
     with pytest.raises(ValueError, match="faces"):
         generate_rig(small_model, poses, head.vertices, np.zeros((0, 3), np.int32))
@@ -287,7 +294,7 @@ def test_bad_input_raises_naming_the_argument(small_model, poses, heads):
         generate_rig(small_model, poses, bad, head.faces)
     with pytest.raises(ValueError, match="memory_budget"):
         generate_rig(small_model, poses, head.vertices, head.faces, memory_budget=1 << 20)
-    unit, operators, _, _ = head_inputs(head.vertices, head.faces, k=16, cache=False)
+    unit, operators = head_operators
     with pytest.raises(ValueError, match="poses"):
         small_model(jnp.ones((3, 52)), jnp.asarray(unit), operators)
     other = PoseSet(poses.basis_names[:52], tuple((i,) for i in range(52)))

@@ -254,10 +254,10 @@ class AutorigDataset:
 def ict_autorig_dataset(
     data_dir=None,
     *,
-    n_train: int = 32,
+    n_train: int = 24,
     n_test: int = 8,
-    train_topologies: tuple[str, ...] = ("decimate_1200", "decimate_2000"),
-    unseen_topology: str = "decimate_1750",
+    train_topologies: tuple[str, ...] = ("decimate_1000", "decimate_1600"),
+    unseen_topology: str = "decimate_1300",
     per_order: dict[int, int] | None = None,
     seed: int = 0,
     progress: bool = True,

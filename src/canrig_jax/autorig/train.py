@@ -12,6 +12,7 @@ ends at the same model as an uninterrupted one.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import time
 
@@ -40,12 +41,12 @@ class TrainOptions:
     global_width: int = 32
     k: int = 128
     method: str = "spectral"
-    learning_rate: float = 1e-4
+    learning_rate: float = 1e-3
     warmup_steps: int = 200
-    steps: int = 4000
+    steps: int = 2500
     max_minutes: float | None = None
     heads_per_step: int = 2
-    poses_per_step: int = 12
+    poses_per_step: int = 8
     landmark_weight: float = 1.0
     seed: int = 0
     checkpoint_every: int = 200
@@ -82,9 +83,14 @@ def make_model(options: TrainOptions, n_pose_inputs: int, output_scale: float) -
 
 def optimiser(options: TrainOptions) -> optax.GradientTransformation:
     """Adam with linear warm-up to ``learning_rate`` and cosine decay to 0 at ``steps``."""
-    schedule = optax.warmup_cosine_decay_schedule(
-        0.0, options.learning_rate, options.warmup_steps, options.steps
-    )
+    return _adam_warmup_cosine(options.learning_rate, options.warmup_steps, options.steps)
+
+
+@functools.lru_cache(maxsize=8)
+def _adam_warmup_cosine(learning_rate: float, warmup_steps: int, steps: int):
+    # one object per schedule: the jitted step takes the optimiser as a static argument, so it
+    # then compiles once per process, also across resumed runs
+    schedule = optax.warmup_cosine_decay_schedule(0.0, learning_rate, warmup_steps, steps)
     return optax.adam(schedule)
 
 

@@ -145,7 +145,6 @@ def load_gltf_rig(path: str | os.PathLike) -> BlendshapeRig:
     )
     names = extras.get("targetNames", [f"shape{i}" for i in range(len(targets))])
     k = int(extras.get("blendshapes", len(targets)))
-    n = len(loaded.vertices)
     by_order: dict[int, tuple[list, list]] = {}
     lookup = {name: i for i, name in enumerate(names[:k])}
     for corrective in extras.get("correctives", []):
