@@ -59,6 +59,20 @@ def _error_mm(a, b):
     return np.linalg.norm(a - b, axis=-1) * CM_TO_MM
 
 
+def _interpolation_baseline(handles, targets, neutral, radius):
+    """No network: each vertex moves by the mask-weighted mean of the handle displacements,
+    sum_h M_h d_h / max(sum_h M_h, 1) with the same clamped masks (the model's interpolation
+    prior alone)."""
+    n = handles.n_handles
+    mask = np.asarray(
+        influence_mask(handles.distance, np.full(n, radius), np.full(n, FALLOFF_PER_CM), CLAMP)
+    )
+    weights = mask / np.maximum(mask.sum(axis=1, keepdims=True), 1.0)
+    displacements = targets[:, handles.index] - neutral[handles.index]
+    moved = neutral + np.einsum("vh,nhc->nvc", weights, displacements)
+    return _error_mm(moved, targets)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", type=Path, required=True)
@@ -130,6 +144,8 @@ def main(argv=None):
             if n == 200 and name == "medium":
                 per_vertex, medium_out = err, out
 
+    baseline = _interpolation_baseline(h200, targets, neutral, RADII_CM["medium"])
+
     # Figure 15: shape-preserving layers, each re-targeting the remaining error
     layers, current = [], neutrals
     for _ in range(3):
@@ -162,6 +178,9 @@ def main(argv=None):
         "heldout_200_medium_capture_mm": float(per_vertex[:n_capture].mean()),
         "heldout_200_medium_random_mm": float(per_vertex[n_capture:].mean()),
         "heldout_200_medium_p95_mm": float(np.percentile(per_vertex, 95)),
+        "interpolation_baseline_200_medium_mm": float(baseline.mean()),
+        "interpolation_baseline_200_medium_capture_mm": float(baseline[:n_capture].mean()),
+        "interpolation_baseline_200_medium_random_mm": float(baseline[n_capture:].mean()),
         "radii_cm": RADII_CM,
         "falloff_per_cm": FALLOFF_PER_CM,
         "outside_region_vertices_max": outside_count,
@@ -189,6 +208,13 @@ def main(argv=None):
                 ("forward_ms (9,409 vertices, 200 handles, warm)", f"{results['forward_ms']:.1f}"),
                 ("train_minutes / steps", f"{results['train_minutes']:.1f} / {state['step']}"),
                 ("parameters", results["parameters"]),
+                (
+                    "no network (mask-weighted mean of handle displacements), 200 medium: "
+                    "all / capture / random (mm)",
+                    f"{results['interpolation_baseline_200_medium_mm']:.3f} / "
+                    f"{results['interpolation_baseline_200_medium_capture_mm']:.3f} / "
+                    f"{results['interpolation_baseline_200_medium_random_mm']:.3f}",
+                ),
                 (
                     "200 handles medium: capture / random / p95 (mm)",
                     f"{results['heldout_200_medium_capture_mm']:.3f} / "

@@ -41,6 +41,34 @@ def main(argv=None):
     parser.add_argument("--variant", default="shape_preserving", help="or 'canrig'")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--latent", type=int, default=64, help="total latent width (all heads)")
+    parser.add_argument("--heads", type=int, default=4, help="attention heads")
+    parser.add_argument("--fourier", type=int, default=0, help="octaves of the query encoding")
+    parser.add_argument(
+        "--farthest-sets", type=int, default=0, help="farthest-point handle sets in the pool"
+    )
+    parser.add_argument("--p-farthest", type=float, default=0.0)
+    parser.add_argument("--p-eval-radius", type=float, default=0.0)
+    parser.add_argument("--p-capture", type=float, default=None)
+    parser.add_argument("--n-active", type=int, nargs=2, default=(4, 10))
+    parser.add_argument(
+        "--decay-steps", type=int, default=0, help="cosine learning-rate decay (0: constant)"
+    )
+    parser.add_argument("--batch", type=int, default=8)
+    parser.add_argument(
+        "--interpolation-prior",
+        action="store_true",
+        help="add the mask-weighted mean of the handle displacements; the network corrects it",
+    )
+    parser.add_argument(
+        "--query-modulation",
+        action="store_true",
+        help="output input also modulated by an affine map of the vertex's query",
+    )
+    parser.add_argument(
+        "--linear-skip", action="store_true", help="bias-free linear skip in value/output MLPs"
+    )
+    parser.add_argument("--p-neutral", type=float, default=0.1, help="base shape: the neutral")
     args = parser.parse_args(argv)
 
     start = time.perf_counter()
@@ -55,18 +83,33 @@ def main(argv=None):
         n_random=50 if args.quick else 800,
         n_pool=256 if args.quick else 2048,
         seed=args.seed,
+        n_active=tuple(args.n_active),
+        farthest_sets=args.farthest_sets,
     )
     print(
         f"training set: {data.shapes.shape[0]} shapes, built in {time.perf_counter() - start:.1f} s"
     )
     options = TrainOptions(
         variant=args.variant,
+        n_heads=args.heads,
+        latent=args.latent,
+        fourier=args.fourier,
+        linear_skip=args.linear_skip,
+        query_modulation=args.query_modulation,
+        interpolation_prior=args.interpolation_prior,
+        decay_steps=args.decay_steps,
         steps=30 if args.quick else args.steps,
         max_minutes=None if args.quick else args.minutes,
         seed=args.seed,
         checkpoint_every=10 if args.quick else 250,
         log_every=5 if args.quick else 25,
-        examples=ExampleOptions(),
+        examples=ExampleOptions(
+            batch=args.batch,
+            p_neutral=args.p_neutral,
+            p_farthest=args.p_farthest,
+            p_eval_radius=args.p_eval_radius,
+            p_capture=args.p_capture,
+        ),
     )
     args.out.mkdir(parents=True, exist_ok=True)
     result = train(

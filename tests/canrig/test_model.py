@@ -18,7 +18,18 @@ from canrig_jax.canrig import (
     influence_mask,
 )
 
-VARIANTS = [CANRig, ShapePreservingCANRig]
+VARIANTS = [
+    (CANRig, {}),
+    (ShapePreservingCANRig, {}),
+    # the options of the standard configuration: positional encoding, query modulation
+    (CANRig, {"fourier": 6, "query_modulation": True}),
+    (ShapePreservingCANRig, {"fourier": 6, "query_modulation": True, "linear_skip": True}),
+]
+
+
+def _variant_id(variant):
+    cls, kwargs = variant
+    return cls.__name__ + "".join(f"-{k}" for k in kwargs)
 
 
 @pytest.fixture(scope="module")
@@ -26,9 +37,10 @@ def face(ict_face):
     return np.asarray(ict_face.neutral, np.float32), np.asarray(ict_face.faces)
 
 
-@pytest.fixture(scope="module", params=VARIANTS, ids=lambda c: c.__name__)
+@pytest.fixture(scope="module", params=VARIANTS, ids=_variant_id)
 def neural_rig(request, face):
-    model = request.param(face[0], key=jax.random.PRNGKey(3))
+    cls, kwargs = request.param
+    model = cls(face[0], key=jax.random.PRNGKey(3), **kwargs)
     return NeuralRig(model, *face)
 
 
@@ -84,6 +96,31 @@ def test_radius_falloff_beta_change_without_recompiling(neural_rig, placed):
     assert not np.allclose(outs[0], outs[1])
 
 
+def test_positional_encoding_and_query_modulation(face):
+    """fourier = L gives 3 + 6L query/key inputs (sin, cos of pi 2^k x); the query modulation
+    makes the output depend on the vertex's query, and the model stays zero-preserving."""
+    plain = ShapePreservingCANRig(face[0], key=jax.random.PRNGKey(0))
+    model = ShapePreservingCANRig(
+        face[0], fourier=4, query_modulation=True, key=jax.random.PRNGKey(0)
+    )
+    points = jnp.asarray(face[0][:7])
+    encoded = model.encode_position(points)
+    assert encoded.shape == (7, 3 + 6 * 4)
+    x = model.normalise(points)
+    np.testing.assert_allclose(encoded[:, :3], x, atol=1e-6)
+    np.testing.assert_allclose(encoded[:, 3 + 3], jnp.sin(8 * jnp.pi * x[:, 0]), atol=1e-5)
+    assert plain.encode_position(points).shape == (7, 3)
+    queries = model.encode_queries(points)
+    d = jnp.ones((2, 3)) * 0.1
+    mask = jnp.full((7, 2), 0.5)
+    out = model(queries, points, points[:2], points[:2], d, mask, 0.0)
+    without = eqx.tree_at(lambda m: m.query_modulation, model, None)
+    other = without(queries, points, points[:2], points[:2], d, mask, 0.0)
+    assert not np.allclose(np.asarray(out), np.asarray(other))
+    zero = model(queries, points, points[:2], points[:2], 0 * d, mask, 0.0)
+    assert np.array_equal(np.asarray(zero), np.asarray(points))
+
+
 def test_handles_positions_come_from_canonical_and_base(face):
     """Moving the base shape changes the SP output only through the base inputs."""
     model = ShapePreservingCANRig(face[0], key=jax.random.PRNGKey(0))
@@ -126,7 +163,12 @@ def test_bad_input_raises_before_jit(neural_rig, placed):
 
 @pytest.mark.parametrize(
     "kwargs, match",
-    [({"latent": 30}, "latent"), ({"n_layers": 0}, "n_layers"), ({"clamp": 0.7}, "clamp")],
+    [
+        ({"latent": 30}, "latent"),
+        ({"n_layers": 0}, "n_layers"),
+        ({"clamp": 0.7}, "clamp"),
+        ({"fourier": -1}, "fourier"),
+    ],
 )
 def test_bad_hyper_parameters(face, kwargs, match):
     with pytest.raises(ValueError, match=match):

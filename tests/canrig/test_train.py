@@ -79,3 +79,53 @@ def test_sampled_examples_respect_the_options():
     assert 0 < nearby.sum() < 20 and 0 < neutral.sum() < 20 and not np.any(nearby & neutral)
     with pytest.raises(ValueError, match="n_handles"):
         sample_examples(np.random.default_rng(0), 10, 10, 500, options)
+
+
+def test_evaluation_matched_sampling():
+    """Farthest-point handle sets (prefixes), the evaluation radii/falloff and capture targets
+    with the given probabilities; with these options off, the draws are the default ones."""
+    sets = np.stack([np.arange(60)[::-1], np.arange(60)]).astype(np.int32)
+    base = ExampleOptions(batch=256, n_vertices=10, n_handles=(20, 60), handle_bucket=20)
+    plain = sample_examples(np.random.default_rng(3), 50, 100, 500, base)
+    again = sample_examples(np.random.default_rng(3), 50, 100, 500, base, handle_sets=sets)
+    leaves = jax.tree_util.tree_leaves
+    for a, b in zip(leaves(plain), leaves(again), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    options = dataclasses.replace(base, p_farthest=0.5, p_eval_radius=0.5, p_capture=0.25)
+    ex = sample_examples(
+        np.random.default_rng(3), 50, 100, 500, options, handle_sets=sets, n_capture=10
+    )
+    handles, valid = np.asarray(ex.handles), np.asarray(ex.handle_valid)
+    farthest = 0
+    for row, count in zip(handles, valid.sum(axis=1).astype(int), strict=True):
+        assert len(set(row[:count].tolist())) == count
+        farthest += any(np.array_equal(row[:count], s[:count]) for s in sets)
+    assert 80 < farthest < 180
+    at_eval = np.isin(ex.radius, [1.0, 2.0, 4.0]) & (np.asarray(ex.falloff) == 3.0)
+    assert 80 < at_eval.sum() < 180
+    from_capture = np.asarray(ex.target) < 10
+    assert 30 < from_capture.sum() < 100
+    target, base_index = np.asarray(ex.target), np.asarray(ex.base)
+    assert np.all(target != base_index)
+    with pytest.raises(ValueError, match="p_farthest"):
+        sample_examples(np.random.default_rng(0), 50, 100, 500, options)
+
+
+def test_resume_with_schedule_and_options(tiny_data, tmp_path):
+    """The learning-rate schedule and the model options survive a checkpoint round trip."""
+    options = TrainOptions(
+        steps=3,
+        checkpoint_every=1,
+        log_every=1,
+        fourier=2,
+        query_modulation=True,
+        decay_steps=3,
+        examples=TINY,
+    )
+    whole = train(tiny_data, options, checkpoint=tmp_path / "a.eqx", progress=False)
+    train(tiny_data, options, checkpoint=tmp_path / "b.eqx", progress=False, stop_after=2)
+    resumed = train(tiny_data, options, checkpoint=tmp_path / "b.eqx", progress=False)
+    for a, b in zip(_leaves(whole.model), _leaves(resumed.model), strict=True):
+        np.testing.assert_array_equal(a, b)
+    loaded, state = load_model(tmp_path / "b.eqx", tiny_data.neutral)
+    assert state["options"]["fourier"] == 2 and loaded.query_modulation is not None

@@ -93,4 +93,9 @@ def blocked_deform(
     attended = jnp.matmul(weights, block_values) / normaliser  # (B, heads, S, e)
     attended = jnp.moveaxis(attended, 1, 2).reshape(-1, model.latent)  # (B*S, latent)
     attended = attended[position]  # back to vertex order
-    return base + model.decode(attended, base)
+    queries = jnp.moveaxis(block_queries, 1, 2).reshape(-1, model.latent)[position]
+    out = base + model.decode(attended, base, queries)
+    if model.interpolation_prior:
+        moved = model.interpolate(sub_mask, displacements[chosen])  # (B, S, 3)
+        out = out + moved.reshape(-1, 3)[position]
+    return out

@@ -67,6 +67,9 @@ class TrainingSet(eqx.Module):
         pool: (P,) handle candidate vertices.
         pool_distance: (V, P) weighted geodesic distance of each vertex to each candidate
             (inf beyond the limit).
+        handle_sets: (S, n) farthest-point handle sets as indices into ``pool`` (each a
+            farthest-point order, so any prefix is itself a farthest-point set), or None.
+        n_capture: the first ``n_capture`` shapes are capture frames, the rest random poses.
     """
 
     neutral: Float[Array, "V 3"]
@@ -74,6 +77,8 @@ class TrainingSet(eqx.Module):
     nearby: Float[Array, "N V 3"]
     pool: Int[Array, " P"]
     pool_distance: Float[Array, "V P"]
+    handle_sets: Int[Array, "S n"] | None = None
+    n_capture: int = eqx.field(static=True, default=0)
 
 
 def build_training_set(
@@ -85,12 +90,18 @@ def build_training_set(
     distance_limit_cm: float = 10.0,
     edge_factor: np.ndarray | None = None,
     seed: int = 0,
+    n_active: tuple[int, int] = (4, 10),
+    farthest_sets: int = 0,
+    farthest_size: int = 200,
 ) -> TrainingSet:
     """Evaluate the rig at the capture's training frames and ``n_random`` random sparse poses
-    (seed ``seed``), their nearby poses, and the distances from ``n_pool`` handle candidates
-    (edge lengths times ``edge_factor`` if given, e.g. ``masks.correlation_edge_factor``)."""
+    (seed ``seed``, ``n_active`` active weights each), their nearby poses, and the distances
+    from ``n_pool`` handle candidates (edge lengths times ``edge_factor`` if given, e.g.
+    ``masks.correlation_edge_factor``). With ``farthest_sets`` > 0, that many farthest-point
+    orders of ``farthest_size`` vertices (from random start vertices other than 0, the start
+    of the evaluation's handles) are added to the pool and kept as ``handle_sets``."""
     rng = np.random.default_rng(seed)
-    random_poses = random_sparse_poses(rng, n_random, rig.names)
+    random_poses = random_sparse_poses(rng, n_random, rig.names, n_active=tuple(n_active))
     poses = np.concatenate([capture_train, random_poses]).astype(np.float32)
     near = np.concatenate(
         [
@@ -100,6 +111,12 @@ def build_training_set(
     )
     neutral = np.asarray(rig.neutral, np.float32)
     pool = np.sort(rng.choice(rig.n_vertices, size=min(n_pool, rig.n_vertices), replace=False))
+    handle_sets = None
+    if farthest_sets > 0:
+        starts = rng.choice(np.arange(1, rig.n_vertices), size=farthest_sets, replace=False)
+        orders = np.stack([farthest_point_vertices(neutral, farthest_size, s) for s in starts])
+        pool = np.union1d(pool, orders.ravel())
+        handle_sets = jnp.asarray(np.searchsorted(pool, orders).astype(np.int32))
     graph = edge_graph(neutral, np.asarray(rig.faces), edge_factor)
     distance = weighted_geodesic_distance(graph, pool, limit=distance_limit_cm)
     return TrainingSet(
@@ -108,6 +125,8 @@ def build_training_set(
         nearby=jnp.asarray(evaluate_poses(rig, near)),
         pool=jnp.asarray(pool.astype(np.int32)),
         pool_distance=jnp.asarray(np.ascontiguousarray(distance.T)),
+        handle_sets=handle_sets,
+        n_capture=len(capture_train),
     )
 
 
@@ -132,6 +151,12 @@ class ExampleOptions:
     falloff_per_cm: tuple[float, float] = (1.5, 6.0)  # uniform
     p_nearby: float = 0.1
     p_neutral: float = 0.1
+    # matching the evaluation (all 0 / None: the draws above only)
+    p_farthest: float = 0.0  # handles: a prefix of a farthest-point set (``handle_sets``)
+    p_eval_radius: float = 0.0  # radius one of ``eval_radii_cm``, falloff ``eval_falloff``
+    eval_radii_cm: tuple[float, ...] = (1.0, 2.0, 4.0)
+    eval_falloff_per_cm: float = 3.0
+    p_capture: float | None = None  # target a capture frame with this probability
 
 
 class Examples(eqx.Module):
@@ -148,17 +173,30 @@ class Examples(eqx.Module):
 
 
 def sample_examples(
-    rng: np.random.Generator, n_shapes: int, n_pool: int, n_vertices: int, options: ExampleOptions
+    rng: np.random.Generator,
+    n_shapes: int,
+    n_pool: int,
+    n_vertices: int,
+    options: ExampleOptions,
+    *,
+    handle_sets: np.ndarray | None = None,
+    n_capture: int = 0,
 ) -> Examples:
     """One batch of example indices; handle arrays are padded to the batch's largest handle
-    count rounded up to ``handle_bucket`` (padding has ``handle_valid`` 0 and no influence)."""
+    count rounded up to ``handle_bucket`` (padding has ``handle_valid`` 0 and no influence).
+
+    The options matching the evaluation (``p_farthest``, ``p_eval_radius``, ``p_capture``)
+    draw after all the default draws, so with them off the batches are unchanged.
+    ``handle_sets`` (S, n) are pool indices in farthest-point order; the first ``n_capture``
+    shapes are capture frames."""
     b, (lo, hi) = options.batch, options.n_handles
     if not 1 <= lo <= hi <= n_pool:
         raise ValueError(
             f"n_handles: expected 1 <= low <= high <= {n_pool}, got {options.n_handles}"
         )
     target = rng.integers(0, n_shapes, b)
-    base = (target + rng.integers(1, max(n_shapes, 2), b)) % max(n_shapes, 1)
+    shift = rng.integers(1, max(n_shapes, 2), b)
+    base = (target + shift) % max(n_shapes, 1)
     kind = rng.uniform(size=b)
     nearby = kind < options.p_nearby
     neutral = (kind >= options.p_nearby) & (kind < options.p_nearby + options.p_neutral)
@@ -175,6 +213,31 @@ def sample_examples(
         [rng.choice(n_vertices, size=options.n_vertices, replace=False) for _ in range(b)]
     )
     log_r = rng.uniform(*np.log(options.radius_cm), b)
+    radius = np.exp(log_r).astype(np.float32)
+    falloff = rng.uniform(*options.falloff_per_cm, b).astype(np.float32)
+    if options.p_farthest > 0:
+        if handle_sets is None or len(handle_sets) == 0:
+            raise ValueError("p_farthest: needs farthest-point handle_sets in the training set")
+        handle_sets = np.asarray(handle_sets)
+        use = rng.uniform(size=b) < options.p_farthest
+        which = rng.integers(0, len(handle_sets), b)
+        for row in np.flatnonzero(use):
+            count = min(int(counts[row]), handle_sets.shape[1])
+            handles[row] = 0
+            handles[row, :count] = handle_sets[which[row], :count]
+            valid[row] = 0.0
+            valid[row, :count] = 1.0
+    if options.p_eval_radius > 0:
+        use = rng.uniform(size=b) < options.p_eval_radius
+        chosen = rng.choice(np.asarray(options.eval_radii_cm, np.float32), b)
+        radius = np.where(use, chosen, radius).astype(np.float32)
+        falloff = np.where(use, options.eval_falloff_per_cm, falloff).astype(np.float32)
+    if options.p_capture is not None and 0 < n_capture < n_shapes:
+        from_capture = rng.uniform(size=b) < options.p_capture
+        capture_target = rng.integers(0, n_capture, b)
+        random_target = rng.integers(n_capture, n_shapes, b)
+        target = np.where(from_capture, capture_target, random_target)
+        base = np.where(base < 0, -1, (target + shift) % n_shapes)
     return Examples(
         target=target.astype(np.int32),
         base=base.astype(np.int32),
@@ -182,8 +245,8 @@ def sample_examples(
         handles=handles,
         handle_valid=valid,
         vertices=vertices.astype(np.int32),
-        radius=np.exp(log_r).astype(np.float32),
-        falloff=rng.uniform(*options.falloff_per_cm, b).astype(np.float32),
+        radius=radius,
+        falloff=falloff,
     )
 
 

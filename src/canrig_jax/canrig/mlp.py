@@ -13,10 +13,12 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 class ZeroPreservingMLP(eqx.Module):
     """``n_layers`` bias-free linear layers with ``activation`` between them (none after the
-    last). f(0) = 0 exactly for any weights, provided activation(0) == 0."""
+    last), and optionally a bias-free linear skip from input to output (``linear_skip``).
+    f(0) = 0 exactly for any weights, provided activation(0) == 0."""
 
     layers: tuple[eqx.nn.Linear, ...]
     activation: Callable[[Array], Array] = eqx.field(static=True)
+    skip: eqx.nn.Linear | None = None
 
     def __init__(
         self,
@@ -26,6 +28,7 @@ class ZeroPreservingMLP(eqx.Module):
         width: int = 64,
         n_layers: int = 3,
         activation: Callable[[Array], Array] = jax.nn.gelu,
+        linear_skip: bool = False,
         key: PRNGKeyArray,
     ):
         if n_layers < 1:
@@ -33,6 +36,9 @@ class ZeroPreservingMLP(eqx.Module):
         if float(activation(jax.numpy.zeros(()))) != 0.0:
             raise ValueError("activation: expected activation(0) == 0 to preserve zero")
         sizes = [in_size] + [width] * (n_layers - 1) + [out_size]
+        if linear_skip:
+            key, skip_key = jax.random.split(key)
+            self.skip = eqx.nn.Linear(in_size, out_size, use_bias=False, key=skip_key)
         keys = jax.random.split(key, n_layers)
         self.layers = tuple(
             eqx.nn.Linear(a, b, use_bias=False, key=k)
@@ -41,6 +47,8 @@ class ZeroPreservingMLP(eqx.Module):
         self.activation = activation
 
     def __call__(self, x: Float[Array, " in_size"]) -> Float[Array, " out_size"]:
+        y = x
         for layer in self.layers[:-1]:
-            x = self.activation(layer(x))
-        return self.layers[-1](x)
+            y = self.activation(layer(y))
+        y = self.layers[-1](y)
+        return y if self.skip is None else y + self.skip(x)

@@ -26,7 +26,18 @@ in d: zero displacements give the base shape exactly, and a vertex outside every
 does not move at all.
 
 Positions are normalised by the neutral's centre and scale, displacements by
-``displacement_scale`` (rig units; ICT is in cm); these are static, never trained.
+``displacement_scale`` (rig units; ICT is in cm); these are static, never trained. With
+``fourier = L > 0`` the query and key MLPs see the normalised position together with a fixed
+positional encoding, sin and cos of pi 2^k x for k = 0..L-1 per coordinate (3 + 6L inputs),
+so that neighbouring vertices of different parts (upper and lower lid, upper and lower lip)
+can get clearly different queries.
+
+Options beyond the paper (all off by default; see experiments/results/canrig/
+ablation_short_runs.md): ``interpolation_prior`` adds sum_h M_vh d_h / max(sum_h M_vh, 1) to
+the output, so the network learns the correction to a plain mask-weighted interpolation;
+``query_modulation`` multiplies the attended vector also by an affine map of the vertex's
+query; ``linear_skip`` gives the zero-preserving MLPs a bias-free linear skip. All three are
+linear in d or multiply the attended vector, so both exact properties still hold.
 """
 
 from __future__ import annotations
@@ -66,6 +77,10 @@ class CANRig(eqx.Module):
     n_heads: int = eqx.field(static=True)
     latent: int = eqx.field(static=True)
     clamp: float = eqx.field(static=True)
+    fourier: int = eqx.field(static=True)
+    linear_skip: bool = eqx.field(static=True)
+    query_modulation: eqx.nn.Linear | None
+    interpolation_prior: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -77,43 +92,81 @@ class CANRig(eqx.Module):
         n_layers: int = 3,
         displacement_scale: float = 1.0,
         clamp: float = CLAMP,
+        fourier: int = 0,
+        linear_skip: bool = False,
+        query_modulation: bool = False,
+        interpolation_prior: bool = False,
         key: PRNGKeyArray,
     ):
         _check_sizes(n_heads, latent, width, n_layers, displacement_scale, clamp)
+        if int(fourier) < 0:
+            raise ValueError(f"fourier: expected >= 0, got {fourier}")
         self.centre, self.position_scale = _normalisation(canonical)
         self.displacement_scale = float(displacement_scale)
         self.n_heads, self.latent, self.clamp = n_heads, latent, float(clamp)
-        kq, kk, kv, ko = jax.random.split(key, 4)
+        self.fourier = int(fourier)
+        self.linear_skip = bool(linear_skip)
+        self.interpolation_prior = bool(interpolation_prior)
+        kq, kk, kv, ko, km = jax.random.split(key, 5)
+        self.query_modulation = eqx.nn.Linear(latent, latent, key=km) if query_modulation else None
         mlp = dict(width_size=width, depth=n_layers - 1, activation=jax.nn.gelu)
-        self.query_mlp = eqx.nn.MLP(3, latent, **mlp, key=kq)
-        self.key_mlp = eqx.nn.MLP(3, latent, **mlp, key=kk)
-        self.value_mlp = ZeroPreservingMLP(
-            3, latent, width=width, n_layers=n_layers, activation=jax.nn.gelu, key=kv
-        )
-        self.output_mlp = ZeroPreservingMLP(
-            latent, 3, width=width, n_layers=n_layers, activation=jnp.tanh, key=ko
-        )
+        n_in = 3 + 6 * self.fourier
+        self.query_mlp = eqx.nn.MLP(n_in, latent, **mlp, key=kq)
+        self.key_mlp = eqx.nn.MLP(n_in, latent, **mlp, key=kk)
+        zp = dict(width=width, n_layers=n_layers, linear_skip=self.linear_skip)
+        self.value_mlp = ZeroPreservingMLP(3, latent, **zp, activation=jax.nn.gelu, key=kv)
+        self.output_mlp = ZeroPreservingMLP(latent, 3, **zp, activation=jnp.tanh, key=ko)
 
     def normalise(self, points: Float[Array, "N 3"]) -> Float[Array, "N 3"]:
         return (points - jnp.asarray(self.centre, points.dtype)) / self.position_scale
+
+    def encode_position(self, points: Float[Array, "N 3"]) -> Float[Array, "N F"]:
+        """Input of the query and key MLPs: the normalised position and, with ``fourier``
+        octaves, its sin/cos encoding."""
+        x = self.normalise(points)
+        if not self.fourier:
+            return x
+        frequencies = jnp.pi * 2.0 ** jnp.arange(self.fourier, dtype=x.dtype)
+        angles = (x[:, :, None] * frequencies).reshape(x.shape[0], -1)
+        return jnp.concatenate([x, jnp.sin(angles), jnp.cos(angles)], axis=1)
 
     def _heads(self, x: Float[Array, "N latent"]) -> Float[Array, "heads N d"]:
         return x.reshape(x.shape[0], self.n_heads, self.latent // self.n_heads).swapaxes(0, 1)
 
     def encode_queries(self, canonical: Float[Array, "N 3"]) -> Float[Array, "heads N d"]:
         """Queries of vertices at their canonical (neutral) positions; cache these."""
-        return self._heads(jax.vmap(self.query_mlp)(self.normalise(canonical)))
+        return self._heads(jax.vmap(self.query_mlp)(self.encode_position(canonical)))
 
     def encode_keys(self, handle_canonical: Float[Array, "H 3"]) -> Float[Array, "heads H d"]:
-        return self._heads(jax.vmap(self.key_mlp)(self.normalise(handle_canonical)))
+        return self._heads(jax.vmap(self.key_mlp)(self.encode_position(handle_canonical)))
 
     def encode_values(self, displacements, handle_base) -> Float[Array, "heads H d"]:
         del handle_base  # only the shape-preserving variant uses it
         return self._heads(jax.vmap(self.value_mlp)(displacements / self.displacement_scale))
 
-    def decode(self, attended: Float[Array, "N latent"], base) -> Float[Array, "N 3"]:
+    def vertex_modulation(self, queries: Float[Array, "N latent"] | None):
+        """With ``query_modulation``: an affine map of each vertex's (cached) query, which
+        multiplies the attended vector before the output MLP; else None."""
+        if self.query_modulation is None or queries is None:
+            return None
+        return jax.vmap(self.query_modulation)(queries)
+
+    def decode(self, attended: Float[Array, "N latent"], base, queries=None) -> Float[Array, "N 3"]:
         del base
+        modulation = self.vertex_modulation(queries)
+        if modulation is not None:
+            attended = attended * modulation
         return jax.vmap(self.output_mlp)(attended) * self.displacement_scale
+
+    def interpolate(
+        self, mask: Float[Array, "*B N H"], displacements: Float[Array, "*B H 3"]
+    ) -> Float[Array, "*B N 3"]:
+        """The interpolation prior (``interpolation_prior``; else 0): each vertex moves by the
+        mask-weighted mean of the handle displacements, sum_h M_h d_h / max(sum_h M_h, 1), so
+        it fades out where the influences sum to less than 1. Linear in d (zero-preserving)
+        and exactly 0 where every clamped mask is 0; the network learns the correction."""
+        total = jnp.sum(mask, axis=-1, keepdims=True)
+        return jnp.matmul(mask / jnp.maximum(total, 1.0), displacements)
 
     def __call__(
         self,
@@ -135,7 +188,11 @@ class CANRig(eqx.Module):
         values = self.encode_values(displacements, handle_base)
         attended = masked_cross_attention(queries, keys, values, mask, self.attention_beta(beta))
         attended = attended.swapaxes(0, 1).reshape(queries.shape[1], -1)
-        return base + self.decode(attended, base)
+        flat_queries = queries.swapaxes(0, 1).reshape(queries.shape[1], -1)
+        out = base + self.decode(attended, base, flat_queries)
+        if self.interpolation_prior:
+            out = out + self.interpolate(mask, displacements)
+        return out
 
     def attention_beta(self, beta):
         """The extra attention column's logit: none for plain CANRig."""
@@ -161,6 +218,10 @@ class ShapePreservingCANRig(CANRig):
         n_layers: int = 3,
         displacement_scale: float = 1.0,
         clamp: float = CLAMP,
+        fourier: int = 0,
+        linear_skip: bool = False,
+        query_modulation: bool = False,
+        interpolation_prior: bool = False,
         key: PRNGKeyArray,
     ):
         key, ke, kb, ks, kv = jax.random.split(key, 5)
@@ -172,13 +233,23 @@ class ShapePreservingCANRig(CANRig):
             n_layers=n_layers,
             displacement_scale=displacement_scale,
             clamp=clamp,
+            fourier=fourier,
+            linear_skip=linear_skip,
+            query_modulation=query_modulation,
+            interpolation_prior=interpolation_prior,
             key=key,
         )
         self.value_embedding = eqx.nn.Linear(3, width, use_bias=False, key=ke)
         self.value_modulation = eqx.nn.Linear(3, width, key=kb)
         self.output_modulation = eqx.nn.Linear(3, latent, key=ks)
         self.value_mlp = ZeroPreservingMLP(
-            width, latent, width=width, n_layers=n_layers, activation=jax.nn.gelu, key=kv
+            width,
+            latent,
+            width=width,
+            n_layers=n_layers,
+            activation=jax.nn.gelu,
+            linear_skip=linear_skip,
+            key=kv,
         )
 
     def encode_values(self, displacements, handle_base) -> Float[Array, "heads H d"]:
@@ -186,8 +257,12 @@ class ShapePreservingCANRig(CANRig):
         modulated = embedded * jax.vmap(self.value_modulation)(self.normalise(handle_base))
         return self._heads(jax.vmap(self.value_mlp)(modulated))
 
-    def decode(self, attended: Float[Array, "N latent"], base) -> Float[Array, "N 3"]:
-        modulated = attended * jax.vmap(self.output_modulation)(self.normalise(base))
+    def decode(self, attended: Float[Array, "N latent"], base, queries=None) -> Float[Array, "N 3"]:
+        modulation = jax.vmap(self.output_modulation)(self.normalise(base))
+        by_query = self.vertex_modulation(queries)
+        if by_query is not None:
+            modulation = modulation + by_query
+        modulated = attended * modulation
         return jax.vmap(self.output_mlp)(modulated) * self.displacement_scale
 
     def attention_beta(self, beta):

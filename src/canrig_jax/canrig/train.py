@@ -41,7 +41,13 @@ class TrainOptions:
     latent: int = 64
     width: int = 64
     n_layers: int = 3
+    fourier: int = 0
+    linear_skip: bool = False
+    query_modulation: bool = False
+    interpolation_prior: bool = False
     learning_rate: float = 1e-3
+    decay_steps: int = 0  # 0: constant rate; else cosine decay over this many steps
+    decay_floor: float = 0.05
     steps: int = 20_000
     max_minutes: float | None = None
     beta: float = 0.0
@@ -71,10 +77,21 @@ class TrainOptions:
 
 
 @functools.lru_cache(maxsize=8)
-def adam(learning_rate: float) -> optax.GradientTransformation:
-    """optax.adam, one object per learning rate: the jitted step (which takes the optimiser
-    as a static argument) then compiles once per process, also across resumed runs."""
+def adam(
+    learning_rate: float, decay_steps: int = 0, decay_floor: float = 0.05
+) -> optax.GradientTransformation:
+    """optax.adam, one object per setting: the jitted step (which takes the optimiser as a
+    static argument) then compiles once per process, also across resumed runs. With
+    ``decay_steps`` > 0 the rate follows a cosine from ``learning_rate`` down to
+    ``decay_floor * learning_rate`` at that step (and stays there)."""
+    if decay_steps > 0:
+        schedule = optax.cosine_decay_schedule(learning_rate, decay_steps, decay_floor)
+        return optax.adam(schedule)
     return optax.adam(learning_rate)
+
+
+def make_optimiser(options: TrainOptions) -> optax.GradientTransformation:
+    return adam(options.learning_rate, options.decay_steps, options.decay_floor)
 
 
 def make_model(options: TrainOptions, canonical, displacement_scale: float = 1.0) -> CANRig:
@@ -84,6 +101,10 @@ def make_model(options: TrainOptions, canonical, displacement_scale: float = 1.0
         latent=options.latent,
         width=options.width,
         n_layers=options.n_layers,
+        fourier=options.fourier,
+        linear_skip=options.linear_skip,
+        query_modulation=options.query_modulation,
+        interpolation_prior=options.interpolation_prior,
         displacement_scale=displacement_scale,
         key=jax.random.PRNGKey(options.seed),
     )
@@ -192,7 +213,7 @@ def load_model(path, canonical) -> tuple[CANRig, dict]:
     state = read_checkpoint_state(path)
     options = TrainOptions.from_dict(state["options"])
     like = make_model(options, canonical, state["displacement_scale"])
-    optimiser = adam(options.learning_rate)
+    optimiser = make_optimiser(options)
     like_opt = optimiser.init(eqx.filter(like, eqx.is_array))
     model, _, state = load_checkpoint(path, like, like_opt)
     return model, state
@@ -223,7 +244,7 @@ def train(
     same options, except the budget (steps, max_minutes), which may be extended. ``stop_after``
     ends this call early after that many steps (a simulated interruption, for tests)."""
     model = make_model(options, data.neutral, displacement_scale)
-    optimiser = adam(options.learning_rate)
+    optimiser = make_optimiser(options)
     opt_state = optimiser.init(eqx.filter(model, eqx.is_array))
     step, seconds, history = 0, 0.0, []
     if checkpoint is not None and os.path.exists(checkpoint):
@@ -250,6 +271,7 @@ def train(
         data.pool.shape[0],
         data.neutral.shape[0],
     )
+    handle_sets = None if data.handle_sets is None else np.asarray(data.handle_sets)
     beta = jnp.asarray(options.beta, jnp.float32)
     budget = None if options.max_minutes is None else options.max_minutes * 60.0
     bar = None
@@ -262,7 +284,15 @@ def train(
         if stop_after is not None and done_here >= stop_after:
             break
         rng = np.random.default_rng([options.seed, step])
-        ex = sample_examples(rng, n_shapes, n_pool, n_vertices, options.examples)
+        ex = sample_examples(
+            rng,
+            n_shapes,
+            n_pool,
+            n_vertices,
+            options.examples,
+            handle_sets=handle_sets,
+            n_capture=data.n_capture,
+        )
         start = time.perf_counter()
         model, opt_state, loss, aux = train_step(
             model, opt_state, data, ex, optimiser, beta, options.sp_weight
