@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import io
-import json
 import os
 import time
 from pathlib import Path
@@ -24,7 +22,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, Float
 
-from ..io import atomic_path
+from .. import checkpoint as checkpoint_io
 from ..metrics import CM_TO_MM
 from .data import ExampleOptions, Examples, TrainingSet, sample_examples
 from .masks import influence_mask
@@ -176,40 +174,25 @@ def train_step(model, opt_state, data, ex, optimiser, beta, sp_weight):
 
 
 def save_checkpoint(path, model, opt_state, state: dict) -> Path:
-    """One file, written atomically: a JSON header line (``state``), then the leaves of
-    (model, opt_state) (``eqx.tree_serialise_leaves``)."""
-    buffer = io.BytesIO()
-    eqx.tree_serialise_leaves(buffer, (model, opt_state))
-    header = json.dumps({"format": CHECKPOINT_FORMAT, **state}).encode()
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        f.write(header + b"\n")
-        f.write(buffer.getvalue())
-    return Path(path)
+    """One file, written atomically (``canrig_jax.checkpoint``): a JSON header line
+    (``state``), then the leaves of (model, opt_state)."""
+    return checkpoint_io.save_checkpoint(path, (model, opt_state), state, CHECKPOINT_FORMAT)
 
 
 def read_checkpoint_state(path) -> dict:
-    with open(path, "rb") as f:
-        state = json.loads(f.readline())
-    if state.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"path: {path} is not a CANRig checkpoint")
-    return state
+    return checkpoint_io.read_checkpoint_state(path, CHECKPOINT_FORMAT)
 
 
 def load_checkpoint(path, like_model, like_opt_state):
     """(model, opt_state, state) from ``save_checkpoint``; ``like_*`` give the structure."""
-    with open(path, "rb") as f:
-        state = json.loads(f.readline())
-        if state.get("format") != CHECKPOINT_FORMAT:
-            raise ValueError(f"path: {path} is not a CANRig checkpoint")
-        leaves = io.BytesIO(f.read())
-    model, opt_state = eqx.tree_deserialise_leaves(leaves, (like_model, like_opt_state))
+    (model, opt_state), state = checkpoint_io.load_checkpoint(
+        path, (like_model, like_opt_state), CHECKPOINT_FORMAT
+    )
     return model, opt_state, state
 
 
 def load_model(path, canonical) -> tuple[CANRig, dict]:
     """The trained model of a checkpoint (its options are in the header) and the header."""
-    if not os.path.exists(path):
-        raise ValueError(f"path: checkpoint {path} does not exist")
     state = read_checkpoint_state(path)
     options = TrainOptions.from_dict(state["options"])
     like = make_model(options, canonical, state["displacement_scale"])
