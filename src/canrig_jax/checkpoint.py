@@ -1,4 +1,4 @@
-"""Training checkpoints: one file, written atomically, that training resumes from exactly.
+"""Resumable training: checkpoint files written atomically, and the loop that writes them.
 
 The file is a JSON header line (``{"format": ..., **state}``: options, step, elapsed time,
 loss history) followed by the leaves of a pytree (model, optimiser state) serialised by
@@ -10,9 +10,12 @@ from __future__ import annotations
 import io
 import json
 import os
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import equinox as eqx
+import jax
 
 from .io import atomic_path
 
@@ -49,3 +52,60 @@ def load_checkpoint(path, like, format: str):
         f.readline()
         leaves = io.BytesIO(f.read())
     return eqx.tree_deserialise_leaves(leaves, like), state
+
+
+def run_training(
+    step_fn: Callable[[int], dict],
+    save_fn: Callable[[int, float, list], None],
+    *,
+    step: int,
+    seconds: float,
+    history: list,
+    steps: int,
+    max_minutes: float | None,
+    log_every: int,
+    checkpoint_every: int,
+    progress: bool,
+    desc: str,
+    stop_after: int | None = None,
+) -> tuple[int, float]:
+    """The resumable training loop shared by the trainers.
+
+    Runs ``step_fn(step)`` (one optimiser step; it draws its own batch from the step number,
+    so a resumed run repeats an uninterrupted one, and returns a dict of scalar metrics) until
+    ``steps`` steps or ``max_minutes`` of accumulated step time. Every ``log_every`` steps
+    (and the last) the metrics go to ``history`` and the tqdm bar; every
+    ``checkpoint_every`` steps and at the end ``save_fn(step, seconds, history)`` is called.
+    ``stop_after`` ends this call after that many steps (a simulated interruption, for
+    tests). Returns (step, seconds).
+    """
+    budget = None if max_minutes is None else max_minutes * 60.0
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=steps, initial=step, desc=desc, dynamic_ncols=True)
+    done_here = 0
+    while step < steps and (budget is None or seconds < budget):
+        if stop_after is not None and done_here >= stop_after:
+            break
+        start = time.perf_counter()
+        metrics = step_fn(step)
+        if step % log_every == 0 or step + 1 == steps:
+            record = {"step": step, **{k: float(v) for k, v in metrics.items()}}
+            history.append(record)
+            if bar is not None:
+                bar.set_postfix({k: f"{v:.3f}" for k, v in record.items() if k != "step"})
+        else:
+            jax.block_until_ready(metrics)
+        seconds += time.perf_counter() - start
+        step += 1
+        done_here += 1
+        if bar is not None:
+            bar.update(1)
+        if step % checkpoint_every == 0:
+            save_fn(step, seconds, history)
+    if bar is not None:
+        bar.close()
+    save_fn(step, seconds, history)
+    return step, seconds

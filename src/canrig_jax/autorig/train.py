@@ -14,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
-import time
 
 import equinox as eqx
 import jax
@@ -23,7 +22,12 @@ import numpy as np
 import optax
 from jaxtyping import Array, Float, Int
 
-from ..checkpoint import load_checkpoint, read_checkpoint_state, save_checkpoint
+from ..checkpoint import (
+    load_checkpoint,
+    read_checkpoint_state,
+    run_training,
+    save_checkpoint,
+)
 from ..mesh.operators import MeshOperators, mesh_operators, pad_vertices, stack_operators
 from ..metrics import CM_TO_MM
 from .data import PoseSet, RiggedHead
@@ -248,7 +252,7 @@ def train(
         )
         step, seconds, history = state["step"], state["seconds"], state["history"]
 
-    def save():
+    def save(step, seconds, history):
         if checkpoint is not None:
             state = {
                 "options": options.to_dict(),
@@ -261,19 +265,12 @@ def train(
             }
             save_checkpoint(checkpoint, (model, opt_state), state, CHECKPOINT_FORMAT)
 
-    budget = None if options.max_minutes is None else options.max_minutes * 60.0
     landmark_weight = jnp.asarray(options.landmark_weight, jnp.float32)
     reference_j = jnp.asarray(reference, jnp.float32)
-    mean_scale = float(np.mean(np.asarray(data.scale)))
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
+    mm_per_unit = float(np.mean(np.asarray(data.scale))) * CM_TO_MM
 
-        bar = tqdm(total=options.steps, initial=step, desc="riganyface", dynamic_ncols=True)
-    done_here = 0
-    while step < options.steps and (budget is None or seconds < budget):
-        if stop_after is not None and done_here >= stop_after:
-            break
+    def one_step(step):
+        nonlocal model, opt_state
         rng = np.random.default_rng([options.seed, step])
         heads = rng.integers(0, data.n_heads, options.heads_per_step)
         pose_ids = np.stack(
@@ -282,30 +279,23 @@ def train(
                 for _ in range(options.heads_per_step)
             ]
         )
-        start = time.perf_counter()
         model, opt_state, loss, distance = train_step(
             model, opt_state, data, heads, pose_ids, optim, landmark_weight, reference_j
         )
-        if step % options.log_every == 0 or step + 1 == options.steps:
-            record = {
-                "step": step,
-                "loss": float(loss),
-                "error_unit": float(distance),
-                "error_mm": float(distance) * mean_scale * CM_TO_MM,
-            }
-            history.append(record)
-            if bar is not None:
-                bar.set_postfix(loss=f"{record['loss']:.3f}", err_mm=f"{record['error_mm']:.3f}")
-        else:
-            jax.block_until_ready(loss)
-        seconds += time.perf_counter() - start
-        step += 1
-        done_here += 1
-        if bar is not None:
-            bar.update(1)
-        if step % options.checkpoint_every == 0:
-            save()
-    if bar is not None:
-        bar.close()
-    save()
+        return {"loss": loss, "error_unit": distance, "error_mm": distance * mm_per_unit}
+
+    step, seconds = run_training(
+        one_step,
+        save,
+        step=step,
+        seconds=seconds,
+        history=history,
+        steps=options.steps,
+        max_minutes=options.max_minutes,
+        log_every=options.log_every,
+        checkpoint_every=options.checkpoint_every,
+        progress=progress,
+        desc="riganyface",
+        stop_after=stop_after,
+    )
     return TrainResult(model=model, step=step, seconds=seconds, history=history)

@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
-import time
 from pathlib import Path
 
 import equinox as eqx
@@ -23,6 +22,7 @@ import optax
 from jaxtyping import Array, Float
 
 from .. import checkpoint as checkpoint_io
+from ..checkpoint import run_training
 from ..metrics import CM_TO_MM
 from .data import ExampleOptions, Examples, TrainingSet, sample_examples
 from .masks import influence_mask
@@ -238,7 +238,7 @@ def train(
             raise ValueError(f"checkpoint: {checkpoint} was written with different options")
         step, seconds, history = state["step"], state["seconds"], state["history"]
 
-    def save():
+    def save(step, seconds, history):
         if checkpoint is not None:
             state = {
                 "options": options.to_dict(),
@@ -256,16 +256,9 @@ def train(
     )
     handle_sets = None if data.handle_sets is None else np.asarray(data.handle_sets)
     beta = jnp.asarray(options.beta, jnp.float32)
-    budget = None if options.max_minutes is None else options.max_minutes * 60.0
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
 
-        bar = tqdm(total=options.steps, initial=step, desc="canrig", dynamic_ncols=True)
-    done_here = 0
-    while step < options.steps and (budget is None or seconds < budget):
-        if stop_after is not None and done_here >= stop_after:
-            break
+    def one_step(step):
+        nonlocal model, opt_state
         rng = np.random.default_rng([options.seed, step])
         ex = sample_examples(
             rng,
@@ -276,25 +269,23 @@ def train(
             handle_sets=handle_sets,
             n_capture=data.n_capture,
         )
-        start = time.perf_counter()
         model, opt_state, loss, aux = train_step(
             model, opt_state, data, ex, optimiser, beta, options.sp_weight
         )
-        if step % options.log_every == 0 or step + 1 == options.steps:
-            record = {"step": step, "loss": float(loss), "error_mm": float(aux["error_mm"])}
-            history.append(record)
-            if bar is not None:
-                bar.set_postfix(loss=f"{record['loss']:.3f}", err_mm=f"{record['error_mm']:.3f}")
-        else:
-            jax.block_until_ready(loss)
-        seconds += time.perf_counter() - start
-        step += 1
-        done_here += 1
-        if bar is not None:
-            bar.update(1)
-        if step % options.checkpoint_every == 0:
-            save()
-    if bar is not None:
-        bar.close()
-    save()
+        return {"loss": loss, "error_mm": aux["error_mm"]}
+
+    step, seconds = run_training(
+        one_step,
+        save,
+        step=step,
+        seconds=seconds,
+        history=history,
+        steps=options.steps,
+        max_minutes=options.max_minutes,
+        log_every=options.log_every,
+        checkpoint_every=options.checkpoint_every,
+        progress=progress,
+        desc="canrig",
+        stop_after=stop_after,
+    )
     return TrainResult(model=model, step=step, seconds=seconds, history=history)
