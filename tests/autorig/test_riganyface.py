@@ -138,6 +138,33 @@ def test_padding_does_not_change_the_prediction(small_model, head_operators, pos
     assert np.all(np.asarray(padded[:, unit.shape[0] :]) == 0)
 
 
+def test_all_poses_in_one_call_equal_one_pose_at_a_time(small_model, head_operators, poses):
+    """The batched path (pose-independent work done once) is the per-pose function."""
+    unit, operators = head_operators
+    vectors = jnp.asarray(poses.vectors()[50:58])
+    batched = small_model(vectors, jnp.asarray(unit), operators)
+    single = jnp.concatenate(
+        [small_model(vectors[i : i + 1], jnp.asarray(unit), operators) for i in range(8)]
+    )
+    np.testing.assert_allclose(batched, single, rtol=1e-5, atol=1e-7)
+    # and equals feeding the first conditional block an explicitly broadcast input
+    x = (
+        jax.vmap(small_model.first)(jnp.concatenate([unit, operators.frames[:, 2]], axis=1))
+        * operators.vertex_mask[:, None]
+    )
+    for block in small_model.shared:
+        x = block(x, operators)
+    code = small_model.global_code(jnp.asarray(unit), operators)
+    conditions = jnp.concatenate([vectors, jnp.broadcast_to(code, (8, code.shape[0]))], axis=1)
+    y = jnp.broadcast_to(x[:, None], (x.shape[0], 8, x.shape[1]))
+    for block in small_model.conditional:
+        y = block(y, conditions, operators)
+    reference = jax.vmap(jax.vmap(small_model.last))(y) * operators.vertex_mask[:, None, None]
+    np.testing.assert_allclose(
+        batched, jnp.swapaxes(reference, 0, 1) * small_model.output_scale, rtol=1e-5, atol=1e-7
+    )
+
+
 def test_only_the_global_encoder_carries_information_across_components(
     poses, heads, head_operators, ict_head
 ):

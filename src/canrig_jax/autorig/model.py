@@ -57,15 +57,22 @@ class ConditionalBlock(eqx.Module):
 
     def __call__(
         self,
-        features: Float[Array, "V P C"],
+        features: Float[Array, "V P C"] | Float[Array, "V C"],
         conditions: Float[Array, "P D"],
         operators: MeshOperators,
     ) -> Float[Array, "V P C"]:
-        """P feature sets (one per pose) with their P condition vectors."""
+        """P feature sets (one per pose) with their P condition vectors.
+
+        ``features`` may also be one (V, C) set shared by all poses (the first conditional
+        block's input): the block and W_y y then run once instead of P times, which is the
+        same function (it is what broadcasting the input to (V, P, C) would compute)."""
         y = self.block(features, operators)
+        if y.ndim == 2:
+            y = y[:, None, :]
         condition = jax.vmap(self.from_condition)(conditions)  # (P, C)
         hidden = jax.nn.relu(_per_vertex(self.from_features, y) + condition[None])
-        return y + _per_vertex(self.out, hidden) * operators.vertex_mask[:, None, None]
+        out = y + _per_vertex(self.out, hidden) * operators.vertex_mask[:, None, None]
+        return out  # (V, P, C): y broadcasts against the per-pose term
 
 
 class RigAnyFace(eqx.Module):
@@ -180,7 +187,7 @@ class RigAnyFace(eqx.Module):
         conditions = jnp.concatenate(
             [poses.astype(x.dtype), jnp.broadcast_to(code, (n_poses, code.shape[0]))], axis=1
         )
-        y = jnp.broadcast_to(x[:, None, :], (x.shape[0], n_poses, x.shape[1]))
+        y = x  # shared by all poses until the first fusion with a condition
         for block in self.conditional:
             y = block(y, conditions, operators)
         out = _per_vertex(self.last, y) * mask[:, None] * self.output_scale  # (V, P, 3)
