@@ -15,10 +15,8 @@ import argparse
 import dataclasses
 import sys
 import time
-import warnings
 from pathlib import Path
 
-import equinox as eqx
 import matplotlib.pyplot as plt
 import numpy as np
 
@@ -31,47 +29,18 @@ from canrig_jax.autorig import (
     penetration,
     train,
     training_set,
+    transfer_poses,
 )
 from canrig_jax.autorig.train import head_inputs
+from canrig_jax.canrig import parameter_count
 from canrig_jax.io import save_json, save_text
-from canrig_jax.mesh import closest_point_correspondence, decimate, deformation_transfer
+from canrig_jax.mesh import decimate
 from canrig_jax.metrics import CM_TO_MM
 from canrig_jax.render import plot_vertex_scalar, save_figure
-from canrig_jax.rig import BlendshapeRig
 from canrig_jax.rig.gltf import export_gltf, load_gltf_rig
 
 MODELS = {"raf": {}, "raf_no_global_encoder": {"global_size": 0}}
 SPLITS = ("same_topology", "unseen_topology")
-
-
-def count_parameters(model) -> int:
-    import jax
-
-    return int(sum(x.size for x in jax.tree.leaves(eqx.filter(model, eqx.is_array))))
-
-
-def deformation_transfer_poses(dataset, head) -> np.ndarray:
-    """(P, V, 3) DT of every ground-truth pose of the generic ICT head onto ``head``."""
-    source = dataset.head
-    source_rig = BlendshapeRig(
-        source.neutral,
-        dataset.head_displacements,
-        (),
-        dataset.poses.labels,
-        source.faces,
-    )
-    correspondence = closest_point_correspondence(
-        source.neutral,
-        source.faces,
-        head.vertices,
-        head.faces,
-        source.landmarks,
-        head.landmarks,
-    )
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        transferred = deformation_transfer(source_rig, head.vertices, correspondence)
-    return np.asarray(transferred.deltas)
 
 
 def main(argv=None):
@@ -127,7 +96,7 @@ def main(argv=None):
         trained[name] = {
             "steps": result.step,
             "minutes": result.seconds / 60,
-            "parameters": count_parameters(models[name]),
+            "parameters": parameter_count(models[name]),
             "final_train_error_mm": state["history"][-1]["error_mm"],
             "history": state["history"],
         }
@@ -152,7 +121,7 @@ def main(argv=None):
                 )
                 predicted_all[name].append(generated.displacements)
                 pen[name].append(penetration(head, generated.displacements, part_names))
-            predicted_all["deformation_transfer"].append(deformation_transfer_poses(dataset, head))
+            predicted_all["deformation_transfer"].append(transfer_poses(dataset, head))
             pen["ground_truth"].append(penetration(head, head.displacements, part_names))
             examples.setdefault(split, (head, {n: p[-1] for n, p in predicted_all.items()}))
             print(f"evaluated {head.name}")

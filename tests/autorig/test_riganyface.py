@@ -124,6 +124,20 @@ def test_remeshed_heads_carry_the_ground_truth_and_the_parts(heads, ict_head):
     assert heads[1].n_vertices > 3 * 300
 
 
+def test_deformation_transfer_baseline_follows_the_ground_truth(
+    ict_quartic, ict_head, head_displacements, poses, heads
+):
+    from canrig_jax.autorig import AutorigDataset, transfer_poses
+
+    dataset = AutorigDataset(poses, ict_head, head_displacements, [], {})
+    head = heads[0]
+    transferred = transfer_poses(dataset, head)
+    assert transferred.shape == head.displacements.shape
+    error = np.linalg.norm(transferred - head.displacements, axis=-1).mean()
+    motion = np.linalg.norm(head.displacements, axis=-1).mean()
+    assert error < 0.5 * motion, (error, motion)
+
+
 # -- model ----------------------------------------------------------------------------------------
 
 

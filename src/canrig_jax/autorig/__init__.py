@@ -8,6 +8,7 @@ from .data import (
     make_head,
     pose_displacements,
     quartic_pose_set,
+    transfer_poses,
 )
 from .diffusion import (
     LearnedDiffusion,
@@ -54,5 +55,6 @@ __all__ = [
     "spectral_diffusion_and_gradient",
     "train",
     "training_set",
+    "transfer_poses",
     "winding_numbers",
 ]

@@ -315,3 +315,25 @@ def ict_autorig_dataset(
         train=split["train"],
         test={k: split[k] for k in ("same_topology", "unseen_topology")},
     )
+
+
+def transfer_poses(dataset: AutorigDataset, head: RiggedHead) -> np.ndarray:
+    """The deformation-transfer baseline: every ground-truth pose of the generic ICT head
+    carried onto ``head`` (Sumner & Popović; landmark + closest-point correspondence).
+
+    Returns (P, V, 3) displacements on ``head`` (centimetres)."""
+    import warnings
+
+    from ..mesh.transfer import closest_point_correspondence, deformation_transfer
+
+    source = dataset.head
+    source_rig = BlendshapeRig(
+        source.neutral, dataset.head_displacements, (), dataset.poses.labels, source.faces
+    )
+    correspondence = closest_point_correspondence(
+        source.neutral, source.faces, head.vertices, head.faces, source.landmarks, head.landmarks
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "correctives are not transferred": there are none
+        transferred = deformation_transfer(source_rig, head.vertices, correspondence)
+    return np.asarray(transferred.deltas)
