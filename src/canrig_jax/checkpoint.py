@@ -57,14 +57,10 @@ def load_checkpoint(path, like, format: str):
 def run_training(
     step_fn: Callable[[int], dict],
     save_fn: Callable[[int, float, list], None],
-    *,
+    options,
     step: int,
     seconds: float,
     history: list,
-    steps: int,
-    max_minutes: float | None,
-    log_every: int,
-    checkpoint_every: int,
     progress: bool,
     desc: str,
     stop_after: int | None = None,
@@ -73,12 +69,15 @@ def run_training(
 
     Runs ``step_fn(step)`` (one optimiser step; it draws its own batch from the step number,
     so a resumed run repeats an uninterrupted one, and returns a dict of scalar metrics) until
-    ``steps`` steps or ``max_minutes`` of accumulated step time. Every ``log_every`` steps
-    (and the last) the metrics go to ``history`` and the tqdm bar; every
-    ``checkpoint_every`` steps and at the end ``save_fn(step, seconds, history)`` is called.
-    ``stop_after`` ends this call after that many steps (a simulated interruption, for
-    tests). Returns (step, seconds).
+    ``options.steps`` steps or ``options.max_minutes`` of accumulated step time, starting from
+    ``step`` and ``seconds`` (a resumed checkpoint's). Every ``options.log_every`` steps (and
+    the last) the metrics go to ``history`` and the tqdm bar; every
+    ``options.checkpoint_every`` steps and at the end ``save_fn(step, seconds, history)`` is
+    called. ``stop_after`` ends this call after that many steps (a simulated interruption,
+    for tests). Returns (step, seconds).
     """
+    steps, max_minutes = options.steps, options.max_minutes
+    log_every, checkpoint_every = options.log_every, options.checkpoint_every
     budget = None if max_minutes is None else max_minutes * 60.0
     bar = None
     if progress:

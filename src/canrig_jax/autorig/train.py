@@ -285,17 +285,6 @@ def train(
         return {"loss": loss, "error_unit": distance, "error_mm": distance * mm_per_unit}
 
     step, seconds = run_training(
-        one_step,
-        save,
-        step=step,
-        seconds=seconds,
-        history=history,
-        steps=options.steps,
-        max_minutes=options.max_minutes,
-        log_every=options.log_every,
-        checkpoint_every=options.checkpoint_every,
-        progress=progress,
-        desc="riganyface",
-        stop_after=stop_after,
+        one_step, save, options, step, seconds, history, progress, "riganyface", stop_after
     )
     return TrainResult(model=model, step=step, seconds=seconds, history=history)

@@ -275,17 +275,6 @@ def train(
         return {"loss": loss, "error_mm": aux["error_mm"]}
 
     step, seconds = run_training(
-        one_step,
-        save,
-        step=step,
-        seconds=seconds,
-        history=history,
-        steps=options.steps,
-        max_minutes=options.max_minutes,
-        log_every=options.log_every,
-        checkpoint_every=options.checkpoint_every,
-        progress=progress,
-        desc="canrig",
-        stop_after=stop_after,
+        one_step, save, options, step, seconds, history, progress, "canrig", stop_after
     )
     return TrainResult(model=model, step=step, seconds=seconds, history=history)
