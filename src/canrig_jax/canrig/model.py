@@ -76,6 +76,8 @@ class CANRig(eqx.Module):
     displacement_scale: float = eqx.field(static=True)
     n_heads: int = eqx.field(static=True)
     latent: int = eqx.field(static=True)
+    width: int = eqx.field(static=True)
+    n_layers: int = eqx.field(static=True)
     clamp: float = eqx.field(static=True)
     fourier: int = eqx.field(static=True)
     linear_skip: bool = eqx.field(static=True)
@@ -104,6 +106,7 @@ class CANRig(eqx.Module):
         self.centre, self.position_scale = _normalisation(canonical)
         self.displacement_scale = float(displacement_scale)
         self.n_heads, self.latent, self.clamp = n_heads, latent, float(clamp)
+        self.width, self.n_layers = int(width), int(n_layers)
         self.fourier = int(fourier)
         self.linear_skip = bool(linear_skip)
         self.interpolation_prior = bool(interpolation_prior)
@@ -208,37 +211,11 @@ class ShapePreservingCANRig(CANRig):
     value_modulation: eqx.nn.Linear
     output_modulation: eqx.nn.Linear
 
-    def __init__(
-        self,
-        canonical: Float[np.ndarray, "V 3"],
-        *,
-        n_heads: int = 4,
-        latent: int = 64,
-        width: int = 64,
-        n_layers: int = 3,
-        displacement_scale: float = 1.0,
-        clamp: float = CLAMP,
-        fourier: int = 0,
-        linear_skip: bool = False,
-        query_modulation: bool = False,
-        interpolation_prior: bool = False,
-        key: PRNGKeyArray,
-    ):
+    def __init__(self, canonical: Float[np.ndarray, "V 3"], *, key: PRNGKeyArray, **options):
+        """The options of ``CANRig``; the value MLP takes the embedded, modulated displacement."""
         key, ke, kb, ks, kv = jax.random.split(key, 5)
-        super().__init__(
-            canonical,
-            n_heads=n_heads,
-            latent=latent,
-            width=width,
-            n_layers=n_layers,
-            displacement_scale=displacement_scale,
-            clamp=clamp,
-            fourier=fourier,
-            linear_skip=linear_skip,
-            query_modulation=query_modulation,
-            interpolation_prior=interpolation_prior,
-            key=key,
-        )
+        super().__init__(canonical, key=key, **options)
+        width, latent = self.width, self.latent
         self.value_embedding = eqx.nn.Linear(3, width, use_bias=False, key=ke)
         self.value_modulation = eqx.nn.Linear(3, width, key=kb)
         self.output_modulation = eqx.nn.Linear(3, latent, key=ks)
@@ -246,9 +223,9 @@ class ShapePreservingCANRig(CANRig):
             width,
             latent,
             width=width,
-            n_layers=n_layers,
+            n_layers=self.n_layers,
             activation=jax.nn.gelu,
-            linear_skip=linear_skip,
+            linear_skip=self.linear_skip,
             key=kv,
         )
 
