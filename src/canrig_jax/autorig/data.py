@@ -18,11 +18,15 @@ network is trained on.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
+import jax
 import numpy as np
+from scipy.spatial import cKDTree
 
-from ..data.ict import ICTFaceModel, ict_identity
+from ..data.ict import ICTFaceModel, ict_identity, load_ict
 from ..mesh.remesh import Remeshed, decimate, subdivide
+from ..mesh.transfer import closest_point_correspondence, deformation_transfer
 from ..rig.blendshape import BlendshapeRig, evaluate
 
 INNER_PARTS = ("Teeth", "Gums and tongue", "Eyeball left", "Eyeball right")
@@ -115,8 +119,6 @@ def pose_displacements(rig: BlendshapeRig, poses: PoseSet) -> np.ndarray:
     """(P, V, 3) float32 ground truth: the rig at weight 1 on each pose's expressions."""
     if tuple(rig.names) != poses.basis_names:
         raise ValueError("rig: its blendshape names differ from the pose set's basis names")
-    import jax
-
     neutral = np.asarray(rig.neutral)
     posed = jax.vmap(lambda w: evaluate(rig, w))(poses.vectors())
     return np.asarray(posed) - neutral[None]
@@ -218,8 +220,6 @@ def make_head(
         corner = np.argmax(fine.map.barycentric, axis=1)
         parts = parts[coarse.faces[fine.map.triangle, corner]]
         vertices, faces = fine.vertices, fine.faces
-    from scipy.spatial import cKDTree
-
     landmarks = cKDTree(vertices).query(neutral[head.landmarks])[1]
     return RiggedHead(
         name=name,
@@ -269,7 +269,6 @@ def ict_autorig_dataset(
     topology ("same_topology": same remeshing recipe, new identity) and in
     ``unseen_topology`` (a resolution never seen in training).
     """
-    from ..data.ict import load_ict
     from ..rig.ict_quartic import ict_quartic_rig
 
     if unseen_topology in train_topologies:
@@ -322,10 +321,6 @@ def transfer_poses(dataset: AutorigDataset, head: RiggedHead) -> np.ndarray:
     carried onto ``head`` (Sumner & Popović; landmark + closest-point correspondence).
 
     Returns (P, V, 3) displacements on ``head`` (centimetres)."""
-    import warnings
-
-    from ..mesh.transfer import closest_point_correspondence, deformation_transfer
-
     source = dataset.head
     source_rig = BlendshapeRig(
         source.neutral, dataset.head_displacements, (), dataset.poses.labels, source.faces

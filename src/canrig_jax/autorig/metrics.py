@@ -33,6 +33,13 @@ def winding_numbers(
     return jax.lax.map(one, points, batch_size=32)
 
 
+@jax.jit
+def _pose_winding_numbers(posed, inner_index, enclosing):
+    """(P, N) winding numbers of the ``inner_index`` vertices of each posed mesh w.r.t. its
+    ``enclosing`` triangles (jitted once per shape, not per call)."""
+    return jax.lax.map(lambda v: winding_numbers(v[inner_index], v[enclosing]), posed)
+
+
 def outside_fraction(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -58,8 +65,7 @@ def outside_fraction(
     posed = jnp.asarray(vertices, jnp.float32)
     single = posed.ndim == 2
     posed = posed[None] if single else posed
-    inner_index = np.flatnonzero(inner)
-    w = jax.lax.map(lambda v: winding_numbers(v[inner_index], v[enclosing]), posed)
+    w = _pose_winding_numbers(posed, jnp.asarray(np.flatnonzero(inner)), jnp.asarray(enclosing))
     fraction = np.mean(np.abs(np.asarray(w)) < 0.5, axis=1)
     return fraction[0] if single else fraction
 
