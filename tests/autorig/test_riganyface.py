@@ -153,7 +153,8 @@ def test_padding_does_not_change_the_prediction(small_model, head_operators, pos
 
 
 def test_all_poses_in_one_call_equal_one_pose_at_a_time(small_model, head_operators, poses):
-    """The batched path (pose-independent work done once) is the per-pose function."""
+    """The batched path (pose-independent work done once) and the chunked path are the
+    per-pose function."""
     unit, operators = head_operators
     vectors = jnp.asarray(poses.vectors()[50:58])
     batched = small_model(vectors, jnp.asarray(unit), operators)
@@ -161,6 +162,9 @@ def test_all_poses_in_one_call_equal_one_pose_at_a_time(small_model, head_operat
         [small_model(vectors[i : i + 1], jnp.asarray(unit), operators) for i in range(8)]
     )
     np.testing.assert_allclose(batched, single, rtol=1e-5, atol=1e-7)
+    # in chunks of 3 poses (lax.map over 3 chunks, the last one padded)
+    chunked = small_model(vectors, jnp.asarray(unit), operators, pose_chunk=3)
+    np.testing.assert_allclose(chunked, batched, rtol=1e-5, atol=1e-7)
     # and equals feeding the first conditional block an explicitly broadcast input
     x = (
         jax.vmap(small_model.first)(jnp.concatenate([unit, operators.frames[:, 2]], axis=1))
@@ -338,6 +342,8 @@ def test_bad_input_raises_naming_the_argument(small_model, poses, heads, head_op
     unit, operators = head_operators
     with pytest.raises(ValueError, match="poses"):
         small_model(jnp.ones((3, 52)), jnp.asarray(unit), operators)
+    with pytest.raises(ValueError, match="pose_chunk"):
+        generate_rig(small_model, poses, head.vertices, head.faces, pose_chunk=0)
     other = PoseSet(poses.basis_names[:52], tuple((i,) for i in range(52)))
     with pytest.raises(ValueError, match="poses"):
         generate_rig(small_model, other, head.vertices, head.faces, k=16)

@@ -64,15 +64,23 @@ class ConditionalBlock(eqx.Module):
         """P feature sets (one per pose) with their P condition vectors.
 
         ``features`` may also be one (V, C) set shared by all poses (the first conditional
-        block's input): the block and W_y y then run once instead of P times, which is the
-        same function (it is what broadcasting the input to (V, P, C) would compute)."""
-        y = self.block(features, operators)
+        block's input): the block then runs once instead of P times, which is the same
+        function (it is what broadcasting the input to (V, P, C) would compute)."""
+        return self.fuse(self.block(features, operators), conditions, operators)
+
+    def fuse(
+        self,
+        y: Float[Array, "V P C"] | Float[Array, "V C"],
+        conditions: Float[Array, "P D"],
+        operators: MeshOperators,
+    ) -> Float[Array, "V P C"]:
+        """The fusion y + W_2 relu(W_y y + W_c c + b) of the block's output y with each
+        condition c (a (V, C) y is shared by all poses)."""
         if y.ndim == 2:
             y = y[:, None, :]
         condition = jax.vmap(self.from_condition)(conditions)  # (P, C)
         hidden = jax.nn.relu(_per_vertex(self.from_features, y) + condition[None])
-        out = y + _per_vertex(self.out, hidden) * operators.vertex_mask[:, None, None]
-        return out  # (V, P, C): y broadcasts against the per-pose term
+        return y + _per_vertex(self.out, hidden) * operators.vertex_mask[:, None, None]
 
 
 class RigAnyFace(eqx.Module):
@@ -161,12 +169,20 @@ class RigAnyFace(eqx.Module):
         poses: Float[Array, "P A"],
         vertices: Float[Array, "V 3"],
         operators: MeshOperators,
+        *,
+        pose_chunk: int | None = None,
     ) -> Float[Array, "P V 3"]:
         """Displacements (unit-sphere units) of every vertex for every pose vector.
 
+        ``pose_chunk``: poses per pass through the conditional blocks (``lax.map`` over
+        chunks; ``None``: all at once). The same function; on a CPU chunks of ~16 poses keep
+        the (V, chunk, C) activations in cache and run about twice as fast as one pass.
+
         Raises ValueError (before tracing) when a pose vector's length is not
-        ``n_pose_inputs`` or ``vertices`` does not match the operators.
+        ``n_pose_inputs``, ``vertices`` does not match the operators, or ``pose_chunk`` < 1.
         """
+        if pose_chunk is not None and pose_chunk < 1:
+            raise ValueError(f"pose_chunk: expected a positive number of poses, got {pose_chunk}")
         if jnp.ndim(poses) != 2 or jnp.shape(poses)[1] != self.n_pose_inputs:
             raise ValueError(
                 f"poses: expected shape (P, {self.n_pose_inputs}) (one pose vector per row), "
@@ -187,11 +203,22 @@ class RigAnyFace(eqx.Module):
         conditions = jnp.concatenate(
             [poses.astype(x.dtype), jnp.broadcast_to(code, (n_poses, code.shape[0]))], axis=1
         )
-        y = x  # shared by all poses until the first fusion with a condition
-        for block in self.conditional:
-            y = block(y, conditions, operators)
-        out = _per_vertex(self.last, y) * mask[:, None] * self.output_scale  # (V, P, 3)
-        return jnp.swapaxes(out, 0, 1)
+        first, *rest = self.conditional
+        y = first.block(x, operators)  # shared by all poses until the first fusion
+
+        def displacements(chunk):  # (p, D) conditions -> (p, V, 3)
+            z = first.fuse(y, chunk, operators)
+            for block in rest:
+                z = block(z, chunk, operators)
+            out = _per_vertex(self.last, z) * mask[:, None] * self.output_scale
+            return jnp.swapaxes(out, 0, 1)
+
+        if pose_chunk is None or n_poses <= pose_chunk:
+            return displacements(conditions)
+        n_chunks = -(-n_poses // pose_chunk)
+        padded = jnp.pad(conditions, ((0, n_chunks * pose_chunk - n_poses), (0, 0)))
+        out = jax.lax.map(displacements, padded.reshape(n_chunks, pose_chunk, -1))
+        return out.reshape(n_chunks * pose_chunk, n_vertices, 3)[:n_poses]
 
 
 def normalise(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:

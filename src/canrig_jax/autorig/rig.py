@@ -35,9 +35,13 @@ def activation_bytes(model: RigAnyFace, n_vertices: int, n_poses: int, k: int) -
     return 4 * (per_block + 4 * n_vertices * k)
 
 
+DEFAULT_POSE_CHUNK = 16
+"""Poses per pass through the conditional blocks in ``generate_rig`` (see ``RigAnyFace``)."""
+
+
 @eqx.filter_jit
-def _predict(model, poses, vertices, operators):
-    return model(poses, vertices, operators)
+def _predict(model, poses, vertices, operators, pose_chunk=None):
+    return model(poses, vertices, operators, pose_chunk=pose_chunk)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,6 +115,7 @@ def generate_rig(
     cache=False,
     memory_budget: int = DEFAULT_MEMORY_BUDGET,
     bucket: int = 256,
+    pose_chunk: int | None = DEFAULT_POSE_CHUNK,
 ) -> GeneratedRig:
     """Build the rig of a neutral head (any triangulation, any number of parts).
 
@@ -124,6 +129,8 @@ def generate_rig(
         memory_budget: refuse heads whose activations would exceed this many bytes.
         bucket: pad vertex, face and operator sizes up to a multiple of this, so heads of
             similar size share one compiled network (padding does not change the result).
+        pose_chunk: poses per pass through the network's conditional blocks (``None``: all
+            at once); the result does not depend on it, the speed and memory do.
 
     Raises ValueError for a head without faces, non-finite or ill-shaped input, a pose set
     that does not match the model, or a head too large for ``memory_budget``.
@@ -134,12 +141,15 @@ def generate_rig(
         raise ValueError(
             f"poses: pose vectors of length {poses.n_basis}, the model takes {model.n_pose_inputs}"
         )
-    needed = activation_bytes(model, vertices.shape[0], poses.n_poses, k)
+    if pose_chunk is not None and pose_chunk < 1:
+        raise ValueError(f"pose_chunk: expected a positive number of poses, got {pose_chunk}")
+    per_pass = poses.n_poses if pose_chunk is None else min(pose_chunk, poses.n_poses)
+    needed = activation_bytes(model, vertices.shape[0], per_pass, k)
     if needed > memory_budget:
         raise ValueError(
             f"vertices: a head of {vertices.shape[0]} vertices needs ~{needed / 2**30:.1f} GiB "
-            f"for {poses.n_poses} poses, above memory_budget={memory_budget / 2**30:.1f} GiB; "
-            "decimate it or raise memory_budget"
+            f"for {per_pass} poses per pass, above memory_budget={memory_budget / 2**30:.1f} GiB; "
+            "decimate it, lower pose_chunk or raise memory_budget"
         )
     unit, _, scale = normalise(vertices)
     unit = unit.astype(np.float32)
@@ -153,7 +163,9 @@ def generate_rig(
     padded = pad_to_bucket(operators, bucket)
     unit_padded = np.zeros((padded.n_vertices, 3), np.float32)
     unit_padded[: unit.shape[0]] = unit
-    predicted = _predict(model, jnp.asarray(poses.vectors()), jnp.asarray(unit_padded), padded)
+    predicted = _predict(
+        model, jnp.asarray(poses.vectors()), jnp.asarray(unit_padded), padded, pose_chunk
+    )
     predicted = np.asarray(jax.block_until_ready(predicted), np.float64)[:, : unit.shape[0]]
     predicted = predicted * scale
     after_network = time.perf_counter()
