@@ -216,8 +216,9 @@ def eigenbasis(laplacian: sp.spmatrix, mass: np.ndarray, k: int) -> tuple[np.nda
     phi = M^-1/2 psi. A is block diagonal over the mesh's connected components (a head: skin,
     eyeballs, teeth, ... 56 parts at 1,750 vertices), so each block is solved on its own (at
     most k pairs each) and the k smallest of the union are kept: the same eigenpairs as one
-    solve of the whole matrix, each zero eigenvector the constant on one component. Vertices with zero mass (isolated) are left out
-    and get zero rows. Ties are broken by component order (stable sort).
+    solve of the whole matrix, each zero eigenvector the constant on one component. Vertices
+    with zero mass (isolated) are left out and get zero rows. Ties are broken by component
+    order (stable sort).
     """
     n = mass.shape[0]
     eigenvectors = np.zeros((n, k))
