@@ -194,3 +194,35 @@ def test_vertex_blocks_partition_the_mesh(face):
     assert np.array_equal(np.sort(flat), np.arange(len(face[0])))
     extent = [np.ptp(face[0][b[b >= 0]], axis=0).max() for b in blocks]
     assert np.median(extent) < 2.0  # compact blocks (cm, on an 18 cm wide face)
+
+
+def test_influence_reach_bounds_every_non_zero_clamped_mask(neural_rig, placed):
+    """The block-sparse path picks handles by distance alone: every handle with a non-zero
+    clamped mask on a block's vertex lies within its reach of that block, and the reach is
+    tight (the mask just inside it, 1 % short, is still above the clamp)."""
+    from canrig_jax.canrig.blocks import influence_reach
+    from canrig_jax.canrig.masks import influence_mask
+
+    clamp = neural_rig.model.clamp
+    rng = np.random.default_rng(2)
+    h = placed.n_handles
+    radius = rng.uniform(0.3, 4.0, h).astype(np.float32)
+    falloff = rng.uniform(0.5, 8.0, h).astype(np.float32)
+    reach = influence_reach(radius, falloff, clamp)
+    distance = np.asarray(placed.distance)
+    mask = np.asarray(influence_mask(distance, radius, falloff, clamp))
+    assert np.all(distance[mask > 0] <= np.broadcast_to(reach, mask.shape)[mask > 0])
+    # per block: the handles within reach of the block's nearest vertex include all
+    # handles with a non-zero mask on any of its vertices
+    blocks = neural_rig.block_array
+    padded = np.concatenate([mask, np.zeros((1, h), mask.dtype)])
+    influencing = padded[blocks].max(axis=1) > 0  # (B, H)
+    within = placed.block_distance <= reach[None, :]
+    assert np.all(within[influencing])
+    if clamp > 0:
+        inside = np.asarray(
+            influence_mask(reach[None, :] * 0.99 - 0.011, radius, falloff, clamp)
+        )  # reach minus its margins and 1 %
+        assert np.all(inside >= clamp)
+    else:
+        assert np.all(np.isinf(reach))

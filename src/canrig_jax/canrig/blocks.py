@@ -2,17 +2,18 @@
 whose clamped mask on it is non-zero.
 
 The mesh's vertices are split once into compact blocks (recursive median bisection along the
-longest axis, equal sizes). Per call, each block gathers the handles that influence any of
-its vertices (at most ``width`` per block, a static size chosen on the host as the next power
-of two above the largest count, so the result is exact, never truncated), and the attention
-runs on (block vertices x block handles) instead of (V x H). Handles outside a block's list
-have mask 0 on all of its vertices and contribute nothing, so this equals the dense forward
-up to float rounding.
+longest axis, equal sizes). Once per handle placement, the distance from each handle to the
+nearest vertex of each block is kept (``block_distance``). A clamped mask is exactly 0 beyond
+a distance that depends only on the handle's radius and falloff (``influence_reach``), so per
+call the host counts the handles within reach of each block without touching the (V, H)
+masks, and each block gathers those handles (at most ``width``, a static size: the next power
+of two above the largest count, so nothing is ever truncated). Masks and attention are
+computed on (block vertices x block handles) instead of (V x H). Handles outside a block's
+list have mask 0 on all of its vertices and contribute nothing, so this equals the dense
+forward up to float rounding.
 """
 
 from __future__ import annotations
-
-import functools
 
 import equinox as eqx
 import jax
@@ -48,12 +49,27 @@ def vertex_blocks(vertices: np.ndarray, max_size: int = 48) -> np.ndarray:
     return out.astype(np.int32)
 
 
-@functools.partial(jax.jit, static_argnums=4)
-def block_handle_counts(blocks, distance, radius, falloff, clamp):
-    """(B,) how many handles influence some vertex of each block."""
-    mask = influence_mask(distance, radius, falloff, clamp)
-    padded = jnp.concatenate([mask, jnp.zeros((1, mask.shape[1]), mask.dtype)])
-    return jnp.sum(jnp.max(padded[blocks], axis=1) > 0, axis=1)
+def block_distance(blocks: np.ndarray, distance: np.ndarray) -> np.ndarray:
+    """(B, H) distance from each handle to the nearest vertex of each block (host, once per
+    handle placement); ``distance`` is (V, H), padding slots of ``blocks`` count as infinite."""
+    distance = np.asarray(distance, np.float32)
+    padded = np.concatenate([distance, np.full((1, distance.shape[1]), np.inf, np.float32)])
+    return padded[blocks].min(axis=1)
+
+
+def influence_reach(radius: np.ndarray, falloff: np.ndarray, clamp: float) -> np.ndarray:
+    """(H,) distance beyond which a handle's clamped mask is exactly 0.
+
+    0.5 (1 - tanh(g (d - r))) < clamp  <=>  d > r + atanh(1 - 2 clamp) / g. A relative and
+    absolute margin of 1e-3 covers float32 rounding of the mask (a handle kept a little past
+    its reach only adds zeros). With clamp 0 no mask is exactly 0 in exact arithmetic, so
+    every handle reaches everywhere.
+    """
+    radius = np.asarray(radius, np.float64)
+    if clamp <= 0.0:
+        return np.full(radius.shape, np.inf)
+    reach = radius + np.arctanh(1.0 - 2.0 * clamp) / np.asarray(falloff, np.float64)
+    return reach * (1.0 + 1e-3) + 1e-3
 
 
 @eqx.filter_jit
@@ -62,6 +78,8 @@ def blocked_deform(
     block_queries: Float[Array, "B heads S d"],
     blocks: Int[Array, "B S"],
     position: Int[Array, " V"],
+    nearest: Float[Array, "B H"],
+    reach: Float[Array, " H"],
     canonical: Float[Array, "V 3"],
     base: Float[Array, "V 3"],
     handle_index: Int[Array, " H"],
@@ -72,15 +90,19 @@ def blocked_deform(
     beta: Float[Array, ""] | None,
     width: int,
 ) -> Float[Array, "V 3"]:
-    """The forward pass of ``rig.deform`` with block-sparse attention (``width`` handles per
-    block, static; must be >= every ``block_handle_counts``)."""
-    mask = influence_mask(distance, radius, falloff, model.clamp)
-    mask = jnp.where(mask < model.clamp, 0.0, mask)
-    padded = jnp.concatenate([mask, jnp.zeros((1, mask.shape[1]), mask.dtype)])
-    block_mask = padded[blocks]  # (B, S, H); padding rows are all 0
-    score = jnp.max(block_mask, axis=1)  # (B, H)
-    _, chosen = jax.lax.top_k(score, width)  # (B, W) all influencing handles first
-    sub_mask = jnp.take_along_axis(block_mask, chosen[:, None, :], axis=2)  # (B, S, W)
+    """The forward pass of ``rig.deform`` with block-sparse attention.
+
+    ``nearest`` is ``block_distance``, ``reach`` is ``influence_reach``; ``width`` (static)
+    must be >= the number of handles within reach of every block. Each block takes those
+    handles first (``top_k`` on the 0/1 indicator), then the masks are computed on the
+    (block vertices x chosen handles) distances only."""
+    within = (nearest <= reach[None, :]).astype(distance.dtype)  # (B, H)
+    _, chosen = jax.lax.top_k(within, width)  # (B, W): every handle within reach first
+    padded = jnp.concatenate([distance, jnp.full((1, distance.shape[1]), jnp.inf)])
+    sub_distance = padded[blocks[:, :, None], chosen[:, None, :]]  # (B, S, W); padding: inf
+    sub_mask = influence_mask(
+        sub_distance, radius[chosen][:, None, :], falloff[chosen][:, None, :], model.clamp
+    )
     keys = model.encode_keys(canonical[handle_index])  # (heads, H, d)
     values = model.encode_values(displacements, base[handle_index])
     block_keys = jnp.moveaxis(keys[:, chosen], 0, 1)  # (B, heads, W, d)

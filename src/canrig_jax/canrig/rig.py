@@ -21,18 +21,21 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from .blocks import block_handle_counts, blocked_deform, vertex_blocks
+from .blocks import block_distance, blocked_deform, influence_reach, vertex_blocks
 from .masks import check_handle_parameters, edge_graph, influence_mask, weighted_geodesic_distance
 from .model import CANRig
 
 
 @dataclasses.dataclass(frozen=True)
 class Handles:
-    """Handle vertices and the (V, H) weighted geodesic distance of every vertex to them
-    (kept on the device, so repeated edits do not copy it)."""
+    """Handle vertices, the (V, H) weighted geodesic distance of every vertex to them (kept on
+    the device, so repeated edits do not copy it) and the (B, H) distance of each handle to
+    the nearest vertex of each of the rig's vertex blocks (on the host and the device)."""
 
     index: np.ndarray
     distance: Array
+    block_distance: np.ndarray
+    block_distance_device: Array
 
     @property
     def n_handles(self) -> int:
@@ -87,6 +90,7 @@ class NeuralRig:
         flat = blocks.ravel()
         position = np.zeros(len(canonical), np.int32)
         position[flat[flat >= 0]] = np.flatnonzero(flat >= 0)
+        self.block_array = blocks
         self.blocks = jnp.asarray(blocks)
         self.block_position = jnp.asarray(position)
         # queries per block (B, heads, S, d); padding slots get zero queries, mask 0
@@ -111,8 +115,11 @@ class NeuralRig:
                 f"index: handle vertices must lie in [0, {self.n_vertices}), "
                 f"got {index.min()}..{index.max()}"
             )
-        distance = weighted_geodesic_distance(self.graph, index, limit=limit)
-        return Handles(index.astype(np.int32), jnp.asarray(np.ascontiguousarray(distance.T)))
+        distance = np.ascontiguousarray(
+            weighted_geodesic_distance(self.graph, index, limit=limit).T
+        )
+        nearest = block_distance(self.block_array, distance)
+        return Handles(index.astype(np.int32), jnp.asarray(distance), nearest, jnp.asarray(nearest))
 
     def __call__(
         self,
@@ -169,11 +176,16 @@ class NeuralRig:
         )
         if dense:
             return deform(self.model, self.queries, *args)
-        counts = block_handle_counts(
-            self.blocks, handles.distance, args[5], args[6], self.model.clamp
-        )
-        most = max(int(np.max(np.asarray(counts))), 1)
-        width = min(1 << (most - 1).bit_length(), h)  # next power of two: few compilations
+        reach = influence_reach(radius, falloff, self.model.clamp)
+        most = int(np.max(np.sum(handles.block_distance <= reach[None, :], axis=1)))
+        width = min(1 << (max(most, 1) - 1).bit_length(), h)  # next power of two: few compilations
         return blocked_deform(
-            self.model, self.block_queries, self.blocks, self.block_position, *args, width
+            self.model,
+            self.block_queries,
+            self.blocks,
+            self.block_position,
+            handles.block_distance_device,
+            jnp.asarray(reach, jnp.float32),
+            *args,
+            width,
         )
