@@ -11,9 +11,10 @@ Given a neutral head normalised to the unit sphere (``normalise``) and its ``Mes
   vertices, and refined by a small MLP: y + W_2 relu(W_y y + W_c c + b);
 * a linear out to a per-vertex displacement d_i (unit-sphere units, times ``output_scale``).
 
-All poses of a head go through one call as (V, P, C) features, so diffusion and the sparse
-gradients act on all poses in one matrix product; ``generate_rig`` turns
-the predictions into a ``BlendshapeRig`` in the head's own units.
+All poses of a head go through one call as (V, P, C) features, so diffusion and the spatial
+gradients act on all poses in one matrix product (optionally over chunks of ``pose_chunk``
+poses, which keeps the activations in a CPU's cache); ``generate_rig`` turns the predictions
+into a ``BlendshapeRig`` in the head's own units.
 
 The stem is our reading of the paper's "conditional diffusion blocks": the first blocks do not
 depend on the pose, so computing them once per head instead of once per pose gives the same

@@ -234,20 +234,13 @@ def eigenbasis(laplacian: sp.spmatrix, mass: np.ndarray, k: int) -> tuple[np.nda
     starts = np.concatenate([[0], np.cumsum(sizes)])
     scale = 1.0 / np.sqrt(mass[active][order])
     standard = sp.csr_matrix(sp.diags(scale) @ sub[order][:, order] @ sp.diags(scale))
-    values, vectors = [None] * n_blocks, [None] * n_blocks
-    for size in np.unique(sizes):
-        same = np.flatnonzero(sizes == size)
+    values, vectors = [], []
+    for a, size in zip(starts[:-1], sizes, strict=True):
         kk = min(k, int(size))
-        if not _dense_block(int(size), kk):
-            for b in same:
-                a = starts[b]
-                values[b], vectors[b] = _block_eigenpairs(standard[a : a + size, a : a + size], kk)
-            continue
-        for b in same:
-            a = starts[b]
-            values[b], vectors[b] = _block_eigenpairs(
-                standard[a : a + size, a : a + size].toarray(), kk
-            )
+        block = standard[a : a + size, a : a + size]
+        w, u = _block_eigenpairs(block.toarray() if _dense_block(int(size), kk) else block, kk)
+        values.append(w)
+        vectors.append(u)
     owner = np.repeat(np.arange(n_blocks), [v.size for v in values])
     column = np.concatenate([np.arange(v.size) for v in values])
     keep = np.argsort(np.concatenate(values), kind="stable")[:k]
