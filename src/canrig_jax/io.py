@@ -11,15 +11,27 @@ from pathlib import Path
 import numpy as np
 
 
+def _new_file_mode() -> int:
+    """The permissions ``open(path, "w")`` would give a new file (0o666 minus the umask)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike):
-    """Yield a temporary path beside ``path``; move it over ``path`` only on success."""
+    """Yield a temporary path beside ``path``; move it over ``path`` only on success.
+
+    The result keeps the permissions of the file it replaces, or gets those of a newly
+    created file (not ``mkstemp``'s owner-only 0o600)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     os.close(fd)
     try:
         yield Path(tmp)
+        mode = path.stat().st_mode & 0o777 if path.exists() else _new_file_mode()
+        os.chmod(tmp, mode)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
