@@ -3,6 +3,8 @@ run-time radius/falloff/beta without recompiling, bad input."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -152,6 +154,7 @@ def _bad_calls(rig, handles):
         ("base", lambda: rig(handles, ok, 1.0, 3.0, base=np.zeros((10, 3)))),
         ("base", lambda: rig(handles, ok, 1.0, 3.0, base=np.full((rig.n_vertices, 3), np.inf))),
         ("handles", lambda: rig(None, ok, 1.0, 3.0)),
+        ("handles", lambda: rig(dataclasses.replace(handles, block_distance=ok), ok, 1.0, 3.0)),
     ]
 
 

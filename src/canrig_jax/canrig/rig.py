@@ -143,6 +143,11 @@ class NeuralRig:
                 f"handles: distances of shape {handles.distance.shape} do not fit this mesh "
                 f"({self.n_vertices} vertices)"
             )
+        if handles.block_distance.shape != (self.blocks.shape[0], h):
+            raise ValueError(
+                "handles: placed on a rig with other vertex blocks; place them with this rig's "
+                "handles()"
+            )
         displacements = np.asarray(displacements, np.float32)
         if displacements.shape != (h, 3):
             raise ValueError(f"displacements: expected shape ({h}, 3), got {displacements.shape}")
