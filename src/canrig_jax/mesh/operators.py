@@ -53,8 +53,7 @@ OPERATORS_VERSION = 2
 
 DENSE_EIGEN_MAX_SMALL = 256
 DENSE_EIGEN_MAX = 3000
-"""Connected blocks up to DENSE_EIGEN_MAX_SMALL vertices, or up to DENSE_EIGEN_MAX vertices when
-the eigenpairs asked for are at least 1/8 of them, are solved densely (``eigenbasis``)."""
+"""Which connected blocks ``eigenbasis`` solves densely (see ``_block_eigenpairs``)."""
 
 ZERO_EIGENVALUE_TOL = 1e-6
 """An eigenvalue is 'zero' when lambda * (total surface area) < this (scale-free)."""
@@ -184,14 +183,16 @@ def laplacian_and_mass(
     return laplacian, mass, isolated
 
 
-def _block_eigenpairs(block: np.ndarray | sp.csr_matrix, k: int) -> tuple[np.ndarray, np.ndarray]:
+def _block_eigenpairs(block: sp.csr_matrix, k: int) -> tuple[np.ndarray, np.ndarray]:
     """The k smallest eigenpairs of one connected symmetric PSD block (standard form).
 
-    Dense LAPACK (``evr``) when the block is small or k is a large part of it (there its
-    O(n^3) reduction costs less than shift-invert Lanczos); shift-invert Lanczos near a tiny
-    negative shift otherwise (the block is singular: constants are in its null space)."""
+    Dense LAPACK when the block has at most ``DENSE_EIGEN_MAX_SMALL`` vertices, or at most
+    ``DENSE_EIGEN_MAX`` with k at least 1/8 of them (there the O(n^3) reduction costs less
+    than shift-invert Lanczos); shift-invert Lanczos near a tiny negative shift otherwise (the
+    block is singular: constants are in its null space)."""
     n = block.shape[0]
-    if sp.issparse(block):
+    dense = n <= DENSE_EIGEN_MAX_SMALL or (n <= DENSE_EIGEN_MAX and 8 * k >= n) or k >= n - 1
+    if not dense:
         shift = 1e-8 * block.diagonal().sum() / n
         values, vectors = spla.eigsh(block.tocsc(), k=k, sigma=-shift)
         order = np.argsort(values)
@@ -200,13 +201,9 @@ def _block_eigenpairs(block: np.ndarray | sp.csr_matrix, k: int) -> tuple[np.nda
     # spinning threads slow the next scipy call by half on 2 cores
     options = dict(overwrite_a=True, check_finite=False)
     if 2 * k >= n:  # most of the spectrum: all of it by divide and conquer is cheaper
-        values, vectors = scipy.linalg.eigh(block, driver="evd", **options)
+        values, vectors = scipy.linalg.eigh(block.toarray(), driver="evd", **options)
         return values[:k], vectors[:, :k]
-    return scipy.linalg.eigh(block, subset_by_index=[0, k - 1], driver="evr", **options)
-
-
-def _dense_block(n: int, k: int) -> bool:
-    return n <= DENSE_EIGEN_MAX_SMALL or (n <= DENSE_EIGEN_MAX and 8 * k >= n) or k >= n - 1
+    return scipy.linalg.eigh(block.toarray(), subset_by_index=[0, k - 1], driver="evr", **options)
 
 
 def eigenbasis(laplacian: sp.spmatrix, mass: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -234,13 +231,13 @@ def eigenbasis(laplacian: sp.spmatrix, mass: np.ndarray, k: int) -> tuple[np.nda
     starts = np.concatenate([[0], np.cumsum(sizes)])
     scale = 1.0 / np.sqrt(mass[active][order])
     standard = sp.csr_matrix(sp.diags(scale) @ sub[order][:, order] @ sp.diags(scale))
-    values, vectors = [], []
-    for a, size in zip(starts[:-1], sizes, strict=True):
-        kk = min(k, int(size))
-        block = standard[a : a + size, a : a + size]
-        w, u = _block_eigenpairs(block.toarray() if _dense_block(int(size), kk) else block, kk)
-        values.append(w)
-        vectors.append(u)
+    values, vectors = zip(
+        *(
+            _block_eigenpairs(standard[a : a + size, a : a + size], min(k, int(size)))
+            for a, size in zip(starts[:-1], sizes, strict=True)
+        ),
+        strict=True,
+    )
     owner = np.repeat(np.arange(n_blocks), [v.size for v in values])
     column = np.concatenate([np.arange(v.size) for v in values])
     keep = np.argsort(np.concatenate(values), kind="stable")[:k]
