@@ -217,7 +217,7 @@ def test_influence_reach_bounds_every_non_zero_clamped_mask(neural_rig, placed):
     assert np.all(distance[mask > 0] <= np.broadcast_to(reach, mask.shape)[mask > 0])
     # per block: the handles within reach of the block's nearest vertex include all
     # handles with a non-zero mask on any of its vertices
-    blocks = neural_rig.block_array
+    blocks = np.asarray(neural_rig.blocks)
     padded = np.concatenate([mask, np.zeros((1, h), mask.dtype)])
     influencing = padded[blocks].max(axis=1) > 0  # (B, H)
     within = placed.block_distance <= reach[None, :]

@@ -78,8 +78,7 @@ def blocked_deform(
     block_queries: Float[Array, "B heads S d"],
     blocks: Int[Array, "B S"],
     position: Int[Array, " V"],
-    nearest: Float[Array, "B H"],
-    reach: Float[Array, " H"],
+    within: Float[Array, "B H"],
     canonical: Float[Array, "V 3"],
     base: Float[Array, "V 3"],
     handle_index: Int[Array, " H"],
@@ -92,11 +91,10 @@ def blocked_deform(
 ) -> Float[Array, "V 3"]:
     """The forward pass of ``rig.deform`` with block-sparse attention.
 
-    ``nearest`` is ``block_distance``, ``reach`` is ``influence_reach``; ``width`` (static)
-    must be >= the number of handles within reach of every block. Each block takes those
-    handles first (``top_k`` on the 0/1 indicator), then the masks are computed on the
-    (block vertices x chosen handles) distances only."""
-    within = (nearest <= reach[None, :]).astype(distance.dtype)  # (B, H)
+    ``within`` is 1 where a handle is within reach of a block (``block_distance`` <=
+    ``influence_reach``), else 0; ``width`` (static) must be >= its largest row sum. Each
+    block takes those handles first (``top_k`` on the indicator), then the masks are computed
+    on the (block vertices x chosen handles) distances only."""
     _, chosen = jax.lax.top_k(within, width)  # (B, W): every handle within reach first
     padded = jnp.concatenate([distance, jnp.full((1, distance.shape[1]), jnp.inf)])
     sub_distance = padded[blocks[:, :, None], chosen[:, None, :]]  # (B, S, W); padding: inf

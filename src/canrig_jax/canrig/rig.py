@@ -30,12 +30,11 @@ from .model import CANRig
 class Handles:
     """Handle vertices, the (V, H) weighted geodesic distance of every vertex to them (kept on
     the device, so repeated edits do not copy it) and the (B, H) distance of each handle to
-    the nearest vertex of each of the rig's vertex blocks (on the host and the device)."""
+    the nearest vertex of each of the rig's vertex blocks (on the host)."""
 
     index: np.ndarray
     distance: Array
     block_distance: np.ndarray
-    block_distance_device: Array
 
     @property
     def n_handles(self) -> int:
@@ -90,7 +89,6 @@ class NeuralRig:
         flat = blocks.ravel()
         position = np.zeros(len(canonical), np.int32)
         position[flat[flat >= 0]] = np.flatnonzero(flat >= 0)
-        self.block_array = blocks
         self.blocks = jnp.asarray(blocks)
         self.block_position = jnp.asarray(position)
         # queries per block (B, heads, S, d); padding slots get zero queries, mask 0
@@ -118,8 +116,8 @@ class NeuralRig:
         distance = np.ascontiguousarray(
             weighted_geodesic_distance(self.graph, index, limit=limit).T
         )
-        nearest = block_distance(self.block_array, distance)
-        return Handles(index.astype(np.int32), jnp.asarray(distance), nearest, jnp.asarray(nearest))
+        nearest = block_distance(np.asarray(self.blocks), distance)
+        return Handles(index.astype(np.int32), jnp.asarray(distance), nearest)
 
     def __call__(
         self,
@@ -182,15 +180,15 @@ class NeuralRig:
         if dense:
             return deform(self.model, self.queries, *args)
         reach = influence_reach(radius, falloff, self.model.clamp)
-        most = int(np.max(np.sum(handles.block_distance <= reach[None, :], axis=1)))
-        width = min(1 << (max(most, 1) - 1).bit_length(), h)  # next power of two: few compilations
+        within = handles.block_distance <= reach[None, :]  # (B, H)
+        most = max(int(within.sum(axis=1).max()), 1)
+        width = min(1 << (most - 1).bit_length(), h)  # next power of two: few compilations
         return blocked_deform(
             self.model,
             self.block_queries,
             self.blocks,
             self.block_position,
-            handles.block_distance_device,
-            jnp.asarray(reach, jnp.float32),
+            jnp.asarray(within, jnp.float32),
             *args,
             width,
         )
