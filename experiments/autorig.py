@@ -208,12 +208,10 @@ def main(argv=None):
         "gltf": gltf_check,
         "total_minutes": (time.perf_counter() - start) / 60,
     }
-    save_json(args.out / "results.json", results)
-    save_text(args.out / "table.md", table(results))
+    write_results(args.out, results)
     plot_history(trained, args.out / "training_loss.png")
     for split, (head, predictions) in examples.items():
         plot_poses(head, predictions, poses, args.out / f"poses_{split}.png")
-    print(table(results))
 
 
 def rig_timing(model, poses, head, repeats: int = 9) -> dict:
@@ -251,11 +249,17 @@ def refresh_timing(args) -> dict:
     results = json.loads(path.read_text())
     model, poses, _ = load_model(checkpoint)
     results["rig_seconds"] = rig_timing(model, poses, load_ict(args.data_dir, parts=None))
-    save_json(path, results)
-    save_text(args.out / "table.md", table(results))
-    print(table(results))
+    write_results(args.out, results)
     print(f"rewrote rig_seconds of {path} and table.md")
     return results
+
+
+def write_results(out: Path, results: dict) -> None:
+    """results.json and table.md in ``out`` (atomic), and the table on stdout."""
+    save_json(out / "results.json", results)
+    text = table(results)
+    save_text(out / "table.md", text)
+    print(text)
 
 
 def table(r: dict) -> str:
