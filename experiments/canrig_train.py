@@ -54,6 +54,12 @@ def main(argv=None):
     parser.add_argument(
         "--decay-steps", type=int, default=0, help="cosine learning-rate decay (0: constant)"
     )
+    parser.add_argument(
+        "--decay-start", type=int, default=0, help="step at which the cosine decay begins"
+    )
+    parser.add_argument(
+        "--decay-floor", type=float, default=0.05, help="final rate / initial rate of the decay"
+    )
     parser.add_argument("--batch", type=int, default=8)
     parser.add_argument(
         "--interpolation-prior",
@@ -98,6 +104,8 @@ def main(argv=None):
         query_modulation=args.query_modulation,
         interpolation_prior=args.interpolation_prior,
         decay_steps=args.decay_steps,
+        decay_start=args.decay_start,
+        decay_floor=args.decay_floor,
         steps=30 if args.quick else args.steps,
         max_minutes=None if args.quick else args.minutes,
         seed=args.seed,

@@ -129,3 +129,30 @@ def test_resume_with_schedule_and_options(tiny_data, tmp_path):
         np.testing.assert_array_equal(a, b)
     loaded, state = load_model(tmp_path / "b.eqx", tiny_data.neutral)
     assert state["options"]["fourier"] == 2 and loaded.query_modulation is not None
+
+
+def test_learning_rate_schedule_constant_then_cosine():
+    """With a constant unit gradient Adam's bias-corrected step is exactly the learning rate,
+    so the updates read back the schedule: constant until ``decay_start``, then a cosine down
+    to ``decay_floor`` x the rate over ``decay_steps`` steps, then flat (closed form here)."""
+    import jax.numpy as jnp
+
+    from canrig_jax.canrig.train import make_optimiser
+
+    options = TrainOptions(decay_steps=20, decay_start=10, decay_floor=0.1)
+    optimiser = make_optimiser(options)
+    params = {"w": jnp.zeros(())}
+    state = optimiser.init(params)
+    rates = []
+    for _ in range(40):
+        updates, state = optimiser.update({"w": jnp.ones(())}, state, params)
+        rates.append(-float(updates["w"]))
+    t = np.clip(np.arange(40) - 10, 0, 20)
+    expected = 1e-3 * (0.1 + 0.9 * 0.5 * (1 + np.cos(np.pi * t / 20)))
+    np.testing.assert_allclose(rates, expected, rtol=1e-4)
+
+
+@pytest.mark.parametrize("bad", [{"decay_steps": -1}, {"decay_start": -5}, {"decay_floor": 1.5}])
+def test_bad_schedule_options_raise(bad):
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        TrainOptions(**bad)

@@ -46,6 +46,7 @@ class TrainOptions:
     learning_rate: float = 1e-3
     decay_steps: int = 0  # 0: constant rate; else cosine decay over this many steps
     decay_floor: float = 0.05
+    decay_start: int = 0  # the cosine begins at this step (constant rate before it)
     steps: int = 20_000
     max_minutes: float | None = None
     beta: float = 0.0
@@ -62,6 +63,13 @@ class TrainOptions:
             raise ValueError(f"learning_rate: expected > 0, got {self.learning_rate}")
         if self.steps < 0:
             raise ValueError(f"steps: expected >= 0, got {self.steps}")
+        if self.decay_steps < 0 or self.decay_start < 0:
+            raise ValueError(
+                f"decay_steps, decay_start: expected >= 0, got {self.decay_steps}, "
+                f"{self.decay_start}"
+            )
+        if not 0.0 <= self.decay_floor <= 1.0:
+            raise ValueError(f"decay_floor: expected a value in [0, 1], got {self.decay_floor}")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -76,20 +84,27 @@ class TrainOptions:
 
 @functools.lru_cache(maxsize=8)
 def adam(
-    learning_rate: float, decay_steps: int = 0, decay_floor: float = 0.05
+    learning_rate: float, decay_steps: int = 0, decay_floor: float = 0.05, decay_start: int = 0
 ) -> optax.GradientTransformation:
     """optax.adam, one object per setting: the jitted step (which takes the optimiser as a
     static argument) then compiles once per process, also across resumed runs. With
-    ``decay_steps`` > 0 the rate follows a cosine from ``learning_rate`` down to
-    ``decay_floor * learning_rate`` at that step (and stays there)."""
+    ``decay_steps`` > 0 the rate is ``learning_rate`` until step ``decay_start``, then follows
+    a cosine down to ``decay_floor * learning_rate`` over ``decay_steps`` steps (and stays
+    there)."""
     if decay_steps > 0:
         schedule = optax.cosine_decay_schedule(learning_rate, decay_steps, decay_floor)
+        if decay_start > 0:
+            schedule = optax.join_schedules(
+                [optax.constant_schedule(learning_rate), schedule], [decay_start]
+            )
         return optax.adam(schedule)
     return optax.adam(learning_rate)
 
 
 def make_optimiser(options: TrainOptions) -> optax.GradientTransformation:
-    return adam(options.learning_rate, options.decay_steps, options.decay_floor)
+    return adam(
+        options.learning_rate, options.decay_steps, options.decay_floor, options.decay_start
+    )
 
 
 def make_model(options: TrainOptions, canonical, displacement_scale: float = 1.0) -> CANRig:
