@@ -43,6 +43,7 @@ def main(argv=None):
     parser.add_argument("--no-progress", action="store_true")
     parser.add_argument("--latent", type=int, default=64, help="total latent width (all heads)")
     parser.add_argument("--heads", type=int, default=4, help="attention heads")
+    parser.add_argument("--width", type=int, default=64, help="hidden width of every MLP")
     parser.add_argument("--fourier", type=int, default=0, help="octaves of the query encoding")
     parser.add_argument(
         "--farthest-sets", type=int, default=0, help="farthest-point handle sets in the pool"
@@ -99,6 +100,7 @@ def main(argv=None):
         variant=args.variant,
         n_heads=args.heads,
         latent=args.latent,
+        width=args.width,
         fourier=args.fourier,
         linear_skip=args.linear_skip,
         query_modulation=args.query_modulation,
