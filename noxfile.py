@@ -50,7 +50,14 @@ STANDARD_EXPERIMENTS = (
     ("wpse.py", "--out", "experiments/results/wpse"),
     ("mesh_foundations.py", "--out", "experiments/results/mesh_foundations"),
     ("autorig.py", "--out", "experiments/results/autorig", "--no-progress"),
-    ("canrig_train.py", "--out", "experiments/results/canrig", "--minutes", "25"),
+    (
+        "canrig_train.py",
+        *("--out", "experiments/results/canrig", "--minutes", "45", "--steps", "20000"),
+        *("--decay-start", "11000", "--decay-steps", "9000", "--decay-floor", "0.02"),
+        *("--no-progress", "--width", "96", "--fourier", "6", "--farthest-sets", "16"),
+        *("--p-farthest", "0.5", "--p-eval-radius", "0.5", "--p-neutral", "0.5"),
+        "--interpolation-prior",
+    ),
     (
         "canrig_eval.py",
         "--checkpoint",
@@ -59,7 +66,8 @@ STANDARD_EXPERIMENTS = (
         "experiments/results/canrig",
     ),
 )
-"""The standard configurations whose outputs are committed under experiments/results/."""
+"""The standard configurations whose outputs are committed under experiments/results/ (the
+same commands as each folder's COMMAND file)."""
 
 
 @nox.session
