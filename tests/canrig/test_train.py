@@ -7,6 +7,7 @@ import dataclasses
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -19,6 +20,7 @@ from canrig_jax.canrig import (
     split_capture,
     train,
 )
+from canrig_jax.canrig.train import make_optimiser
 
 TINY = ExampleOptions(batch=2, n_vertices=48, n_handles=(3, 12), handle_bucket=12)
 
@@ -135,10 +137,6 @@ def test_learning_rate_schedule_constant_then_cosine():
     """With a constant unit gradient Adam's bias-corrected step is exactly the learning rate,
     so the updates read back the schedule: constant until ``decay_start``, then a cosine down
     to ``decay_floor`` x the rate over ``decay_steps`` steps, then flat (closed form here)."""
-    import jax.numpy as jnp
-
-    from canrig_jax.canrig.train import make_optimiser
-
     options = TrainOptions(decay_steps=20, decay_start=10, decay_floor=0.1)
     optimiser = make_optimiser(options)
     params = {"w": jnp.zeros(())}
