@@ -529,11 +529,10 @@ def _table(results):
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for row in results["timing"]:
-        batched = row.get("batched_runtime_ms")
         lines.append(
             f"| {row['part']} | {row['vertices']} ({row['edited_vertices']}) | {row['edits']} | "
             f"{row['train_s']:.2f} | {row['runtime_ms']:.2f} / {row['runtime_min_ms']:.2f} | "
-            f"{'-' if batched is None else f'{batched:.2f}'} | "
+            f"{row['batched_runtime_ms']:.2f} | "
             f"{row['numpy_runtime_ms']:.2f} | {row['rig_evaluate_ms']:.2f} | "
             f"{row['load_average_1min']:.1f} |"
         )
