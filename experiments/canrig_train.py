@@ -63,6 +63,12 @@ def main(argv=None):
     )
     parser.add_argument("--batch", type=int, default=8)
     parser.add_argument(
+        "--loss",
+        default="squared",
+        choices=("squared", "euclidean"),
+        help="per-vertex penalty: squared error (eq. 3) or the Euclidean error (as reported)",
+    )
+    parser.add_argument(
         "--interpolation-prior",
         action="store_true",
         help="add the mask-weighted mean of the handle displacements; the network corrects it",
@@ -108,6 +114,7 @@ def main(argv=None):
         decay_steps=args.decay_steps,
         decay_start=args.decay_start,
         decay_floor=args.decay_floor,
+        loss=args.loss,
         steps=30 if args.quick else args.steps,
         max_minutes=None if args.quick else args.minutes,
         seed=args.seed,

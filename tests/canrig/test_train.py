@@ -20,7 +20,7 @@ from canrig_jax.canrig import (
     split_capture,
     train,
 )
-from canrig_jax.canrig.train import make_optimiser
+from canrig_jax.canrig.train import EUCLIDEAN_SOFTNESS_MM, make_optimiser, vertex_penalty
 
 TINY = ExampleOptions(batch=2, n_vertices=48, n_handles=(3, 12), handle_bucket=12)
 
@@ -150,7 +150,21 @@ def test_learning_rate_schedule_constant_then_cosine():
     np.testing.assert_allclose(rates, expected, rtol=1e-4)
 
 
-@pytest.mark.parametrize("bad", [{"decay_steps": -1}, {"decay_start": -5}, {"decay_floor": 1.5}])
+@pytest.mark.parametrize(
+    "bad", [{"decay_steps": -1}, {"decay_start": -5}, {"decay_floor": 1.5}, {"loss": "l1"}]
+)
 def test_bad_schedule_options_raise(bad):
     with pytest.raises(ValueError, match=next(iter(bad))):
         TrainOptions(**bad)
+
+
+def test_vertex_penalties_against_numpy():
+    """Squared error in mm^2 (eq. 3) and the smoothed Euclidean error in mm, from cm
+    differences; the Euclidean one has a finite gradient (zero) at a zero difference."""
+    difference = np.random.default_rng(0).normal(scale=0.05, size=(50, 3)).astype(np.float32)
+    squared = (difference**2).sum(axis=1) * 100.0
+    np.testing.assert_allclose(vertex_penalty(difference, "squared"), squared.mean(), rtol=1e-5)
+    euclidean = np.sqrt(squared + EUCLIDEAN_SOFTNESS_MM**2).mean()
+    np.testing.assert_allclose(vertex_penalty(difference, "euclidean"), euclidean, rtol=1e-5)
+    gradient = jax.grad(lambda d: vertex_penalty(d, "euclidean"))(jnp.zeros((4, 3)))
+    np.testing.assert_array_equal(gradient, 0.0)

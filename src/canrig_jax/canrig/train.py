@@ -29,6 +29,9 @@ from .masks import influence_mask
 from .model import CANRig, ShapePreservingCANRig
 
 VARIANTS = {"canrig": CANRig, "shape_preserving": ShapePreservingCANRig}
+LOSSES = ("squared", "euclidean")
+EUCLIDEAN_SOFTNESS_MM = 0.01
+"""The ``"euclidean"`` loss is sqrt(e^2 + s^2) per vertex (e the error in mm): smooth at e = 0."""
 CHECKPOINT_FORMAT = "canrig-checkpoint-1"
 
 
@@ -51,6 +54,7 @@ class TrainOptions:
     max_minutes: float | None = None
     beta: float = 0.0
     sp_weight: float = 1.0
+    loss: str = "squared"  # per-vertex penalty: "squared" (eq. 3) or "euclidean"
     seed: int = 0
     checkpoint_every: int = 250
     log_every: int = 25
@@ -68,6 +72,8 @@ class TrainOptions:
                 f"decay_steps, decay_start: expected >= 0, got {self.decay_steps}, "
                 f"{self.decay_start}"
             )
+        if self.loss not in LOSSES:
+            raise ValueError(f"loss: expected one of {sorted(LOSSES)}, got {self.loss!r}")
         if not 0.0 <= self.decay_floor <= 1.0:
             raise ValueError(f"decay_floor: expected a value in [0, 1], got {self.decay_floor}")
 
@@ -123,11 +129,21 @@ def make_model(options: TrainOptions, canonical, displacement_scale: float = 1.0
     )
 
 
+def vertex_penalty(difference: Float[Array, "N 3"], loss: str) -> Float[Array, ""]:
+    """Mean over vertices of the squared error (mm^2; eq. 3) or, for ``loss="euclidean"``,
+    of the smoothed Euclidean error sqrt(e^2 + s^2) (mm), the measure the evaluation reports."""
+    squared = jnp.sum(difference**2, axis=1) * CM_TO_MM**2
+    if loss == "squared":
+        return jnp.mean(squared)
+    return jnp.mean(jnp.sqrt(squared + EUCLIDEAN_SOFTNESS_MM**2))
+
+
 def example_loss(
-    model: CANRig, data: TrainingSet, ex: Examples, beta, sp_weight
+    model: CANRig, data: TrainingSet, ex: Examples, beta, sp_weight, loss: str = "squared"
 ) -> tuple[Float[Array, ""], dict]:
-    """Mean over the batch of (L2 + sp_weight * L_sp) on each example's vertex subset, in
-    mm^2; also the mean per-vertex error (mm) on those vertices."""
+    """Mean over the batch of (L2 + sp_weight * L_sp) on each example's vertex subset, with
+    the per-vertex penalty ``loss`` (``vertex_penalty``); also the mean squared error (mm^2)
+    and the mean per-vertex error (mm) on those vertices."""
 
     def one(target, base, nearby, handles, valid, vertices, radius, falloff):
         target_shape = data.shapes[target]
@@ -156,12 +172,13 @@ def example_loss(
         # eq. (5): outside the region (blend mask from the largest influence) keep the base
         blend = jnp.max(mask, axis=1)[:, None]
         blended = blend * truth + (1.0 - blend) * base_shape[vertices]
-        l2 = jnp.mean(jnp.sum((predicted - truth) ** 2, axis=1))
-        l_sp = jnp.mean(jnp.sum((predicted - blended) ** 2, axis=1))
+        fit = vertex_penalty(predicted - truth, loss)
+        l_sp = vertex_penalty(predicted - blended, loss)
+        squared = jnp.mean(jnp.sum((predicted - truth) ** 2, axis=1))
         error = jnp.mean(jnp.linalg.norm(predicted - truth, axis=1))
-        return l2, l_sp, error
+        return fit, l_sp, squared, error
 
-    l2, l_sp, error = jax.vmap(one)(
+    fit, l_sp, squared, error = jax.vmap(one)(
         ex.target,
         ex.base,
         ex.base_nearby,
@@ -171,18 +188,18 @@ def example_loss(
         ex.radius,
         ex.falloff,
     )
-    mm2 = CM_TO_MM**2
-    loss = (jnp.mean(l2) + sp_weight * jnp.mean(l_sp)) * mm2
-    return loss, {"l2_mm2": jnp.mean(l2) * mm2, "error_mm": jnp.mean(error) * CM_TO_MM}
+    total = jnp.mean(fit) + sp_weight * jnp.mean(l_sp)
+    aux = {"l2_mm2": jnp.mean(squared) * CM_TO_MM**2, "error_mm": jnp.mean(error) * CM_TO_MM}
+    return total, aux
 
 
 @eqx.filter_jit
-def train_step(model, opt_state, data, ex, optimiser, beta, sp_weight):
-    (loss, aux), grads = eqx.filter_value_and_grad(example_loss, has_aux=True)(
-        model, data, ex, beta, sp_weight
+def train_step(model, opt_state, data, ex, optimiser, beta, sp_weight, loss="squared"):
+    (total, aux), grads = eqx.filter_value_and_grad(example_loss, has_aux=True)(
+        model, data, ex, beta, sp_weight, loss
     )
     updates, opt_state = optimiser.update(grads, opt_state, eqx.filter(model, eqx.is_array))
-    return eqx.apply_updates(model, updates), opt_state, loss, aux
+    return eqx.apply_updates(model, updates), opt_state, total, aux
 
 
 # --------------------------------------------------------------------------- checkpoints
@@ -285,7 +302,7 @@ def train(
             n_capture=data.n_capture,
         )
         model, opt_state, loss, aux = train_step(
-            model, opt_state, data, ex, optimiser, beta, options.sp_weight
+            model, opt_state, data, ex, optimiser, beta, options.sp_weight, options.loss
         )
         return {"loss": loss, "error_mm": aux["error_mm"]}
 
