@@ -25,6 +25,7 @@ from canrig_jax.canrig import (
     split_capture,
     train,
 )
+from canrig_jax.canrig.train import LOSSES
 from canrig_jax.data import load_livelinkface
 from canrig_jax.io import save_json
 from canrig_jax.render import save_figure
@@ -65,7 +66,7 @@ def main(argv=None):
     parser.add_argument(
         "--loss",
         default="squared",
-        choices=("squared", "euclidean"),
+        choices=LOSSES,
         help="per-vertex penalty: squared error (eq. 3) or the Euclidean error (as reported)",
     )
     parser.add_argument(

@@ -153,7 +153,7 @@ def test_learning_rate_schedule_constant_then_cosine():
 @pytest.mark.parametrize(
     "bad", [{"decay_steps": -1}, {"decay_start": -5}, {"decay_floor": 1.5}, {"loss": "l1"}]
 )
-def test_bad_schedule_options_raise(bad):
+def test_bad_training_options_raise(bad):
     with pytest.raises(ValueError, match=next(iter(bad))):
         TrainOptions(**bad)
 
