@@ -54,6 +54,12 @@ def main(argv=None):
     parser.add_argument("--p-capture", type=float, default=None)
     parser.add_argument("--n-active", type=int, nargs=2, default=(4, 10))
     parser.add_argument(
+        "--capture-mixes",
+        type=int,
+        default=0,
+        help="extra poses: convex combinations of two training capture frames",
+    )
+    parser.add_argument(
         "--decay-steps", type=int, default=0, help="cosine learning-rate decay (0: constant)"
     )
     parser.add_argument(
@@ -99,6 +105,7 @@ def main(argv=None):
         seed=args.seed,
         n_active=tuple(args.n_active),
         farthest_sets=args.farthest_sets,
+        capture_mixes=args.capture_mixes,
     )
     print(
         f"training set: {data.shapes.shape[0]} shapes, built in {time.perf_counter() - start:.1f} s"
@@ -139,6 +146,11 @@ def main(argv=None):
         "train_minutes": result.seconds / 60.0,
         "parameters": parameter_count(result.model),
         "training_shapes": int(data.shapes.shape[0]),
+        "data": {
+            "n_active": list(args.n_active),
+            "farthest_sets": args.farthest_sets,
+            "capture_mixes": args.capture_mixes,
+        },
         "options": dataclasses.asdict(options),
         "history": result.history,
     }

@@ -15,6 +15,7 @@ from canrig_jax.canrig import (
     ExampleOptions,
     TrainOptions,
     build_training_set,
+    capture_mixes_of,
     load_model,
     sample_examples,
     split_capture,
@@ -168,3 +169,43 @@ def test_vertex_penalties_against_numpy():
     np.testing.assert_allclose(vertex_penalty(difference, "euclidean"), euclidean, rtol=1e-5)
     gradient = jax.grad(lambda d: vertex_penalty(d, "euclidean"))(jnp.zeros((4, 3)))
     np.testing.assert_array_equal(gradient, 0.0)
+
+
+def test_capture_mixes_lie_between_two_training_frames(livelink_weights):
+    """Each mix is (1 - t) w_a + t w_b of two distinct training frames with t in [0, 1]."""
+    capture_train, _ = split_capture(livelink_weights)
+    mixes = capture_mixes_of(capture_train, 50, np.random.default_rng(0))
+    assert mixes.shape == (50, capture_train.shape[1])
+    found = 0
+    for mix in mixes:
+        for a in range(len(capture_train)):
+            for b in range(len(capture_train)):
+                step = capture_train[b] - capture_train[a]
+                if a == b or not np.any(step):
+                    continue
+                t = float(step @ (mix - capture_train[a]) / (step @ step))
+                if -1e-6 <= t <= 1 + 1e-6 and np.allclose(
+                    capture_train[a] + t * step, mix, atol=1e-5
+                ):
+                    found += 1
+                    break
+            else:
+                continue
+            break
+    assert found == len(mixes)
+    with pytest.raises(ValueError, match="capture"):
+        capture_mixes_of(capture_train[:1], 3, np.random.default_rng(0))
+
+
+def test_training_set_appends_capture_mixes(ict_quartic, livelink_weights):
+    """Mixes are appended after the unchanged capture and random shapes."""
+    capture_train, _ = split_capture(livelink_weights[:12])
+    plain = build_training_set(ict_quartic, capture_train, n_random=6, n_pool=40, seed=0)
+    mixed = build_training_set(
+        ict_quartic, capture_train, n_random=6, n_pool=40, seed=0, capture_mixes=4
+    )
+    n = plain.shapes.shape[0]
+    assert mixed.shapes.shape[0] == mixed.nearby.shape[0] == n + 4
+    np.testing.assert_array_equal(mixed.shapes[:n], plain.shapes)
+    np.testing.assert_array_equal(mixed.nearby[:n], plain.nearby)
+    np.testing.assert_array_equal(mixed.pool, plain.pool)

@@ -23,6 +23,7 @@ from canrig_jax.wpse.reference import (
     NumpyEditEvaluator,
     reference_frames,
     reference_vertex_frames,
+    time_runtime,
 )
 
 
@@ -187,6 +188,19 @@ def test_support_restriction_and_numpy_evaluator(tiny_rig, tiny_edits):
     got = np.asarray(apply(model, w, posed))
     np.testing.assert_array_equal(got[:10], posed[:10])
     np.testing.assert_allclose(got, NumpyEditEvaluator(model)(w, posed), atol=1e-5)
+
+
+def test_time_runtime_passes_and_agreement(tiny_rig, tiny_edits):
+    """One timing per frame and pass for JAX and NumPy; both compute the same mesh."""
+    poses, edits = tiny_edits
+    model = fit_pose_space_edit(tiny_rig, poses, edits, sigma=0.4)
+    weights = np.random.default_rng(3).uniform(0, 1, (4, tiny_rig.n_blendshapes))
+    posed = np.asarray(jax.vmap(evaluate, (None, 0))(tiny_rig, weights.astype(np.float32)))
+    timed = time_runtime(model, weights.astype(np.float32), posed, passes=3)
+    assert timed["jax_seconds"].shape == timed["numpy_seconds"].shape == (12,)
+    assert timed["max_abs_diff"] < 1e-5
+    with pytest.raises(ValueError, match="passes"):
+        time_runtime(model, weights, posed, passes=0)
 
 
 def test_jit_vmap_and_edited_mesh(tiny_rig, tiny_edits):

@@ -93,13 +93,17 @@ def build_training_set(
     n_active: tuple[int, int] = (4, 10),
     farthest_sets: int = 0,
     farthest_size: int = 200,
+    capture_mixes: int = 0,
 ) -> TrainingSet:
     """Evaluate the rig at the capture's training frames and ``n_random`` random sparse poses
     (seed ``seed``, ``n_active`` active weights each), their nearby poses, and the distances
     from ``n_pool`` handle candidates (edge lengths times ``edge_factor`` if given, e.g.
     ``masks.correlation_edge_factor``). With ``farthest_sets`` > 0, that many farthest-point
     orders of ``farthest_size`` vertices (from random start vertices other than 0, the start
-    of the evaluation's handles) are added to the pool and kept as ``handle_sets``."""
+    of the evaluation's handles) are added to the pool and kept as ``handle_sets``. With
+    ``capture_mixes`` > 0, that many more poses are appended, each a convex combination of two
+    random training capture frames (``capture_mixes_of``; drawn after everything else, so
+    the other shapes are unchanged)."""
     rng = np.random.default_rng(seed)
     random_poses = random_sparse_poses(rng, n_random, rig.names, n_active=tuple(n_active))
     poses = np.concatenate([capture_train, random_poses]).astype(np.float32)
@@ -117,6 +121,10 @@ def build_training_set(
         orders = np.stack([farthest_point_vertices(neutral, farthest_size, s) for s in starts])
         pool = np.union1d(pool, orders.ravel())
         handle_sets = jnp.asarray(np.searchsorted(pool, orders).astype(np.int32))
+    if capture_mixes > 0:
+        mixes = capture_mixes_of(capture_train, capture_mixes, rng)
+        poses = np.concatenate([poses, mixes])
+        near = np.concatenate([near, nearby_poses(mixes, rng, sequence=False)])
     graph = edge_graph(neutral, np.asarray(rig.faces), edge_factor)
     distance = weighted_geodesic_distance(graph, pool, limit=distance_limit_cm)
     return TrainingSet(
@@ -128,6 +136,20 @@ def build_training_set(
         handle_sets=handle_sets,
         n_capture=len(capture_train),
     )
+
+
+def capture_mixes_of(
+    capture: Float[np.ndarray, "F K"], n: int, rng: np.random.Generator
+) -> Float[np.ndarray, "n K"]:
+    """``n`` poses (1 - t) w_a + t w_b from random pairs a != b of capture frames, t ~ U(0, 1):
+    new dense, capture-like expressions (mixup of the training frames; no test frame used)."""
+    capture = np.asarray(capture, np.float32)
+    if capture.ndim != 2 or len(capture) < 2:
+        raise ValueError(f"capture: expected (F, K) with F >= 2 frames, got {capture.shape}")
+    a = rng.integers(0, len(capture), n)
+    b = (a + rng.integers(1, len(capture), n)) % len(capture)
+    t = rng.uniform(size=(n, 1)).astype(np.float32)
+    return (1.0 - t) * capture[a] + t * capture[b]
 
 
 def held_out_poses(

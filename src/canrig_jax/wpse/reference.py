@@ -113,40 +113,44 @@ class NumpyEditEvaluator:
         return out
 
 
-def time_runtime(model, weights, posed) -> dict:
+def time_runtime(model, weights, posed, passes: int = 5) -> dict:
     """Per-frame seconds of ``jax.jit(wpse.apply)`` (compiled first, one frame per call) and
     of ``NumpyEditEvaluator`` on the same frames, in this process.
 
     Args:
         model: a fitted ``PoseSpaceEdit``.
         weights: (T, K) probe poses; posed: (T, V, 3) the base rig at them.
+        passes: passes over the T frames; JAX and NumPy alternate pass by pass, so both see
+            the same spells of load on a shared machine.
 
-    Returns ``jax_seconds`` and ``numpy_seconds`` ((T,) arrays), ``batched_seconds`` (per
-    frame of ``jax.vmap(apply)`` over all T frames in one call, median of 5 calls: the cost
-    of evaluating a whole take) and ``max_abs_diff`` between JAX and NumPy on the last frame
-    (rig units).
+    Returns ``jax_seconds`` and ``numpy_seconds`` ((passes * T,) arrays), ``batched_seconds``
+    (per frame of ``jax.vmap(apply)`` over all T frames in one call, median of 5 calls: the
+    cost of evaluating a whole take) and ``max_abs_diff`` between JAX and NumPy on the last
+    frame (rig units).
     """
+    if passes < 1:
+        raise ValueError(f"passes: expected >= 1, got {passes}")
     run = jax.jit(apply)
     jax.block_until_ready(run(model, weights[0], posed[0]))
-    jax_seconds = []
-    for w, mesh in zip(jax.device_put(weights), jax.device_put(posed), strict=True):
-        start = time.perf_counter()
-        jax.block_until_ready(run(model, w, mesh))
-        jax_seconds.append(time.perf_counter() - start)
+    reference = NumpyEditEvaluator(model)
+    device_w, device_p = jax.device_put(weights), jax.device_put(posed)
+    jax_seconds, numpy_seconds = [], []
+    for _ in range(passes):
+        for w, mesh in zip(device_w, device_p, strict=True):
+            start = time.perf_counter()
+            jax.block_until_ready(run(model, w, mesh))
+            jax_seconds.append(time.perf_counter() - start)
+        for w, mesh in zip(weights, posed, strict=True):
+            start = time.perf_counter()
+            expected = reference(w, mesh)
+            numpy_seconds.append(time.perf_counter() - start)
     run_batch = jax.jit(jax.vmap(apply, (None, 0, 0)))
-    frames_w, frames_p = jax.device_put(weights), jax.device_put(posed)
-    jax.block_until_ready(run_batch(model, frames_w, frames_p))
+    jax.block_until_ready(run_batch(model, device_w, device_p))
     batched = []
     for _ in range(5):
         start = time.perf_counter()
-        jax.block_until_ready(run_batch(model, frames_w, frames_p))
+        jax.block_until_ready(run_batch(model, device_w, device_p))
         batched.append((time.perf_counter() - start) / len(weights))
-    reference = NumpyEditEvaluator(model)
-    numpy_seconds = []
-    for w, mesh in zip(weights, posed, strict=True):
-        start = time.perf_counter()
-        expected = reference(w, mesh)
-        numpy_seconds.append(time.perf_counter() - start)
     difference = np.abs(np.asarray(run(model, weights[-1], posed[-1])) - expected).max()
     return {
         "jax_seconds": np.asarray(jax_seconds),
