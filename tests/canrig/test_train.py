@@ -209,3 +209,5 @@ def test_training_set_appends_capture_mixes(ict_quartic, livelink_weights):
     np.testing.assert_array_equal(mixed.shapes[:n], plain.shapes)
     np.testing.assert_array_equal(mixed.nearby[:n], plain.nearby)
     np.testing.assert_array_equal(mixed.pool, plain.pool)
+    with pytest.raises(ValueError, match="capture_mixes"):
+        build_training_set(ict_quartic, capture_train, n_random=6, capture_mixes=-1)

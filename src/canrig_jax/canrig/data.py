@@ -104,6 +104,8 @@ def build_training_set(
     ``capture_mixes`` > 0, that many more poses are appended, each a convex combination of two
     random training capture frames (``capture_mixes_of``; drawn after everything else, so
     the other shapes are unchanged)."""
+    if capture_mixes < 0:
+        raise ValueError(f"capture_mixes: expected >= 0, got {capture_mixes}")
     rng = np.random.default_rng(seed)
     random_poses = random_sparse_poses(rng, n_random, rig.names, n_active=tuple(n_active))
     poses = np.concatenate([capture_train, random_poses]).astype(np.float32)
