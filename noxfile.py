@@ -52,10 +52,10 @@ STANDARD_EXPERIMENTS = (
     ("autorig.py", "--out", "experiments/results/autorig", "--no-progress"),
     (
         "canrig_train.py",
-        *("--out", "experiments/results/canrig", "--minutes", "45", "--steps", "20000"),
-        *("--decay-start", "11000", "--decay-steps", "9000", "--decay-floor", "0.02"),
+        *("--out", "experiments/results/canrig", "--minutes", "45", "--steps", "36000"),
+        *("--decay-start", "16000", "--decay-steps", "20000", "--decay-floor", "0.02"),
         *("--no-progress", "--width", "96", "--fourier", "6", "--farthest-sets", "16"),
-        *("--p-farthest", "0.5", "--p-eval-radius", "0.5", "--p-neutral", "0.5"),
+        *("--p-farthest", "0.9", "--p-eval-radius", "0.9", "--p-neutral", "0.5"),
         "--interpolation-prior",
     ),
     (
