@@ -4,7 +4,8 @@
         --out experiments/results/canrig
 
 Held out: the second half of the Live Link capture and 100 random sparse poses drawn with
-another seed. Writes results.json (the keys of issue 5, plus context), table.md,
+another seed. Handles: geodesic farthest-point sets from vertex 0 (the Euclidean sets of
+earlier runs are reported beside them at 200 handles / medium). Writes results.json (the keys of issue 5, plus context), table.md,
 mask_radii.png (the paper's Figure 4 analog) and heldout_error.png (0-10 mm).
 """
 
@@ -100,8 +101,14 @@ def main(argv=None):
     run = _runner(neural)
     neutrals = np.broadcast_to(neutral, targets.shape)
 
-    placed = {n: neural.handles(farthest_point_vertices(neutral, n)) for n in HANDLE_COUNTS}
+    # handles: farthest-point sets from vertex 0, geodesic (the metric of the masks); the
+    # Euclidean placement of earlier runs is reported beside it at 200 handles
+    placed = {
+        n: neural.handles(farthest_point_vertices(neutral, n, graph=neural.graph))
+        for n in HANDLE_COUNTS
+    }
     h200 = placed[200]
+    euclidean_h200 = neural.handles(farthest_point_vertices(neutral, 200))
 
     # exact properties
     bases = np.concatenate([neutral[None], targets[:: max(1, len(targets) // 4)][:4]])
@@ -145,6 +152,7 @@ def main(argv=None):
                 per_vertex, medium_out = err, out
 
     baseline = _interpolation_baseline(h200, targets, neutral, RADII_CM["medium"])
+    euclidean = _error_mm(run(euclidean_h200, targets, neutrals, RADII_CM["medium"]), targets)
 
     # Figure 15: shape-preserving layers, each re-targeting the remaining error
     layers, current = [], neutrals
@@ -181,6 +189,12 @@ def main(argv=None):
         "interpolation_baseline_200_medium_mm": float(baseline.mean()),
         "interpolation_baseline_200_medium_capture_mm": float(baseline[:n_capture].mean()),
         "interpolation_baseline_200_medium_random_mm": float(baseline[n_capture:].mean()),
+        "handle_placement": "farthest-point from vertex 0, geodesic",
+        "euclidean_placement_200_medium_mm": {
+            "all": float(euclidean.mean()),
+            "capture": float(euclidean[:n_capture].mean()),
+            "random": float(euclidean[n_capture:].mean()),
+        },
         "radii_cm": RADII_CM,
         "falloff_per_cm": FALLOFF_PER_CM,
         "outside_region_vertices_max": outside_count,
@@ -194,7 +208,8 @@ def main(argv=None):
     for n, by_radius in table4.items():
         rows.append(f"| {n} | " + " | ".join(f"{by_radius[k]:.3f}" for k in RADII_CM) + " |")
     table = (
-        f"Held-out mean per-vertex error (mm), reconstruction from the neutral, falloff "
+        f"Held-out mean per-vertex error (mm), reconstruction from the neutral, geodesic "
+        f"farthest-point handles, falloff "
         f"{FALLOFF_PER_CM:g}/cm, {n_capture} capture frames + {len(poses) - n_capture} random "
         f"poses (the neutral itself is {results['neutral_vs_target_mean_mm']:.3f} mm away)\n\n"
         + "\n".join(rows)
@@ -214,6 +229,13 @@ def main(argv=None):
                     f"{results['interpolation_baseline_200_medium_mm']:.3f} / "
                     f"{results['interpolation_baseline_200_medium_capture_mm']:.3f} / "
                     f"{results['interpolation_baseline_200_medium_random_mm']:.3f}",
+                ),
+                (
+                    "200 handles medium, Euclidean farthest-point placement instead: "
+                    "all / capture / random (mm)",
+                    " / ".join(
+                        f"{v:.3f}" for v in results["euclidean_placement_200_medium_mm"].values()
+                    ),
                 ),
                 (
                     "200 handles medium: capture / random / p95 (mm)",

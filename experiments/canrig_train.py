@@ -49,6 +49,12 @@ def main(argv=None):
     parser.add_argument(
         "--farthest-sets", type=int, default=0, help="farthest-point handle sets in the pool"
     )
+    parser.add_argument(
+        "--farthest-metric",
+        default="euclidean",
+        choices=("euclidean", "geodesic"),
+        help="distance of the farthest-point handle sets (geodesic: the metric of the masks)",
+    )
     parser.add_argument("--p-farthest", type=float, default=0.0)
     parser.add_argument("--p-eval-radius", type=float, default=0.0)
     parser.add_argument("--p-capture", type=float, default=None)
@@ -105,6 +111,7 @@ def main(argv=None):
         seed=args.seed,
         n_active=tuple(args.n_active),
         farthest_sets=args.farthest_sets,
+        farthest_geodesic=args.farthest_metric == "geodesic",
         capture_mixes=args.capture_mixes,
     )
     print(
@@ -149,6 +156,7 @@ def main(argv=None):
         "data": {
             "n_active": list(args.n_active),
             "farthest_sets": args.farthest_sets,
+            "farthest_metric": args.farthest_metric,
             "capture_mixes": args.capture_mixes,
         },
         "options": dataclasses.asdict(options),

@@ -10,6 +10,7 @@ from canrig_jax.canrig import (
     CLAMP,
     correlation_edge_factor,
     edge_graph,
+    farthest_point_vertices,
     influence_mask,
     mesh_edges,
     weighted_geodesic_distance,
@@ -116,6 +117,57 @@ def test_lips_do_not_leak_across_the_mouth_gap(ict_face):
     assert near_lower.size > 5
     assert np.all(mask[near_lower] == 0.0)
     assert mask[handle] > 0.9
+
+
+@pytest.mark.parametrize("geodesic", [False, True])
+def test_farthest_point_order_is_greedy(geodesic):
+    """Each new handle is a vertex farthest from those already chosen (distances from an
+    independent all-pairs computation)."""
+    vertices, faces = _grid(6, 5)
+    if geodesic:
+        dist, graph = _floyd_warshall(vertices, faces), edge_graph(vertices, faces)
+    else:
+        dist, graph = np.linalg.norm(vertices[:, None] - vertices[None], axis=2), None
+    order = farthest_point_vertices(vertices, 12, start=3, graph=graph)
+    assert order[0] == 3 and len(set(order.tolist())) == 12
+    for k in range(1, 12):
+        gap = dist[order[:k]].min(axis=0)
+        assert np.isclose(gap[order[k]], gap.max())
+
+
+def test_farthest_point_reaches_every_component():
+    vertices, faces = _grid()
+    shifted = vertices + np.array([100.0, 0.0, 0.0])
+    both = np.concatenate([vertices, shifted])
+    graph = edge_graph(both, np.concatenate([faces, faces + len(vertices)]))
+    order = farthest_point_vertices(both, 2, start=0, graph=graph)
+    assert order[1] >= len(vertices)
+
+
+def test_geodesic_farthest_points_cover_the_ict_face_more_evenly(ict_face):
+    """On the ICT face the lips and eyelids touch in 3D: Euclidean farthest points leave
+    parts of them far (along the surface) from every handle; geodesic ones do not."""
+    vertices = np.asarray(ict_face.neutral, np.float64)
+    graph = edge_graph(vertices, ict_face.faces)
+
+    def covering_radius(index):
+        return weighted_geodesic_distance(graph, index).min(axis=0).max()
+
+    euclidean = covering_radius(farthest_point_vertices(vertices, 200))
+    geodesic = covering_radius(farthest_point_vertices(vertices, 200, graph=graph))
+    assert geodesic < 0.85 * euclidean
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [({"n": 0}, "n:"), ({"n": 13}, "n:"), ({"start": 12}, "start"), ({"graph": "small"}, "graph")],
+)
+def test_bad_farthest_point_arguments(kwargs, match):
+    vertices, faces = _grid()
+    if kwargs.get("graph") == "small":
+        kwargs["graph"] = edge_graph(vertices[:6], faces[:2])
+    with pytest.raises(ValueError, match=match):
+        farthest_point_vertices(vertices, **{"n": 3, **kwargs})
 
 
 @pytest.mark.parametrize(

@@ -21,7 +21,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.sparse as sp
 from jaxtyping import Array, Float, Int
+from scipy.sparse.csgraph import dijkstra
 
 from ..rig import BlendshapeRig, evaluate
 from ..rig.poses import random_sparse_poses
@@ -93,6 +95,7 @@ def build_training_set(
     n_active: tuple[int, int] = (4, 10),
     farthest_sets: int = 0,
     farthest_size: int = 200,
+    farthest_geodesic: bool = False,
     capture_mixes: int = 0,
 ) -> TrainingSet:
     """Evaluate the rig at the capture's training frames and ``n_random`` random sparse poses
@@ -100,7 +103,8 @@ def build_training_set(
     from ``n_pool`` handle candidates (edge lengths times ``edge_factor`` if given, e.g.
     ``masks.correlation_edge_factor``). With ``farthest_sets`` > 0, that many farthest-point
     orders of ``farthest_size`` vertices (from random start vertices other than 0, the start
-    of the evaluation's handles) are added to the pool and kept as ``handle_sets``. With
+    of the evaluation's handles; geodesic distances with ``farthest_geodesic``) are added to
+    the pool and kept as ``handle_sets``. With
     ``capture_mixes`` > 0, that many more poses are appended, each a convex combination of two
     random training capture frames (``capture_mixes_of``; drawn after everything else, so
     the other shapes are unchanged)."""
@@ -116,18 +120,21 @@ def build_training_set(
         ]
     )
     neutral = np.asarray(rig.neutral, np.float32)
+    graph = edge_graph(neutral, np.asarray(rig.faces), edge_factor)
     pool = np.sort(rng.choice(rig.n_vertices, size=min(n_pool, rig.n_vertices), replace=False))
     handle_sets = None
     if farthest_sets > 0:
         starts = rng.choice(np.arange(1, rig.n_vertices), size=farthest_sets, replace=False)
-        orders = np.stack([farthest_point_vertices(neutral, farthest_size, s) for s in starts])
+        fps_graph = graph if farthest_geodesic else None
+        orders = np.stack(
+            [farthest_point_vertices(neutral, farthest_size, s, graph=fps_graph) for s in starts]
+        )
         pool = np.union1d(pool, orders.ravel())
         handle_sets = jnp.asarray(np.searchsorted(pool, orders).astype(np.int32))
     if capture_mixes > 0:
         mixes = capture_mixes_of(capture_train, capture_mixes, rng)
         poses = np.concatenate([poses, mixes])
         near = np.concatenate([near, nearby_poses(mixes, rng, sequence=False)])
-    graph = edge_graph(neutral, np.asarray(rig.faces), edge_factor)
     distance = weighted_geodesic_distance(graph, pool, limit=distance_limit_cm)
     return TrainingSet(
         neutral=jnp.asarray(neutral),
@@ -274,15 +281,35 @@ def sample_examples(
     )
 
 
-def farthest_point_vertices(vertices: np.ndarray, n: int, start: int = 0) -> np.ndarray:
-    """(n,) vertex indices by farthest-point sampling (Euclidean), from vertex ``start``:
-    evenly spread handles, as an animator would place them."""
+def farthest_point_vertices(
+    vertices: np.ndarray, n: int, start: int = 0, *, graph: sp.csr_matrix | None = None
+) -> np.ndarray:
+    """(n,) vertex indices by farthest-point sampling from vertex ``start``: evenly spread
+    handles, as an animator would place them.
+
+    Distances are Euclidean, or with ``graph`` (``masks.edge_graph``, (V, V)) geodesic along
+    the mesh, the metric of the influence masks: then both lips and both eyelids get their
+    share of handles although they touch in 3D.
+    """
     vertices = np.asarray(vertices, np.float64)
     if not 1 <= n <= len(vertices):
         raise ValueError(f"n: expected 1 <= n <= {len(vertices)}, got {n}")
+    if not 0 <= start < len(vertices):
+        raise ValueError(f"start: expected a vertex index in [0, {len(vertices)}), got {start}")
+    if graph is not None and graph.shape != (len(vertices), len(vertices)):
+        raise ValueError(
+            f"graph: expected shape ({len(vertices)}, {len(vertices)}), got {graph.shape}"
+        )
+
+    def distance(i):
+        if graph is None:
+            return np.linalg.norm(vertices - vertices[i], axis=1)
+        return dijkstra(graph, directed=False, indices=i)
+
     chosen = [int(start)]
-    nearest = np.linalg.norm(vertices - vertices[start], axis=1)
+    nearest = distance(start)
     for _ in range(n - 1):
+        # another mesh component is infinitely far: each component gets a handle first
         chosen.append(int(np.argmax(nearest)))
-        nearest = np.minimum(nearest, np.linalg.norm(vertices - vertices[chosen[-1]], axis=1))
+        nearest = np.minimum(nearest, distance(chosen[-1]))
     return np.asarray(chosen, np.int32)
