@@ -55,6 +55,7 @@ STANDARD_EXPERIMENTS = (
         *("--out", "experiments/results/canrig", "--minutes", "45", "--steps", "36000"),
         *("--decay-start", "16000", "--decay-steps", "20000", "--decay-floor", "0.02"),
         *("--no-progress", "--width", "96", "--fourier", "6", "--farthest-sets", "16"),
+        *("--farthest-metric", "geodesic"),
         *("--p-farthest", "0.9", "--p-eval-radius", "0.9", "--p-neutral", "0.5"),
         "--interpolation-prior",
     ),

@@ -4,7 +4,8 @@
                                       [--repeats 30] [--out FILE]
 
 9,409 vertices, 200 handles (geodesic farthest-point spread, as in the evaluation), medium
-radius 2 cm, falloff 3/cm, warm jit, float32, median over ``--repeats`` calls. Rows, all in one process:
+radius 2 cm, falloff 3/cm, warm jit, float32, median over ``--repeats`` calls. Rows, all in
+one process:
 
 - **NeuralRig call** (the library's entry point): input validation in Python, the count of
   handles per vertex block (one small device->host read), then the jitted block-sparse

@@ -5,8 +5,9 @@
 
 Held out: the second half of the Live Link capture and 100 random sparse poses drawn with
 another seed. Handles: geodesic farthest-point sets from vertex 0 (the Euclidean sets of
-earlier runs are reported beside them at 200 handles / medium). Writes results.json (the keys of issue 5, plus context), table.md,
-mask_radii.png (the paper's Figure 4 analog) and heldout_error.png (0-10 mm).
+earlier runs are reported beside them at 200 handles / medium). Writes results.json (the keys
+of issue 5, plus context), table.md, mask_radii.png (the paper's Figure 4 analog) and
+heldout_error.png (0-10 mm).
 """
 
 from __future__ import annotations
