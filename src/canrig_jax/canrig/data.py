@@ -104,10 +104,9 @@ def build_training_set(
     ``masks.correlation_edge_factor``). With ``farthest_sets`` > 0, that many farthest-point
     orders of ``farthest_size`` vertices (from random start vertices other than 0, the start
     of the evaluation's handles; geodesic distances with ``farthest_geodesic``) are added to
-    the pool and kept as ``handle_sets``. With
-    ``capture_mixes`` > 0, that many more poses are appended, each a convex combination of two
-    random training capture frames (``capture_mixes_of``; drawn after everything else, so
-    the other shapes are unchanged)."""
+    the pool and kept as ``handle_sets``. With ``capture_mixes`` > 0, that many more poses are
+    appended, each a convex combination of two random training capture frames
+    (``capture_mixes_of``; drawn after everything else, so the other shapes are unchanged)."""
     if capture_mixes < 0:
         raise ValueError(f"capture_mixes: expected >= 0, got {capture_mixes}")
     rng = np.random.default_rng(seed)
