@@ -159,15 +159,13 @@ def test_geodesic_farthest_points_cover_the_ict_face_more_evenly(ict_face):
 
 
 @pytest.mark.parametrize(
-    "kwargs, match",
-    [({"n": 0}, "n:"), ({"n": 13}, "n:"), ({"start": 12}, "start"), ({"graph": "small"}, "graph")],
+    "n, start, match", [(0, 0, "n:"), (13, 0, "n:"), (3, 12, "start"), (3, 0, "graph")]
 )
-def test_bad_farthest_point_arguments(kwargs, match):
+def test_bad_farthest_point_arguments(n, start, match):
     vertices, faces = _grid()
-    if kwargs.get("graph") == "small":
-        kwargs["graph"] = edge_graph(vertices[:6], faces[:2])
+    smaller_mesh = edge_graph(vertices[:6], faces[:2])
     with pytest.raises(ValueError, match=match):
-        farthest_point_vertices(vertices, **{"n": 3, **kwargs})
+        farthest_point_vertices(vertices, n, start, graph=smaller_mesh)
 
 
 @pytest.mark.parametrize(

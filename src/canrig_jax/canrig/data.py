@@ -23,7 +23,6 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 from jaxtyping import Array, Float, Int
-from scipy.sparse.csgraph import dijkstra
 
 from ..rig import BlendshapeRig, evaluate
 from ..rig.poses import random_sparse_poses
@@ -303,7 +302,7 @@ def farthest_point_vertices(
     def distance(i):
         if graph is None:
             return np.linalg.norm(vertices - vertices[i], axis=1)
-        return dijkstra(graph, directed=False, indices=i)
+        return weighted_geodesic_distance(graph, np.array([i]))[0]
 
     chosen = [int(start)]
     nearest = distance(start)
