@@ -28,14 +28,13 @@ from canrig_jax.mesh import (
     MeshOperators,
     closest_point_correspondence,
     decimate,
-    deformation_transfer,
     flip_quad_split,
     identity_correspondence,
     mesh_geometry,
 )
 from canrig_jax.metrics import CM_TO_MM
 from canrig_jax.render import plot_vertex_scalar, save_figure
-from canrig_jax.rig import BlendshapeRig
+from canrig_jax.rig import BlendshapeRig, deformation_transfer
 
 
 def smooth_field(vertices: np.ndarray) -> np.ndarray:

@@ -6,16 +6,26 @@ import jax
 import numpy as np
 import pytest
 
-from canrig_jax.canrig import (
-    CLAMP,
-    correlation_edge_factor,
+from canrig_jax import canrig, mesh
+from canrig_jax.canrig import CLAMP, correlation_edge_factor, influence_mask
+from canrig_jax.canrig.masks import MIN_EDGE_FACTOR
+from canrig_jax.mesh import (
     edge_graph,
     farthest_point_vertices,
-    influence_mask,
     mesh_edges,
     weighted_geodesic_distance,
 )
-from canrig_jax.canrig.masks import MIN_EDGE_FACTOR
+
+
+def test_geometry_has_one_home():
+    """canrig consumes mesh's graph geometry (re-exported, not re-derived)."""
+    for name in (
+        "mesh_edges",
+        "edge_graph",
+        "weighted_geodesic_distance",
+        "farthest_point_vertices",
+    ):
+        assert getattr(canrig, name) is getattr(mesh, name)
 
 
 def _grid(n=4, m=3, seed=0):

@@ -12,11 +12,10 @@ from canrig_jax.mesh import (
     connected_components,
     decimate,
     flip_quad_split,
-    remesh_rig,
     subdivide,
 )
 from canrig_jax.mesh.remesh import quad_pairs
-from canrig_jax.rig import BlendshapeRig, Corrective, evaluate
+from canrig_jax.rig import BlendshapeRig, Corrective, evaluate, remesh_rig
 
 
 @pytest.fixture(scope="module")

@@ -9,11 +9,10 @@ from canrig_jax.data import FACE, ict_identity, load_ict
 from canrig_jax.mesh import (
     closest_point_correspondence,
     decimate,
-    deformation_transfer,
     identity_correspondence,
     similarity_transform,
 )
-from canrig_jax.rig import BlendshapeRig, Corrective
+from canrig_jax.rig import BlendshapeRig, Corrective, deformation_transfer
 
 MM = 10.0
 

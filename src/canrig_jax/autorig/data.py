@@ -26,8 +26,9 @@ from scipy.spatial import cKDTree
 
 from ..data.ict import ICTFaceModel, ict_identity, load_ict
 from ..mesh.remesh import Remeshed, decimate, subdivide
-from ..mesh.transfer import closest_point_correspondence, deformation_transfer
+from ..mesh.transfer import closest_point_correspondence
 from ..rig.blendshape import BlendshapeRig, evaluate
+from ..rig.transfer import deformation_transfer
 
 INNER_PARTS = ("Teeth", "Gums and tongue", "Eyeball left", "Eyeball right")
 """Parts that must stay inside the head (the penetration metric)."""

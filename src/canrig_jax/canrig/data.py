@@ -18,18 +18,20 @@ from __future__ import annotations
 import dataclasses
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.sparse as sp
 from jaxtyping import Array, Float, Int
 
-from ..rig import BlendshapeRig, evaluate
+from ..mesh.geodesic import edge_graph, farthest_point_vertices, weighted_geodesic_distance
+from ..rig import BlendshapeRig, evaluate_batch
 from ..rig.poses import random_sparse_poses
-from .masks import edge_graph, weighted_geodesic_distance
 
 RADII_CM = {"small": 1.0, "medium": 2.0, "large": 4.0}
-"""Named radii of the evaluation (geodesic cm on the ICT face, about 18 cm wide)."""
+"""Named radii of the evaluation (geodesic cm on the ICT face, about 18 cm wide): the one
+home of these numbers; experiments, benchmarks and ``ExampleOptions.eval_radii_cm`` read them."""
+
+EVAL_FALLOFF_PER_CM = 3.0
+"""Falloff of the evaluation's masks (per cm)."""
 
 
 def split_capture(capture: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -52,10 +54,8 @@ def nearby_poses(poses: np.ndarray, rng: np.random.Generator, *, sequence: bool,
 
 
 def evaluate_poses(rig: BlendshapeRig, poses: np.ndarray, chunk: int = 64) -> np.ndarray:
-    """(N, V, 3) float32 meshes of ``poses`` (N, K), batched with jit(vmap(evaluate))."""
-    batch = jax.jit(jax.vmap(evaluate, (None, 0)))
-    out = [np.asarray(batch(rig, poses[i : i + chunk])) for i in range(0, len(poses), chunk)]
-    return np.concatenate(out) if out else np.zeros((0, rig.n_vertices, 3), np.float32)
+    """(N, V, 3) float32 NumPy meshes of ``poses`` (N, K): ``rig.evaluate_batch`` in chunks."""
+    return np.asarray(evaluate_batch(rig, poses, chunk=chunk), np.float32)
 
 
 class TrainingSet(eqx.Module):
@@ -183,8 +183,8 @@ class ExampleOptions:
     # matching the evaluation (all 0 / None: the draws above only)
     p_farthest: float = 0.0  # handles: a prefix of a farthest-point set (``handle_sets``)
     p_eval_radius: float = 0.0  # radius one of ``eval_radii_cm``, falloff ``eval_falloff``
-    eval_radii_cm: tuple[float, ...] = (1.0, 2.0, 4.0)
-    eval_falloff_per_cm: float = 3.0
+    eval_radii_cm: tuple[float, ...] = tuple(RADII_CM.values())
+    eval_falloff_per_cm: float = EVAL_FALLOFF_PER_CM
     p_capture: float | None = None  # target a capture frame with this probability
 
 
@@ -277,37 +277,3 @@ def sample_examples(
         radius=radius,
         falloff=falloff,
     )
-
-
-def farthest_point_vertices(
-    vertices: np.ndarray, n: int, start: int = 0, *, graph: sp.csr_matrix | None = None
-) -> np.ndarray:
-    """(n,) vertex indices by farthest-point sampling from vertex ``start``: evenly spread
-    handles, as an animator would place them.
-
-    Distances are Euclidean, or with ``graph`` (``masks.edge_graph``, (V, V)) geodesic along
-    the mesh, the metric of the influence masks: then both lips and both eyelids get their
-    share of handles although they touch in 3D.
-    """
-    vertices = np.asarray(vertices, np.float64)
-    if not 1 <= n <= len(vertices):
-        raise ValueError(f"n: expected 1 <= n <= {len(vertices)}, got {n}")
-    if not 0 <= start < len(vertices):
-        raise ValueError(f"start: expected a vertex index in [0, {len(vertices)}), got {start}")
-    if graph is not None and graph.shape != (len(vertices), len(vertices)):
-        raise ValueError(
-            f"graph: expected shape ({len(vertices)}, {len(vertices)}), got {graph.shape}"
-        )
-
-    def distance(i):
-        if graph is None:
-            return np.linalg.norm(vertices - vertices[i], axis=1)
-        return weighted_geodesic_distance(graph, np.array([i]))[0]
-
-    chosen = [int(start)]
-    nearest = distance(start)
-    for _ in range(n - 1):
-        # another mesh component is infinitely far: each component gets a handle first
-        chosen.append(int(np.argmax(nearest)))
-        nearest = np.minimum(nearest, distance(chosen[-1]))
-    return np.asarray(chosen, np.int32)

@@ -1,17 +1,27 @@
-"""Mesh geometry: topology and deformation gradients."""
+"""Mesh geometry: topology, edges and geodesics, operators, deformation gradients, remeshing.
 
+The layer above ``data``: it knows arrays (vertices, faces, per-vertex data) and nothing of
+rigs; ``canrig_jax.rig`` builds rigs from it."""
+
+from .checks import check_mesh
 from .deformation_gradient import (
     DeformationGradientBlend,
     FallbackCounts,
     deformation_gradient_blend,
     mesh_fingerprint,
     triangle_edges,
+    triangle_frames,
+)
+from .geodesic import (
+    edge_graph,
+    farthest_point_vertices,
+    mesh_edges,
+    weighted_geodesic_distance,
 )
 from .operators import (
     MeshGeometry,
     MeshOperators,
     SparseMatrix,
-    check_mesh,
     mesh_geometry,
     mesh_operators,
     pad_vertices,
@@ -23,16 +33,16 @@ from .remesh import (
     closest_surface_points,
     decimate,
     flip_quad_split,
-    remesh_rig,
     subdivide,
+    vertex_surface_map,
 )
 from .topology import connected_components, vertex_adjacency
 from .transfer import (
     TriangleCorrespondence,
     closest_point_correspondence,
-    deformation_transfer,
     identity_correspondence,
     similarity_transform,
+    transfer_deltas,
 )
 
 __all__ = [
@@ -40,6 +50,10 @@ __all__ = [
     "FallbackCounts",
     "connected_components",
     "deformation_gradient_blend",
+    "edge_graph",
+    "farthest_point_vertices",
+    "mesh_edges",
+    "weighted_geodesic_distance",
     "mesh_fingerprint",
     "triangle_edges",
     "vertex_adjacency",
@@ -56,13 +70,14 @@ __all__ += [
     "closest_point_correspondence",
     "closest_surface_points",
     "decimate",
-    "deformation_transfer",
     "flip_quad_split",
     "identity_correspondence",
     "mesh_geometry",
     "mesh_operators",
     "pad_vertices",
-    "remesh_rig",
+    "transfer_deltas",
+    "triangle_frames",
+    "vertex_surface_map",
     "similarity_transform",
     "stack_operators",
     "subdivide",

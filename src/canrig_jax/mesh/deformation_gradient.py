@@ -27,7 +27,6 @@ where log R is ill-defined.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 
 import jax
 import jax.numpy as jnp
@@ -35,6 +34,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from jaxtyping import Array, Float
+
+from ..cache import mesh_fingerprint
 
 _EDGES = ((0, 1), (1, 2), (2, 0))
 
@@ -47,7 +48,7 @@ def triangle_edges(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     )
 
 
-def _frames(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def triangle_frames(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(..., T, 3, 3) frames [e1, e2, n / sqrt|n|] (Sumner & Popović 2004) and (..., T) areas."""
     p0, p1, p2 = (vertices[..., faces[:, j], :] for j in range(3))
     e1, e2 = p1 - p0, p2 - p0
@@ -152,8 +153,8 @@ class DeformationGradientBlend:
         self.n_vertices, self.n_blendshapes = neutral.shape[0], deltas.shape[0]
         self.neutral, self.deltas, self.faces = neutral, deltas, faces
 
-        rest_frame, rest_area = _frames(neutral, faces)
-        target_frame, target_area = _frames(neutral[None] + deltas, faces)
+        rest_frame, rest_area = triangle_frames(neutral, faces)
+        target_frame, target_area = triangle_frames(neutral[None] + deltas, faces)
         degenerate = (rest_area < min_area) | np.any(target_area < min_area, axis=0)
         safe_rest = np.where(degenerate[:, None, None], np.eye(3), rest_frame)
         gradient = target_frame @ np.linalg.inv(safe_rest)  # (K, T, 3, 3)
@@ -232,16 +233,6 @@ class DeformationGradientBlend:
         )
         correction = self._solve(self._difference.T @ mismatch)
         return np.moveaxis(linear + correction.reshape(self.n_vertices, batch, 3), 1, 0)
-
-
-def mesh_fingerprint(*arrays: np.ndarray) -> str:
-    """SHA-256 of the arrays' dtypes, shapes and bytes (a cache key)."""
-    digest = hashlib.sha256()
-    for a in arrays:
-        a = np.ascontiguousarray(a)
-        digest.update(f"{a.dtype}{a.shape}".encode())
-        digest.update(a.tobytes())
-    return digest.hexdigest()
 
 
 _BLEND_CACHE: dict[str, DeformationGradientBlend] = {}

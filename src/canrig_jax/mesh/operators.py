@@ -44,8 +44,9 @@ import scipy.sparse.csgraph
 import scipy.sparse.linalg as spla
 from jaxtyping import Array, Float, Int
 
+from ..cache import cache_dir, mesh_fingerprint
 from ..io import save_npz
-from .deformation_gradient import mesh_fingerprint
+from .checks import check_mesh
 from .topology import connected_components
 
 OPERATORS_VERSION = 2
@@ -57,43 +58,6 @@ DENSE_EIGEN_MAX = 3000
 
 ZERO_EIGENVALUE_TOL = 1e-6
 """An eigenvalue is 'zero' when lambda * (total surface area) < this (scale-free)."""
-
-
-# --------------------------------------------------------------------------------------------
-# Input checks
-# --------------------------------------------------------------------------------------------
-
-
-def check_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
-    """Validate a triangle mesh; return (V, 3) float64 vertices and (F, 3) int64 faces.
-
-    Raises ValueError naming ``vertices`` or ``faces`` for a wrong shape, non-finite
-    positions, no faces, or face indices outside [0, V).
-    """
-    vertices = np.asarray(vertices)
-    faces = np.asarray(faces)
-    if vertices.ndim != 2 or vertices.shape[1] != 3 or vertices.shape[0] == 0:
-        raise ValueError(f"vertices: expected shape (V, 3) with V > 0, got {vertices.shape}")
-    if not np.issubdtype(vertices.dtype, np.number):
-        raise ValueError(f"vertices: expected numbers, got dtype {vertices.dtype}")
-    vertices = vertices.astype(np.float64)
-    if not np.all(np.isfinite(vertices)):
-        bad = np.flatnonzero(~np.all(np.isfinite(vertices), axis=1))[:5]
-        raise ValueError(f"vertices: non-finite positions at vertices {bad.tolist()}")
-    if faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError(f"faces: expected shape (F, 3) triangles, got {faces.shape}")
-    if faces.shape[0] == 0:
-        raise ValueError("faces: the mesh has no faces")
-    if not np.issubdtype(faces.dtype, np.integer):
-        raise ValueError(f"faces: expected integer vertex indices, got dtype {faces.dtype}")
-    faces = faces.astype(np.int64)
-    lo, hi = int(faces.min()), int(faces.max())
-    if lo < 0 or hi >= vertices.shape[0]:
-        raise ValueError(
-            f"faces: vertex indices must lie in [0, {vertices.shape[0]}) (the vertex count), "
-            f"found range [{lo}, {hi}]"
-        )
-    return vertices, faces
 
 
 # --------------------------------------------------------------------------------------------
@@ -385,8 +349,6 @@ def mesh_geometry(
         cache: a folder, ``None`` for ``cache_dir()`` (``$CANRIG_CACHE`` or
             ``~/.cache/canrig_jax``), or ``False`` to neither read nor write.
     """
-    from ..rig.ict_quartic import cache_dir
-
     vertices, faces = check_mesh(vertices, faces)
     if cache is False:
         return compute_geometry(vertices, faces, k=k, mollify_factor=mollify_factor)

@@ -13,8 +13,8 @@ Three remeshings of a real head, each returning a ``Remeshed`` (new vertices, fa
 A ``SurfaceMap`` stores, for each new vertex, a triangle of the original mesh and barycentric
 coordinates of its closest point there; ``carry`` interpolates any per-vertex data
 (positions, blendshape deltas) linearly over that triangle, so a remeshed head keeps a
-ground-truth rig (``remesh_rig``). By construction ``map.carry(original_vertices)`` equals the
-new vertices.
+ground-truth rig (``canrig_jax.rig.remesh_rig``). By construction
+``map.carry(original_vertices)`` equals the new vertices.
 """
 
 from __future__ import annotations
@@ -189,7 +189,7 @@ def closest_surface_points(
     )
 
 
-def _vertex_map(faces: np.ndarray, n_vertices: int, vertex_ids: np.ndarray) -> SurfaceMap:
+def vertex_surface_map(faces: np.ndarray, n_vertices: int, vertex_ids: np.ndarray) -> SurfaceMap:
     """Exact map of ``vertex_ids`` of a mesh onto itself (a face at each vertex, one-hot)."""
     face_of = np.full(n_vertices, -1, np.int64)
     corner_of = np.zeros(n_vertices, np.int64)
@@ -318,7 +318,7 @@ def subdivide(vertices: np.ndarray, faces: np.ndarray) -> Remeshed:
         ]
     )
     # Map: original vertices one-hot; each midpoint on a face holding its edge, (1/2, 1/2).
-    base = _vertex_map(faces, n, np.arange(n))
+    base = vertex_surface_map(faces, n, np.arange(n))
     first_face = np.full(unique.shape[0], -1, np.int64)
     first_corner = np.zeros(unique.shape[0], np.int64)
     for j in range(3):
@@ -369,30 +369,5 @@ def flip_quad_split(vertices: np.ndarray, faces: np.ndarray) -> Remeshed:
     new_faces[pairs + 1] = np.stack([b, c, d], 1)
     n = vertices.shape[0]
     return Remeshed(
-        vertices.copy(), new_faces, _vertex_map(faces, n, np.arange(n)), "flip_quad_split"
-    )
-
-
-def remesh_rig(rig, remeshed: Remeshed):
-    """The rig carried onto the new triangulation: neutral = the remeshed vertices, deltas and
-    correctives interpolated by the surface map (a ground-truth rig for the new mesh)."""
-    from ..rig.blendshape import BlendshapeRig, Corrective
-
-    surface_map = remeshed.map
-    if surface_map.n_source != rig.n_vertices:
-        raise ValueError(
-            f"remeshed: maps from a mesh of {surface_map.n_source} vertices, the rig has "
-            f"{rig.n_vertices}"
-        )
-    deltas = surface_map.carry(np.asarray(rig.deltas, np.float64))
-    correctives = []
-    for table in rig.correctives:
-        dense = surface_map.carry(table.to_dense(rig.n_vertices).astype(np.float64))
-        correctives.append(Corrective.from_dense(np.asarray(table.indices), dense))
-    return BlendshapeRig(
-        np.asarray(remeshed.vertices, np.float32),
-        deltas.astype(np.float32),
-        tuple(correctives),
-        rig.names,
-        remeshed.faces.astype(np.int32),
+        vertices.copy(), new_faces, vertex_surface_map(faces, n, np.arange(n)), "flip_quad_split"
     )

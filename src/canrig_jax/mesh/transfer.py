@@ -29,7 +29,6 @@ it (centroid and towards each corner), their gradients averaged with source-area
 from __future__ import annotations
 
 import dataclasses
-import warnings
 
 import numpy as np
 import scipy.sparse as sp
@@ -37,9 +36,9 @@ import scipy.sparse.linalg as spla
 from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
-from .deformation_gradient import _frames
+from .deformation_gradient import triangle_frames
 from .operators import check_mesh
-from .remesh import SurfaceMap, _vertex_map, closest_surface_points
+from .remesh import SurfaceMap, closest_surface_points, vertex_surface_map
 from .topology import connected_components, vertex_adjacency
 
 _EDGES = ((0, 1), (1, 2), (2, 0))
@@ -74,7 +73,7 @@ def identity_correspondence(faces: np.ndarray, n_vertices: int) -> TriangleCorre
     faces = np.asarray(faces, np.int64)
     return TriangleCorrespondence(
         np.arange(faces.shape[0]),
-        _vertex_map(faces, n_vertices, np.arange(n_vertices)),
+        vertex_surface_map(faces, n_vertices, np.arange(n_vertices)),
         faces,
         "identity",
     )
@@ -251,39 +250,52 @@ def _difference_operator(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
     )
 
 
-def deformation_transfer(
-    source_rig,
+def transfer_deltas(
+    source_neutral: np.ndarray,
+    source_deltas: np.ndarray,
+    source_faces: np.ndarray,
     target_neutral: np.ndarray,
     correspondence: TriangleCorrespondence,
     *,
     screening: float = 1e-3,
     min_area: float = 1e-10,
     batch_size: int = 8,
-):
-    """Transfer every blendshape of ``source_rig`` onto ``target_neutral``.
+) -> np.ndarray:
+    """Transfer every blendshape (``source_deltas``) of a source mesh onto ``target_neutral``.
 
     Args:
-        source_rig: a ``BlendshapeRig`` with faces (its neutral is the source rest shape).
+        source_neutral: (Vs, 3) source rest vertices, triangulated by ``source_faces``.
+        source_deltas: (K, Vs, 3) source blendshape offsets.
+        source_faces: (Fs, 3) source triangles.
         target_neutral: (V, 3) target rest vertices, triangulated by
             ``correspondence.target_faces``.
         correspondence: from ``identity_correspondence`` or ``closest_point_correspondence``.
         screening: ridge towards the carried source deltas, relative to the mean diagonal of
             D^T D (fixes each component's translation; small keeps shape from gradients).
-        min_area: source triangles below this area (squared rig units) in the neutral or an
+        min_area: source triangles below this area (squared units) in the neutral or an
             expression keep the identity deformation.
         batch_size: expressions per solve batch.
 
     Returns:
-        A linear ``BlendshapeRig`` on the target (same names, target faces). Correctives of
-        the source are not transferred (a warning says so).
+        (K, V, 3) float64 target blendshape offsets. ``canrig_jax.rig.deformation_transfer``
+        wraps this for a ``BlendshapeRig``.
     """
-    from ..rig.blendshape import BlendshapeRig
-
-    if source_rig.faces is None:
-        raise ValueError("source_rig: deformation transfer needs a rig with faces")
-    tv = np.asarray(target_neutral, np.float64)
+    source_neutral, source_faces_all = check_mesh(source_neutral, source_faces)
+    source_deltas = np.asarray(source_deltas)
+    if source_deltas.ndim != 3 or source_deltas.shape[1:] != source_neutral.shape:
+        raise ValueError(
+            f"source_deltas: expected shape (K, {source_neutral.shape[0]}, 3), got "
+            f"{source_deltas.shape}"
+        )
+    source_deltas = source_deltas.astype(np.float64)
+    if not np.all(np.isfinite(source_deltas)):
+        raise ValueError("source_deltas: contains non-finite values")
+    tv = np.asarray(target_neutral)
     if tv.ndim != 2 or tv.shape[1] != 3:
         raise ValueError(f"target_neutral: expected shape (V, 3), got {tv.shape}")
+    if not np.issubdtype(tv.dtype, np.number) or np.iscomplexobj(tv):
+        raise TypeError(f"target_neutral: expected real numbers, got dtype {tv.dtype}")
+    tv = tv.astype(np.float64)
     if not np.all(np.isfinite(tv)):
         raise ValueError("target_neutral: contains non-finite positions")
     if correspondence.n_target_vertices != tv.shape[0]:
@@ -292,26 +304,19 @@ def deformation_transfer(
             f"{correspondence.n_target_vertices}"
         )
     tv, target_faces = check_mesh(tv, np.asarray(correspondence.target_faces, np.int64))
-    if correspondence.vertex_map.n_source != source_rig.n_vertices:
+    if correspondence.vertex_map.n_source != source_neutral.shape[0]:
         raise ValueError(
             f"correspondence: maps onto a source of {correspondence.vertex_map.n_source} "
-            f"vertices, source_rig has {source_rig.n_vertices}"
+            f"vertices, the source mesh has {source_neutral.shape[0]}"
         )
-    if screening <= 0 or not np.isfinite(screening):
+    if not (np.isfinite(screening) and screening > 0):
         raise ValueError(f"screening: expected a positive ridge, got {screening}")
-    if source_rig.correctives:
-        warnings.warn(
-            "source_rig: correctives are not transferred; the result is the linear rig",
-            stacklevel=2,
-        )
-    source_neutral = np.asarray(source_rig.neutral, np.float64)
-    source_deltas = np.asarray(source_rig.deltas, np.float64)
     source_triangle = np.asarray(correspondence.source_triangle, np.int64)
     source_triangle = source_triangle.reshape(source_triangle.shape[0], -1)  # (T, S)
     n_samples = source_triangle.shape[1]
-    source_faces = np.asarray(source_rig.faces, np.int64)[source_triangle.ravel()]
+    source_faces = source_faces_all[source_triangle.ravel()]
 
-    rest_frame, rest_area = _frames(source_neutral, source_faces)
+    rest_frame, rest_area = triangle_frames(source_neutral, source_faces)
     rest_ok = rest_area >= min_area
     sample_weight = np.where(rest_ok, rest_area, 0.0).reshape(-1, n_samples)
     sample_weight /= np.maximum(sample_weight.sum(axis=1, keepdims=True), 1e-300)
@@ -336,7 +341,7 @@ def deformation_transfer(
     deltas = np.zeros((source_deltas.shape[0], n_vertices, 3))
     for start in range(0, source_deltas.shape[0], batch_size):
         chunk = source_deltas[start : start + batch_size]
-        frame, area = _frames(source_neutral[None] + chunk, source_faces)
+        frame, area = triangle_frames(source_neutral[None] + chunk, source_faces)
         gradient = frame @ inverse_rest  # (B, T, 3, 3)
         keep = rest_ok[None] & (area >= min_area)
         gradient = np.where(keep[..., None, None], gradient, np.eye(3))
@@ -354,10 +359,4 @@ def deformation_transfer(
         deltas[start : start + chunk.shape[0]] = np.moveaxis(
             solve(rhs).reshape(n_vertices, chunk.shape[0], 3), 1, 0
         )
-    return BlendshapeRig(
-        tv.astype(np.float32),
-        deltas.astype(np.float32),
-        (),
-        source_rig.names,
-        target_faces.astype(np.int32),
-    )
+    return deltas

@@ -1,6 +1,14 @@
-"""The blendshape rig of any corrective order, corrective synthesis, the ict-quartic rig."""
+"""The blendshape rig of any corrective order, its (batched) evaluation, corrective synthesis,
+the ict-quartic rig, and rigs carried onto other meshes (remeshing, deformation transfer)."""
 
-from .blendshape import BlendshapeRig, Corrective, check_weights, combination_coefficients, evaluate
+from .blendshape import (
+    BlendshapeRig,
+    Corrective,
+    check_weights,
+    combination_coefficients,
+    evaluate,
+    evaluate_batch,
+)
 from .ict_quartic import ict_linear_rig, ict_quartic_rig
 from .io import load_rig, save_rig
 from .synthesis import (
@@ -10,6 +18,7 @@ from .synthesis import (
     overlapping_pairs,
     synthesize_correctives,
 )
+from .transfer import deformation_transfer, remesh_rig
 
 __all__ = [
     "MUTUALLY_EXCLUSIVE",
@@ -19,11 +28,14 @@ __all__ = [
     "SynthesisReport",
     "check_weights",
     "combination_coefficients",
+    "deformation_transfer",
     "evaluate",
+    "evaluate_batch",
     "ict_linear_rig",
     "ict_quartic_rig",
     "load_rig",
     "overlapping_pairs",
+    "remesh_rig",
     "save_rig",
     "synthesize_correctives",
 ]

@@ -29,6 +29,36 @@ def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
+def _real_array(name: str, x, integer: bool = False):
+    """``x`` as a JAX array of real numbers in native byte order, for a Module converter.
+
+    Integer and boolean positions become float32 (an int32 rig would truncate the weights);
+    complex numbers, strings and objects raise TypeError naming ``name``; with ``integer``
+    the values must already be integers (indices are never rounded silently)."""
+    if isinstance(x, jax.Array):
+        dtype = x.dtype
+    else:
+        x = np.asarray(x)
+        dtype = x.dtype
+        if dtype.byteorder not in ("=", "|"):
+            x = x.astype(dtype.newbyteorder("="))
+    if np.issubdtype(dtype, np.complexfloating) or not (
+        np.issubdtype(dtype, np.number) or np.issubdtype(dtype, np.bool_)
+    ):
+        raise TypeError(f"{name}: expected real numbers, got dtype {dtype}")
+    if integer:
+        if not (np.issubdtype(dtype, np.integer) or (x.size == 0)):
+            raise TypeError(f"{name}: expected integer indices, got dtype {dtype}")
+        return jnp.asarray(x, jnp.int32)
+    if not np.issubdtype(dtype, np.floating):
+        return jnp.asarray(x, jnp.float32)
+    return jnp.asarray(x)
+
+
+UNIT_IN_CM = {"mm": 0.1, "cm": 1.0, "dm": 10.0, "m": 100.0}
+"""Length of one rig unit in centimetres, for ``BlendshapeRig.units``."""
+
+
 def _check_finite(name: str, x) -> None:
     if _is_concrete(x) and not bool(np.all(np.isfinite(np.asarray(x)))):
         raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
@@ -44,9 +74,9 @@ class Corrective(eqx.Module):
         deltas: (C, S, 3) corrective offsets on ``vertices`` (rig units).
     """
 
-    indices: Int[Array, "C n"] = eqx.field(converter=lambda x: jnp.asarray(x, jnp.int32))
-    vertices: Int[Array, " S"] = eqx.field(converter=lambda x: jnp.asarray(x, jnp.int32))
-    deltas: Float[Array, "C S 3"] = eqx.field(converter=jnp.asarray)
+    indices: Int[Array, "C n"] = eqx.field(converter=lambda x: _real_array("indices", x, True))
+    vertices: Int[Array, " S"] = eqx.field(converter=lambda x: _real_array("vertices", x, True))
+    deltas: Float[Array, "C S 3"] = eqx.field(converter=lambda x: _real_array("deltas", x))
 
     def __check_init__(self):
         if self.indices.ndim != 2 or self.indices.shape[1] < 2:
@@ -108,17 +138,23 @@ class BlendshapeRig(eqx.Module):
         correctives: one ``Corrective`` table per order (distinct orders); ``()`` = linear.
         names: K blendshape names (static).
         faces: (F, 3) int32 triangles, or None when the rig carries no topology.
+        units: length unit of ``neutral``, ``deltas`` and correctives, one of
+            ``UNIT_IN_CM`` ("mm", "cm", "dm", "m"; default "cm", ICT's); metrics convert
+            with it (e.g. ``inverse.metrics`` reports mm whatever the rig's unit).
     """
 
-    neutral: Float[Array, "V 3"] = eqx.field(converter=jnp.asarray)
-    deltas: Float[Array, "K V 3"] = eqx.field(converter=jnp.asarray)
+    neutral: Float[Array, "V 3"] = eqx.field(converter=lambda x: _real_array("neutral", x))
+    deltas: Float[Array, "K V 3"] = eqx.field(converter=lambda x: _real_array("deltas", x))
     correctives: tuple[Corrective, ...] = eqx.field(converter=tuple, default=())
     names: tuple[str, ...] = eqx.field(static=True, converter=tuple, default=())
     faces: Int[Array, "F 3"] | None = eqx.field(
-        converter=lambda x: None if x is None else jnp.asarray(x, jnp.int32), default=None
+        converter=lambda x: None if x is None else _real_array("faces", x, True), default=None
     )
+    units: str = eqx.field(static=True, default="cm")
 
     def __check_init__(self):
+        if self.units not in UNIT_IN_CM:
+            raise ValueError(f"units: expected one of {tuple(UNIT_IN_CM)}, got {self.units!r}")
         if self.neutral.ndim != 2 or self.neutral.shape[1] != 3:
             raise ValueError(f"neutral: expected shape (V, 3), got {self.neutral.shape}")
         v = self.neutral.shape[0]
@@ -182,7 +218,7 @@ class BlendshapeRig(eqx.Module):
 
     def linear(self) -> BlendshapeRig:
         """The same rig without correctives."""
-        return BlendshapeRig(self.neutral, self.deltas, (), self.names, self.faces)
+        return BlendshapeRig(self.neutral, self.deltas, (), self.names, self.faces, self.units)
 
     def index(self, names) -> np.ndarray:
         """Blendshape indices of ``names`` (ValueError listing unknown names)."""
@@ -195,6 +231,13 @@ class BlendshapeRig(eqx.Module):
 
 def check_weights(rig: BlendshapeRig, weights) -> None:
     """Validate a weight vector against a rig (shape, and finiteness when concrete)."""
+    dtype = getattr(weights, "dtype", None)
+    if dtype is None:
+        dtype = np.asarray(weights).dtype
+    if np.issubdtype(dtype, np.complexfloating) or not (
+        np.issubdtype(dtype, np.number) or np.issubdtype(dtype, np.bool_)
+    ):
+        raise TypeError(f"weights: expected real numbers, got dtype {dtype}")
     shape = jnp.shape(weights)
     if shape != (rig.n_blendshapes,):
         raise ValueError(
@@ -214,10 +257,12 @@ def combination_coefficients(
 def evaluate(rig: BlendshapeRig, weights: Float[ArrayLike, " K"]) -> Float[Array, "V 3"]:
     """Mesh of the rig at one weight vector (eq. (5)); units follow the rig.
 
-    jit-, vmap- and grad-safe; batch frames with ``jax.vmap(evaluate, (None, 0))``.
+    jit-, vmap- and grad-safe; batch frames with ``evaluate_batch`` (or ``jax.vmap``).
     Raises ValueError (before any tracing) for a wrong shape or non-finite weights.
     """
     check_weights(rig, weights)
+    if isinstance(weights, np.ndarray) and weights.dtype.byteorder not in ("=", "|"):
+        weights = weights.astype(weights.dtype.newbyteorder("="))
     weights = jnp.asarray(weights, rig.deltas.dtype)
     mesh = rig.neutral + jnp.tensordot(weights, rig.deltas, axes=1)
     for table in rig.correctives:
@@ -231,3 +276,56 @@ def evaluate(rig: BlendshapeRig, weights: Float[ArrayLike, " K"]) -> Float[Array
                 offsets, indices_are_sorted=True, unique_indices=True
             )
     return mesh
+
+
+@eqx.filter_jit
+def _evaluate_many(rig: BlendshapeRig, poses: Float[Array, "N K"]) -> Float[Array, "N V 3"]:
+    return jax.vmap(evaluate, (None, 0))(rig, poses)
+
+
+def evaluate_batch(
+    rig: BlendshapeRig, poses: Float[ArrayLike, "N K"], *, chunk: int | None = None
+) -> Float[Array, "N V 3"]:
+    """Meshes of the rig at every row of ``poses`` (N, K): ``jax.vmap(evaluate)``, jitted.
+
+    The compiled function is shared by every call (compiled once per rig structure and batch
+    shape). With ``chunk`` the poses go through in slices of that many rows (the last one
+    padded with zero poses), bounding memory at (chunk, V, 3) per step with one compiled
+    shape. Traced ``poses`` (inside a caller's jit or grad) are evaluated in one slice.
+    Raises ValueError/TypeError naming ``poses`` or ``chunk`` before any tracing.
+    """
+    if not isinstance(rig, BlendshapeRig):
+        raise TypeError(f"rig: expected a BlendshapeRig, got {type(rig).__name__}")
+    if chunk is not None and (
+        isinstance(chunk, bool) or not isinstance(chunk, int | np.integer) or chunk < 1
+    ):
+        raise ValueError(f"chunk: expected a positive integer or None, got {chunk!r}")
+    traced = isinstance(poses, jax.core.Tracer)
+    if not traced:
+        poses = np.asarray(poses)
+        if poses.dtype.byteorder not in ("=", "|"):
+            poses = poses.astype(poses.dtype.newbyteorder("="))
+    dtype = poses.dtype
+    if np.issubdtype(dtype, np.complexfloating) or not (
+        np.issubdtype(dtype, np.number) or np.issubdtype(dtype, np.bool_)
+    ):
+        raise TypeError(f"poses: expected real numbers, got dtype {dtype}")
+    if poses.ndim != 2 or poses.shape[1] != rig.n_blendshapes:
+        raise ValueError(
+            f"poses: expected shape (N, {rig.n_blendshapes}) for a rig with "
+            f"{rig.n_blendshapes} blendshapes, got {tuple(poses.shape)}"
+        )
+    if traced:
+        return _evaluate_many(rig, poses)
+    if not np.all(np.isfinite(poses)):
+        bad = np.flatnonzero(~np.all(np.isfinite(poses), axis=1))[:5]
+        raise ValueError(f"poses: non-finite weights in rows {bad.tolist()}")
+    poses = jnp.asarray(poses, rig.deltas.dtype)
+    n = poses.shape[0]
+    if n == 0:
+        return jnp.zeros((0, rig.n_vertices, 3), rig.neutral.dtype)
+    if chunk is None or n <= chunk:
+        return _evaluate_many(rig, poses)
+    padded = jnp.concatenate([poses, jnp.zeros((-n % chunk, poses.shape[1]), poses.dtype)])
+    parts = [_evaluate_many(rig, padded[i : i + chunk]) for i in range(0, n, chunk)]
+    return jnp.concatenate(parts)[:n]

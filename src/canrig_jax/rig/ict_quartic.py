@@ -12,27 +12,18 @@ import hashlib
 import json
 import os
 from collections.abc import Sequence
-from pathlib import Path
 
+from ..cache import CACHE_ENV_VAR, cache_dir, mesh_fingerprint
 from ..data import FACE, load_ict
 from ..io import save_json
-from ..mesh.deformation_gradient import mesh_fingerprint
 from .blendshape import BlendshapeRig
 from .io import load_rig, save_rig
 from .synthesis import SynthesisOptions, SynthesisReport, synthesize_correctives
 
-CACHE_ENV_VAR = "CANRIG_CACHE"
 SYNTHESIS_VERSION = 2
 """Bump when synthesis changes its output, to invalidate caches."""
 
-
-def cache_dir(path: str | os.PathLike | None = None) -> Path:
-    """Cache folder: ``path``, else ``$CANRIG_CACHE``, else ``~/.cache/canrig_jax``."""
-    if path is not None:
-        return Path(path)
-    if os.environ.get(CACHE_ENV_VAR):
-        return Path(os.environ[CACHE_ENV_VAR])
-    return Path.home() / ".cache" / "canrig_jax"
+__all__ = ["CACHE_ENV_VAR", "cache_dir", "ict_linear_rig", "ict_quartic_rig"]
 
 
 def ict_linear_rig(
