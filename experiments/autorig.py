@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -42,6 +41,7 @@ from canrig_jax.data import load_ict
 from canrig_jax.io import save_json, save_text
 from canrig_jax.mesh import decimate
 from canrig_jax.metrics import CM_TO_MM
+from canrig_jax.provenance import COMMAND_FILE, experiment_command, provenance
 from canrig_jax.render import plot_vertex_scalar, save_figure
 from canrig_jax.rig.gltf import export_gltf, load_gltf_rig
 
@@ -68,13 +68,11 @@ def main(argv=None):
     )
     args = parser.parse_args(argv)
     if args.timing_only:
-        return refresh_timing(args)
+        return refresh_timing(args, argv)
     progress = not args.no_progress
     args.out.mkdir(parents=True, exist_ok=True)
-    command = " ".join(
-        ["python experiments/autorig.py", *(argv if argv is not None else sys.argv[1:])]
-    )
-    save_text(args.out / "COMMAND", command + "\n")
+    command = experiment_command(__file__, argv)
+    save_text(args.out / COMMAND_FILE, command + "\n")
 
     start = time.perf_counter()
     dataset = ict_autorig_dataset(
@@ -207,6 +205,7 @@ def main(argv=None):
         },
         "gltf": gltf_check,
         "total_minutes": (time.perf_counter() - start) / 60,
+        "provenance": provenance(command),
     }
     write_results(args.out, results)
     plot_history(trained, args.out / "training_loss.png")
@@ -236,7 +235,7 @@ def rig_timing(model, poses, head, repeats: int = 9) -> dict:
     }
 
 
-def refresh_timing(args) -> dict:
+def refresh_timing(args, argv=None) -> dict:
     """Re-measure ``rig_seconds`` of an existing results.json in ``args.out`` with its RAF
     checkpoint (the rest of the file is kept)."""
     path = args.out / "results.json"
@@ -249,6 +248,7 @@ def refresh_timing(args) -> dict:
     results = json.loads(path.read_text())
     model, poses, _ = load_model(checkpoint)
     results["rig_seconds"] = rig_timing(model, poses, load_ict(args.data_dir, parts=None))
+    results["timing_provenance"] = provenance(experiment_command(__file__, argv))
     write_results(args.out, results)
     print(f"rewrote rig_seconds of {path} and table.md")
     return results

@@ -11,7 +11,6 @@ import argparse
 import time
 from pathlib import Path
 
-import jax
 import matplotlib.pyplot as plt
 import numpy as np
 
@@ -19,8 +18,9 @@ from canrig_jax.data import load_livelinkface
 from canrig_jax.io import save_json, save_text
 from canrig_jax.mesh import DeformationGradientBlend
 from canrig_jax.metrics import CM_TO_MM, distance_percentile_mm, per_vertex_distance
+from canrig_jax.provenance import experiment_command, provenance
 from canrig_jax.render import plot_vertex_scalar, save_figure
-from canrig_jax.rig import evaluate, ict_quartic_rig
+from canrig_jax.rig import evaluate_batch, ict_quartic_rig
 from canrig_jax.rig.poses import random_sparse_poses
 
 
@@ -47,9 +47,8 @@ def main(argv=None):
         ]
     )
     nonlinear = blend(poses)
-    batch = jax.jit(jax.vmap(evaluate, (None, 0)))
-    quartic = np.asarray(batch(rig, poses))
-    linear = np.asarray(batch(rig.linear(), poses))
+    quartic = np.asarray(evaluate_batch(rig, poses))
+    linear = np.asarray(evaluate_batch(rig.linear(), poses))
 
     results = {
         "n_vertices": rig.n_vertices,
@@ -62,6 +61,7 @@ def main(argv=None):
         "quartic_vs_nonlinear_p95_mm": distance_percentile_mm(quartic, nonlinear),
         "degenerate_triangles": blend.fallback_counts.total,
         "build_seconds": build_seconds,
+        "provenance": provenance(experiment_command(__file__, argv)),
     }
     args.out.mkdir(parents=True, exist_ok=True)
     save_json(args.out / "results.json", results)

@@ -33,6 +33,7 @@ from canrig_jax.mesh import (
     mesh_geometry,
 )
 from canrig_jax.metrics import CM_TO_MM
+from canrig_jax.provenance import COMMAND_FILE, experiment_command, provenance
 from canrig_jax.render import plot_vertex_scalar, save_figure
 from canrig_jax.rig import BlendshapeRig, deformation_transfer
 
@@ -191,11 +192,9 @@ def main(argv=None):
     }
 
     args.out.mkdir(parents=True, exist_ok=True)
-    save_json(args.out / "results.json", results)
-    save_text(
-        args.out / "COMMAND",
-        "python " + " ".join(["experiments/mesh_foundations.py", *command_args]) + "\n",
-    )
+    command = experiment_command(__file__, command_args)
+    save_json(args.out / "results.json", {**results, "provenance": provenance(command)})
+    save_text(args.out / COMMAND_FILE, command + "\n")
     table = _table(results)
     save_text(args.out / "table.md", table)
     _plot_transfer(example, head.names, args.out / "deformation_transfer_error.png")

@@ -30,8 +30,9 @@ from canrig_jax.data import load_livelinkface
 from canrig_jax.io import save_json, save_text
 from canrig_jax.mesh import DeformationGradientBlend
 from canrig_jax.metrics import CM_TO_MM, per_vertex_distance
+from canrig_jax.provenance import experiment_command, provenance
 from canrig_jax.render import plot_vertex_scalar, save_figure
-from canrig_jax.rig import evaluate, ict_linear_rig, ict_quartic_rig
+from canrig_jax.rig import evaluate, evaluate_batch, ict_linear_rig, ict_quartic_rig
 from canrig_jax.rig.poses import random_sparse_poses
 from canrig_jax.wpse.reference import time_runtime
 
@@ -53,7 +54,7 @@ def main(argv=None):
     )
     args = parser.parse_args(argv)
     if args.timing_only:
-        return _refresh_timing(args)
+        return _refresh_timing(args, argv)
     args.out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(args.seed)
 
@@ -67,7 +68,7 @@ def main(argv=None):
     poses = np.concatenate([capture, random_sparse_poses(rng, n_random, names)])
     blend = DeformationGradientBlend(rig.neutral, rig.deltas, faces)
     desired = blend(poses).astype(np.float32)
-    batch = jax.jit(jax.vmap(evaluate, (None, 0)))
+    batch = evaluate_batch
     linear = np.asarray(batch(rig, poses))
     frame_error = per_vertex_distance(linear, desired).mean(axis=1)
     edit_frames = wpse.select_edit_frames(frame_error, poses, max(BUDGETS), MIN_EDIT_DISTANCE)
@@ -169,6 +170,7 @@ def main(argv=None):
             "quick": args.quick,
         },
     }
+    results["provenance"] = provenance(experiment_command(__file__, argv))
     save_json(args.out / "results.json", results)
     table = _table(results)
     save_text(args.out / "table.md", table)
@@ -185,7 +187,7 @@ def _locality(rig, models, poses, edit_frames, linear, blend, rng, draws=4):
     alpha = wpse.blendshape_metric(rig.deltas)
     region = np.flatnonzero(alpha[:, mouth].sum(axis=1) > 0.5)
     out = {m: [] for m in ("pse", "wpse", "desired")}
-    batch = jax.jit(jax.vmap(evaluate, (None, 0)))
+    batch = evaluate_batch
     for frame in edit_frames:
         edit_pose = poses[frame]
         probes = np.repeat(edit_pose[None], draws, axis=0)
@@ -223,7 +225,7 @@ def _overshoot(rig, models, blend, sigma, out_dir):
     t = np.linspace(0.0, 1.5, 31)
     sweep = np.zeros((t.size, rig.n_blendshapes), np.float32)
     sweep[:, pair] = t[:, None]
-    batch = jax.jit(jax.vmap(evaluate, (None, 0)))
+    batch = evaluate_batch
     base = np.asarray(batch(rig, sweep))
     corner = sweep[np.argmin(np.abs(t - 1.0))]
     corner_edit = blend(corner)[None] - base[np.argmin(np.abs(t - 1.0))][None]
@@ -268,7 +270,7 @@ def _layering(rig, poses, edit_frames, linear, blend, sigma, step=0.05, exaggera
     a = poses[edit_frames[0]]
     b = a.copy()
     b[int(np.argmax(a))] += step  # the artist re-edits a nearby frame...
-    batch = jax.jit(jax.vmap(evaluate, (None, 0)))
+    batch = evaluate_batch
     two = np.stack([a, b])
     base = np.asarray(batch(rig, two))
     fix = blend(two) - base
@@ -362,7 +364,7 @@ def _search(rig, poses, edit_frames, held_out, linear, out_dir, top=3):
     return result
 
 
-def _refresh_timing(args):
+def _refresh_timing(args, argv=None):
     """Re-measure the timing rows of an existing results.json in ``args.out``: the poses
     are rebuilt from the seed, the edit frames and sigmas read back from the file."""
     path = args.out / "results.json"
@@ -385,9 +387,10 @@ def _refresh_timing(args):
     edit_frames = np.asarray(protocol["edit_frames"])
     blend = DeformationGradientBlend(rig.neutral, rig.deltas, np.asarray(rig.faces))
     target = blend(poses[edit_frames]).astype(np.float32)
-    base = np.asarray(jax.vmap(evaluate, (None, 0))(rig, poses[edit_frames]))
+    base = np.asarray(evaluate_batch(rig, poses[edit_frames]))
     sigma = results["sigma"]
     results["timing"] = _timing(rig, poses, edit_frames, base, target, args, sigma)
+    results["timing_provenance"] = provenance(experiment_command(__file__, argv))
     save_json(path, results)
     table = _table(results)
     save_text(args.out / "table.md", table)
@@ -405,7 +408,7 @@ def _timing(rig, poses, edit_frames, base, target, args, sigma, repeats=30):
     if not args.quick:
         head = ict_linear_rig(args.data_dir, parts=None)
         head_blend = DeformationGradientBlend(head.neutral, head.deltas, head.faces)
-        batch = jax.jit(jax.vmap(evaluate, (None, 0)))
+        batch = evaluate_batch
         meshes.append(
             (
                 "head",
@@ -416,7 +419,7 @@ def _timing(rig, poses, edit_frames, base, target, args, sigma, repeats=30):
         )
     probe = poses[np.setdiff1d(np.arange(len(poses)), edit_frames)][:repeats]
     for part, part_rig, base, target in meshes:
-        posed = np.asarray(jax.vmap(evaluate, (None, 0))(part_rig, probe))
+        posed = np.asarray(evaluate_batch(part_rig, probe))
         for budget in BUDGETS:
             chosen = slice(0, budget)
             width = sigma[f"wpse_p{budget}"]["loo_sigma"]
