@@ -2,8 +2,11 @@
 
     python experiments/canrig_train.py --out experiments/results/canrig --minutes 25
 
-Writes DIR/checkpoint.eqx (atomic; rerunning the command resumes from it), DIR/train.json
-(steps, minutes, parameters, loss history) and DIR/training_loss.png.
+Writes DIR/checkpoint.eqx (atomic; rerunning the command resumes from it; the training and
+data-building options are stored in it, and a resume with other options is refused),
+DIR/train.json (steps, minutes, parameters, loss history, provenance) and
+DIR/training_loss.png. Every field of ``TrainOptions``, its ``ExampleOptions`` and
+``DataOptions`` is an option ``--field-name`` (``--help`` lists them).
 """
 
 from __future__ import annotations
@@ -17,85 +20,74 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from canrig_jax.canrig import (
-    ExampleOptions,
-    TrainOptions,
-    build_training_set,
-    parameter_count,
-    split_capture,
-    train,
-)
-from canrig_jax.canrig.train import LOSSES
+from canrig_jax.canrig import TrainOptions, parameter_count, split_capture, train
+from canrig_jax.canrig.data import FARTHEST_METRICS, DataOptions
+from canrig_jax.canrig.train import LOSSES, VARIANTS
+from canrig_jax.cli import add_dataclass_options, from_args
 from canrig_jax.data import load_livelinkface
 from canrig_jax.io import save_json
+from canrig_jax.provenance import experiment_command, provenance
 from canrig_jax.render import save_figure
 from canrig_jax.rig import ict_quartic_rig
 
+OPTION_ALIASES = {"n_heads": ["--heads"], "max_minutes": ["--minutes"]}
+"""Short flags kept from the first version of this script (committed commands use them)."""
+OPTION_DEFAULTS = {"steps": 100_000, "max_minutes": 25.0}
+"""Where this script's defaults differ from ``TrainOptions``'s (a time budget decides)."""
+OPTION_CHOICES = {"variant": sorted(VARIANTS), "loss": LOSSES, "farthest_metric": FARTHEST_METRICS}
+OPTION_HELP = {
+    "max_minutes": "training time budget",
+    "steps": "step budget",
+    "n_heads": "attention heads",
+    "latent": "total latent width (all heads)",
+    "width": "hidden width of every MLP",
+    "fourier": "octaves of the query encoding",
+    "farthest_sets": "farthest-point handle sets in the pool",
+    "farthest_metric": "distance of the farthest-point handle sets (geodesic: that of the masks)",
+    "capture_mixes": "extra poses: convex combinations of two training capture frames",
+    "decay_steps": "cosine learning-rate decay (0: constant)",
+    "decay_start": "step at which the cosine decay begins",
+    "decay_floor": "final rate / initial rate of the decay",
+    "loss": "per-vertex penalty: squared error (eq. 3) or the Euclidean error (as reported)",
+    "interpolation_prior": "add the mask-weighted mean of the handle displacements",
+    "query_modulation": "output input also modulated by an affine map of the vertex's query",
+    "linear_skip": "bias-free linear skip in value/output MLPs",
+    "p_neutral": "base shape: the neutral",
+}
+QUICK = {"steps": 30, "max_minutes": None, "checkpoint_every": 10, "log_every": 5}
+"""``--quick``: a few steps on the tiny training set (``DataOptions.quick``)."""
+
+
+def parser() -> argparse.ArgumentParser:
+    """The command line: a few script flags, then every field of ``TrainOptions`` (and its
+    ``ExampleOptions``) and of ``DataOptions`` as ``--field-name``."""
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--data-dir", default=None, help="data folder (else $CANRIG_DATA)")
+    p.add_argument("--quick", action="store_true", help="tiny data, 30 steps")
+    p.add_argument("--no-progress", action="store_true")
+    for cls in (TrainOptions, DataOptions):
+        add_dataclass_options(
+            p,
+            cls,
+            aliases=OPTION_ALIASES,
+            defaults=OPTION_DEFAULTS,
+            choices=OPTION_CHOICES,
+            help=OPTION_HELP,
+        )
+    return p
+
+
+def options_from_args(args: argparse.Namespace) -> tuple[TrainOptions, DataOptions]:
+    options = from_args(TrainOptions, args, **(QUICK if args.quick else {}))
+    data_options = from_args(DataOptions, args)
+    return options, data_options.quick() if args.quick else data_options
+
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, required=True, help="output folder")
-    parser.add_argument("--data-dir", default=None, help="data folder (else $CANRIG_DATA)")
-    parser.add_argument("--quick", action="store_true", help="tiny data, 30 steps")
-    parser.add_argument("--minutes", type=float, default=25.0, help="training time budget")
-    parser.add_argument("--steps", type=int, default=100_000, help="step budget")
-    parser.add_argument("--variant", default="shape_preserving", help="or 'canrig'")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--no-progress", action="store_true")
-    parser.add_argument("--latent", type=int, default=64, help="total latent width (all heads)")
-    parser.add_argument("--heads", type=int, default=4, help="attention heads")
-    parser.add_argument("--width", type=int, default=64, help="hidden width of every MLP")
-    parser.add_argument("--fourier", type=int, default=0, help="octaves of the query encoding")
-    parser.add_argument(
-        "--farthest-sets", type=int, default=0, help="farthest-point handle sets in the pool"
-    )
-    parser.add_argument(
-        "--farthest-metric",
-        default="euclidean",
-        choices=("euclidean", "geodesic"),
-        help="distance of the farthest-point handle sets (geodesic: the metric of the masks)",
-    )
-    parser.add_argument("--p-farthest", type=float, default=0.0)
-    parser.add_argument("--p-eval-radius", type=float, default=0.0)
-    parser.add_argument("--p-capture", type=float, default=None)
-    parser.add_argument("--n-active", type=int, nargs=2, default=(4, 10))
-    parser.add_argument(
-        "--capture-mixes",
-        type=int,
-        default=0,
-        help="extra poses: convex combinations of two training capture frames",
-    )
-    parser.add_argument(
-        "--decay-steps", type=int, default=0, help="cosine learning-rate decay (0: constant)"
-    )
-    parser.add_argument(
-        "--decay-start", type=int, default=0, help="step at which the cosine decay begins"
-    )
-    parser.add_argument(
-        "--decay-floor", type=float, default=0.05, help="final rate / initial rate of the decay"
-    )
-    parser.add_argument("--batch", type=int, default=8)
-    parser.add_argument(
-        "--loss",
-        default="squared",
-        choices=LOSSES,
-        help="per-vertex penalty: squared error (eq. 3) or the Euclidean error (as reported)",
-    )
-    parser.add_argument(
-        "--interpolation-prior",
-        action="store_true",
-        help="add the mask-weighted mean of the handle displacements; the network corrects it",
-    )
-    parser.add_argument(
-        "--query-modulation",
-        action="store_true",
-        help="output input also modulated by an affine map of the vertex's query",
-    )
-    parser.add_argument(
-        "--linear-skip", action="store_true", help="bias-free linear skip in value/output MLPs"
-    )
-    parser.add_argument("--p-neutral", type=float, default=0.1, help="base shape: the neutral")
-    args = parser.parse_args(argv)
+    args = parser().parse_args(argv)
+    options, data_options = options_from_args(args)
+    command = experiment_command(__file__, argv)
 
     start = time.perf_counter()
     rig, _ = ict_quartic_rig(args.data_dir, progress=False)
@@ -103,49 +95,17 @@ def main(argv=None):
         warnings.filterwarnings("ignore", message=".*TongueOut", category=UserWarning)
         capture = load_livelinkface(args.data_dir).weights_for(rig.names, missing="zero")
     capture_train, _ = split_capture(capture)
-    data = build_training_set(
-        rig,
-        capture_train,
-        n_random=50 if args.quick else 800,
-        n_pool=256 if args.quick else 2048,
-        seed=args.seed,
-        n_active=tuple(args.n_active),
-        farthest_sets=args.farthest_sets,
-        farthest_geodesic=args.farthest_metric == "geodesic",
-        capture_mixes=args.capture_mixes,
-    )
+    data = data_options.build(rig, capture_train, seed=options.seed)
     print(
         f"training set: {data.shapes.shape[0]} shapes, built in {time.perf_counter() - start:.1f} s"
     )
-    options = TrainOptions(
-        variant=args.variant,
-        n_heads=args.heads,
-        latent=args.latent,
-        width=args.width,
-        fourier=args.fourier,
-        linear_skip=args.linear_skip,
-        query_modulation=args.query_modulation,
-        interpolation_prior=args.interpolation_prior,
-        decay_steps=args.decay_steps,
-        decay_start=args.decay_start,
-        decay_floor=args.decay_floor,
-        loss=args.loss,
-        steps=30 if args.quick else args.steps,
-        max_minutes=None if args.quick else args.minutes,
-        seed=args.seed,
-        checkpoint_every=10 if args.quick else 250,
-        log_every=5 if args.quick else 25,
-        examples=ExampleOptions(
-            batch=args.batch,
-            p_neutral=args.p_neutral,
-            p_farthest=args.p_farthest,
-            p_eval_radius=args.p_eval_radius,
-            p_capture=args.p_capture,
-        ),
-    )
     args.out.mkdir(parents=True, exist_ok=True)
     result = train(
-        data, options, checkpoint=args.out / "checkpoint.eqx", progress=not args.no_progress
+        data,
+        options,
+        checkpoint=args.out / "checkpoint.eqx",
+        progress=not args.no_progress,
+        data_options={**data_options.to_dict(), "seed": options.seed},
     )
     summary = {
         "variant": options.variant,
@@ -153,14 +113,10 @@ def main(argv=None):
         "train_minutes": result.seconds / 60.0,
         "parameters": parameter_count(result.model),
         "training_shapes": int(data.shapes.shape[0]),
-        "data": {
-            "n_active": list(args.n_active),
-            "farthest_sets": args.farthest_sets,
-            "farthest_metric": args.farthest_metric,
-            "capture_mixes": args.capture_mixes,
-        },
+        "data": data_options.to_dict(),
         "options": dataclasses.asdict(options),
         "history": result.history,
+        "provenance": provenance(command),
     }
     save_json(args.out / "train.json", summary)
 

@@ -1,15 +1,20 @@
 """Resumable training: checkpoint files written atomically, and the loop that writes them.
 
-The file is a JSON header line (``{"format": ..., **state}``: options, step, elapsed time,
-loss history) followed by the leaves of a pytree (model, optimiser state) serialised by
-``eqx.tree_serialise_leaves``. The header alone rebuilds the pytree's structure.
+The file is a JSON header line (``{"format": ..., **state, "sha256": ...}``: options, step,
+elapsed time, loss history, and a SHA-256 of everything else in the file) followed by the
+leaves of a pytree (model, optimiser state) serialised by ``eqx.tree_serialise_leaves``. The
+header alone rebuilds the pytree's structure. A file whose bytes no longer match its hash, or
+that is truncated, is reported as a corrupt checkpoint (``CorruptFileError``, with its path);
+checkpoints written before the hash was added load without the check.
 """
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import os
+import re
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -17,41 +22,79 @@ from pathlib import Path
 import equinox as eqx
 import jax
 
-from .io import atomic_path
+from .io import CorruptFileError, atomic_path
+
+_HASH_SUFFIX = re.compile(rb', "sha256": "([0-9a-f]{64})"\}$')
+
+
+def _digest(header: bytes, leaves: bytes) -> str:
+    return hashlib.sha256(header + b"\n" + leaves).hexdigest()
 
 
 def save_checkpoint(path, tree, state: dict, format: str) -> Path:
-    """Write ``state`` (JSON-able) and the array leaves of ``tree`` to ``path`` atomically."""
+    """Write ``state`` (JSON-able) and the array leaves of ``tree`` to ``path`` atomically,
+    with a SHA-256 of the header and the leaves in the header."""
     buffer = io.BytesIO()
     eqx.tree_serialise_leaves(buffer, tree)
+    leaves = buffer.getvalue()
     header = json.dumps({"format": format, **state}).encode()
+    sealed = header[:-1] + f', "sha256": "{_digest(header, leaves)}"}}'.encode()
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        f.write(header + b"\n")
-        f.write(buffer.getvalue())
+        f.write(sealed + b"\n")
+        f.write(leaves)
     return Path(path)
 
 
-def read_checkpoint_state(path, format: str) -> dict:
-    """The header of a checkpoint; ValueError when missing or of another format."""
+def _read(path, format: str) -> tuple[dict, bytes]:
+    """(state, leaves bytes) of a checkpoint, its integrity checked when it has a hash."""
+    if not isinstance(path, str | os.PathLike):
+        raise TypeError(f"path: expected a file path, got {type(path).__name__}")
     if not os.path.exists(path):
         raise ValueError(f"path: checkpoint {path} does not exist")
+    if os.path.isdir(path):
+        raise ValueError(f"path: {path} is a folder, not a checkpoint file")
     with open(path, "rb") as f:
-        try:
-            state = json.loads(f.readline())
-        except (json.JSONDecodeError, UnicodeDecodeError):
-            state = {}
+        line = f.readline()
+        leaves = f.read()
+    sealed = line.rstrip(b"\n")
+    try:
+        state = json.loads(sealed)
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        state = None
+    if not isinstance(state, dict):
+        if format.encode() in sealed or not line.endswith(b"\n"):
+            raise CorruptFileError(f"path: corrupt checkpoint {path} (unreadable header)")
+        raise ValueError(f"path: {path} is not a {format} checkpoint")
     if state.get("format") != format:
         raise ValueError(f"path: {path} is not a {format} checkpoint")
-    return state
+    if "sha256" in state:
+        match = _HASH_SUFFIX.search(sealed)
+        header = sealed[: match.start()] + b"}" if match else b""
+        if match is None or _digest(header, leaves) != match.group(1).decode():
+            raise CorruptFileError(
+                f"path: corrupt checkpoint {path} (its bytes do not match the stored SHA-256)"
+            )
+        state.pop("sha256")
+    return state, leaves
+
+
+def read_checkpoint_state(path, format: str) -> dict:
+    """The header of a checkpoint; ValueError when missing or of another format,
+    ``CorruptFileError`` (a ValueError) when damaged."""
+    return _read(path, format)[0]
 
 
 def load_checkpoint(path, like, format: str):
     """(tree, state) from ``save_checkpoint``; ``like`` gives the tree's structure."""
-    state = read_checkpoint_state(path, format)
-    with open(path, "rb") as f:
-        f.readline()
-        leaves = io.BytesIO(f.read())
-    return eqx.tree_deserialise_leaves(leaves, like), state
+    state, leaves = _read(path, format)
+    try:
+        tree = eqx.tree_deserialise_leaves(io.BytesIO(leaves), like)
+    except Exception as error:  # truncated or resized leaves: equinox/numpy errors
+        raise CorruptFileError(
+            f"path: corrupt checkpoint {path} (its arrays do not fit the model described by "
+            f"its header: {type(error).__name__})"
+        ) from error
+    return tree, state
 
 
 def run_training(

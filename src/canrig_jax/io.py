@@ -11,6 +11,10 @@ from pathlib import Path
 import numpy as np
 
 
+class CorruptFileError(ValueError):
+    """A file exists but its bytes are damaged (truncated, flipped); the message names it."""
+
+
 def _new_file_mode() -> int:
     """The permissions ``open(path, "w")`` would give a new file (0o666 minus the umask)."""
     umask = os.umask(0)

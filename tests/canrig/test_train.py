@@ -4,6 +4,9 @@ interrupted run gives exactly the uninterrupted result; example sampling."""
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
+import json
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -21,7 +24,15 @@ from canrig_jax.canrig import (
     split_capture,
     train,
 )
-from canrig_jax.canrig.train import EUCLIDEAN_SOFTNESS_MM, make_optimiser, vertex_penalty
+from canrig_jax.canrig.data import DataOptions
+from canrig_jax.canrig.train import (
+    EUCLIDEAN_SOFTNESS_MM,
+    make_optimiser,
+    read_checkpoint_state,
+    vertex_penalty,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
 
 TINY = ExampleOptions(batch=2, n_vertices=48, n_handles=(3, 12), handle_bucket=12)
 
@@ -211,3 +222,125 @@ def test_training_set_appends_capture_mixes(ict_quartic, livelink_weights):
     np.testing.assert_array_equal(mixed.pool, plain.pool)
     with pytest.raises(ValueError, match="capture_mixes"):
         build_training_set(ict_quartic, capture_train, n_random=6, capture_mixes=-1)
+
+
+def test_checkpoint_stores_data_options_and_refuses_other_ones(tiny_data, tmp_path):
+    options = TrainOptions(steps=1, examples=TINY)
+    built = {**DataOptions(n_random=6, n_pool=40).to_dict(), "seed": 0}
+    path = tmp_path / "d.eqx"
+    train(tiny_data, options, checkpoint=path, progress=False, data_options=built)
+    assert read_checkpoint_state(path)["data_options"] == built
+    # same data options (the budget extended): resumes
+    more = dataclasses.replace(options, steps=2)
+    assert train(tiny_data, more, checkpoint=path, progress=False, data_options=built).step == 2
+    with pytest.raises(ValueError, match="^checkpoint:.*data options.*farthest_sets"):
+        train(
+            tiny_data,
+            more,
+            checkpoint=path,
+            progress=False,
+            data_options={**built, "farthest_sets": 4},
+        )
+
+
+def test_checkpoint_without_data_options_still_resumes(tiny_data, tmp_path):
+    """Checkpoints written before data options were stored (and without an integrity hash)
+    keep loading and resuming."""
+    options = TrainOptions(steps=1, examples=TINY)
+    path = tmp_path / "old.eqx"
+    train(tiny_data, options, checkpoint=path, progress=False)
+    lines = path.read_bytes().split(b"\n", 1)
+    header = json.loads(lines[0])
+    del header["sha256"], header["data_options"]
+    path.write_bytes(json.dumps(header).encode() + b"\n" + lines[1])
+    model, state = load_model(path, tiny_data.neutral)
+    assert state["step"] == 1 and "data_options" not in state
+    data_options = {**DataOptions().to_dict(), "seed": 0}
+    result = train(
+        tiny_data,
+        dataclasses.replace(options, steps=2),
+        checkpoint=path,
+        progress=False,
+        data_options=data_options,
+    )
+    assert result.step == 2
+    assert read_checkpoint_state(path)["data_options"] == data_options
+
+
+def test_committed_checkpoints_load():
+    """The committed standard checkpoint (written before the integrity hash) still loads."""
+    path = ROOT / "experiments" / "results" / "canrig" / "checkpoint.eqx"
+    state = read_checkpoint_state(path)
+    assert state["step"] > 0 and TrainOptions.from_dict(state["options"]).width == 96
+
+
+def test_training_command_line_is_derived_from_the_options():
+    """Every field of TrainOptions, ExampleOptions and DataOptions is an option of
+    canrig_train.py, and a non-default value of each round-trips through the command line."""
+    script = _load_script()
+    options = TrainOptions(
+        variant="canrig",
+        n_heads=2,
+        latent=32,
+        width=48,
+        n_layers=2,
+        fourier=3,
+        linear_skip=True,
+        interpolation_prior=True,
+        learning_rate=3e-4,
+        decay_steps=9,
+        decay_floor=0.1,
+        decay_start=2,
+        steps=77,
+        max_minutes=3.5,
+        beta=0.5,
+        sp_weight=0.25,
+        loss="euclidean",
+        seed=5,
+        checkpoint_every=7,
+        log_every=3,
+        examples=ExampleOptions(
+            batch=3,
+            n_vertices=20,
+            n_handles=(2, 9),
+            p_capture=0.4,
+            eval_radii_cm=(1.5, 3.0),
+            p_farthest=0.2,
+        ),
+    )
+    data_options = DataOptions(n_random=9, n_active=(2, 3), farthest_metric="geodesic")
+    argv = ["--out", "x", *_flags(options), *_flags(data_options)]
+    parsed = script.parser().parse_args(argv)
+    assert script.options_from_args(parsed) == (options, data_options)
+    # the committed command's short flags still work
+    parsed = script.parser().parse_args(["--out", "x", "--heads", "2", "--minutes", "9"])
+    got, _ = script.options_from_args(parsed)
+    assert (got.n_heads, got.max_minutes, got.steps) == (2, 9.0, 100_000)
+
+
+def _flags(instance) -> list[str]:
+    out = []
+    for field in dataclasses.fields(instance):
+        value = getattr(instance, field.name)
+        if dataclasses.is_dataclass(value):
+            out += _flags(value)
+            continue
+        flag = "--" + field.name.replace("_", "-")
+        if isinstance(value, bool):
+            out.append(flag if value else "--no-" + flag[2:])
+        elif value is None:
+            continue
+        elif isinstance(value, tuple):
+            out += [flag, *map(str, value)]
+        else:
+            out += [flag, str(value)]
+    return out
+
+
+def _load_script():
+    spec = importlib.util.spec_from_file_location(
+        "canrig_train", ROOT / "experiments" / "canrig_train.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

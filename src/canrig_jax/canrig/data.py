@@ -145,6 +145,78 @@ def build_training_set(
     )
 
 
+FARTHEST_METRICS = ("euclidean", "geodesic")
+
+
+@dataclasses.dataclass(frozen=True)
+class DataOptions:
+    """How the training set is built (``build_training_set``'s options, one record): stored in
+    a training checkpoint so that a resume notices when they changed.
+
+    ``farthest_metric`` is the distance of the farthest-point handle sets ("euclidean" or
+    "geodesic", the metric of the masks). ``quick()`` gives the tiny set of ``--quick`` runs.
+    """
+
+    n_random: int = 800
+    n_pool: int = 2048
+    distance_limit_cm: float = 10.0
+    n_active: tuple[int, int] = (4, 10)
+    farthest_sets: int = 0
+    farthest_size: int = 200
+    farthest_metric: str = "euclidean"
+    capture_mixes: int = 0
+
+    def __post_init__(self):
+        if self.farthest_metric not in FARTHEST_METRICS:
+            raise ValueError(
+                f"farthest_metric: expected one of {FARTHEST_METRICS}, got {self.farthest_metric!r}"
+            )
+        for name in ("n_random", "farthest_sets", "capture_mixes"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
+        if self.n_pool < 1 or self.farthest_size < 1:
+            raise ValueError(
+                f"n_pool, farthest_size: expected >= 1, got {self.n_pool}, {self.farthest_size}"
+            )
+        if not self.distance_limit_cm > 0:
+            raise ValueError(f"distance_limit_cm: expected > 0, got {self.distance_limit_cm}")
+        if len(self.n_active) != 2 or not 1 <= self.n_active[0] <= self.n_active[1]:
+            raise ValueError(
+                f"n_active: expected (low, high) with 1 <= low <= high, got {self.n_active}"
+            )
+
+    def quick(self) -> DataOptions:
+        """The same options with the tiny sizes of a ``--quick`` run."""
+        return dataclasses.replace(self, n_random=50, n_pool=256)
+
+    def to_dict(self) -> dict:
+        return {**dataclasses.asdict(self), "n_active": list(self.n_active)}
+
+    def build(
+        self,
+        rig: BlendshapeRig,
+        capture_train: np.ndarray,
+        *,
+        seed: int = 0,
+        edge_factor: np.ndarray | None = None,
+    ) -> TrainingSet:
+        """``build_training_set`` with these options."""
+        return build_training_set(
+            rig,
+            capture_train,
+            n_random=self.n_random,
+            n_pool=self.n_pool,
+            distance_limit_cm=self.distance_limit_cm,
+            edge_factor=edge_factor,
+            seed=seed,
+            n_active=tuple(self.n_active),
+            farthest_sets=self.farthest_sets,
+            farthest_size=self.farthest_size,
+            farthest_geodesic=self.farthest_metric == "geodesic",
+            capture_mixes=self.capture_mixes,
+        )
+
+
 def capture_mixes_of(
     capture: Float[np.ndarray, "F K"], n: int, rng: np.random.Generator
 ) -> Float[np.ndarray, "n K"]:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import os
 from pathlib import Path
 
@@ -253,11 +254,20 @@ def train(
     displacement_scale: float = 1.0,
     progress: bool = True,
     stop_after: int | None = None,
+    data_options: dict | None = None,
 ) -> TrainResult:
     """Train (or resume from ``checkpoint`` if it exists) until ``options.steps`` steps or
     ``options.max_minutes`` of accumulated training time. A checkpoint resumes only with the
     same options, except the budget (steps, max_minutes), which may be extended. ``stop_after``
-    ends this call early after that many steps (a simulated interruption, for tests)."""
+    ends this call early after that many steps (a simulated interruption, for tests).
+
+    ``data_options`` (JSON-able, e.g. ``DataOptions.to_dict()`` and the data seed) describe how
+    ``data`` was built; they are stored in the checkpoint, and a resume with other data options
+    is refused (a checkpoint written before they were stored resumes with any)."""
+    if not isinstance(options, TrainOptions):
+        raise TypeError(f"options: expected TrainOptions, got {type(options).__name__}")
+    if data_options is not None:
+        data_options = json.loads(json.dumps(data_options))  # as the checkpoint stores them
     model = make_model(options, data.neutral, displacement_scale)
     optimiser = make_optimiser(options)
     opt_state = optimiser.init(eqx.filter(model, eqx.is_array))
@@ -268,12 +278,26 @@ def train(
         budget = {"steps": options.steps, "max_minutes": options.max_minutes}
         if dataclasses.replace(saved, **budget) != options:
             raise ValueError(f"checkpoint: {checkpoint} was written with different options")
+        saved_data = state.get("data_options")
+        if saved_data is not None and data_options is not None and saved_data != data_options:
+            changed = sorted(
+                k
+                for k in set(saved_data) | set(data_options)
+                if saved_data.get(k) != data_options.get(k)
+            )
+            raise ValueError(
+                f"checkpoint: {checkpoint} was written with other data options "
+                f"(changed: {', '.join(changed)}); delete it to start afresh"
+            )
+        if data_options is None:
+            data_options = saved_data
         step, seconds, history = state["step"], state["seconds"], state["history"]
 
     def save(step, seconds, history):
         if checkpoint is not None:
             state = {
                 "options": options.to_dict(),
+                "data_options": data_options,
                 "displacement_scale": displacement_scale,
                 "step": step,
                 "seconds": seconds,
