@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 
 from canrig_jax.autorig import generate_rig, load_model, quartic_pose_set
-from canrig_jax.autorig.rig import DEFAULT_POSE_CHUNK, _predict, pad_to_bucket
+from canrig_jax.autorig.rig import DEFAULT_POSE_CHUNK, pad_to_bucket, predict_displacements
 from canrig_jax.autorig.train import TrainOptions, head_inputs, make_model
 from canrig_jax.data import load_ict
 from canrig_jax.io import save_text
@@ -82,16 +82,19 @@ def main(argv=None):
     padded = pad_to_bucket(operators, 256)
     unit_padded = jnp.zeros((padded.n_vertices, 3)).at[: unit.shape[0]].set(unit)
     chunk = DEFAULT_POSE_CHUNK
-    _predict(model, vectors, unit_padded, padded, chunk).block_until_ready()
+    predict_displacements(model, vectors, unit_padded, padded, chunk).block_until_ready()
     chunked_s = median_seconds(
-        lambda: _predict(model, vectors, unit_padded, padded, chunk), args.repeats
+        lambda: predict_displacements(model, vectors, unit_padded, padded, chunk), args.repeats
     )
-    _predict(model, vectors, unit_padded, padded).block_until_ready()
-    batched_s = median_seconds(lambda: _predict(model, vectors, unit_padded, padded), args.repeats)
-    _predict(model, vectors[:1], unit_padded, padded).block_until_ready()
+    predict_displacements(model, vectors, unit_padded, padded).block_until_ready()
+    batched_s = median_seconds(
+        lambda: predict_displacements(model, vectors, unit_padded, padded), args.repeats
+    )
+    predict_displacements(model, vectors[:1], unit_padded, padded).block_until_ready()
     per_pose_s = median_seconds(
         lambda: [
-            _predict(model, vectors[p : p + 1], unit_padded, padded) for p in range(len(vectors))
+            predict_displacements(model, vectors[p : p + 1], unit_padded, padded)
+            for p in range(len(vectors))
         ][-1],
         max(1, args.repeats // 2),
     )

@@ -22,13 +22,31 @@ def _new_file_mode() -> int:
     return 0o666 & ~umask
 
 
+def check_output_path(path, name: str = "path") -> Path:
+    """``path`` as a Path; TypeError/OSError naming the argument ``name`` when a file cannot
+    be written there (not a path, a folder, under a file, no permission)."""
+    if not isinstance(path, str | os.PathLike):
+        raise TypeError(f"{name}: expected a file path, got {type(path).__name__}")
+    target = Path(path)
+    if target.is_dir():
+        raise IsADirectoryError(f"{name}: {target} is a folder, expected a file name")
+    parent = target.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise NotADirectoryError(f"{name}: {parent} is a file, cannot hold {target}")
+    if not os.access(parent, os.W_OK):
+        raise PermissionError(f"{name}: cannot write in {parent} (no permission)")
+    return target
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike):
     """Yield a temporary path beside ``path``; move it over ``path`` only on success.
 
     The result keeps the permissions of the file it replaces, or gets those of a newly
     created file (not ``mkstemp``'s owner-only 0o600)."""
-    path = Path(path)
+    path = check_output_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     os.close(fd)

@@ -20,7 +20,7 @@ from .diffusion_net import DiffusionNet, DiffusionNetBlock, SpatialGradientFeatu
 from .features import heat_kernel_signature, hks_times, mass_weighted_mean
 from .metrics import error_stats, outside_fraction, penetration, winding_numbers
 from .model import ConditionalBlock, RigAnyFace, normalise
-from .rig import GeneratedRig, generate_rig, rig_from_poses
+from .rig import GeneratedRig, generate_rig, predict_displacements, rig_from_poses
 from .train import TrainOptions, TrainResult, load_model, train, training_set
 
 __all__ = [
@@ -38,6 +38,7 @@ __all__ = [
     "TrainResult",
     "error_stats",
     "generate_rig",
+    "predict_displacements",
     "heat_kernel_signature",
     "hks_times",
     "ict_autorig_dataset",

@@ -31,7 +31,7 @@ from .features import mass_weighted_mean
 OUTPUTS = ("vertices", "faces", "global_mean")
 
 
-def _per_vertex(layer, x):
+def per_vertex(layer, x):
     """Apply a layer on the last axis of (V, ..., C) features (leading axes flattened)."""
     flat = x.reshape(-1, x.shape[-1])
     out = jax.vmap(layer)(flat)
@@ -68,11 +68,11 @@ class SpatialGradientFeatures(eqx.Module):
         self, grad_x: Float[Array, "V *N C"], grad_y: Float[Array, "V *N C"]
     ) -> Float[Array, "V *N C"]:
         """The features from precomputed gradient components (x, y in the vertex frames)."""
-        b_x = _per_vertex(self.real, grad_x)
-        b_y = _per_vertex(self.real, grad_y)
+        b_x = per_vertex(self.real, grad_x)
+        b_y = per_vertex(self.real, grad_y)
         if self.imaginary is not None:
-            b_x = b_x - _per_vertex(self.imaginary, grad_y)
-            b_y = b_y + _per_vertex(self.imaginary, grad_x)
+            b_x = b_x - per_vertex(self.imaginary, grad_y)
+            b_y = b_y + per_vertex(self.imaginary, grad_x)
         return jnp.tanh(grad_x * b_x + grad_y * b_y)
 
 
@@ -107,7 +107,7 @@ class DiffusionNetBlock(eqx.Module):
         gradient = self.gradient_features.from_gradients(grad_x, grad_y)
         combined = jnp.concatenate([features, diffused, gradient], axis=-1)
         mask = operators.vertex_mask.reshape((-1,) + (1,) * (features.ndim - 1))
-        return features + _per_vertex(self.mlp, combined) * mask
+        return features + per_vertex(self.mlp, combined) * mask
 
 
 class DiffusionNet(eqx.Module):
@@ -190,10 +190,10 @@ class DiffusionNet(eqx.Module):
         ):
             raise ValueError("features: contains non-finite values")
         mask = operators.vertex_mask[:, None]
-        x = _per_vertex(self.first, features) * mask
+        x = per_vertex(self.first, features) * mask
         for block in self.blocks:
             x = block(x, operators)
-        x = self.final_activation(_per_vertex(self.last, x)) * mask
+        x = self.final_activation(per_vertex(self.last, x)) * mask
         if self.outputs == "vertices":
             return x
         if self.outputs == "faces":

@@ -30,7 +30,7 @@ import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from ..mesh.operators import MeshOperators
-from .diffusion_net import DiffusionNet, DiffusionNetBlock, _per_vertex
+from .diffusion_net import DiffusionNet, DiffusionNetBlock, per_vertex
 
 N_INPUT_FEATURES = 6
 """Per-vertex input: unit-sphere position (3) and vertex normal (3)."""
@@ -80,8 +80,8 @@ class ConditionalBlock(eqx.Module):
         if y.ndim == 2:
             y = y[:, None, :]
         condition = jax.vmap(self.from_condition)(conditions)  # (P, C)
-        hidden = jax.nn.relu(_per_vertex(self.from_features, y) + condition[None])
-        return y + _per_vertex(self.out, hidden) * operators.vertex_mask[:, None, None]
+        hidden = jax.nn.relu(per_vertex(self.from_features, y) + condition[None])
+        return y + per_vertex(self.out, hidden) * operators.vertex_mask[:, None, None]
 
 
 class RigAnyFace(eqx.Module):
@@ -197,7 +197,7 @@ class RigAnyFace(eqx.Module):
             )
         mask = operators.vertex_mask[:, None]
         code = self.global_code(vertices, operators)
-        x = _per_vertex(self.first, input_features(vertices, operators)) * mask
+        x = per_vertex(self.first, input_features(vertices, operators)) * mask
         for block in self.shared:
             x = block(x, operators)
         n_poses = poses.shape[0]
@@ -211,7 +211,7 @@ class RigAnyFace(eqx.Module):
             z = first.fuse(y, chunk, operators)
             for block in rest:
                 z = block(z, chunk, operators)
-            out = _per_vertex(self.last, z) * mask[:, None] * self.output_scale
+            out = per_vertex(self.last, z) * mask[:, None] * self.output_scale
             return jnp.swapaxes(out, 0, 1)
 
         if pose_chunk is None or n_poses <= pose_chunk:

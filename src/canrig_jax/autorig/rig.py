@@ -40,7 +40,9 @@ DEFAULT_POSE_CHUNK = 16
 
 
 @eqx.filter_jit
-def _predict(model, poses, vertices, operators, pose_chunk=None):
+def predict_displacements(model, poses, vertices, operators, pose_chunk=None):
+    """The jitted forward pass ``model(poses, vertices, operators)``: (P, V, 3) displacements
+    of every pose (no validation; ``generate_rig`` is the checked entry point)."""
     return model(poses, vertices, operators, pose_chunk=pose_chunk)
 
 
@@ -163,7 +165,7 @@ def generate_rig(
     padded = pad_to_bucket(operators, bucket)
     unit_padded = np.zeros((padded.n_vertices, 3), np.float32)
     unit_padded[: unit.shape[0]] = unit
-    predicted = _predict(
+    predicted = predict_displacements(
         model, jnp.asarray(poses.vectors()), jnp.asarray(unit_padded), padded, pose_chunk
     )
     predicted = np.asarray(jax.block_until_ready(predicted), np.float64)[:, : unit.shape[0]]

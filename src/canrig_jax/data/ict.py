@@ -21,7 +21,8 @@ import scipy.sparse as sp
 import trimesh
 from scipy.sparse.csgraph import connected_components
 
-from .paths import data_file
+from ..io import CorruptFileError
+from .paths import data_file, read_arrays
 
 FACE = ("Face",)
 """The face part alone: vertices 0..9408 (9,409 vertices)."""
@@ -91,6 +92,10 @@ class ICTFaceModel:
             return self
         if isinstance(parts, str):
             parts = (parts,)
+        if not isinstance(parts, Sequence) or not all(isinstance(p, str) for p in parts):
+            raise TypeError(f"parts: expected part names (str or a sequence of str), got {parts!r}")
+        if not parts:
+            raise ValueError("parts: expected at least one part name")
         unknown = [p for p in parts if p not in self.part_names]
         if unknown:
             raise ValueError(
@@ -129,25 +134,32 @@ def load_ict(
         parts: part names to keep (``FACE`` for the 9,409-vertex face); ``None`` keeps
             the whole 26,719-vertex head.
     """
-    with np.load(data_file("ict-facekit/expressions.npz", data_dir), allow_pickle=False) as z:
-        model = ICTFaceModel(
-            neutral=z["neutral"].astype(np.float32),
-            faces=z["faces"].astype(np.int32),
-            deltas=z["deltas"].astype(np.float32),
-            names=tuple(str(n) for n in z["names"]),
-            part_names=tuple(str(n) for n in z["part_names"]),
-            part_vertex_range=z["part_vertex_range"].astype(np.int32),
-            component_labels=z["component_labels"].astype(np.int32),
-            landmarks=z["landmarks_multipie68"].astype(np.int32),
-            vertex_ids=np.arange(z["neutral"].shape[0], dtype=np.int32),
-        )
+    path = data_file("ict-facekit/expressions.npz", data_dir)
+    keys = ("neutral", "faces", "deltas", "names", "part_names", "part_vertex_range")
+    keys += ("component_labels", "landmarks_multipie68")
+    z = read_arrays(path, keys)
+    _check_shapes(path, z)
+    model = ICTFaceModel(
+        neutral=z["neutral"].astype(np.float32),
+        faces=z["faces"].astype(np.int32),
+        deltas=z["deltas"].astype(np.float32),
+        names=tuple(str(n) for n in z["names"]),
+        part_names=tuple(str(n) for n in z["part_names"]),
+        part_vertex_range=z["part_vertex_range"].astype(np.int32),
+        component_labels=z["component_labels"].astype(np.int32),
+        landmarks=z["landmarks_multipie68"].astype(np.int32),
+        vertex_ids=np.arange(z["neutral"].shape[0], dtype=np.int32),
+    )
     return model.select(parts)
 
 
 def load_identity_modes(data_dir: str | os.PathLike | None = None) -> np.ndarray:
     """The (100, 26719, 3) float32 identity PCA modes, offsets from the neutral (cm)."""
-    with np.load(data_file("ict-facekit/identity.npz", data_dir), allow_pickle=False) as z:
-        return z["identity_deltas"].astype(np.float32)
+    path = data_file("ict-facekit/identity.npz", data_dir)
+    modes = read_arrays(path, ("identity_deltas",))["identity_deltas"]
+    if modes.ndim != 3 or modes.shape[2] != 3:
+        raise CorruptFileError(f"{path}: identity_deltas has shape {modes.shape}, not (N, V, 3)")
+    return modes.astype(np.float32)
 
 
 def ict_identity(
@@ -177,6 +189,26 @@ def ict_identity(
     modes = load_identity_modes(data_dir)[: coefficients.size][:, model.vertex_ids]
     offset = np.tensordot(coefficients, modes, axes=1)
     return (model.neutral + offset).astype(np.float32)
+
+
+def _check_shapes(path: Path, z: dict) -> None:
+    """Consistency of the arrays of ``expressions.npz`` (a damaged file says so, by name)."""
+    neutral, faces, deltas = z["neutral"], z["faces"], z["deltas"]
+    problems = []
+    if neutral.ndim != 2 or neutral.shape[1:] != (3,):
+        problems.append(f"neutral has shape {neutral.shape}")
+    elif deltas.ndim != 3 or deltas.shape[1:] != neutral.shape:
+        problems.append(f"deltas has shape {deltas.shape} for a neutral of {neutral.shape}")
+    if faces.ndim != 2 or faces.shape[1:] != (3,):
+        problems.append(f"faces has shape {faces.shape}")
+    elif faces.size and (faces.min() < 0 or faces.max() >= len(neutral)):
+        problems.append("faces index outside the vertices")
+    if len(z["names"]) != len(deltas):
+        problems.append(f"{len(z['names'])} names for {len(deltas)} deltas")
+    if not np.all(np.isfinite(neutral)) or not np.all(np.isfinite(deltas)):
+        problems.append("non-finite positions")
+    if problems:
+        raise CorruptFileError(f"{path}: corrupt data file ({'; '.join(problems)})")
 
 
 def _read_obj(path: Path, with_polygons: bool = False) -> tuple[np.ndarray, list[list[int]]]:

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from .names import retarget_weights
-from .paths import data_file
+from .paths import data_file, read_arrays
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,12 +52,15 @@ def load_livelinkface(data_dir: str | os.PathLike | None = None) -> LiveLinkCapt
         data_dir: data folder (else ``$CANRIG_DATA``, else ``../shared/data``).
     """
     path = data_file("livelinkface/dao_livelinkface.npz", data_dir)
-    with np.load(path, allow_pickle=False) as z:
-        return LiveLinkCapture(
-            weights=z["anim_weights"].astype(np.float32),
-            names=tuple(str(n) for n in z["names"]),
-            head_eye_rotations=z["head_eye_rotations"].astype(np.float32),
-            rotation_names=tuple(str(n) for n in z["rotation_names"]),
-            frame_number=z["frame_number"].astype(np.int64),
-            fps=float(z["fps"]),
-        )
+    z = read_arrays(
+        path,
+        ("anim_weights", "names", "head_eye_rotations", "rotation_names", "frame_number", "fps"),
+    )
+    return LiveLinkCapture(
+        weights=z["anim_weights"].astype(np.float32),
+        names=tuple(str(n) for n in z["names"]),
+        head_eye_rotations=z["head_eye_rotations"].astype(np.float32),
+        rotation_names=tuple(str(n) for n in z["rotation_names"]),
+        frame_number=z["frame_number"].astype(np.int64),
+        fps=float(z["fps"]),
+    )

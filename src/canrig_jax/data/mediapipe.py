@@ -8,7 +8,7 @@ import os
 
 import numpy as np
 
-from .paths import data_file
+from .paths import data_file, read_arrays
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,10 +35,10 @@ def load_mediapipe_face(data_dir: str | os.PathLike | None = None) -> MediaPipeF
         data_dir: data folder (else ``$CANRIG_DATA``, else ``../shared/data``).
     """
     path = data_file("mediapipe/canonical_face.npz", data_dir)
-    with np.load(path, allow_pickle=False) as z:
-        return MediaPipeFace(
-            neutral=z["neutral"].astype(np.float32),
-            faces=z["faces"].astype(np.int32),
-            uv=z["uv"].astype(np.float32),
-            face_uv_idx=z["face_uv_idx"].astype(np.int32),
-        )
+    z = read_arrays(path, ("neutral", "faces", "uv", "face_uv_idx"))
+    return MediaPipeFace(
+        neutral=z["neutral"].astype(np.float32),
+        faces=z["faces"].astype(np.int32),
+        uv=z["uv"].astype(np.float32),
+        face_uv_idx=z["face_uv_idx"].astype(np.int32),
+    )

@@ -129,6 +129,8 @@ def retarget_weights(
             f"weights: expected shape (..., {len(source)}) to match source_names, "
             f"got {weights.shape}"
         )
+    if not np.issubdtype(weights.dtype, np.number) or np.iscomplexobj(weights):
+        raise TypeError(f"weights: expected real numbers, got dtype {weights.dtype}")
     if not np.all(np.isfinite(weights)):
         raise ValueError("weights: contains non-finite values")
 

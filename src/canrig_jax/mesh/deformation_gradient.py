@@ -36,6 +36,7 @@ import scipy.sparse.linalg as spla
 from jaxtyping import Array, Float
 
 from ..cache import mesh_fingerprint
+from .checks import check_mesh
 
 _EDGES = ((0, 1), (1, 2), (2, 0))
 
@@ -147,9 +148,24 @@ class DeformationGradientBlend:
         min_angle_to_pi: float = np.deg2rad(10.0),
         screening: float = 1e-3,
     ):
-        neutral = np.asarray(neutral, np.float64)
-        deltas = np.asarray(deltas, np.float64)
-        faces = np.asarray(faces, np.int64)
+        neutral, faces = check_mesh(neutral, faces)
+        deltas = np.asarray(deltas)
+        if deltas.ndim != 3 or deltas.shape[1:] != neutral.shape or deltas.shape[0] == 0:
+            raise ValueError(
+                f"deltas: expected shape (K, {neutral.shape[0]}, 3) with K >= 1, got {deltas.shape}"
+            )
+        if not np.issubdtype(deltas.dtype, np.number) or np.iscomplexobj(deltas):
+            raise TypeError(f"deltas: expected real numbers, got dtype {deltas.dtype}")
+        deltas = deltas.astype(np.float64)
+        if not np.all(np.isfinite(deltas)):
+            raise ValueError("deltas: contains non-finite values")
+        for name, value, ok in (
+            ("min_area", min_area, np.isfinite(min_area) and min_area >= 0),
+            ("min_angle_to_pi", min_angle_to_pi, 0 <= min_angle_to_pi < np.pi),
+            ("screening", screening, np.isfinite(screening) and screening > 0),
+        ):
+            if not ok:
+                raise ValueError(f"{name}: out of range, got {value}")
         self.n_vertices, self.n_blendshapes = neutral.shape[0], deltas.shape[0]
         self.neutral, self.deltas, self.faces = neutral, deltas, faces
 
@@ -200,7 +216,10 @@ class DeformationGradientBlend:
         )
 
     def __call__(self, weights: np.ndarray, batch_size: int = 64) -> np.ndarray:
-        weights = np.asarray(weights, np.float64)
+        weights = np.asarray(weights)
+        if not np.issubdtype(weights.dtype, np.number) or np.iscomplexobj(weights):
+            raise TypeError(f"weights: expected real numbers, got dtype {weights.dtype}")
+        weights = weights.astype(np.float64)
         single = weights.ndim == 1
         weights = np.atleast_2d(weights)
         if weights.ndim != 2 or weights.shape[1] != self.n_blendshapes:

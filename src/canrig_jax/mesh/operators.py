@@ -284,6 +284,21 @@ def compute_geometry(
     vertices, faces = check_mesh(vertices, faces)
     if not isinstance(k, int | np.integer) or k < 0:
         raise ValueError(f"k: expected a non-negative integer number of eigenpairs, got {k!r}")
+    if not (np.isfinite(mollify_factor) and mollify_factor >= 0):
+        raise ValueError(f"mollify_factor: expected a finite value >= 0, got {mollify_factor}")
+    twice_area = np.linalg.norm(
+        np.cross(
+            vertices[faces[:, 1]] - vertices[faces[:, 0]],
+            vertices[faces[:, 2]] - vertices[faces[:, 0]],
+        ),
+        axis=1,
+    )
+    extent = float(np.ptp(vertices, axis=0).max())
+    if not np.any(twice_area > 1e-12 * max(extent, 1e-30) ** 2):
+        raise ValueError(
+            "faces: every triangle has zero area (the vertices are collinear or coincide); "
+            "a surface needs at least one proper triangle"
+        )
     laplacian, mass, isolated = laplacian_and_mass(vertices, faces, mollify_factor)
     values, vectors = eigenbasis(laplacian, mass, k)
     total_area = mass.sum()

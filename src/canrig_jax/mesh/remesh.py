@@ -243,6 +243,8 @@ def decimate(
     vertices, faces = check_mesh(vertices, faces)
     _check_no_isolated(vertices, faces)
     n = vertices.shape[0]
+    if isinstance(target_vertices, bool) or not isinstance(target_vertices, int | np.integer):
+        raise TypeError(f"target_vertices: expected an integer count, got {target_vertices!r}")
     if not 4 <= int(target_vertices) <= n:
         raise ValueError(f"target_vertices: expected between 4 and {n}, got {target_vertices}")
     labels = connected_components(faces, n)

@@ -38,10 +38,10 @@ def _real_array(name: str, x, integer: bool = False):
     if isinstance(x, jax.Array):
         dtype = x.dtype
     else:
-        x = np.asarray(x)
+        x = np.ascontiguousarray(x)  # a strided view would be staged through a jit copy
+        if x.dtype.byteorder not in ("=", "|"):
+            x = x.astype(x.dtype.newbyteorder("="))
         dtype = x.dtype
-        if dtype.byteorder not in ("=", "|"):
-            x = x.astype(dtype.newbyteorder("="))
     if np.issubdtype(dtype, np.complexfloating) or not (
         np.issubdtype(dtype, np.number) or np.issubdtype(dtype, np.bool_)
     ):
@@ -49,10 +49,14 @@ def _real_array(name: str, x, integer: bool = False):
     if integer:
         if not (np.issubdtype(dtype, np.integer) or (x.size == 0)):
             raise TypeError(f"{name}: expected integer indices, got dtype {dtype}")
-        return jnp.asarray(x, jnp.int32)
-    if not np.issubdtype(dtype, np.floating):
-        return jnp.asarray(x, jnp.float32)
-    return jnp.asarray(x)
+        target = jnp.int32
+    elif not np.issubdtype(dtype, np.floating):
+        target = jnp.float32
+    else:
+        target = jax.dtypes.canonicalize_dtype(dtype)
+    if isinstance(x, np.ndarray):  # convert on the host: no device work before the checks
+        return jnp.asarray(x.astype(target, copy=False))
+    return jnp.asarray(x, target)
 
 
 UNIT_IN_CM = {"mm": 0.1, "cm": 1.0, "dm": 10.0, "m": 100.0}
@@ -176,14 +180,14 @@ class BlendshapeRig(eqx.Module):
             raise ValueError(f"correctives: one table per order expected, got orders {orders}")
         for c in self.correctives:
             if _is_concrete(c.indices) and c.indices.size:
-                lo, hi = int(c.indices.min()), int(c.indices.max())
+                lo, hi = int(np.min(np.asarray(c.indices))), int(np.max(np.asarray(c.indices)))
                 if lo < 0 or hi >= k:
                     raise ValueError(
                         f"correctives: order-{c.order} indices must lie in [0, {k}), "
                         f"found range [{lo}, {hi}]"
                     )
             if _is_concrete(c.vertices) and c.vertices.size:
-                lo, hi = int(c.vertices.min()), int(c.vertices.max())
+                lo, hi = int(np.min(np.asarray(c.vertices))), int(np.max(np.asarray(c.vertices)))
                 if lo < 0 or hi >= v:
                     raise ValueError(
                         f"correctives: order-{c.order} support vertices must lie in [0, {v}), "
@@ -193,7 +197,7 @@ class BlendshapeRig(eqx.Module):
             if self.faces.ndim != 2 or self.faces.shape[1] != 3:
                 raise ValueError(f"faces: expected shape (F, 3), got {self.faces.shape}")
             if _is_concrete(self.faces) and self.faces.size:
-                lo, hi = int(self.faces.min()), int(self.faces.max())
+                lo, hi = int(np.min(np.asarray(self.faces))), int(np.max(np.asarray(self.faces)))
                 if lo < 0 or hi >= v:
                     raise ValueError(
                         f"faces: vertex indices must lie in [0, {v}) (the vertex count), "

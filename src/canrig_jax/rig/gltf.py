@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import atomic_path
+from ..io import CorruptFileError, atomic_path, check_output_path
 from .blendshape import BlendshapeRig, Corrective
 
 _FLOAT, _UINT32 = 5126, 5125
@@ -27,7 +27,13 @@ _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
 
 
 def export_gltf(rig: BlendshapeRig, path: str | os.PathLike) -> Path:
-    """Write ``rig`` as a binary glTF 2.0 file (.glb), atomically. Needs faces."""
+    """Write ``rig`` as a binary glTF 2.0 file (.glb), atomically. Needs faces.
+
+    A ``path`` that cannot be written (a folder, under a file, no permission) raises an
+    OSError naming ``path`` before anything is written."""
+    if not isinstance(rig, BlendshapeRig):
+        raise TypeError(f"rig: expected a BlendshapeRig, got {type(rig).__name__}")
+    check_output_path(path)
     if rig.faces is None:
         raise ValueError("rig: glTF export needs a rig with faces")
     n = rig.n_vertices
@@ -111,13 +117,23 @@ def export_gltf(rig: BlendshapeRig, path: str | os.PathLike) -> Path:
 
 def _read_glb(path) -> tuple[dict, bytes]:
     data = Path(path).read_bytes()
-    magic, version, _ = struct.unpack_from("<III", data, 0)
+    if len(data) < 12:
+        raise CorruptFileError(f"path: corrupt glTF file {path} (truncated, {len(data)} bytes)")
+    magic, version, length = struct.unpack_from("<III", data, 0)
     if magic != 0x46546C67 or version != 2:
         raise ValueError(f"path: {path} is not a binary glTF 2.0 file")
-    json_length, _ = struct.unpack_from("<II", data, 12)
-    document = json.loads(data[20 : 20 + json_length])
-    bin_start = 20 + json_length
-    bin_length, _ = struct.unpack_from("<II", data, bin_start)
+    if length != len(data):
+        raise CorruptFileError(
+            f"path: corrupt glTF file {path} (header says {length} bytes, the file has "
+            f"{len(data)}: truncated or damaged)"
+        )
+    try:
+        json_length, _ = struct.unpack_from("<II", data, 12)
+        document = json.loads(data[20 : 20 + json_length])
+        bin_start = 20 + json_length
+        bin_length, _ = struct.unpack_from("<II", data, bin_start)
+    except (struct.error, ValueError) as error:
+        raise CorruptFileError(f"path: corrupt glTF file {path} ({error})") from error
     return document, data[bin_start + 8 : bin_start + 8 + bin_length]
 
 
@@ -132,11 +148,21 @@ def _accessor(document: dict, blob: bytes, index: int) -> np.ndarray:
 
 
 def load_gltf_rig(path: str | os.PathLike) -> BlendshapeRig:
-    """The ``BlendshapeRig`` of a file written by ``export_gltf`` (base mesh via trimesh)."""
+    """The ``BlendshapeRig`` of a file written by ``export_gltf`` (base mesh via trimesh).
+
+    A missing file raises FileNotFoundError, a damaged one ``CorruptFileError`` (a
+    ValueError), both naming ``path``."""
     import trimesh
 
-    loaded = trimesh.load(path, force="mesh", process=False)
-    document, blob = _read_glb(path)
+    if not isinstance(path, str | os.PathLike):
+        raise TypeError(f"path: expected a file path, got {type(path).__name__}")
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"path: glTF file {path} not found")
+    document, blob = _read_glb(path)  # checks the container before trimesh reads it
+    try:
+        loaded = trimesh.load(path, force="mesh", process=False)
+    except Exception as error:  # trimesh raises many kinds on a damaged file
+        raise CorruptFileError(f"path: corrupt glTF file {path} ({error})") from error
     mesh = document["meshes"][0]
     extras = mesh.get("extras", {})
     primitive = mesh["primitives"][0]

@@ -7,12 +7,16 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import save_npz
+from ..data.paths import read_arrays
+from ..io import CorruptFileError, check_output_path, save_npz
 from .blendshape import BlendshapeRig, Corrective
 
 
 def save_rig(path: str | os.PathLike, rig: BlendshapeRig) -> Path:
     """Write ``rig`` to ``path`` (.npz), atomically."""
+    if not isinstance(rig, BlendshapeRig):
+        raise TypeError(f"rig: expected a BlendshapeRig, got {type(rig).__name__}")
+    check_output_path(path)
     arrays = {
         "neutral": np.asarray(rig.neutral),
         "deltas": np.asarray(rig.deltas),
@@ -29,16 +33,30 @@ def save_rig(path: str | os.PathLike, rig: BlendshapeRig) -> Path:
 
 
 def load_rig(path: str | os.PathLike) -> BlendshapeRig:
-    """Read a rig written by ``save_rig``."""
+    """Read a rig written by ``save_rig``; a damaged file raises ``CorruptFileError`` (a
+    ValueError) naming it, a missing one FileNotFoundError."""
+    if not isinstance(path, str | os.PathLike):
+        raise TypeError(f"path: expected a file path, got {type(path).__name__}")
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"path: rig file {path} not found")
+    orders = read_arrays(path, ("orders",))["orders"]
+    keys = ["neutral", "deltas", "names"]
+    for n in orders:
+        keys += [f"order{n}_indices", f"order{n}_vertices", f"order{n}_deltas"]
     with np.load(path, allow_pickle=False) as z:
+        has_faces = "faces" in z.files
+    z = read_arrays(path, keys + (["faces"] if has_faces else []))
+    try:
         correctives = tuple(
             Corrective(z[f"order{n}_indices"], z[f"order{n}_vertices"], z[f"order{n}_deltas"])
-            for n in z["orders"]
+            for n in orders
         )
         return BlendshapeRig(
             z["neutral"],
             z["deltas"],
             correctives,
             tuple(str(n) for n in z["names"]),
-            z["faces"] if "faces" in z.files else None,
+            z["faces"] if has_faces else None,
         )
+    except (ValueError, TypeError) as error:
+        raise CorruptFileError(f"{path}: corrupt rig file ({error})") from error
