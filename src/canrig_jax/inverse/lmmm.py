@@ -13,30 +13,43 @@ sum_i v_i^4. Hence c2 = ||q||^2 + sign-split term (kept >= 0) and c4 = K sum_k |
 Each 1-D quartic is convex, its derivative a cubic with one real root, so the minimiser on the
 feasible interval [-w_i, 1 - w_i] is that root clipped to the interval. Triplets and quads
 are ignored by the method (metrics still use the full rig). Warm-started from Cetinaslan.
+
+On a rig without pair correctives the quartic coefficient vanishes (c4 = 0) and the step is
+the quadratic majoriser's, v = -linear / (2 c2): no cubic is solved (Cardano's formula with
+c4 -> 0 overflows float32, which used to return NaN for every frame of a linear rig).
 """
 
 from __future__ import annotations
+
+from typing import ClassVar
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .base import AbstractInverseMethod, Iterate, check_alpha, check_count, check_upper
 from .least_squares import ridge_weights
 from .problem import InverseProblem
 
 
 def _increasing_cubic_root(a, c2, c4):
-    """Real root of a + 2 c2 v + 4 c4 v^3 (c2 >= 0, c4 > 0): Cardano, then Newton polish."""
-    p = c2 / (2.0 * c4)
-    q = a / (4.0 * c4)
+    """Real root of a + 2 c2 v + 4 c4 v^3 (c2 >= 0, c4 >= 0, not both 0).
+
+    Where the cubic term is negligible (c4 <= 1e-7 c2, the rig has no pair correctives) the
+    linear root -a / (2 c2); otherwise Cardano's formula, then Newton polish."""
+    quadratic = c4 <= 1e-7 * c2
+    c4_safe = jnp.where(quadratic, 1.0, c4)
+    p = c2 / (2.0 * c4_safe)
+    q = a / (4.0 * c4_safe)
     disc = jnp.sqrt(q**2 / 4.0 + p**3 / 27.0)
     v = jnp.cbrt(-q / 2.0 + disc) + jnp.cbrt(-q / 2.0 - disc)
     for _ in range(2):
         v = v - (a + 2 * c2 * v + 4 * c4 * v**3) / (2 * c2 + 12 * c4 * v**2 + 1e-30)
-    return v
+    linear_root = -a / jnp.where(c2 > 0, 2.0 * c2, 1.0)
+    return jnp.where(quadratic, linear_root, v)
 
 
-class LMMM(eqx.Module):
+class LMMM(AbstractInverseMethod):
     """Majorisation-minimisation on the pairwise rig.
 
     Attributes:
@@ -48,27 +61,27 @@ class LMMM(eqx.Module):
     alpha: float = 0.0
     iterations: int = eqx.field(static=True, default=200)
     upper: float = 1.0
+    penalises_l1: ClassVar[bool] = True
 
     def __check_init__(self):
-        if not self.alpha >= 0:
-            raise ValueError(f"alpha: expected a non-negative L1 weight, got {self.alpha}")
-        if not (isinstance(self.iterations, int) and self.iterations >= 1):
-            raise ValueError(f"iterations: expected an integer >= 1, got {self.iterations}")
+        check_alpha(self.alpha)
+        check_count("iterations", self.iterations)
+        check_upper(self.upper)
 
-    def __call__(self, problem: InverseProblem, offset, init, order=None, key=None):
+    def __call__(self, problem: InverseProblem, offset, init, key) -> Iterate:
         k = problem.n_blendshapes
         # tables are sorted by order, so the pair columns follow the K blendshape columns
         pairs = tuple(c for c in problem.combinations if c.shape[1] == 2)
         width = k + sum(c.shape[0] for c in pairs)
         model = eqx.tree_at(
-            lambda p: (p.basis, p.gram, p.combinations),
+            lambda p: (p.columns, p.gram, p.combinations),
             problem,
-            (problem.basis[:, :width], problem.gram[:width, :width], pairs),
+            (problem.columns[:width], problem.gram[:width, :width], pairs),
         )
-        projection = model.basis.T @ offset
+        projection = problem.projection(offset)[:width]
         offset_sq = offset @ offset
         bounds = problem.pair_hessian_bounds
-        c4 = jnp.maximum(k * jnp.sum(bounds[:, 2] ** 2), 1e-12)
+        c4 = k * jnp.sum(bounds[:, 2] ** 2)
         eye = jnp.eye(k, dtype=offset.dtype)
 
         def iterate(weights, _):
@@ -78,15 +91,16 @@ class LMMM(eqx.Module):
             g = high - low  # (K, P): q = M g^T
             linear = g @ (model.gram @ a - projection) + self.alpha
             sigma_sq = jnp.linalg.eigvalsh(g @ model.gram @ g.T)[-1]
-            residual = model.basis @ a - offset
+            residual = a @ model.columns - offset
             split = jnp.sum(
                 jnp.maximum(residual, 0) * bounds[:, 1] + jnp.minimum(residual, 0) * bounds[:, 0]
             )
             c2 = jnp.maximum(sigma_sq + split, 0.0)
-            step = jnp.clip(_increasing_cubic_root(linear, c2, c4), -weights, self.upper - weights)
-            weights = weights + step
+            root = _increasing_cubic_root(linear, c2, c4)
+            step = jnp.clip(root, -weights, self.upper - weights)
+            weights = weights + jnp.where(jnp.isnan(step), 0.0, step)
             return weights, model.objective(weights, projection, offset_sq, self.alpha)
 
-        start = ridge_weights(problem, offset, self.alpha)  # Cetinaslan's solution
+        start = jnp.clip(ridge_weights(problem, offset, self.alpha), 0.0, self.upper)
         weights, history = jax.lax.scan(iterate, start, None, length=self.iterations)
-        return weights, history
+        return Iterate(weights, history, jnp.asarray(self.iterations), jnp.asarray(True))

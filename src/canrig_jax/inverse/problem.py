@@ -13,12 +13,14 @@ weight, a(w) = a(w with w_i = 0) + w_i g_i(w), and phi_i = M g_i.
 
 from __future__ import annotations
 
+import warnings
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ..rig.blendshape import BlendshapeRig, combination_coefficients
+from ..rig.blendshape import BlendshapeRig, Corrective, combination_coefficients
 
 
 class InverseProblem(eqx.Module):
@@ -26,7 +28,10 @@ class InverseProblem(eqx.Module):
 
     Attributes:
         neutral: (V, 3) rest mesh.
-        basis: (3V, P) float32 columns of M (blendshapes then correctives).
+        columns: (P, 3V) float32 the columns of M (blendshapes then correctives), one per
+            row: the projection M^T (b - b0) is then a row-major matrix-vector product
+            (XLA's CPU kernel for ``basis.T @ x`` on a (3V, P) array was 25x slower, and it
+            was most of the one-frame latency).
         gram: (P, P) float32 Q = M^T M, accumulated in float64.
         combinations: one (C_n, n) index table per corrective order, in column order of M.
         blendshape_norms: (K,) ||b_i||, used to order coordinates.
@@ -42,11 +47,12 @@ class InverseProblem(eqx.Module):
         support_valid: (K, m) bool, False on padding.
         support_gram: (K, m, P) float32 rows Q[support_i, :], zero on padding: coordinate
             descent updates the gradient Q a - p with one of these blocks per coordinate.
+        support_block: (K, m, m) float32 Q[support_i, support_i], zero on padding.
         rig: the rig itself, for solvers that call ``evaluate`` directly.
     """
 
     neutral: Float[Array, "V 3"]
-    basis: Float[Array, "N P"]
+    columns: Float[Array, "P N"]
     gram: Float[Array, "P P"]
     combinations: tuple[Int[Array, "C n"], ...]
     blendshape_norms: Float[Array, " K"]
@@ -56,6 +62,7 @@ class InverseProblem(eqx.Module):
     support_others: Int[Array, "K m n"]
     support_valid: Bool[Array, "K m"]
     support_gram: Float[Array, "K m P"]
+    support_block: Float[Array, "K m m"]
     rig: BlendshapeRig
 
     @property
@@ -84,40 +91,91 @@ class InverseProblem(eqx.Module):
         a = self.coefficients(weights)
         return 0.5 * (a @ self.gram @ a - 2.0 * a @ projection + offset_sq) + alpha * weights.sum()
 
+    def projection(self, offset: Float[Array, " N"]) -> Float[Array, " P"]:
+        """p = M^T (b - b0) for ``offset`` = (b - b0).ravel(): the one 3V-sized product."""
+        return self.columns @ offset
+
     def mesh(self, weights: Float[Array, " K"]) -> Float[Array, "V 3"]:
-        return self.neutral + (self.basis @ self.coefficients(weights)).reshape(-1, 3)
+        return self.neutral + (self.coefficients(weights) @ self.columns).reshape(-1, 3)
 
 
-def prepare(rig: BlendshapeRig) -> InverseProblem:
-    """Precompute M and Q for ``rig`` (float64 accumulation; about a second for ict-quartic)."""
-    k, v = rig.n_blendshapes, rig.n_vertices
+def prepare(rig: BlendshapeRig, *, drop_zero_shapes: bool = False) -> InverseProblem:
+    """Precompute M and Q for ``rig`` (float64 accumulation; a few seconds for ict-quartic).
+
+    A blendshape with all-zero deltas cannot be solved for (its weight is undetermined):
+    ``prepare`` raises a ValueError naming it, or, with ``drop_zero_shapes=True``, warns and
+    prepares the rig without it (and without the correctives that involve it); the problem's
+    ``rig`` is then that smaller rig, whose ``names`` the solved weights follow.
+    """
+    if not isinstance(rig, BlendshapeRig):
+        raise TypeError(f"rig: expected a BlendshapeRig, got {type(rig).__name__}")
+    k = rig.n_blendshapes
+    if k == 0:
+        raise ValueError("rig: has no blendshapes (K = 0); there are no weights to solve for")
+    norms = np.linalg.norm(np.asarray(rig.deltas, np.float64).reshape(k, -1), axis=1)
+    if np.any(norms == 0):
+        zero = np.flatnonzero(norms == 0).tolist()
+        names = [rig.names[i] for i in zero] if rig.names else zero
+        if not drop_zero_shapes:
+            raise ValueError(
+                f"rig: blendshapes {names} have all-zero deltas (zero norm), so their weights "
+                "are undetermined; pass drop_zero_shapes=True to prepare the rig without them"
+            )
+        if len(zero) == k:
+            raise ValueError("rig: every blendshape has all-zero deltas; nothing to solve for")
+        warnings.warn(
+            f"prepare: dropping blendshapes {names} (all-zero deltas); solved weights follow "
+            "problem.rig.names",
+            UserWarning,
+            stacklevel=2,
+        )
+        rig = _without_shapes(rig, zero)
+        k = rig.n_blendshapes
+    v = rig.n_vertices
     columns = [np.asarray(rig.deltas, np.float64).reshape(k, -1)]
     tables = sorted((c for c in rig.correctives if c.indices.shape[0]), key=lambda c: c.order)
     for table in tables:
         columns.append(table.to_dense(v).reshape(table.indices.shape[0], -1).astype(np.float64))
-    basis = np.concatenate(columns).T
-    norms = np.linalg.norm(basis[:, :k], axis=0)
-    if np.any(norms == 0):
-        raise ValueError(
-            f"rig: blendshapes {np.flatnonzero(norms == 0).tolist()} have zero norm; the "
-            "coordinate update divides by ||b_i||^2, remove them first"
-        )
-    gram = basis.T @ basis
+    rows = np.concatenate(columns)  # (P, 3V)
+    norms = np.linalg.norm(rows[:k], axis=1)
+    gram = rows @ rows.T
     support, others, valid = _coordinate_supports(k, [np.asarray(t.indices) for t in tables])
     support_gram = np.where(valid[..., None], gram[support], 0.0)
+    block = np.take_along_axis(support_gram, support[:, None, :], axis=2)
+    support_block = np.where(valid[:, :, None] & valid[:, None, :], block, 0.0)
     return InverseProblem(
         neutral=jnp.asarray(rig.neutral),
-        basis=jnp.asarray(basis, jnp.float32),
+        columns=jnp.asarray(rows, jnp.float32),
         gram=jnp.asarray(gram, jnp.float32),
         combinations=tuple(jnp.asarray(t.indices) for t in tables),
         blendshape_norms=jnp.asarray(norms, jnp.float32),
-        pseudoinverse=jnp.asarray(np.linalg.pinv(basis[:, :k]), jnp.float32),
+        pseudoinverse=jnp.asarray(np.linalg.pinv(rows[:k].T), jnp.float32),
         pair_hessian_bounds=jnp.asarray(_pair_hessian_bounds(rig, k), jnp.float32),
         support=jnp.asarray(support),
         support_others=jnp.asarray(others),
         support_valid=jnp.asarray(valid),
         support_gram=jnp.asarray(support_gram, jnp.float32),
+        support_block=jnp.asarray(support_block, jnp.float32),
         rig=rig,
+    )
+
+
+def _without_shapes(rig: BlendshapeRig, drop: list[int]) -> BlendshapeRig:
+    """``rig`` without blendshapes ``drop`` and without the correctives that involve them."""
+    k = rig.n_blendshapes
+    keep = np.setdiff1d(np.arange(k), drop)
+    new_index = np.full(k, -1, np.int64)
+    new_index[keep] = np.arange(len(keep))
+    tables = []
+    for table in rig.correctives:
+        indices = np.asarray(table.indices)
+        rows = np.flatnonzero(np.all(new_index[indices] >= 0, axis=1))
+        if rows.size:
+            deltas = np.asarray(table.deltas)[rows]
+            tables.append(Corrective(new_index[indices[rows]], table.vertices, deltas))
+    names = tuple(rig.names[i] for i in keep) if rig.names else ()
+    return BlendshapeRig(
+        rig.neutral, rig.deltas[keep], tuple(tables), names, rig.faces, units=rig.units
     )
 
 

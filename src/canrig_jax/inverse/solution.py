@@ -11,15 +11,19 @@ class Solution(eqx.Module):
     """Result of ``inverse.solve``.
 
     Attributes:
-        weights: (K,) recovered weights.
-        objective: 1/2 ||f(w) - b||^2 + alpha 1^T w under the full rig (cm^2), with the
-            method's alpha (0 for methods without one).
-        history: (T,) objective after each pass (T = 1 for closed-form methods); with
+        weights: (K,) recovered weights (finite whenever the target and init are).
+        objective: 1/2 ||f(w) - b||^2 + alpha 1^T w under the full rig (squared rig units),
+            with the method's alpha for methods that minimise it (0 for the others).
+        history: (T,) objective after each pass / iteration (T = 1 for closed forms); with
             ``trace=True`` on coordinate descent, after every coordinate update.
-        result: ``optimistix.RESULTS`` code.
+        result: ``optimistix.RESULTS``: ``successful``; ``max_steps_reached`` when an
+            iterative method hit its cap before its tolerance; ``nonlinear_divergence`` when
+            it produced a non-finite value (the weights are then the start, never NaN).
+        stats: ``steps`` (passes / iterations taken) and ``converged`` (bool).
     """
 
     weights: Float[Array, " K"]
     objective: Float[Array, ""]
     history: Float[Array, " T"]
     result: optx.RESULTS
+    stats: dict[str, Array]

@@ -12,19 +12,21 @@ coordinate i of the sequence, the rig is evaluated twice, in full, on dense floa
 
 No residual bookkeeping, no Gram matrix: two 3V x P matrix-vector products per coordinate
 (P = K + number of correctives). This is the baseline the library's coefficient-space
-``inverse.QuarticCD`` is timed against; ``measure_reference`` times both in one process.
+``inverse.QuarticCD`` is timed against; ``measure_reference`` times both in one process
+(``benchmarks/bench_inverse.py`` and ``experiments/inverse_rig.py``).
 """
 
 from __future__ import annotations
 
 import time
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
-from canrig_jax import inverse
-from canrig_jax.rig import BlendshapeRig
+from ..rig.blendshape import BlendshapeRig
+from .coordinate_descent import QuarticCD
+from .problem import InverseProblem, prepare
+from .solve import Stream, solve_sequence
 
 
 class NumpyDenseRig:
@@ -124,32 +126,45 @@ def numpy_quartic_cd(
     return weights
 
 
-def decreasing_norm_order(problem: inverse.InverseProblem) -> np.ndarray:
+def decreasing_norm_order(problem: InverseProblem) -> np.ndarray:
     """(K,) blendshapes by decreasing ||b_i|| (stable), the library's ``"decreasing"`` order."""
     return np.argsort(-np.asarray(problem.blendshape_norms), kind="stable")
 
 
-def jax_batch_solver(problem: inverse.InverseProblem, method):
-    """``jit(vmap(solve))`` over a take; the prepared problem is a jit argument."""
-    batched = jax.jit(jax.vmap(lambda p, b: inverse.solve(p, b, method), (None, 0)))
-    return lambda targets: batched(problem, targets)
-
-
-def time_jax_solver(
-    problem: inverse.InverseProblem, targets, method, repeats: int = 3
+def time_batched(
+    problem: InverseProblem, targets, method, repeats: int = 3
 ) -> tuple[float, np.ndarray]:
-    """(best-of-``repeats`` seconds per frame, (T, K) weights) of ``jax_batch_solver``,
-    compiled and warmed up first."""
-    solver = jax_batch_solver(problem, method)
+    """(best-of-``repeats`` seconds per frame, (T, K) weights) of ``solve_sequence`` over the
+    whole take (one vmapped call), compiled and warmed up first."""
     targets = jnp.asarray(targets, jnp.float32)
-    weights = np.asarray(solver(targets).weights.block_until_ready())  # compile
-    solver(targets).weights.block_until_ready()  # warm up
+    weights = np.asarray(solve_sequence(problem, targets, method).weights)  # compile
     best = np.inf
     for _ in range(repeats):
         start = time.perf_counter()
-        solver(targets).weights.block_until_ready()
+        solve_sequence(problem, targets, method).weights.block_until_ready()
         best = min(best, time.perf_counter() - start)
     return best / targets.shape[0], weights
+
+
+def time_single_frames(
+    problem: InverseProblem, targets, method, warm_start: bool = False, repeats: int = 3
+) -> tuple[float, np.ndarray]:
+    """(best-of-``repeats`` median seconds per frame, (T, K) weights) of ``Stream``: one
+    compiled call per frame, each waited for (as a live capture would), host-side input
+    checks included."""
+    targets = np.asarray(targets, np.float32)
+    Stream(problem, method)(targets[0]).weights.block_until_ready()  # compile
+    best, weights = np.inf, None
+    for _ in range(repeats):
+        stream = Stream(problem, method, warm_start=warm_start)
+        seconds, frames = [], []
+        for target in targets:
+            start = time.perf_counter()
+            frames.append(stream(target).weights.block_until_ready())
+            seconds.append(time.perf_counter() - start)
+        if np.median(seconds) < best:
+            best, weights = float(np.median(seconds)), np.stack(frames)
+    return best, weights
 
 
 def measure_reference(
@@ -158,15 +173,17 @@ def measure_reference(
     alpha: float = 0.5,
     passes: int = 5,
     n_reference_frames: int = 3,
+    problem: InverseProblem | None = None,
 ) -> dict:
-    """Seconds per frame of the NumPy reference and of ``inverse.QuarticCD``, in this process.
+    """Seconds per frame of the NumPy reference and of ``inverse.QuarticCD`` with the same
+    work (``passes`` passes, no stopping rule, no Newton step), in this process.
 
     The reference solves the first ``n_reference_frames`` frames one at a time (it is slow)
     and reports the fastest: its work is the same for every frame (2 x K x passes full-rig
     evaluations), so this is a best-of-n like the JAX timing. JAX solves all T frames at once
-    (``jit(vmap(solve))``, best of 3 after compiling). Both use the
-    decreasing-||b_i|| order. ``max_weight_difference`` is max |w_numpy - w_jax| over the
-    reference frames; JAX works in float32, so ~1e-3 can occur where E is flat in a weight.
+    (``solve_sequence``, best of 3 after compiling). Both use the decreasing-||b_i|| order.
+    ``max_weight_difference`` is max |w_numpy - w_jax| over the reference frames; JAX works
+    in float32, so ~1e-3 can occur where E is flat in a weight.
     """
     targets = np.asarray(targets)
     if targets.ndim != 3 or targets.shape[1:] != (rig.n_vertices, 3):
@@ -175,13 +192,12 @@ def measure_reference(
         raise ValueError(
             f"n_reference_frames: expected 1..{targets.shape[0]}, got {n_reference_frames}"
         )
-    problem = inverse.prepare(rig)
+    problem = prepare(rig) if problem is None else problem
     order = decreasing_norm_order(problem)
     dense = NumpyDenseRig(rig)
 
-    jax_seconds, jax_weights = time_jax_solver(
-        problem, targets, inverse.QuarticCD(alpha=alpha, passes=passes)
-    )
+    method = QuarticCD(alpha=alpha, passes=passes, tol=0.0, newton=False)
+    jax_seconds, jax_weights = time_batched(problem, targets, method)
 
     numpy_weights, numpy_seconds = [], np.inf
     for target in targets[:n_reference_frames]:
