@@ -36,13 +36,23 @@ def save_checkpoint(path, tree, state: dict, format: str) -> Path:
     with a SHA-256 of the header and the leaves in the header."""
     buffer = io.BytesIO()
     eqx.tree_serialise_leaves(buffer, tree)
-    leaves = buffer.getvalue()
-    header = json.dumps({"format": format, **state}).encode()
-    sealed = header[:-1] + f', "sha256": "{_digest(header, leaves)}"}}'.encode()
+    return _write(path, {"format": format, **state}, buffer.getvalue())
+
+
+def _write(path, header: dict, leaves: bytes) -> Path:
+    text = json.dumps(header).encode()
+    sealed = text[:-1] + f', "sha256": "{_digest(text, leaves)}"}}'.encode()
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.write(sealed + b"\n")
         f.write(leaves)
     return Path(path)
+
+
+def seal_checkpoint(path, format: str) -> Path:
+    """Add the integrity hash to a checkpoint written before it existed (atomically; the
+    state and the arrays are unchanged). A sealed checkpoint is checked, and kept as is."""
+    state, leaves = _read(path, format)
+    return _write(path, state, leaves)
 
 
 def _read(path, format: str) -> tuple[dict, bytes]:

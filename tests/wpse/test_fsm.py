@@ -61,7 +61,7 @@ def test_bad_input(tiny_rig):
     sculpt = sculpt_of(tiny_rig)
     with pytest.raises(ValueError, match="triggers"):
         fix_shape_rig(tiny_rig, np.array([[0, 9]]), sculpt)
-    with pytest.raises(ValueError, match="indices"):
+    with pytest.raises(ValueError, match="^triggers:.*repeat"):
         fix_shape_rig(tiny_rig, np.array([[1, 1]]), sculpt)
     with pytest.raises(ValueError, match="sculpt"):
         fix_shape_rig(tiny_rig, np.array([[0, 1]]), lambda w: np.zeros((1, 3, 3)))

@@ -49,9 +49,14 @@ def correlation_edge_factor(faces: np.ndarray, shapes: np.ndarray) -> np.ndarray
     correlation of their displacement from the mean shape, pooled over the N shapes and 3
     coordinates. Floored at ``MIN_EDGE_FACTOR`` so every edge keeps a positive weight.
     """
-    shapes = np.asarray(shapes, np.float64)
+    shapes = np.asarray(shapes)
+    if not np.issubdtype(shapes.dtype, np.number) or np.iscomplexobj(shapes):
+        raise TypeError(f"shapes: expected real numbers, got dtype {shapes.dtype}")
+    shapes = shapes.astype(np.float64)
     if shapes.ndim != 3 or shapes.shape[2] != 3 or shapes.shape[0] < 2:
         raise ValueError(f"shapes: expected shape (N >= 2, V, 3), got {shapes.shape}")
+    if not np.all(np.isfinite(shapes)):
+        raise ValueError("shapes: contains non-finite values")
     edges = mesh_edges(faces)
     if edges.max() >= shapes.shape[1]:
         raise ValueError("faces: indices exceed the vertex count of shapes")
@@ -95,7 +100,10 @@ def check_handle_parameters(radius, falloff, n_handles: int) -> tuple[np.ndarray
     """Validate radius and falloff (scalars or (H,)) and broadcast them to (H,) float32."""
     out = []
     for name, value in (("radius", radius), ("falloff", falloff)):
-        arr = np.asarray(value, np.float32)
+        arr = np.asarray(value)
+        if not np.issubdtype(arr.dtype, np.number) or np.iscomplexobj(arr):
+            raise TypeError(f"{name}: expected real numbers, got dtype {arr.dtype}")
+        arr = arr.astype(np.float32)
         if arr.ndim > 1 or (arr.ndim == 1 and arr.shape[0] != n_handles):
             raise ValueError(f"{name}: expected a scalar or shape ({n_handles},), got {arr.shape}")
         if not np.all(np.isfinite(arr)) or not np.all(arr > 0):

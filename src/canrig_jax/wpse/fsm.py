@@ -15,11 +15,10 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-import jax
 import numpy as np
 from jaxtyping import ArrayLike, Float, Int
 
-from ..rig.blendshape import BlendshapeRig, Corrective, evaluate
+from ..rig.blendshape import BlendshapeRig, Corrective, evaluate_batch
 from ..rig.synthesis import MUTUALLY_EXCLUSIVE
 
 
@@ -72,7 +71,14 @@ def fix_shape_rig(
         sculpt: the desired mesh at a batch of poses, (B, K) -> (B, V, 3) in rig units
             (e.g. a ``DeformationGradientBlend``); fix shape = sculpt(corner) - rig(corner).
     """
-    triggers = np.asarray(triggers, np.int32)
+    if not isinstance(rig, BlendshapeRig):
+        raise TypeError(f"rig: expected a BlendshapeRig, got {type(rig).__name__}")
+    if not callable(sculpt):
+        raise TypeError(f"sculpt: expected a function of poses, got {type(sculpt).__name__}")
+    triggers = np.asarray(triggers)
+    if triggers.size and not np.issubdtype(triggers.dtype, np.integer):
+        raise TypeError(f"triggers: expected integer blendshape indices, got {triggers.dtype}")
+    triggers = triggers.astype(np.int32)
     if triggers.ndim != 2 or triggers.shape[0] == 0 or triggers.shape[1] < 2:
         raise ValueError(
             f"triggers: expected shape (N, n) with N >= 1, n >= 2, got {triggers.shape}"
@@ -80,6 +86,10 @@ def fix_shape_rig(
     k = rig.n_blendshapes
     if triggers.min() < 0 or triggers.max() >= k:
         raise ValueError(f"triggers: indices must lie in [0, {k})")
+    rows = np.sort(triggers, axis=1)
+    if np.any(rows[:, 1:] == rows[:, :-1]):
+        bad = np.flatnonzero(np.any(rows[:, 1:] == rows[:, :-1], axis=1))[:5]
+        raise ValueError(f"triggers: rows {bad.tolist()} repeat a blendshape index")
     if rig.corrective(triggers.shape[1]) is not None:
         raise ValueError(
             f"rig: already has order-{triggers.shape[1]} correctives; fix shapes of that order "
@@ -87,12 +97,20 @@ def fix_shape_rig(
         )
     corners = np.zeros((triggers.shape[0], k), np.float32)
     np.put_along_axis(corners, triggers, 1.0, axis=1)
-    desired = np.asarray(sculpt(corners), np.float32)
+    desired = np.asarray(sculpt(corners))
     if desired.shape != (triggers.shape[0], rig.n_vertices, 3):
         raise ValueError(
             f"sculpt: expected meshes of shape ({triggers.shape[0]}, {rig.n_vertices}, 3), "
             f"got {desired.shape}"
         )
-    base = np.asarray(jax.vmap(evaluate, (None, 0))(rig, corners))
+    if not np.issubdtype(desired.dtype, np.number) or np.iscomplexobj(desired):
+        raise TypeError(f"sculpt: returned {desired.dtype} meshes, expected real numbers")
+    desired = desired.astype(np.float32)
+    if not np.all(np.isfinite(desired)):
+        bad = np.flatnonzero(~np.all(np.isfinite(desired), axis=(1, 2)))[:5]
+        raise ValueError(
+            f"sculpt: returned non-finite positions at the corners of triggers {bad.tolist()}"
+        )
+    base = np.asarray(evaluate_batch(rig, corners))
     table = Corrective.from_dense(triggers, desired - base)  # raises on repeated indices
     return BlendshapeRig(rig.neutral, rig.deltas, (*rig.correctives, table), rig.names, rig.faces)

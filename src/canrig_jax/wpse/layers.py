@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ..rig.blendshape import BlendshapeRig, evaluate
+from ..rig.blendshape import BlendshapeRig, evaluate_batch
 from .pse import (
     PoseSpaceEdit,
     check_edits,
@@ -102,7 +102,7 @@ def fit_layered(
             )
     for width in widths[:n_layers]:
         check_sigma(width)
-    posed = np.asarray(jax.vmap(evaluate, (None, 0))(rig, jnp.asarray(poses)))
+    posed = np.asarray(evaluate_batch(rig, poses))
     target = posed + edits  # what the artist sculpted at each pose
     layers: list[PoseSpaceEdit] = []
     assignment_array = np.asarray(assignment)
