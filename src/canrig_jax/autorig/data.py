@@ -20,14 +20,13 @@ from __future__ import annotations
 import dataclasses
 import warnings
 
-import jax
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ..data.ict import ICTFaceModel, ict_identity, load_ict
 from ..mesh.remesh import Remeshed, decimate, subdivide
 from ..mesh.transfer import closest_point_correspondence
-from ..rig.blendshape import BlendshapeRig, evaluate
+from ..rig.blendshape import BlendshapeRig, evaluate_batch
 from ..rig.transfer import deformation_transfer
 
 INNER_PARTS = ("Teeth", "Gums and tongue", "Eyeball left", "Eyeball right")
@@ -100,6 +99,13 @@ def quartic_pose_set(rig: BlendshapeRig, per_order: dict[int, int] | None = None
             = 96 poses, the paper's count.
     """
     per_order = {2: 25, 3: 12, 4: 6} if per_order is None else per_order
+    if not isinstance(rig, BlendshapeRig):
+        raise TypeError(f"rig: expected a BlendshapeRig, got {type(rig).__name__}")
+    for order, count in per_order.items():
+        if not isinstance(count, int | np.integer) or count < 0 or order < 2:
+            raise ValueError(
+                f"per_order: expected counts >= 0 for orders >= 2, got {order}: {count!r}"
+            )
     combos = [(i,) for i in range(rig.n_blendshapes)]
     for order, count in sorted(per_order.items()):
         table = rig.corrective(order)
@@ -118,10 +124,15 @@ def quartic_pose_set(rig: BlendshapeRig, per_order: dict[int, int] | None = None
 
 def pose_displacements(rig: BlendshapeRig, poses: PoseSet) -> np.ndarray:
     """(P, V, 3) float32 ground truth: the rig at weight 1 on each pose's expressions."""
+    if not isinstance(rig, BlendshapeRig) or not isinstance(poses, PoseSet):
+        raise TypeError(
+            f"rig, poses: expected a BlendshapeRig and a PoseSet, got {type(rig).__name__}, "
+            f"{type(poses).__name__}"
+        )
     if tuple(rig.names) != poses.basis_names:
         raise ValueError("rig: its blendshape names differ from the pose set's basis names")
     neutral = np.asarray(rig.neutral)
-    posed = jax.vmap(lambda w: evaluate(rig, w))(poses.vectors())
+    posed = evaluate_batch(rig, poses.vectors())
     return np.asarray(posed) - neutral[None]
 
 

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..mesh.operators import MeshOperators, check_mesh, mesh_operators
+from ..mesh import MeshOperators, check_mesh, mesh_operators
 from ..rig.blendshape import BlendshapeRig, Corrective
 from .data import PoseSet
 from .model import RigAnyFace, normalise
@@ -138,6 +138,13 @@ def generate_rig(
     that does not match the model, or a head too large for ``memory_budget``.
     """
     start = time.perf_counter()
+    if not isinstance(model, RigAnyFace):
+        raise TypeError(f"model: expected a trained RigAnyFace, got {type(model).__name__}")
+    if not isinstance(poses, PoseSet):
+        raise TypeError(f"poses: expected the model's PoseSet, got {type(poses).__name__}")
+    for name, value in (("k", k), ("bucket", bucket), ("memory_budget", memory_budget)):
+        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+            raise ValueError(f"{name}: expected a positive integer, got {value!r}")
     vertices, faces = check_mesh(vertices, faces)
     if poses.n_basis != model.n_pose_inputs:
         raise ValueError(

@@ -1,0 +1,190 @@
+"""Bad inputs of the auto-rigger's public entry points: rig generation, pose sets, features."""
+
+from __future__ import annotations
+
+import types
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from canrig_jax.autorig import (
+    PoseSet,
+    generate_rig,
+    heat_kernel_signature,
+    hks_times,
+    pose_displacements,
+    quartic_pose_set,
+)
+from canrig_jax.autorig.train import TrainOptions, make_model
+from canrig_jax.data import load_mediapipe_face
+from canrig_jax.mesh import mesh_operators
+from canrig_jax.rig import BlendshapeRig, Corrective
+
+from .conftest import handled, raises, run_case
+
+NEUTRAL = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float32)
+FACES = np.array([[0, 1, 2], [0, 2, 3]])
+
+
+@pytest.fixture(scope="module")
+def ctx(data_dir):
+    deltas = np.zeros((2, 4, 3), np.float32)
+    deltas[0, 2, 2], deltas[1, 1, 1] = 0.5, -0.25
+    pair = Corrective([[0, 1]], [1, 2], np.full((1, 2, 3), 0.125, np.float32))
+    rig = BlendshapeRig(NEUTRAL, deltas, (pair,), ("a", "b"), FACES)
+    poses = quartic_pose_set(rig, {2: 1})
+    options = TrainOptions(width=8, n_shared=1, n_conditional=1, global_size=8, global_width=8, k=8)
+    model = make_model(options, poses.n_basis, 1.0)
+    face = load_mediapipe_face(data_dir)
+    operators = mesh_operators(face.neutral, face.faces, k=16, cache=False)
+    return types.SimpleNamespace(rig=rig, poses=poses, model=model, face=face, operators=operators)
+
+
+def _generate(c, **kw):
+    args = dict(vertices=c.face.neutral, faces=c.face.faces, k=8)
+    args.update(kw)
+    return generate_rig(c.model, c.poses, **args)
+
+
+GENERATE_RIG = [
+    raises(
+        "nan-vertex",
+        lambda c: _generate(c, vertices=np.where(c.face.neutral > 5, np.nan, c.face.neutral)),
+        ValueError,
+        "vertices",
+    ),
+    raises("float-faces", lambda c: _generate(c, faces=c.face.faces + 0.5), ValueError, "faces"),
+    raises(
+        "face-out-of-range", lambda c: _generate(c, faces=c.face.faces + 1), ValueError, "faces"
+    ),
+    raises("no-faces", lambda c: _generate(c, faces=np.zeros((0, 3), int)), ValueError, "faces"),
+    raises(
+        "not-a-model",
+        lambda c: generate_rig(None, c.poses, c.face.neutral, c.face.faces),
+        TypeError,
+        "model",
+    ),
+    raises(
+        "not-a-pose-set",
+        lambda c: generate_rig(c.model, [[0]], c.face.neutral, c.face.faces),
+        TypeError,
+        "poses",
+    ),
+    raises(
+        "pose-set-of-another-model",
+        lambda c: generate_rig(
+            c.model, PoseSet(("a", "b", "c"), ((0,), (1,), (2,))), c.face.neutral, c.face.faces
+        ),
+        ValueError,
+        "poses",
+    ),
+    raises("zero-k", lambda c: _generate(c, k=0), ValueError, "k"),
+    raises("zero-bucket", lambda c: _generate(c, bucket=0), ValueError, "bucket"),
+    raises("zero-pose-chunk", lambda c: _generate(c, pose_chunk=0), ValueError, "pose_chunk"),
+    raises(
+        "tiny-memory-budget",
+        lambda c: _generate(c, memory_budget=1000),
+        ValueError,
+        "memory_budget",
+    ),
+    raises(
+        "operators-of-another-mesh",
+        lambda c: _generate(c, vertices=NEUTRAL, faces=FACES, operators=c.operators),
+        ValueError,
+        "operators",
+    ),
+]
+
+
+@pytest.mark.parametrize("case", GENERATE_RIG)
+def test_generate_rig(case, ctx):
+    run_case(case, ctx)
+
+
+POSE_SETS = [
+    raises(
+        "singles-not-first", lambda c: PoseSet(("a", "b"), ((1,), (0,))), ValueError, "combinations"
+    ),
+    raises(
+        "index-out-of-range",
+        lambda c: PoseSet(("a", "b"), ((0,), (1,), (0, 2))),
+        ValueError,
+        "combinations",
+    ),
+    raises(
+        "repeated-index",
+        lambda c: PoseSet(("a", "b"), ((0,), (1,), (1, 1))),
+        ValueError,
+        "combinations",
+    ),
+    raises(
+        "more-than-the-rig-has", lambda c: quartic_pose_set(c.rig, {2: 2}), ValueError, "per_order"
+    ),
+    raises("negative-count", lambda c: quartic_pose_set(c.rig, {2: -1}), ValueError, "per_order"),
+    raises("not-a-rig", lambda c: quartic_pose_set(NEUTRAL), TypeError, "rig"),
+    raises(
+        "names-differ",
+        lambda c: pose_displacements(c.rig, PoseSet(("x", "y"), ((0,), (1,)))),
+        ValueError,
+        "rig",
+    ),
+    handled(
+        "pair-pose-includes-its-corrective",
+        lambda c: pose_displacements(c.rig, c.poses),
+        lambda d, c: np.testing.assert_allclose(
+            d[2],
+            np.asarray(c.rig.deltas).sum(0) + np.array([0, 0.125, 0.125, 0])[:, None] * [1, 1, 1],
+            atol=1e-6,
+        ),
+    ),
+]
+
+
+@pytest.mark.parametrize("case", POSE_SETS)
+def test_pose_sets(case, ctx):
+    run_case(case, ctx)
+
+
+FEATURES = [
+    raises(
+        "negative-time",
+        lambda c: heat_kernel_signature(c.operators, np.array([-1.0, 1.0])),
+        ValueError,
+        "times",
+    ),
+    raises(
+        "nan-time",
+        lambda c: heat_kernel_signature(c.operators, np.array([np.nan])),
+        ValueError,
+        "times",
+    ),
+    raises(
+        "complex-time",
+        lambda c: heat_kernel_signature(c.operators, np.array([1j])),
+        TypeError,
+        "times",
+    ),
+    raises(
+        "no-times", lambda c: heat_kernel_signature(c.operators, np.zeros(0)), ValueError, "times"
+    ),
+    raises(
+        "nan-eigenvalues", lambda c: hks_times(np.array([0.0, np.nan])), ValueError, "eigenvalues"
+    ),
+    raises("all-zero-eigenvalues", lambda c: hks_times(np.zeros(4)), ValueError, "eigenvalues"),
+    raises("zero-times", lambda c: hks_times(np.array([0.0, 1.0, 2.0]), 0), ValueError, "n_times"),
+    handled(
+        "time-zero-is-the-squared-eigenvectors",
+        lambda c: heat_kernel_signature(c.operators, jnp.zeros(1)),
+        lambda h, c: np.testing.assert_allclose(
+            np.asarray(h)[:, 0],
+            np.sum(np.asarray(c.operators.eigenvectors) ** 2, axis=1),
+            rtol=1e-5,
+        ),
+    ),
+]
+
+
+@pytest.mark.parametrize("case", FEATURES)
+def test_features(case, ctx):
+    run_case(case, ctx)
