@@ -65,3 +65,24 @@ def test_select_alpha_takes_the_sparsest_row_within_tolerance_of_the_best():
     assert select_alpha(rows, tolerance=0.0)["alpha"] == 1.0
     with pytest.raises(ValueError, match="sweep"):
         select_alpha([])
+    failed = [*rows, {"alpha": 10.0, "rmse_mean_mm": float("nan")}]
+    with pytest.raises(ValueError, match=r"'lmmm' at alpha \[10.0\]"):
+        select_alpha(failed, method="lmmm")
+
+
+def test_metrics_are_in_millimetres_whatever_the_rig_unit(take):
+    rig, _, weights, _ = take
+    linear = rig.linear()
+    noisy = np.clip(weights + 0.05, 0, 1)
+    clean = np.asarray(jax.vmap(evaluate, (None, 0))(linear, weights))
+    in_cm = frame_metrics(linear, noisy, clean)["rmse_mm"]
+    # the same head and targets in decimetres: the same millimetres
+    dm = type(rig)(rig.neutral / 10, rig.deltas / 10, (), rig.names, units="dm")
+    np.testing.assert_allclose(frame_metrics(dm, noisy, clean / 10)["rmse_mm"], in_cm, rtol=1e-4)
+    # a rig whose unit is left at the default (cm) reports 10x too little: what units fix
+    wrong = type(rig)(rig.neutral / 10, rig.deltas / 10, (), rig.names)
+    np.testing.assert_allclose(
+        frame_metrics(wrong, noisy, clean / 10)["rmse_mm"], in_cm / 10, rtol=1e-4
+    )
+    with pytest.raises(ValueError, match="units"):
+        type(rig)(rig.neutral, rig.deltas, units="inch")

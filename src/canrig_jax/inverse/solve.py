@@ -176,8 +176,9 @@ def solve_sequence(
     Frames are independent and ``vmap``ped unless ``warm_start``, in which case each frame
     starts from the previous frame's weights (a ``scan``; a frame that fails returns its start,
     never NaN, so it cannot poison later frames). Warm starts can keep mutually exclusive
-    shapes active across frames, as Racković et al. warn. Each frame gets its own key (``jax.random.split(key, T)``), so the
-    ``random`` order draws a fresh permutation per frame and pass.
+    shapes active across frames, as Racković et al. warn. Each frame gets its own key
+    (``jax.random.split(key, T)``), so the ``random`` order draws a fresh permutation per
+    frame and pass.
 
     Compiled once per problem shape, take length and method type: later calls with other
     targets or another alpha reuse the compiled function. Every frame is checked first: a
