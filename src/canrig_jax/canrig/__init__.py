@@ -16,6 +16,7 @@ from .data import (
     sample_examples,
     split_capture,
 )
+from .layout import DENSE, BlockLayout, DenseLayout, Layout, block_layout
 from .masks import (
     CLAMP,
     correlation_edge_factor,
@@ -25,8 +26,8 @@ from .masks import (
     weighted_geodesic_distance,
 )
 from .mlp import ZeroPreservingMLP
-from .model import CANRig, ShapePreservingCANRig, parameter_count
-from .rig import Handles, NeuralRig, deform
+from .model import AbstractCANRig, Architecture, CANRig, ShapePreservingCANRig, parameter_count
+from .rig import HandleEdit, Handles, NeuralRig, deform, edit_mask
 from .train import (
     TrainOptions,
     TrainResult,
@@ -38,6 +39,15 @@ from .train import (
 )
 
 __all__ = [
+    "DENSE",
+    "AbstractCANRig",
+    "Architecture",
+    "BlockLayout",
+    "DenseLayout",
+    "HandleEdit",
+    "Layout",
+    "block_layout",
+    "edit_mask",
     "CLAMP",
     "RADII_CM",
     "CANRig",

@@ -7,9 +7,12 @@ displacements, radii, falloffs, base shapes and beta, without recompiling.
     shape = rig(handles, displacements, radius=2.0, falloff=3.0)          # from the neutral
     shape = rig(handles, displacements, radius=1.0, falloff=3.0, base=previous, beta=0.0)
 
-Every argument is validated in plain Python before the jitted forward pass. By default the
-forward pass is block-sparse (``blocks.py``: each block of ~48 vertices attends only to the
-handles that influence it, exact); ``dense=True`` runs the dense (V x H) attention instead.
+Every per-call input is bundled in one pytree, ``HandleEdit`` (``rig.edit(...)`` validates it
+in plain Python), and the pure, jitted ``deform(model, queries, canonical, edit, layout)`` is
+the one forward pass: a solver differentiates it with respect to ``edit.displacements`` alone,
+and ``jax.vmap`` batches it over edits. By default the attention is block-sparse
+(``layout.py``: each block of ~48 vertices attends only to the handles that reach it, exact);
+``dense=True`` uses the dense (V x H) layout instead.
 """
 
 from __future__ import annotations
@@ -21,9 +24,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from .blocks import block_distance, blocked_deform, influence_reach, vertex_blocks
+from .layout import DENSE, Layout, block_distance, block_layout, influence_reach, vertex_blocks
 from .masks import check_handle_parameters, edge_graph, influence_mask, weighted_geodesic_distance
-from .model import CANRig
+from .model import AbstractCANRig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -41,30 +44,79 @@ class Handles:
         return len(self.index)
 
 
+class HandleEdit(eqx.Module):
+    """Everything one forward pass needs besides the model and the mesh, as one pytree.
+
+    Attributes:
+        index: (H,) handle vertices.
+        distance: (V, H) geodesic distance of every vertex to each handle (cm; inf: far).
+        displacements: (H, 3) handle displacements from the base shape (cm).
+        radius: (H,) mask radius per handle (cm).
+        falloff: (H,) mask falloff per handle (1/cm).
+        base: (V, 3) base shape S_B (cm); the neutral for reconstruction.
+        beta: () logit of the extra attention column (shape-preserving model only).
+    """
+
+    index: Int[Array, " H"]
+    distance: Float[Array, "V H"]
+    displacements: Float[Array, "H 3"]
+    radius: Float[Array, " H"]
+    falloff: Float[Array, " H"]
+    base: Float[Array, "V 3"]
+    beta: Float[Array, ""]
+
+    def with_displacements(self, displacements: Float[Array, "H 3"]) -> HandleEdit:
+        return eqx.tree_at(lambda e: e.displacements, self, displacements)
+
+    def with_base(self, base: Float[Array, "V 3"]) -> HandleEdit:
+        return eqx.tree_at(lambda e: e.base, self, base)
+
+
+def edit_mask(edit: HandleEdit, clamp: float, layout: Layout = DENSE) -> Float[Array, "..."]:
+    """The clamped influence masks of ``edit`` in the layout's local form."""
+    return influence_mask(
+        layout.distance(edit.distance),
+        layout.per_handle(edit.radius),
+        layout.per_handle(edit.falloff),
+        clamp,
+    )
+
+
 @eqx.filter_jit
 def deform(
-    model: CANRig,
+    model: AbstractCANRig,
     queries: Float[Array, "heads V d"],
     canonical: Float[Array, "V 3"],
-    base: Float[Array, "V 3"],
-    handle_index: Int[Array, " H"],
-    distance: Float[Array, "V H"],
-    displacements: Float[Array, "H 3"],
-    radius: Float[Array, " H"],
-    falloff: Float[Array, " H"],
-    beta: Float[Array, ""] | None = None,
+    edit: HandleEdit,
+    layout: Layout = DENSE,
 ) -> Float[Array, "V 3"]:
-    """The jitted dense forward pass on every vertex (no validation; use ``NeuralRig``)."""
-    mask = influence_mask(distance, radius, falloff, model.clamp)
+    """The shape of ``edit``: the one jitted forward pass (no validation; build ``edit``
+    with ``NeuralRig.edit``). ``layout`` (``NeuralRig.layout``) only changes where the
+    attention runs, not the result. Batch over edits with ``jax.vmap``."""
     return model(
         queries,
-        base,
-        canonical[handle_index],
-        base[handle_index],
-        displacements,
-        mask,
-        beta,
+        edit.base,
+        canonical[edit.index],
+        edit.base[edit.index],
+        edit.displacements,
+        edit_mask(edit, model.clamp, layout),
+        edit.beta,
+        layout,
     )
+
+
+def _check_points(name: str, value, n_vertices: int) -> np.ndarray:
+    array = np.asarray(value)
+    if not np.issubdtype(array.dtype, np.floating) and not np.issubdtype(array.dtype, np.integer):
+        raise TypeError(f"{name}: expected real numbers, got dtype {array.dtype}")
+    if array.shape != (n_vertices, 3):
+        raise ValueError(
+            f"{name}: expected shape ({n_vertices}, 3) (the mesh's vertex count), got {array.shape}"
+        )
+    array = array.astype(np.float32)
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
+    return array
 
 
 class NeuralRig:
@@ -72,13 +124,15 @@ class NeuralRig:
 
     def __init__(
         self,
-        model: CANRig,
+        model: AbstractCANRig,
         canonical: Float[ArrayLike, "V 3"],
         faces: Int[ArrayLike, "F 3"],
         *,
         edge_factor: np.ndarray | None = None,
         block_size: int = 48,
     ):
+        if not isinstance(model, AbstractCANRig):
+            raise TypeError(f"model: expected a CANRig model, got {type(model).__name__}")
         canonical = np.asarray(canonical, np.float32)
         self.model = model
         self.graph = edge_graph(canonical, np.asarray(faces), edge_factor)
@@ -89,18 +143,16 @@ class NeuralRig:
         flat = blocks.ravel()
         position = np.zeros(len(canonical), np.int32)
         position[flat[flat >= 0]] = np.flatnonzero(flat >= 0)
-        self.blocks = jnp.asarray(blocks)
-        self.block_position = jnp.asarray(position)
-        # queries per block (B, heads, S, d); padding slots get zero queries, mask 0
-        padded = jnp.concatenate([self.queries, jnp.zeros_like(self.queries[:, :1])], axis=1)
-        self.block_queries = jnp.moveaxis(padded[:, self.blocks], 0, 1)
+        self.blocks = np.where(blocks < 0, len(canonical), blocks).astype(np.int32)
+        self.block_position = position
 
     @property
     def n_vertices(self) -> int:
         return int(self.canonical.shape[0])
 
     def handles(self, index: ArrayLike, *, limit: float = np.inf) -> Handles:
-        """Place handles at vertex ``index`` (H,): computes their geodesic distances."""
+        """Place handles at vertex ``index`` (H,), distinct vertices: computes their geodesic
+        distances (Dijkstra, once per placement)."""
         index = np.asarray(index)
         if index.ndim != 1 or index.size == 0:
             raise ValueError(
@@ -113,26 +165,18 @@ class NeuralRig:
                 f"index: handle vertices must lie in [0, {self.n_vertices}), "
                 f"got {index.min()}..{index.max()}"
             )
+        unique, counts = np.unique(index, return_counts=True)
+        if len(unique) < len(index):
+            raise ValueError(
+                f"index: handle vertices must be distinct; repeated: {unique[counts > 1][:10]}"
+            )
         distance = np.ascontiguousarray(
             weighted_geodesic_distance(self.graph, index, limit=limit).T
         )
-        nearest = block_distance(np.asarray(self.blocks), distance)
+        nearest = block_distance(self.blocks, distance)
         return Handles(index.astype(np.int32), jnp.asarray(distance), nearest)
 
-    def __call__(
-        self,
-        handles: Handles,
-        displacements: Float[ArrayLike, "H 3"],
-        radius: float | Float[ArrayLike, " H"],
-        falloff: float | Float[ArrayLike, " H"],
-        *,
-        base: Float[ArrayLike, "V 3"] | None = None,
-        beta: float | None = None,
-        dense: bool = False,
-    ) -> Float[Array, "V 3"]:
-        """The shape for ``displacements`` at the handles (relative to ``base``, default the
-        neutral); radius and falloff per handle or shared; ``beta`` for the shape-preserving
-        model (default 0)."""
+    def _check_handles(self, handles: Handles) -> int:
         if not isinstance(handles, Handles) or handles.n_handles == 0:
             raise ValueError("handles: expected a non-empty Handles from NeuralRig.handles")
         h = handles.n_handles
@@ -146,49 +190,82 @@ class NeuralRig:
                 "handles: placed on a rig with other vertex blocks; place them with this rig's "
                 "handles()"
             )
+        return h
+
+    def check_base(self, base: Float[ArrayLike, "V 3"] | None, name: str = "base") -> Array:
+        """``base`` as a checked (V, 3) float32 device array; None: the neutral."""
+        if base is None:
+            return self.canonical
+        return jnp.asarray(_check_points(name, base, self.n_vertices))
+
+    def edit(
+        self,
+        handles: Handles,
+        displacements: Float[ArrayLike, "H 3"],
+        radius: float | Float[ArrayLike, " H"],
+        falloff: float | Float[ArrayLike, " H"],
+        *,
+        base: Float[ArrayLike, "V 3"] | None = None,
+        beta: float | None = None,
+    ) -> HandleEdit:
+        """A validated ``HandleEdit``: ``displacements`` relative to ``base`` (default the
+        neutral); radius (cm) and falloff (1/cm) per handle or shared; ``beta`` for the
+        shape-preserving model (default 0)."""
+        h = self._check_handles(handles)
         displacements = np.asarray(displacements, np.float32)
         if displacements.shape != (h, 3):
             raise ValueError(f"displacements: expected shape ({h}, 3), got {displacements.shape}")
         if not np.all(np.isfinite(displacements)):
             raise ValueError("displacements: contains non-finite values (NaN or inf)")
         radius, falloff = check_handle_parameters(radius, falloff, h)
-        if base is None:
-            base = self.canonical
-        else:
-            base = np.asarray(base, np.float32)
-            if base.shape != (self.n_vertices, 3):
-                raise ValueError(
-                    f"base: expected shape ({self.n_vertices}, 3) (the mesh's vertex count), "
-                    f"got {base.shape}"
-                )
-            if not np.all(np.isfinite(base)):
-                raise ValueError("base: contains non-finite values")
-        if beta is not None:
-            if not np.isfinite(beta):
-                raise ValueError(f"beta: expected a finite number, got {beta}")
-            beta = jnp.asarray(beta, jnp.float32)
-        args = (
-            self.canonical,
-            jnp.asarray(base),
-            jnp.asarray(handles.index),
-            handles.distance,
-            jnp.asarray(displacements),
-            jnp.asarray(radius),
-            jnp.asarray(falloff),
-            beta,
+        beta = 0.0 if beta is None else beta
+        if not np.isfinite(beta):
+            raise ValueError(f"beta: expected a finite number, got {beta}")
+        return HandleEdit(
+            index=jnp.asarray(handles.index),
+            distance=handles.distance,
+            displacements=jnp.asarray(displacements),
+            radius=jnp.asarray(radius),
+            falloff=jnp.asarray(falloff),
+            base=self.check_base(base),
+            beta=jnp.asarray(beta, jnp.float32),
         )
-        if dense:
-            return deform(self.model, self.queries, *args)
+
+    def layout(
+        self,
+        handles: Handles,
+        radius: float | Float[ArrayLike, " H"],
+        falloff: float | Float[ArrayLike, " H"],
+        *,
+        width: int | None = None,
+    ) -> Layout:
+        """The block-sparse layout of these handles at this radius and falloff (host-side:
+        which handles reach which vertex block). One layout serves any displacements and base
+        shapes, e.g. every frame of a clip."""
+        h = self._check_handles(handles)
+        radius, falloff = check_handle_parameters(radius, falloff, h)
         reach = influence_reach(radius, falloff, self.model.clamp)
-        within = handles.block_distance <= reach[None, :]  # (B, H)
-        most = max(int(within.sum(axis=1).max()), 1)
-        width = min(1 << (most - 1).bit_length(), h)  # next power of two: few compilations
-        return blocked_deform(
-            self.model,
-            self.block_queries,
-            self.blocks,
-            self.block_position,
-            jnp.asarray(within, jnp.float32),
-            *args,
-            width,
+        return block_layout(
+            self.blocks, self.block_position, handles.block_distance, reach, width=width
         )
+
+    def deform(self, edit: HandleEdit, layout: Layout = DENSE) -> Float[Array, "V 3"]:
+        """``deform`` with this rig's model, queries and neutral."""
+        return deform(self.model, self.queries, self.canonical, edit, layout)
+
+    def __call__(
+        self,
+        handles: Handles,
+        displacements: Float[ArrayLike, "H 3"],
+        radius: float | Float[ArrayLike, " H"],
+        falloff: float | Float[ArrayLike, " H"],
+        *,
+        base: Float[ArrayLike, "V 3"] | None = None,
+        beta: float | None = None,
+        dense: bool = False,
+    ) -> Float[Array, "V 3"]:
+        """The shape for ``displacements`` at the handles (see ``edit``); block-sparse
+        unless ``dense``."""
+        edit = self.edit(handles, displacements, radius, falloff, base=base, beta=beta)
+        layout = DENSE if dense else self.layout(handles, radius, falloff)
+        return self.deform(edit, layout)

@@ -1,0 +1,564 @@
+"""What an artist does with CANRig (sections 7.1-7.4), all on the one forward pass ``deform``.
+
+- **Pose A to B, direct** (section 7.1): handles on chosen vertices of A, displacements
+  B[h] - A[h], base shape A, one forward pass (``direct_edit``).
+- **Pose A to B, fitted** (``fit_displacements``): the displacements that minimise the mesh
+  error ||rig(A, d) - B||^2 (optionally weighted by a region, plus ``penalty`` ||d||^2), by
+  ``optimistix.least_squares`` with Levenberg-Marquardt and a matrix-free normal-equations CG
+  (``lineax``), started from the direct displacements. The Jacobian of the rig with respect
+  to the displacements is exact and cheap (``displacement_jacobian``): the attention weights
+  do not depend on the displacements, so per (vertex, handle) it is a 3 x 3 block
+  sum_k A^k_vh G_v^k U_h^k (+ the prior's weight times I), G the output MLP's Jacobian at the
+  vertex, U the value MLP's at the handle; it reaches the solver as a ``jax.custom_jvp``.
+  The answer is the best of {fitted, direct, zero} by the reported error (the mean
+  per-vertex Euclidean error over the region), so a fit is never worse than the direct pass
+  nor than the base shape, exactly.
+- **Iterative layers** (section 7.4, ``iterative_layers``): each layer's base shape is the
+  previous layer's output; with fitting the error is non-increasing exactly.
+- **Clip editing** (section 7.2, ``clip_edit``): one frame's handle displacements faded in and
+  out over a window by a smoothstep curve, each frame its own base shape; frames outside the
+  window are returned untouched (bit-identical).
+- **Dialogue replacement** (section 7.2, ``dialogue_replacement``): per frame, handles around
+  the mouth move to the target clip's positions, base shape the source frame, ``jax.vmap``
+  over frames.
+
+Units follow the rig (ICT: cm). Inputs are validated in plain Python before any jit work.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, ArrayLike, Float, Int
+from scipy.sparse.csgraph import dijkstra
+
+from .layout import DENSE, Layout
+from .model import AbstractCANRig
+from .rig import HandleEdit, Handles, NeuralRig, deform, edit_mask
+
+# --------------------------------------------------------------------------- Jacobian
+
+
+def _value_jacobian(model: AbstractCANRig, displacements, handle_base):
+    """(H, heads, e, 3): d values_h / d d_h per handle."""
+
+    def one(d, b):
+        return model.encode_values(d[None], b[None])[:, 0]  # (heads, e)
+
+    return jax.vmap(jax.jacfwd(one))(displacements, handle_base)
+
+
+def _decode_jacobian(model: AbstractCANRig, attended, base, queries):
+    """(V, 3, heads, e): d decode_v / d attended_v per vertex (the latent axis is the heads'
+    concatenation, ``merge_heads``)."""
+
+    def one(a, b, q):
+        return model.decode(a[None], b[None], q[:, None])[0]  # (3,)
+
+    jac = jax.vmap(jax.jacrev(one), in_axes=(0, 0, 1))(attended, base, queries)
+    return jac.reshape(*jac.shape[:2], model.n_heads, -1)
+
+
+def displacement_jacobian(
+    model: AbstractCANRig,
+    queries: Float[Array, "heads V d"],
+    canonical: Float[Array, "V 3"],
+    edit: HandleEdit,
+    layout: Layout = DENSE,
+) -> tuple[Float[Array, "V 3"], Float[Array, "... 3 3"]]:
+    """The shape of ``edit`` and the exact Jacobian of ``deform`` with respect to
+    ``edit.displacements``, as 3 x 3 blocks in the layout's local form: (V, H, 3, 3) for the
+    dense layout, (B, S, W, 3, 3) for a block layout (block b, slot s, its w-th handle).
+
+    Only the values depend on d, so the block of vertex v and handle h is
+    sum_k A^k_vh G_v^k U_h^k + P_vh I (A the attention of head k, G the output MLP's
+    Jacobian, U the value MLP's, P the interpolation prior's weight)."""
+    handle_base = edit.base[edit.index]
+    mask = edit_mask(edit, model.clamp, layout)
+    trace = model.trace(
+        queries,
+        edit.base,
+        canonical[edit.index],
+        handle_base,
+        edit.displacements,
+        mask,
+        edit.beta,
+        layout,
+    )
+    value_jac = _value_jacobian(model, edit.displacements, handle_base)  # (H, k, e, 3)
+    decode_jac = _decode_jacobian(model, trace.attended, edit.base, queries)  # (V, 3, k, e)
+    # per head k: (S*3 x e) @ (e x W*3) batched matmuls, then weighted by A^k and summed
+    local_decode = jnp.moveaxis(layout.vertices(decode_jac, axis=0), -2, -4)  # (.., k, S, 3, e)
+    local_value = jnp.moveaxis(layout.handles(value_jac, axis=0), -3, -4)  # (.., k, W, e, 3)
+    s, w = local_decode.shape[-3], local_value.shape[-3]
+    left = local_decode.reshape(*local_decode.shape[:-3], s * 3, -1)
+    right = jnp.swapaxes(local_value, -3, -2).reshape(*local_value.shape[:-3], -1, w * 3)
+    products = jnp.matmul(left, right).reshape(*left.shape[:-2], s, 3, w, 3)
+    weights = trace.attention[..., :, :, None, :, None]  # (.., k, S, 1, W, 1)
+    blocks = jnp.sum(weights * products, axis=-5)  # (.., S, 3, W, 3)
+    if model.interpolation_prior:
+        prior = model.interpolation_weights(mask)  # (.., S, W)
+        blocks = blocks + prior[..., :, None, :, None] * jnp.eye(3, dtype=blocks.dtype)[:, None]
+    return trace.shape, blocks
+
+
+def apply_jacobian(
+    blocks: Float[Array, "... 3 3"], tangent: Float[Array, "H 3"], layout: Layout = DENSE
+) -> Float[Array, "V 3"]:
+    """J t for the blocks of ``displacement_jacobian`` (linear in t; JAX transposes it)."""
+    local = layout.handles(tangent, axis=0)
+    local = local.reshape(*local.shape[:-2], -1, 1)  # (.., W*3, 1)
+    flat = blocks.reshape(*blocks.shape[:-4], blocks.shape[-4] * 3, -1)  # (.., S*3, W*3)
+    return layout.scatter(jnp.matmul(flat, local).reshape(*blocks.shape[:-4], -1, 3))
+
+
+def _differentiable_shape(model, queries, canonical, edit: HandleEdit, layout: Layout):
+    """d -> deform(edit with displacements d), with the structured Jacobian as its JVP."""
+
+    @jax.custom_jvp
+    def shape(displacements):
+        return deform(model, queries, canonical, edit.with_displacements(displacements), layout)
+
+    @shape.defjvp
+    def shape_jvp(primals, tangents):
+        (displacements,), (tangent,) = primals, tangents
+        out, blocks = displacement_jacobian(
+            model, queries, canonical, edit.with_displacements(displacements), layout
+        )
+        return out, apply_jacobian(blocks, tangent, layout)
+
+    return shape
+
+
+# --------------------------------------------------------------------------- fitting
+
+
+def _handle_scaling(blocks, layout: Layout, vertex_weight, n_handles: int):
+    """(H, 3, 3) P_h = (D_h + eps I)^(-1/2), D_h = sum_v w_v J_vh^T J_vh (the 3 x 3 diagonal
+    blocks of the Gauss-Newton matrix), eps = 1e-3 * mean trace / 3 (handles that move
+    nothing keep a finite scale)."""
+    local_weight = layout.vertices(vertex_weight, axis=0)[..., :, None, None, None]  # (.,S,1,1,1)
+    weighted = blocks * local_weight
+    diagonal = jnp.einsum("...siwj,...siwl->...wjl", weighted, blocks)  # (.., W, 3, 3)
+    per_handle = layout.sum_handles(diagonal, n_handles)
+    eps = 1e-3 * jnp.mean(jnp.trace(per_handle, axis1=-2, axis2=-1)) / 3.0 + 1e-12
+    values, vectors = jnp.linalg.eigh(per_handle + eps * jnp.eye(3, dtype=blocks.dtype))
+    return jnp.einsum("hij,hj,hkj->hik", vectors, values**-0.5, vectors)
+
+
+@dataclasses.dataclass(frozen=True)
+class FitOptions:
+    """Levenberg-Marquardt settings of ``fit_displacements``.
+
+    ``rtol``/``atol`` stop the outer solve (relative/absolute change of the displacements,
+    cm); ``cg_steps`` caps the CG iterations of each damped Gauss-Newton step (the step is
+    then inexact, which the trust region absorbs); ``penalty`` weighs ||d||^2 (cm^2 per
+    cm^2 of mesh error)."""
+
+    max_steps: int = 6
+    rtol: float = 1e-3
+    atol: float = 1e-4
+    cg_steps: int = 20
+    penalty: float = 0.0
+
+    def __post_init__(self):
+        if int(self.max_steps) < 1 or int(self.cg_steps) < 1:
+            raise ValueError(
+                f"max_steps, cg_steps: expected >= 1, got {self.max_steps}, {self.cg_steps}"
+            )
+        for name in ("rtol", "atol"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name}: expected > 0, got {getattr(self, name)}")
+        if not (np.isfinite(self.penalty) and self.penalty >= 0):
+            raise ValueError(f"penalty: expected a finite value >= 0, got {self.penalty}")
+
+
+class FitSolution(eqx.Module):
+    """Result of ``fit_displacements``.
+
+    Attributes:
+        displacements: (H, 3) the chosen displacements (cm); never NaN.
+        shape: (V, 3) the rig's shape with them.
+        error: () mean per-vertex Euclidean error to the target over the region (cm).
+        direct_error: () the same for the starting (direct) displacements.
+        base_error: () the same for zero displacements (the base shape itself).
+        chosen: 0 fitted, 1 direct (start), 2 zero: the lowest error, ties to the lower code.
+        result: the solver's ``optimistix.RESULTS`` (successful or why not).
+        steps: the solver's number of steps.
+    """
+
+    displacements: Float[Array, "H 3"]
+    shape: Float[Array, "V 3"]
+    error: Float[Array, ""]
+    direct_error: Float[Array, ""]
+    base_error: Float[Array, ""]
+    chosen: Int[Array, ""]
+    result: optx.RESULTS
+    steps: Int[Array, ""]
+
+
+def region_error(
+    shape: Float[Array, "V 3"], target: Float[Array, "V 3"], region: Float[Array, " V"]
+) -> Float[Array, ""]:
+    """Mean per-vertex Euclidean distance, weighted by ``region`` (cm)."""
+    distance = jnp.linalg.norm(shape - target, axis=-1)
+    return jnp.sum(distance * region) / jnp.maximum(jnp.sum(region), 1e-12)
+
+
+@eqx.filter_jit
+def fit_displacements(
+    model: AbstractCANRig,
+    queries: Float[Array, "heads V d"],
+    canonical: Float[Array, "V 3"],
+    edit: HandleEdit,
+    target: Float[Array, "V 3"],
+    region: Float[Array, " V"],
+    layout: Layout = DENSE,
+    options: FitOptions = FitOptions(),
+) -> FitSolution:
+    """The handle displacements whose shape best matches ``target``: minimises
+    sum_v region_v ||deform(edit with d)_v - target_v||^2 + penalty ||d||^2 over d with
+    ``optimistix.least_squares`` (Levenberg-Marquardt, ``lineax`` normal CG), started from
+    ``edit.displacements``. Pure and jit/vmap-able; validate with ``NeuralRig.edit``."""
+    shape_of = _differentiable_shape(model, queries, canonical, edit, layout)
+    weight = jnp.sqrt(region)[:, None]
+    root_penalty = jnp.sqrt(jnp.asarray(options.penalty, target.dtype))
+    start = edit.displacements
+    # variables scaled per handle, d = P z with P_h = (J_h^T W J_h + eps I)^(-1/2) at the
+    # start (Jacobi preconditioning of the normal equations: LSMR then needs few iterations)
+    _, blocks = displacement_jacobian(model, queries, canonical, edit, layout)
+    scale = _handle_scaling(blocks, layout, weight[:, 0], start.shape[0])
+
+    def residual(z, args):
+        del args
+        displacements = jnp.einsum("hij,hj->hi", scale, z)
+        return (shape_of(displacements) - target) * weight, root_penalty * displacements
+
+    solver = optx.LevenbergMarquardt(
+        rtol=options.rtol,
+        atol=options.atol,
+        # a fixed number of LSMR iterations per damped step (truncated: tolerances 0)
+        linear_solver=lx.LSMR(rtol=0.0, atol=0.0, max_steps=options.cg_steps),
+    )
+    z0 = jnp.linalg.solve(scale, start[..., None])[..., 0]
+    solution = optx.least_squares(residual, solver, z0, max_steps=options.max_steps, throw=False)
+    value = jnp.einsum("hij,hj->hi", scale, solution.value)
+    fitted = jnp.where(jnp.all(jnp.isfinite(value)), value, start)
+    candidates = jnp.stack([fitted, start, jnp.zeros_like(start)])
+    shapes = jax.vmap(
+        lambda d: deform(model, queries, canonical, edit.with_displacements(d), layout)
+    )(candidates)
+    errors = jax.vmap(region_error, (0, None, None))(shapes, target, region)
+    errors = jnp.where(jnp.isfinite(errors), errors, jnp.inf)
+    chosen = jnp.argmin(errors)
+    return FitSolution(
+        displacements=candidates[chosen],
+        shape=shapes[chosen],
+        error=errors[chosen],
+        direct_error=errors[1],
+        base_error=errors[2],
+        chosen=chosen,
+        result=solution.result,
+        steps=solution.stats["num_steps"],
+    )
+
+
+# --------------------------------------------------------------------------- checks
+
+
+def _check_region(rig: NeuralRig, region, name: str = "region") -> Array:
+    if region is None:
+        return jnp.ones(rig.n_vertices, jnp.float32)
+    region = np.asarray(region)
+    if region.dtype == bool:
+        region = region.astype(np.float32)
+    if region.shape != (rig.n_vertices,):
+        raise ValueError(f"{name}: expected shape ({rig.n_vertices},), got {region.shape}")
+    region = region.astype(np.float32)
+    if not np.all(np.isfinite(region)) or region.min() < 0:
+        raise ValueError(f"{name}: expected finite weights >= 0")
+    if not region.sum() > 0:
+        raise ValueError(f"{name}: selects no vertex (all weights are 0)")
+    return jnp.asarray(region)
+
+
+def _check_clip(rig: NeuralRig, clip, name: str) -> np.ndarray:
+    clip = np.asarray(clip)
+    if clip.ndim != 3 or clip.shape[1:] != (rig.n_vertices, 3) or len(clip) == 0:
+        raise ValueError(
+            f"{name}: expected shape (F, {rig.n_vertices}, 3) with F >= 1 frames, got {clip.shape}"
+        )
+    clip = clip.astype(np.float32)
+    if not np.all(np.isfinite(clip)):
+        raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
+    return clip
+
+
+def direct_displacements(
+    source: Float[ArrayLike, "V 3"], target: Float[ArrayLike, "V 3"], handles: Handles
+) -> np.ndarray:
+    """(H, 3) target[h] - source[h] at the handle vertices (section 7.1)."""
+    index = np.asarray(handles.index)
+    return np.asarray(target, np.float32)[index] - np.asarray(source, np.float32)[index]
+
+
+# --------------------------------------------------------------------------- pose A to B
+
+
+def pose_a_to_b(
+    rig: NeuralRig,
+    handles: Handles,
+    source: Float[ArrayLike, "V 3"],
+    target: Float[ArrayLike, "V 3"],
+    radius: float | Float[ArrayLike, " H"],
+    falloff: float | Float[ArrayLike, " H"],
+    *,
+    fit: bool = False,
+    region: Float[ArrayLike, " V"] | None = None,
+    options: FitOptions = FitOptions(),
+    beta: float | None = None,
+    dense: bool = False,
+) -> FitSolution:
+    """Deform pose A (``source``, the base shape) towards pose B (``target``) with handles:
+    direct (B[h] - A[h], one forward pass) or, with ``fit``, the displacements that best
+    match B over ``region`` (bool or weights (V,), default every vertex). Returns a
+    ``FitSolution`` either way (direct: ``chosen`` 1, ``steps`` 0)."""
+    source = rig.check_base(source, "source")
+    target = rig.check_base(target, "target")
+    region = _check_region(rig, region)
+    edit = rig.edit(
+        handles, direct_displacements(source, target, handles), radius, falloff,
+        base=source, beta=beta,
+    )  # fmt: skip
+    layout = DENSE if dense else rig.layout(handles, radius, falloff)
+    if fit:
+        return fit_displacements(
+            rig.model, rig.queries, rig.canonical, edit, target, region, layout, options
+        )
+    return _direct_solution(rig, edit, target, region, layout)
+
+
+@eqx.filter_jit
+def _direct(model, queries, canonical, edit, target, region, layout):
+    shape = deform(model, queries, canonical, edit, layout)
+    error = region_error(shape, target, region)
+    return shape, error, region_error(edit.base, target, region)
+
+
+def _direct_solution(rig, edit, target, region, layout) -> FitSolution:
+    shape, error, base_error = _direct(
+        rig.model, rig.queries, rig.canonical, edit, target, region, layout
+    )
+    return FitSolution(
+        displacements=edit.displacements,
+        shape=shape,
+        error=error,
+        direct_error=error,
+        base_error=base_error,
+        chosen=jnp.asarray(1),
+        result=optx.RESULTS.successful,
+        steps=jnp.asarray(0),
+    )
+
+
+# --------------------------------------------------------------------------- layers
+
+
+@dataclasses.dataclass(frozen=True)
+class LayerResult:
+    """``iterative_layers``: per layer, its solution (shape, error, displacements)."""
+
+    solutions: tuple[FitSolution, ...]
+
+    @property
+    def errors(self) -> np.ndarray:
+        return np.array([float(s.error) for s in self.solutions])
+
+    @property
+    def shape(self) -> Array:
+        return self.solutions[-1].shape
+
+
+def iterative_layers(
+    rig: NeuralRig,
+    source: Float[ArrayLike, "V 3"],
+    target: Float[ArrayLike, "V 3"],
+    schedule: Sequence[tuple[Handles, float]],
+    falloff: float,
+    *,
+    fit: bool = False,
+    region: Float[ArrayLike, " V"] | None = None,
+    options: FitOptions = FitOptions(),
+) -> LayerResult:
+    """Layered edits (section 7.4): layer i places ``schedule[i] = (handles, radius)`` on the
+    previous layer's output (the first on ``source``) and moves them towards ``target``.
+    With ``fit`` each layer's error is <= the previous one's, exactly (zero displacements
+    reproduce the base, and the fit returns the best of fitted, direct and zero)."""
+    schedule = list(schedule)
+    if not schedule:
+        raise ValueError("schedule: expected at least one (handles, radius) layer")
+    for i, layer in enumerate(schedule):
+        if not (isinstance(layer, tuple) and len(layer) == 2 and isinstance(layer[0], Handles)):
+            raise ValueError(f"schedule[{i}]: expected a (Handles, radius) pair, got {layer!r}")
+    current = rig.check_base(source, "source")
+    solutions = []
+    for handles, radius in schedule:
+        solution = pose_a_to_b(
+            rig, handles, current, target, radius, falloff, fit=fit, region=region,
+            options=options,
+        )  # fmt: skip
+        solutions.append(solution)
+        current = solution.shape
+    return LayerResult(tuple(solutions))
+
+
+# --------------------------------------------------------------------------- clips
+
+
+def smoothstep_fade(n_frames: int, frame: int, half_window: int) -> np.ndarray:
+    """(F,) weight of an edit at ``frame`` faded in and out over ``half_window`` frames on
+    each side: 1 at the frame, smoothstep 3x^2 - 2x^3 of x = 1 - |f - frame| / (half + 1)
+    inside, 0 outside; both ends have zero slope (no velocity jump)."""
+    f = np.arange(n_frames, dtype=np.float64)
+    x = np.clip(1.0 - np.abs(f - frame) / (half_window + 1.0), 0.0, 1.0)
+    return (x * x * (3.0 - 2.0 * x)).astype(np.float32)
+
+
+@eqx.filter_jit
+def _edit_frames(model, queries, canonical, edit, bases, displacements, layout):
+    """deform of one edit over frames: each frame its own base and displacements."""
+
+    def one(base, d):
+        return deform(model, queries, canonical, edit.with_base(base).with_displacements(d), layout)
+
+    return jax.vmap(one)(bases, displacements)
+
+
+@dataclasses.dataclass(frozen=True)
+class ClipEdit:
+    """``clip_edit``: the edited clip (F, V, 3) and the fade weight per frame (F,)."""
+
+    clip: np.ndarray
+    fade: np.ndarray
+    window: tuple[int, int]
+
+
+def clip_edit(
+    rig: NeuralRig,
+    clip: Float[ArrayLike, "F V 3"],
+    frame: int,
+    handles: Handles,
+    displacements: Float[ArrayLike, "H 3"],
+    radius: float | Float[ArrayLike, " H"],
+    falloff: float | Float[ArrayLike, " H"],
+    half_window: int,
+    *,
+    beta: float | None = None,
+) -> ClipEdit:
+    """Edit ``clip`` at ``frame`` with ``displacements`` at the handles, faded in and out
+    over ``half_window`` frames on each side (``smoothstep_fade``), each frame its own base
+    shape (section 7.2). Frames outside the window are the input frames, untouched."""
+    clip = _check_clip(rig, clip, "clip")
+    n = len(clip)
+    if isinstance(frame, bool) or not isinstance(frame, int | np.integer) or not 0 <= frame < n:
+        raise ValueError(f"frame: expected an integer frame index in [0, {n}), got {frame!r}")
+    if isinstance(half_window, bool) or not isinstance(half_window, int | np.integer):
+        raise ValueError(f"half_window: expected an integer >= 0, got {half_window!r}")
+    if half_window < 0 or frame - half_window < 0 or frame + half_window >= n:
+        raise ValueError(
+            f"half_window: the fade window [{frame - half_window}, {frame + half_window}] must "
+            f"lie inside the clip's frames [0, {n - 1}]"
+        )
+    edit = rig.edit(handles, displacements, radius, falloff, base=clip[frame], beta=beta)
+    layout = rig.layout(handles, radius, falloff)
+    fade = smoothstep_fade(n, frame, half_window)
+    lo, hi = frame - half_window, frame + half_window + 1
+    scaled = fade[lo:hi, None, None] * np.asarray(edit.displacements)[None]
+    edited = _edit_frames(
+        rig.model, rig.queries, rig.canonical, edit, jnp.asarray(clip[lo:hi]),
+        jnp.asarray(scaled), layout,
+    )  # fmt: skip
+    out = clip.copy()
+    out[lo:hi] = np.asarray(edited)
+    return ClipEdit(out, fade, (lo, hi - 1))
+
+
+# --------------------------------------------------------------------------- dialogue
+
+
+@eqx.filter_jit
+def _fit_frames(model, queries, canonical, edit, bases, targets, region, layout, options):
+    def one(base, target):
+        index = edit.index
+        start = edit.with_base(base).with_displacements(target[index] - base[index])
+        return fit_displacements(model, queries, canonical, start, target, region, layout, options)
+
+    return jax.vmap(one)(bases, targets)
+
+
+def dialogue_replacement(
+    rig: NeuralRig,
+    source: Float[ArrayLike, "F V 3"],
+    target: Float[ArrayLike, "F V 3"],
+    handles: Handles,
+    radius: float | Float[ArrayLike, " H"],
+    falloff: float | Float[ArrayLike, " H"],
+    *,
+    fit: bool = False,
+    region: Float[ArrayLike, " V"] | None = None,
+    options: FitOptions = FitOptions(),
+    beta: float | None = None,
+) -> np.ndarray:
+    """Replace the mouth of ``source`` with that of ``target`` (section 7.2), frame by frame
+    (``jax.vmap``): handles (around the mouth and chin) move to the target frame's positions,
+    base shape the source frame; with ``fit``, the displacements that best match the target
+    over ``region`` (e.g. a mouth mask). Vertices outside every clamped mask keep the source
+    frame exactly. Returns (F, V, 3)."""
+    source = _check_clip(rig, source, "source")
+    target = _check_clip(rig, target, "target")
+    if source.shape != target.shape:
+        raise ValueError(
+            f"target: expected the source's shape {source.shape} (frame by frame), got "
+            f"{target.shape}"
+        )
+    weights = _check_region(rig, region)
+    index = np.asarray(handles.index)
+    displacements = target[:, index] - source[:, index]
+    edit = rig.edit(handles, displacements[0], radius, falloff, base=source[0], beta=beta)
+    layout = rig.layout(handles, radius, falloff)
+    if fit:
+        solutions = _fit_frames(
+            rig.model, rig.queries, rig.canonical, edit, jnp.asarray(source),
+            jnp.asarray(target), weights, layout, options,
+        )  # fmt: skip
+        return np.asarray(solutions.shape)
+    out = _edit_frames(
+        rig.model, rig.queries, rig.canonical, edit, jnp.asarray(source),
+        jnp.asarray(displacements), layout,
+    )  # fmt: skip
+    return np.asarray(out)
+
+
+def interior_vertices(rig: NeuralRig, region: Float[ArrayLike, " V"], margin: float) -> np.ndarray:
+    """Vertices of the boolean ``region`` (V,) whose geodesic distance to every vertex
+    outside it exceeds ``margin`` (cm): handles there, with ``influence_reach`` <= margin,
+    cannot move anything outside the region."""
+    region = np.asarray(region, bool)
+    if region.shape != (rig.n_vertices,):
+        raise ValueError(f"region: expected shape ({rig.n_vertices},), got {region.shape}")
+    outside = np.flatnonzero(~region)
+    if len(outside) == 0:
+        return np.flatnonzero(region)
+    if not region.any():
+        raise ValueError("region: selects no vertex")
+    if not margin >= 0:
+        raise ValueError(f"margin: expected >= 0, got {margin}")
+    distance = dijkstra(rig.graph, directed=False, indices=outside, min_only=True)
+    return np.flatnonzero(region & (distance > margin))
