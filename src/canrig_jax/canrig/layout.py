@@ -43,7 +43,7 @@ class DenseLayout(eqx.Module):
     def scatter(self, x: Float[Array, "N F"]) -> Float[Array, "N F"]:
         return x
 
-    def sum_handles(self, x: Float[Array, "H *C"], n_handles: int) -> Float[Array, "H *C"]:
+    def sum_handles(self, x: Float[Array, "H ..."], n_handles: int) -> Float[Array, "H ..."]:
         return x
 
 
@@ -88,7 +88,7 @@ class BlockLayout(eqx.Module):
     def scatter(self, x: Float[Array, "B S F"]) -> Float[Array, "V F"]:
         return x.reshape(-1, x.shape[-1])[self.position]
 
-    def sum_handles(self, x: Float[Array, "B W *C"], n_handles: int) -> Float[Array, "H *C"]:
+    def sum_handles(self, x: Float[Array, "B W *C"], n_handles: int) -> Float[Array, "H ..."]:
         """The transpose of ``handles``: per handle, the sum over the blocks listing it."""
         flat = x.reshape(-1, *x.shape[2:])
         return jax.ops.segment_sum(flat, self.chosen.reshape(-1), num_segments=n_handles)
