@@ -23,7 +23,7 @@ import numpy as np
 
 from canrig_jax import wpse
 from canrig_jax.io import save_text
-from canrig_jax.rig import evaluate, ict_linear_rig
+from canrig_jax.rig import evaluate_batch, ict_linear_rig
 from canrig_jax.rig.poses import random_sparse_poses
 from canrig_jax.wpse.reference import time_runtime
 
@@ -49,7 +49,7 @@ def main(argv=None):
     for part, parts in (("face", "face"), ("head", None)):
         rig = ict_linear_rig(parts=parts) if parts is None else ict_linear_rig()
         probe = random_sparse_poses(rng, args.repeats, rig.names)
-        posed = np.asarray(jax.vmap(evaluate, (None, 0))(rig, probe))
+        posed = np.asarray(evaluate_batch(rig, probe))
         for n_edits in (10, 50):
             poses = random_sparse_poses(rng, n_edits, rig.names)
             scale = rng.uniform(-0.1, 0.1, (n_edits, rig.n_blendshapes, 1, 1))

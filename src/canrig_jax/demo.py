@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import jax
 import matplotlib.pyplot as plt
 import numpy as np
 
@@ -21,7 +20,7 @@ from .inverse.metrics import summarize
 from .mesh import DeformationGradientBlend
 from .metrics import CM_TO_MM, per_vertex_distance
 from .render import plot_vertex_scalar, save_figure
-from .rig import evaluate, ict_quartic_rig
+from .rig import evaluate_batch, ict_quartic_rig
 
 
 def main(argv=None) -> None:
@@ -38,8 +37,8 @@ def main(argv=None) -> None:
         f"{report.corner_max_error * CM_TO_MM:.1e} mm"
     )
     capture = load_livelinkface(args.data_dir).weights_for(rig.names, missing="zero")
-    meshes = jax.jit(jax.vmap(evaluate, (None, 0)))
-    quartic, linear = np.asarray(meshes(rig, capture)), np.asarray(meshes(rig.linear(), capture))
+    quartic = np.asarray(evaluate_batch(rig, capture))
+    linear = np.asarray(evaluate_batch(rig.linear(), capture))
     nonlinear = DeformationGradientBlend(rig.neutral, rig.deltas, np.asarray(rig.faces))(capture)
     for name, mesh in (("linear", linear), ("quartic", quartic)):
         err = per_vertex_distance(mesh, nonlinear) * CM_TO_MM

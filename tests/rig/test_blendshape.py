@@ -11,7 +11,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from canrig_jax.rig import BlendshapeRig, Corrective, check_weights, evaluate, load_rig, save_rig
+from canrig_jax.rig import (
+    BlendshapeRig,
+    Corrective,
+    check_weights,
+    evaluate,
+    evaluate_batch,
+    load_rig,
+    save_rig,
+)
 
 HYPOTHESIS = settings(max_examples=20, deadline=None)
 
@@ -147,7 +155,7 @@ def test_zero_weights_give_the_neutral_exactly(rig):
 
 def test_ict_quartic_matches_numpy_at_live_link_frames(ict_quartic, livelink_weights):
     frames = livelink_weights[::12]  # 15 of the 180 frames
-    batch = jax.jit(jax.vmap(evaluate, (None, 0)))(ict_quartic, frames)
+    batch = evaluate_batch(ict_quartic, frames)
     np.testing.assert_allclose(batch, numpy_evaluate(ict_quartic, frames), rtol=0, atol=1e-5)
 
 
@@ -184,7 +192,7 @@ def test_linear_rig_is_neutral_plus_weighted_deltas(ict_quartic, livelink_weight
 
 def test_jit_vmap_equals_a_loop_of_evaluate(ict_quartic, livelink_weights, sparse_poses):
     poses = np.concatenate([livelink_weights[::30], sparse_poses[:6]])
-    batch = jax.jit(jax.vmap(evaluate, (None, 0)))(ict_quartic, poses)
+    batch = evaluate_batch(ict_quartic, poses)
     loop = np.stack([np.asarray(evaluate(ict_quartic, w)) for w in poses])
     assert batch.shape == (len(poses), ict_quartic.n_vertices, 3)
     np.testing.assert_allclose(batch, loop, rtol=0, atol=1e-5)
@@ -391,3 +399,24 @@ def test_save_load_round_trip_without_faces_or_names(small_rig, tmp_path):
     loaded = load_rig(save_rig(tmp_path / "bare.npz", bare))
     assert loaded.faces is None and loaded.names == ()
     _assert_rigs_identical(bare, BlendshapeRig(loaded.neutral, loaded.deltas, loaded.correctives))
+
+
+def test_evaluate_batch_compiles_once_per_shape(ict_quartic, livelink_weights):
+    """Chunks of one size share one compilation whatever the number of poses, and a batch
+    equals evaluate pose by pose."""
+    compiled = []
+
+    def listener(event, duration, fun_name="", **kwargs):
+        if event == "/jax/core/compile/backend_compile_duration" and "evaluate_many" in fun_name:
+            compiled.append(fun_name)
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    frames = livelink_weights[:23]
+    outs = [np.asarray(evaluate_batch(ict_quartic, frames[:n], chunk=8)) for n in (9, 17, 23)]
+    assert len(compiled) <= 1  # one (8, K) program for all three batch sizes (0 if cached)
+    again = len(compiled)
+    evaluate_batch(ict_quartic, frames[:12], chunk=8)
+    assert len(compiled) == again
+    single = np.stack([np.asarray(evaluate(ict_quartic, w)) for w in frames])
+    np.testing.assert_allclose(outs[-1], single, atol=1e-5)
+    np.testing.assert_array_equal(outs[0], outs[-1][:9])

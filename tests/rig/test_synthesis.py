@@ -7,7 +7,6 @@ import dataclasses
 import itertools
 import math
 
-import jax
 import numpy as np
 import pytest
 
@@ -16,7 +15,7 @@ from canrig_jax.rig import (
     MUTUALLY_EXCLUSIVE,
     BlendshapeRig,
     SynthesisOptions,
-    evaluate,
+    evaluate_batch,
     synthesize_correctives,
 )
 
@@ -37,7 +36,7 @@ SUB_SHAPES = (
 # the quad must absorb its remainder.
 SUB_OPTIONS = SynthesisOptions(max_order=4, min_magnitude=(0.075, 0.45, 0.05))
 
-_batch = jax.jit(jax.vmap(evaluate, (None, 0)))
+_batch = evaluate_batch
 
 
 def _corners(combos, k: int) -> np.ndarray:

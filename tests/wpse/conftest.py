@@ -51,14 +51,13 @@ def real_edits(ict_face, livelink_weights, ict_face_blend):
     """Real edits on the ICT face: the deformation-gradient blend minus the linear rig at the
     8 Live Link frames where the linear rig is worst (at least 0.5 apart), and 16 other
     frames with their desired meshes for evaluation."""
-    import jax
 
-    from canrig_jax.rig import evaluate
+    from canrig_jax.rig import evaluate_batch
     from canrig_jax.wpse import select_edit_frames
 
     frames = livelink_weights[::3]  # 60 frames keep the blend cheap
     desired = ict_face_blend(frames).astype(np.float32)
-    linear = np.asarray(jax.vmap(evaluate, (None, 0))(ict_face, frames))
+    linear = np.asarray(evaluate_batch(ict_face, frames))
     error = np.linalg.norm(desired - linear, axis=-1).mean(axis=1)
     chosen = select_edit_frames(error, frames, 8, 0.5)
     rest = np.setdiff1d(np.arange(len(frames)), chosen)

@@ -6,7 +6,7 @@ import jax
 import numpy as np
 import pytest
 
-from canrig_jax.rig import evaluate
+from canrig_jax.rig import evaluate, evaluate_batch
 from canrig_jax.wpse import (
     apply,
     apply_layered,
@@ -40,7 +40,7 @@ def test_duplicated_pose_goes_to_a_new_layer_and_the_later_edit_wins(tiny_rig, t
     edits = np.concatenate([edits, -edits[:1]])  # re-sculpted differently at the same pose
     layered = fit_layered(tiny_rig, poses, edits, sigma=0.4, eta=0.05, layer_sigma=0.02)
     assert layered.n_layers == 2 and layered.assignment[-1] == 1
-    posed = jax.vmap(evaluate, (None, 0))(tiny_rig, poses)
+    posed = evaluate_batch(tiny_rig, poses)
     got = np.asarray(jax.vmap(apply_layered, (None, 0, 0))(layered, poses, posed) - posed)
     scale = np.abs(edits).max()
     np.testing.assert_allclose(got[-1], edits[-1], atol=1e-3 * scale)  # the new sculpt

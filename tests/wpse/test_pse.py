@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from canrig_jax.rig import BlendshapeRig, evaluate
+from canrig_jax.rig import BlendshapeRig, evaluate, evaluate_batch
 from canrig_jax.wpse import (
     apply,
     blendshape_metric,
@@ -67,7 +67,7 @@ def test_edits_reproduced_at_their_poses(tiny_rig, tiny_edits, metric, frames):
     model = fit_pose_space_edit(
         tiny_rig, poses, edits, sigma=0.4, metric=metric, local_frames=frames
     )
-    posed = jax.vmap(evaluate, (None, 0))(tiny_rig, poses)
+    posed = evaluate_batch(tiny_rig, poses)
     got = jax.vmap(apply, (None, 0, 0))(model, poses, posed) - posed
     np.testing.assert_allclose(got, edits, atol=1e-3 * np.abs(edits).max())
 
@@ -195,7 +195,7 @@ def test_time_runtime_passes_and_agreement(tiny_rig, tiny_edits):
     poses, edits = tiny_edits
     model = fit_pose_space_edit(tiny_rig, poses, edits, sigma=0.4)
     weights = np.random.default_rng(3).uniform(0, 1, (4, tiny_rig.n_blendshapes))
-    posed = np.asarray(jax.vmap(evaluate, (None, 0))(tiny_rig, weights.astype(np.float32)))
+    posed = np.asarray(evaluate_batch(tiny_rig, weights.astype(np.float32)))
     timed = time_runtime(model, weights.astype(np.float32), posed, passes=3)
     assert timed["jax_seconds"].shape == timed["numpy_seconds"].shape == (12,)
     assert timed["max_abs_diff"] < 1e-5
@@ -270,11 +270,9 @@ def test_rest_pose_anchor_zeroes_the_correction_at_rest(tiny_rig, tiny_edits):
     np.testing.assert_allclose(
         correction(anchored, rest, posed), 0.0, atol=1e-3 * np.abs(edits).max()
     )
-    at_edits = jax.vmap(apply, (None, 0, 0))(
-        anchored, poses, jax.vmap(evaluate, (None, 0))(tiny_rig, poses)
-    )
+    at_edits = jax.vmap(apply, (None, 0, 0))(anchored, poses, evaluate_batch(tiny_rig, poses))
     np.testing.assert_allclose(
-        at_edits - jax.vmap(evaluate, (None, 0))(tiny_rig, poses),
+        at_edits - evaluate_batch(tiny_rig, poses),
         edits,
         atol=1e-3 * np.abs(edits).max(),
     )
