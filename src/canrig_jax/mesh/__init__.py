@@ -44,6 +44,7 @@ from .transfer import (
     similarity_transform,
     transfer_deltas,
 )
+from .triangulate import triangulate_quads as triangulate_quads
 
 __all__ = [
     "DeformationGradientBlend",

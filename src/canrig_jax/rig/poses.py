@@ -6,7 +6,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .synthesis import MUTUALLY_EXCLUSIVE
+from .synthesis import MUTUALLY_EXCLUSIVE, exclusive_pairs
 
 
 def random_sparse_poses(
@@ -19,15 +19,15 @@ def random_sparse_poses(
     """(n_poses, K) float32 poses with between ``n_active`` active weights, each U(0, 1).
 
     The active set is drawn uniformly without replacement; a set holding both names of an
-    ``exclude`` pair (opposite directions of one control) is redrawn.
+    ``exclude`` pair (opposite directions of one control, matched by canonical ARKit name, so
+    any spelling) is redrawn.
     """
     low, high = n_active
     if not 1 <= low <= high <= len(names):
         raise ValueError(f"n_active: expected 1 <= low <= high <= {len(names)}, got {n_active}")
     if n_poses < 0:
         raise ValueError(f"n_poses: expected >= 0, got {n_poses}")
-    index = {n: i for i, n in enumerate(names)}
-    banned = [(index[a], index[b]) for a, b in exclude if a in index and b in index]
+    banned = exclusive_pairs(names, exclude)
     poses = np.zeros((n_poses, len(names)), np.float32)
     for row in range(n_poses):
         while True:

@@ -26,8 +26,9 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
+from ..data.names import to_arkit
 from ..mesh.deformation_gradient import DeformationGradientBlend
-from .blendshape import BlendshapeRig, Corrective, evaluate
+from .blendshape import UNIT_IN_CM, BlendshapeRig, Corrective, evaluate
 
 MUTUALLY_EXCLUSIVE = (
     ("jawLeft", "jawRight"),
@@ -37,13 +38,40 @@ MUTUALLY_EXCLUSIVE = (
     ("eyeLookIn_L", "eyeLookOut_L"),
     ("eyeLookIn_R", "eyeLookOut_R"),
 )
-"""Opposite directions of one control (ICT/ARKit names): never active together, so no
-corrective is synthesised for them."""
+"""Opposite directions of one control: never active together, so no corrective is synthesised
+for them. Matched by canonical ARKit name (``exclusive_pairs``), so they apply to a rig in
+any spelling (ICT ``eyeLookUp_L``, ARKit ``eyeLookUpLeft``, Unreal ``EyeLookUpLeft``)."""
+
+
+def _canonical(name: str) -> str:
+    try:
+        return to_arkit(name)
+    except ValueError:  # not an ARKit channel (a viseme, a custom shape): its own name
+        return name
+
+
+def exclusive_pairs(
+    names: Sequence[str], exclude: Sequence[tuple[str, str]] = MUTUALLY_EXCLUSIVE
+) -> list[tuple[int, int]]:
+    """Index pairs (i, j) of ``names`` that ``exclude`` forbids, matched by canonical ARKit
+    name; a name split in halves (ICT's ``browInnerUp_L``/``_R``) matches each half."""
+    by_name: dict[str, list[int]] = {}
+    for i, name in enumerate(names):
+        by_name.setdefault(_canonical(name), []).append(i)
+    pairs = set()
+    for a, b in exclude:
+        for i in by_name.get(_canonical(a), []):
+            for j in by_name.get(_canonical(b), []):
+                if i != j:
+                    pairs.add((min(i, j), max(i, j)))
+    return sorted(pairs)
 
 
 @dataclasses.dataclass(frozen=True)
 class SynthesisOptions:
-    """Thresholds of ``synthesize_correctives`` (lengths in rig units; ICT: cm).
+    """Thresholds of ``synthesize_correctives``; lengths in centimetres, converted to the rig's
+    unit (``BlendshapeRig.units``) by ``synthesize_correctives``, so a head in decimetres gets
+    the same physical thresholds as ICT.
 
     Attributes:
         max_order: highest corrective order (2, 3 or 4).
@@ -88,6 +116,20 @@ class SynthesisOptions:
                 raise ValueError(f"{name}: invalid value {value} (finite, in range expected)")
 
 
+def _in_rig_units(options: SynthesisOptions, units: str) -> SynthesisOptions:
+    """``options`` with its centimetre lengths converted to ``units`` (unchanged for cm)."""
+    if units == "cm":
+        return options
+    scale = 1.0 / UNIT_IN_CM[units]
+    return dataclasses.replace(
+        options,
+        support_tol=options.support_tol * scale,
+        min_magnitude=tuple(m * scale for m in options.min_magnitude),
+        combine_min_magnitude=options.combine_min_magnitude * scale,
+        store_tol=options.store_tol * scale,
+    )
+
+
 @dataclasses.dataclass(frozen=True)
 class SynthesisReport:
     """What ``synthesize_correctives`` did.
@@ -111,10 +153,7 @@ def overlapping_pairs(
     """Pairs of blendshapes whose supports share ``min_overlap`` vertices, minus exclusions."""
     support = (np.linalg.norm(deltas, axis=2) > options.support_tol).astype(np.int32)
     shared = support @ support.T
-    index = {n: i for i, n in enumerate(names)}
-    excluded = {
-        frozenset((index[a], index[b])) for a, b in options.exclude if a in index and b in index
-    }
+    excluded = {frozenset(pair) for pair in exclusive_pairs(names, options.exclude)}
     k = deltas.shape[0]
     return [
         (i, j)
@@ -172,6 +211,7 @@ def synthesize_correctives(
     options = options or SynthesisOptions()
     if rig.faces is None:
         raise ValueError("rig: corrective synthesis needs a rig with faces")
+    options = _in_rig_units(options, rig.units)
     start = time.perf_counter()
     neutral = np.asarray(rig.neutral, np.float64)
     deltas = np.asarray(rig.deltas, np.float64)
@@ -222,7 +262,12 @@ def synthesize_correctives(
                 np.array(keep_indices), np.stack(keep_deltas), support_tol=options.store_tol
             )
             current = BlendshapeRig(
-                current.neutral, current.deltas, (*current.correctives, table), rig.names, rig.faces
+                current.neutral,
+                current.deltas,
+                (*current.correctives, table),
+                rig.names,
+                rig.faces,
+                rig.units,
             )
             corners = _corner_weights(keep_indices, k)
             for s in range(0, len(corners), batch_size):
