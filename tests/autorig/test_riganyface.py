@@ -26,10 +26,10 @@ from canrig_jax.autorig import (
     training_set,
     winding_numbers,
 )
-from canrig_jax.autorig.data import INNER_PARTS, head_rig
+from canrig_jax.autorig.data import head_rig
 from canrig_jax.autorig.rig import pad_to_bucket, rig_from_poses
 from canrig_jax.autorig.train import head_inputs
-from canrig_jax.data import load_ict
+from canrig_jax.data import INNER_PARTS, load_ict
 from canrig_jax.rig import evaluate
 from canrig_jax.rig.gltf import export_gltf, load_gltf_rig
 

@@ -29,14 +29,6 @@ from ..mesh.transfer import closest_point_correspondence
 from ..rig.blendshape import BlendshapeRig, evaluate_batch
 from ..rig.transfer import deformation_transfer
 
-INNER_PARTS = ("Teeth", "Gums and tongue", "Eyeball left", "Eyeball right")
-"""Parts that must stay inside the head (the penetration metric)."""
-
-ENCLOSING_PARTS = ("Face", "Head and Neck")
-"""The skin: inner parts must stay inside it (winding number >= 1/2; the mouth and eye
-sockets are left out — they are oriented towards their cavities, which would cancel the
-skin's winding around the teeth)."""
-
 
 @dataclasses.dataclass(frozen=True)
 class PoseSet:

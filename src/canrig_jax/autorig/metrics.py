@@ -73,7 +73,7 @@ def outside_fraction(
 def penetration(head, displacements: np.ndarray, part_names) -> float:
     """Mean over poses of the fraction of inner-part vertices (teeth, gums, eyeballs) outside
     the skin (face, head and neck) of ``head`` posed by ``displacements`` (P, V, 3)."""
-    from .data import ENCLOSING_PARTS, INNER_PARTS
+    from ..data.ict import ENCLOSING_PARTS, INNER_PARTS
 
     index = lambda parts: [list(part_names).index(p) for p in parts]  # noqa: E731
     inner = np.isin(head.parts, index(INNER_PARTS))

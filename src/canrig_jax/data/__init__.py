@@ -1,8 +1,10 @@
 """Loaders for the real assets in the shared data folder (ICT, Live Link Face, MediaPipe)."""
 
 from .ict import (
+    ENCLOSING_PARTS,
     FACE,
     ICT_PARTS,
+    INNER_PARTS,
     ICTFaceModel,
     ict_identity,
     load_ict,
@@ -16,10 +18,12 @@ from .paths import ENV_VAR, resolve_data_dir
 
 __all__ = [
     "ARKIT_NAMES",
+    "ENCLOSING_PARTS",
     "ENV_VAR",
     "FACE",
     "ICT_PARTS",
     "ICTFaceModel",
+    "INNER_PARTS",
     "LiveLinkCapture",
     "MediaPipeFace",
     "RetargetReport",

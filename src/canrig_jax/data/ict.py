@@ -53,6 +53,15 @@ it covers the 26,719 vertices of the ICT Face Model v1 head.
 """
 
 
+INNER_PARTS = ("Teeth", "Gums and tongue", "Eyeball left", "Eyeball right")
+"""Parts that must stay inside the head (what a penetration metric checks)."""
+
+ENCLOSING_PARTS = ("Face", "Head and Neck")
+"""The skin: inner parts must stay inside it (winding number >= 1/2; the mouth and eye
+sockets are left out — they are oriented towards their cavities, which would cancel the
+skin's winding around the teeth)."""
+
+
 @dataclasses.dataclass(frozen=True)
 class ICTFaceModel:
     """The ICT Face Model (or a part selection of it) as host NumPy arrays, centimetres.
