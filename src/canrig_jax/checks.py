@@ -21,4 +21,23 @@ def check_finite(name: str, x) -> None:
         raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
 
 
-__all__ = ["check_finite", "is_concrete"]
+def check_real(name: str, x) -> None:
+    """TypeError naming ``name`` unless ``x`` (an array, traced or not, or array-like) holds
+    real numbers: integers, floats or booleans; not complex numbers, strings or objects."""
+    dtype = x.dtype if hasattr(x, "dtype") else np.asarray(x).dtype
+    if np.issubdtype(dtype, np.complexfloating) or not (
+        np.issubdtype(dtype, np.number) or np.issubdtype(dtype, np.bool_)
+    ):
+        raise TypeError(f"{name}: expected real numbers, got dtype {dtype}")
+
+
+def native(x: np.ndarray) -> np.ndarray:
+    """A NumPy array in the machine's byte order, contiguous (JAX rejects big-endian arrays
+    and stages strided ones through a compiled copy)."""
+    x = np.ascontiguousarray(x)
+    if x.dtype.byteorder not in ("=", "|"):
+        x = x.astype(x.dtype.newbyteorder("="))
+    return x
+
+
+__all__ = ["check_finite", "check_real", "is_concrete", "native"]

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ..checks import is_concrete
+from ..checks import check_real, is_concrete
 from ..mesh.operators import MeshOperators
 
 
@@ -23,8 +23,7 @@ def heat_kernel_signature(
         values = np.asarray(times)
         if values.ndim != 1 or values.size == 0:
             raise ValueError(f"times: expected a non-empty 1-D array, got shape {values.shape}")
-        if not np.issubdtype(values.dtype, np.number) or np.iscomplexobj(values):
-            raise TypeError(f"times: expected real numbers, got dtype {values.dtype}")
+        check_real("times", values)
         if not np.all(np.isfinite(values)) or np.any(values < 0):
             raise ValueError(f"times: expected finite diffusion times >= 0, got min {values.min()}")
     decay = jnp.exp(-operators.eigenvalues[None, :] * jnp.asarray(times)[:, None])  # (T, k)

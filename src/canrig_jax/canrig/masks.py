@@ -17,11 +17,11 @@ arrays, so radii and falloffs change per call without recompiling.
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ..checks import check_real, is_concrete
 from ..mesh.geodesic import edge_graph, mesh_edges, weighted_geodesic_distance
 
 __all__ = [
@@ -50,8 +50,7 @@ def correlation_edge_factor(faces: np.ndarray, shapes: np.ndarray) -> np.ndarray
     coordinates. Floored at ``MIN_EDGE_FACTOR`` so every edge keeps a positive weight.
     """
     shapes = np.asarray(shapes)
-    if not np.issubdtype(shapes.dtype, np.number) or np.iscomplexobj(shapes):
-        raise TypeError(f"shapes: expected real numbers, got dtype {shapes.dtype}")
+    check_real("shapes", shapes)
     shapes = shapes.astype(np.float64)
     if shapes.ndim != 3 or shapes.shape[2] != 3 or shapes.shape[0] < 2:
         raise ValueError(f"shapes: expected shape (N >= 2, V, 3), got {shapes.shape}")
@@ -101,8 +100,7 @@ def check_handle_parameters(radius, falloff, n_handles: int) -> tuple[np.ndarray
     out = []
     for name, value in (("radius", radius), ("falloff", falloff)):
         arr = np.asarray(value)
-        if not np.issubdtype(arr.dtype, np.number) or np.iscomplexobj(arr):
-            raise TypeError(f"{name}: expected real numbers, got dtype {arr.dtype}")
+        check_real(name, arr)
         arr = arr.astype(np.float32)
         if arr.ndim > 1 or (arr.ndim == 1 and arr.shape[0] != n_handles):
             raise ValueError(f"{name}: expected a scalar or shape ({n_handles},), got {arr.shape}")
@@ -112,28 +110,20 @@ def check_handle_parameters(radius, falloff, n_handles: int) -> tuple[np.ndarray
     return out[0], out[1]
 
 
-def _concrete(x) -> np.ndarray | None:
-    """``x`` as a NumPy array, or None when it is traced (inside jit, vmap or grad)."""
-    if isinstance(x, jax.core.Tracer):
-        return None
-    return np.asarray(x)
-
-
 def _check_mask_inputs(distance, radius, falloff, clamp) -> None:
-    d = _concrete(distance)
-    if d is not None and d.size:
-        if not np.issubdtype(d.dtype, np.floating) and not np.issubdtype(d.dtype, np.integer):
-            raise TypeError(f"distance: expected real numbers, got dtype {d.dtype}")
+    """The checks of ``influence_mask`` on its concrete (non-traced) arguments."""
+    if is_concrete(distance):
+        check_real("distance", distance)
+        d = np.asarray(distance)
         if np.any(np.isnan(d)):
             raise ValueError("distance: contains NaN (unreachable vertices should be inf)")
         if np.any(d < 0):
             raise ValueError(f"distance: expected distances >= 0, got min {d.min()}")
     for name, value in (("radius", radius), ("falloff", falloff)):
-        v = _concrete(value)
-        if v is not None and v.size:
-            if not np.issubdtype(v.dtype, np.floating) and not np.issubdtype(v.dtype, np.integer):
-                raise TypeError(f"{name}: expected real numbers, got dtype {v.dtype}")
-            if not np.all(np.isfinite(v)) or not np.all(v > 0):
+        if is_concrete(value):
+            check_real(name, value)
+            v = np.asarray(value)
+            if v.size and (not np.all(np.isfinite(v)) or not np.all(v > 0)):
                 raise ValueError(f"{name}: expected finite values > 0, got min {v.min()}")
-    if not (isinstance(clamp, jax.core.Tracer) or (np.isfinite(clamp) and 0 <= clamp < 1)):
+    if is_concrete(clamp) and not (np.isfinite(clamp) and 0 <= clamp < 1):
         raise ValueError(f"clamp: expected a value in [0, 1), got {clamp}")

@@ -19,6 +19,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ..checks import check_real
+
 ARKIT_NAMES: tuple[str, ...] = (
     "eyeBlinkLeft", "eyeLookDownLeft", "eyeLookInLeft", "eyeLookOutLeft", "eyeLookUpLeft",
     "eyeSquintLeft", "eyeWideLeft",
@@ -129,8 +131,7 @@ def retarget_weights(
             f"weights: expected shape (..., {len(source)}) to match source_names, "
             f"got {weights.shape}"
         )
-    if not np.issubdtype(weights.dtype, np.number) or np.iscomplexobj(weights):
-        raise TypeError(f"weights: expected real numbers, got dtype {weights.dtype}")
+    check_real("weights", weights)
     if not np.all(np.isfinite(weights)):
         raise ValueError("weights: contains non-finite values")
 

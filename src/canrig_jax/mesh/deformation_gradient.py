@@ -36,6 +36,7 @@ import scipy.sparse.linalg as spla
 from jaxtyping import Array, Float
 
 from ..cache import mesh_fingerprint
+from ..checks import check_real
 from .checks import check_mesh
 
 _EDGES = ((0, 1), (1, 2), (2, 0))
@@ -154,8 +155,7 @@ class DeformationGradientBlend:
             raise ValueError(
                 f"deltas: expected shape (K, {neutral.shape[0]}, 3) with K >= 1, got {deltas.shape}"
             )
-        if not np.issubdtype(deltas.dtype, np.number) or np.iscomplexobj(deltas):
-            raise TypeError(f"deltas: expected real numbers, got dtype {deltas.dtype}")
+        check_real("deltas", deltas)
         deltas = deltas.astype(np.float64)
         if not np.all(np.isfinite(deltas)):
             raise ValueError("deltas: contains non-finite values")
@@ -217,8 +217,7 @@ class DeformationGradientBlend:
 
     def __call__(self, weights: np.ndarray, batch_size: int = 64) -> np.ndarray:
         weights = np.asarray(weights)
-        if not np.issubdtype(weights.dtype, np.number) or np.iscomplexobj(weights):
-            raise TypeError(f"weights: expected real numbers, got dtype {weights.dtype}")
+        check_real("weights", weights)
         weights = weights.astype(np.float64)
         single = weights.ndim == 1
         weights = np.atleast_2d(weights)

@@ -36,6 +36,7 @@ import scipy.sparse.linalg as spla
 from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
+from ..checks import check_real
 from .deformation_gradient import triangle_frames
 from .operators import check_mesh
 from .remesh import SurfaceMap, closest_surface_points, vertex_surface_map
@@ -293,8 +294,7 @@ def transfer_deltas(
     tv = np.asarray(target_neutral)
     if tv.ndim != 2 or tv.shape[1] != 3:
         raise ValueError(f"target_neutral: expected shape (V, 3), got {tv.shape}")
-    if not np.issubdtype(tv.dtype, np.number) or np.iscomplexobj(tv):
-        raise TypeError(f"target_neutral: expected real numbers, got dtype {tv.dtype}")
+    check_real("target_neutral", tv)
     tv = tv.astype(np.float64)
     if not np.all(np.isfinite(tv)):
         raise ValueError("target_neutral: contains non-finite positions")

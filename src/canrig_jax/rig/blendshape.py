@@ -24,9 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
+from ..checks import check_finite, check_real, is_concrete, native
 
 
 def _real_array(name: str, x, integer: bool = False):
@@ -35,17 +33,10 @@ def _real_array(name: str, x, integer: bool = False):
     Integer and boolean positions become float32 (an int32 rig would truncate the weights);
     complex numbers, strings and objects raise TypeError naming ``name``; with ``integer``
     the values must already be integers (indices are never rounded silently)."""
-    if isinstance(x, jax.Array):
-        dtype = x.dtype
-    else:
-        x = np.ascontiguousarray(x)  # a strided view would be staged through a jit copy
-        if x.dtype.byteorder not in ("=", "|"):
-            x = x.astype(x.dtype.newbyteorder("="))
-        dtype = x.dtype
-    if np.issubdtype(dtype, np.complexfloating) or not (
-        np.issubdtype(dtype, np.number) or np.issubdtype(dtype, np.bool_)
-    ):
-        raise TypeError(f"{name}: expected real numbers, got dtype {dtype}")
+    if not isinstance(x, jax.Array):
+        x = native(np.asarray(x))
+    check_real(name, x)
+    dtype = x.dtype
     if integer:
         if not (np.issubdtype(dtype, np.integer) or (x.size == 0)):
             raise TypeError(f"{name}: expected integer indices, got dtype {dtype}")
@@ -63,9 +54,8 @@ UNIT_IN_CM = {"mm": 0.1, "cm": 1.0, "dm": 10.0, "m": 100.0}
 """Length of one rig unit in centimetres, for ``BlendshapeRig.units``."""
 
 
-def _check_finite(name: str, x) -> None:
-    if _is_concrete(x) and not bool(np.all(np.isfinite(np.asarray(x)))):
-        raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
+_check_finite = check_finite
+"""The shared check under its former private name (until every importer uses ``checks``)."""
 
 
 class Corrective(eqx.Module):
@@ -95,15 +85,15 @@ class Corrective(eqx.Module):
                 f"deltas: expected shape (C, S, 3) = ({c}, {s}, 3) to match indices and "
                 f"vertices, got {self.deltas.shape}"
             )
-        if _is_concrete(self.indices) and c:
+        if is_concrete(self.indices) and c:
             rows = np.sort(np.asarray(self.indices), axis=1)
             if np.any(rows[:, 1:] == rows[:, :-1]):
                 bad = np.flatnonzero(np.any(rows[:, 1:] == rows[:, :-1], axis=1))[:5]
                 raise ValueError(f"indices: rows {bad.tolist()} repeat a blendshape index")
-        if _is_concrete(self.vertices) and s:
+        if is_concrete(self.vertices) and s:
             if np.any(np.diff(np.asarray(self.vertices)) <= 0):
                 raise ValueError("vertices: support vertices must be strictly increasing")
-        _check_finite("deltas", self.deltas)
+        check_finite("deltas", self.deltas)
 
     @property
     def order(self) -> int:
@@ -173,20 +163,20 @@ class BlendshapeRig(eqx.Module):
             )
         if len(set(self.names)) != len(self.names):
             raise ValueError("names: blendshape names must be distinct")
-        _check_finite("neutral", self.neutral)
-        _check_finite("deltas", self.deltas)
+        check_finite("neutral", self.neutral)
+        check_finite("deltas", self.deltas)
         orders = [c.order for c in self.correctives]
         if len(set(orders)) != len(orders):
             raise ValueError(f"correctives: one table per order expected, got orders {orders}")
         for c in self.correctives:
-            if _is_concrete(c.indices) and c.indices.size:
+            if is_concrete(c.indices) and c.indices.size:
                 lo, hi = int(np.min(np.asarray(c.indices))), int(np.max(np.asarray(c.indices)))
                 if lo < 0 or hi >= k:
                     raise ValueError(
                         f"correctives: order-{c.order} indices must lie in [0, {k}), "
                         f"found range [{lo}, {hi}]"
                     )
-            if _is_concrete(c.vertices) and c.vertices.size:
+            if is_concrete(c.vertices) and c.vertices.size:
                 lo, hi = int(np.min(np.asarray(c.vertices))), int(np.max(np.asarray(c.vertices)))
                 if lo < 0 or hi >= v:
                     raise ValueError(
@@ -196,7 +186,7 @@ class BlendshapeRig(eqx.Module):
         if self.faces is not None:
             if self.faces.ndim != 2 or self.faces.shape[1] != 3:
                 raise ValueError(f"faces: expected shape (F, 3), got {self.faces.shape}")
-            if _is_concrete(self.faces) and self.faces.size:
+            if is_concrete(self.faces) and self.faces.size:
                 lo, hi = int(np.min(np.asarray(self.faces))), int(np.max(np.asarray(self.faces)))
                 if lo < 0 or hi >= v:
                     raise ValueError(
@@ -235,20 +225,14 @@ class BlendshapeRig(eqx.Module):
 
 def check_weights(rig: BlendshapeRig, weights) -> None:
     """Validate a weight vector against a rig (shape, and finiteness when concrete)."""
-    dtype = getattr(weights, "dtype", None)
-    if dtype is None:
-        dtype = np.asarray(weights).dtype
-    if np.issubdtype(dtype, np.complexfloating) or not (
-        np.issubdtype(dtype, np.number) or np.issubdtype(dtype, np.bool_)
-    ):
-        raise TypeError(f"weights: expected real numbers, got dtype {dtype}")
+    check_real("weights", weights)
     shape = jnp.shape(weights)
     if shape != (rig.n_blendshapes,):
         raise ValueError(
             f"weights: expected shape ({rig.n_blendshapes},) for a rig with "
             f"{rig.n_blendshapes} blendshapes, got {shape}; batch with jax.vmap"
         )
-    _check_finite("weights", weights)
+    check_finite("weights", weights)
 
 
 def combination_coefficients(
@@ -265,8 +249,8 @@ def evaluate(rig: BlendshapeRig, weights: Float[ArrayLike, " K"]) -> Float[Array
     Raises ValueError (before any tracing) for a wrong shape or non-finite weights.
     """
     check_weights(rig, weights)
-    if isinstance(weights, np.ndarray) and weights.dtype.byteorder not in ("=", "|"):
-        weights = weights.astype(weights.dtype.newbyteorder("="))
+    if isinstance(weights, np.ndarray):
+        weights = native(weights)
     weights = jnp.asarray(weights, rig.deltas.dtype)
     mesh = rig.neutral + jnp.tensordot(weights, rig.deltas, axes=1)
     for table in rig.correctives:
@@ -306,14 +290,8 @@ def evaluate_batch(
         raise ValueError(f"chunk: expected a positive integer or None, got {chunk!r}")
     traced = isinstance(poses, jax.core.Tracer)
     if not traced:
-        poses = np.asarray(poses)
-        if poses.dtype.byteorder not in ("=", "|"):
-            poses = poses.astype(poses.dtype.newbyteorder("="))
-    dtype = poses.dtype
-    if np.issubdtype(dtype, np.complexfloating) or not (
-        np.issubdtype(dtype, np.number) or np.issubdtype(dtype, np.bool_)
-    ):
-        raise TypeError(f"poses: expected real numbers, got dtype {dtype}")
+        poses = native(np.asarray(poses))
+    check_real("poses", poses)
     if poses.ndim != 2 or poses.shape[1] != rig.n_blendshapes:
         raise ValueError(
             f"poses: expected shape (N, {rig.n_blendshapes}) for a rig with "

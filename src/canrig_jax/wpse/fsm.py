@@ -18,6 +18,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from jaxtyping import ArrayLike, Float, Int
 
+from ..checks import check_real
 from ..rig.blendshape import BlendshapeRig, Corrective, evaluate_batch
 from ..rig.synthesis import MUTUALLY_EXCLUSIVE
 
@@ -103,8 +104,7 @@ def fix_shape_rig(
             f"sculpt: expected meshes of shape ({triggers.shape[0]}, {rig.n_vertices}, 3), "
             f"got {desired.shape}"
         )
-    if not np.issubdtype(desired.dtype, np.number) or np.iscomplexobj(desired):
-        raise TypeError(f"sculpt: returned {desired.dtype} meshes, expected real numbers")
+    check_real("sculpt", desired)
     desired = desired.astype(np.float32)
     if not np.all(np.isfinite(desired)):
         bad = np.flatnonzero(~np.all(np.isfinite(desired), axis=(1, 2)))[:5]
