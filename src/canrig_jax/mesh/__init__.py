@@ -3,7 +3,7 @@
 The layer above ``data``: it knows arrays (vertices, faces, per-vertex data) and nothing of
 rigs; ``canrig_jax.rig`` builds rigs from it."""
 
-from .checks import check_mesh
+from .checks import check_mesh, check_vertices
 from .deformation_gradient import (
     DeformationGradientBlend,
     FallbackCounts,
@@ -68,6 +68,7 @@ __all__ += [
     "SurfaceMap",
     "TriangleCorrespondence",
     "check_mesh",
+    "check_vertices",
     "closest_point_correspondence",
     "closest_surface_points",
     "decimate",

@@ -13,7 +13,7 @@ import scipy.sparse as sp
 from jaxtyping import ArrayLike
 from scipy.sparse.csgraph import dijkstra
 
-from .checks import check_mesh
+from .checks import check_mesh, check_vertices
 
 MIN_EDGE_LENGTH = 1e-12
 """csgraph treats stored zeros as missing edges: lengths are floored at this."""
@@ -98,15 +98,7 @@ def farthest_point_vertices(
     mesh: then both lips and both eyelids get their share although they touch in 3D. Another
     connected component is infinitely far, so each component gets a point first.
     """
-    vertices = np.asarray(vertices)
-    if vertices.ndim != 2 or vertices.shape[1] != 3:
-        raise ValueError(f"vertices: expected shape (V, 3), got {vertices.shape}")
-    if not np.issubdtype(vertices.dtype, np.number) or np.iscomplexobj(vertices):
-        raise ValueError(f"vertices: expected real numbers, got dtype {vertices.dtype}")
-    vertices = vertices.astype(np.float64)
-    if not np.all(np.isfinite(vertices)):
-        bad = np.flatnonzero(~np.all(np.isfinite(vertices), axis=1))[:5]
-        raise ValueError(f"vertices: non-finite positions at vertices {bad.tolist()}")
+    vertices = check_vertices(vertices)
     if isinstance(n, bool) or not isinstance(n, int | np.integer):
         raise TypeError(f"n: expected an integer count, got {n!r}")
     if not 1 <= n <= len(vertices):
