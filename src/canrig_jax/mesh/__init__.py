@@ -3,12 +3,11 @@
 The layer above ``data``: it knows arrays (vertices, faces, per-vertex data) and nothing of
 rigs; ``canrig_jax.rig`` builds rigs from it."""
 
+from ..cache import mesh_fingerprint
 from .checks import check_mesh, check_vertices
 from .deformation_gradient import (
     DeformationGradientBlend,
     FallbackCounts,
-    deformation_gradient_blend,
-    mesh_fingerprint,
     triangle_edges,
     triangle_frames,
 )
@@ -50,7 +49,6 @@ __all__ = [
     "DeformationGradientBlend",
     "FallbackCounts",
     "connected_components",
-    "deformation_gradient_blend",
     "edge_graph",
     "farthest_point_vertices",
     "mesh_edges",

@@ -35,7 +35,6 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from jaxtyping import Array, Float
 
-from ..cache import mesh_fingerprint
 from ..checks import check_real
 from .checks import check_mesh
 
@@ -251,22 +250,3 @@ class DeformationGradientBlend:
         )
         correction = self._solve(self._difference.T @ mismatch)
         return np.moveaxis(linear + correction.reshape(self.n_vertices, batch, 3), 1, 0)
-
-
-_BLEND_CACHE: dict[str, DeformationGradientBlend] = {}
-
-
-def deformation_gradient_blend(rig, weights: np.ndarray, **options) -> np.ndarray:
-    """Nonlinear blend of ``rig``'s blendshapes at ``weights`` (K,) or (B, K).
-
-    The rig must carry ``faces``. The prefactorised blend is cached in memory per mesh.
-    Returns (V, 3) or (B, V, 3) float64 vertices in rig units.
-    """
-    if rig.faces is None:
-        raise ValueError("rig: deformation_gradient_blend needs a rig with faces")
-    arrays = [np.asarray(rig.neutral), np.asarray(rig.deltas), np.asarray(rig.faces)]
-    key = mesh_fingerprint(*arrays) + repr(sorted(options.items()))
-    if key not in _BLEND_CACHE:
-        _BLEND_CACHE.clear()
-        _BLEND_CACHE[key] = DeformationGradientBlend(*arrays, **options)
-    return _BLEND_CACHE[key](weights)

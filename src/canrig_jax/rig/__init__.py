@@ -11,6 +11,7 @@ from .blendshape import (
 )
 from .ict_quartic import ict_linear_rig, ict_quartic_rig
 from .io import load_rig, save_rig
+from .nonlinear import deformation_gradient_blend
 from .synthesis import (
     MUTUALLY_EXCLUSIVE,
     SynthesisOptions,
@@ -28,6 +29,7 @@ __all__ = [
     "SynthesisReport",
     "check_weights",
     "combination_coefficients",
+    "deformation_gradient_blend",
     "deformation_transfer",
     "evaluate",
     "evaluate_batch",
