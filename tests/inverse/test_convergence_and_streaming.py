@@ -95,3 +95,19 @@ def test_lmmm_on_a_rig_without_correctives_reaches_the_convex_minimum(ict_face, 
     lmmm_value, minimum = np.asarray(lmmm.objective), np.asarray(cd.objective)
     # MM with a spectral-norm majoriser is a first-order method: close, from above
     assert np.all(lmmm_value >= minimum * (1 - 1e-5)) and np.all(lmmm_value <= minimum * (1 + 1e-3))
+
+
+def test_converged_quartic_cd_reaches_an_independent_float64_lbfgsb_minimum(
+    ict_quartic_problem, noisy
+):
+    """SciPy's float64 L-BFGS-B from zero on the same objective (``reference.minimum``,
+    gradient written out independently) finds no lower value than converged QuarticCD."""
+    from canrig_jax.inverse.reference import minimum
+
+    problem, alpha = ict_quartic_problem, 5.0
+    for target in noisy[:2]:
+        cd = inverse.solve(problem, target, inverse.QuarticCD(alpha=alpha))
+        best = minimum(problem, target, alpha)
+        offset = (np.asarray(target) - np.asarray(problem.neutral)).ravel()
+        value = float(inverse.objective(problem, best.astype(np.float32), offset, alpha))
+        assert float(cd.objective) <= value * (1 + 2e-5), (float(cd.objective), value)

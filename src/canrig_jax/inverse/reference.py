@@ -212,3 +212,53 @@ def measure_reference(
         "speedup": numpy_seconds / jax_seconds,
         "max_weight_difference": float(difference.max()),
     }
+
+
+def minimum(
+    problem: InverseProblem,
+    target: np.ndarray,
+    alpha: float,
+    upper: float = 1.0,
+    init: np.ndarray | None = None,
+) -> np.ndarray:
+    """(K,) float64 minimiser of 1/2 ||f(w) - b||^2 + alpha 1^T w on [0, upper]^K by SciPy's
+    L-BFGS-B (float64, tight tolerances), independently of the library's solvers: the
+    objective in coefficient space from the problem's Gram matrix, its gradient written out
+    by the product rule, dE/dw_i = sum_{columns c containing i} (Q a - p)_c prod_{j in c, j != i}
+    w_j + alpha. Used as "the minimum of the same objective" in the convergence table."""
+    from scipy.optimize import minimize
+
+    gram = np.asarray(problem.gram, np.float64)
+    rows = np.asarray(problem.columns, np.float64)
+    offset = (np.asarray(target, np.float64) - np.asarray(problem.neutral, np.float64)).ravel()
+    projection, offset_sq = rows @ offset, offset @ offset
+    tables = [np.asarray(c) for c in problem.combinations]
+    k = problem.n_blendshapes
+
+    def coefficients(w):
+        return np.concatenate([w, *(np.prod(w[t], axis=1) for t in tables)])
+
+    def fun(w):
+        a = coefficients(w)
+        residual = gram @ a - projection
+        value = 0.5 * (a @ gram @ a - 2 * a @ projection + offset_sq) + alpha * w.sum()
+        grad = residual[:k] + alpha
+        column = k
+        for t in tables:
+            r = residual[column : column + len(t)]
+            for j in range(t.shape[1]):
+                others = np.prod(np.delete(w[t], j, axis=1), axis=1)
+                np.add.at(grad, t[:, j], r * others)
+            column += len(t)
+        return value, grad
+
+    start = np.zeros(k) if init is None else np.clip(np.asarray(init, np.float64), 0, upper)
+    result = minimize(
+        fun,
+        start,
+        jac=True,
+        method="L-BFGS-B",
+        bounds=[(0.0, upper)] * k,
+        options={"maxiter": 5000, "ftol": 1e-13, "gtol": 1e-8},
+    )
+    return result.x
