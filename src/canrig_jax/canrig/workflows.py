@@ -119,8 +119,11 @@ def apply_jacobian(
     return layout.scatter(jnp.matmul(flat, local).reshape(*blocks.shape[:-4], -1, 3))
 
 
-def _differentiable_shape(model, queries, canonical, edit: HandleEdit, layout: Layout):
-    """d -> deform(edit with displacements d), with the structured Jacobian as its JVP."""
+def _differentiable_shape(
+    model, queries, canonical, edit: HandleEdit, layout: Layout, frozen_blocks=None
+):
+    """d -> deform(edit with displacements d), with the structured Jacobian as its JVP; with
+    ``frozen_blocks``, that Jacobian (taken at the start) stands in for the exact one."""
 
     @jax.custom_jvp
     def shape(displacements):
@@ -129,9 +132,11 @@ def _differentiable_shape(model, queries, canonical, edit: HandleEdit, layout: L
     @shape.defjvp
     def shape_jvp(primals, tangents):
         (displacements,), (tangent,) = primals, tangents
-        out, blocks = displacement_jacobian(
-            model, queries, canonical, edit.with_displacements(displacements), layout
-        )
+        moved = edit.with_displacements(displacements)
+        if frozen_blocks is None:
+            out, blocks = displacement_jacobian(model, queries, canonical, moved, layout)
+        else:
+            out, blocks = deform(model, queries, canonical, moved, layout), frozen_blocks
         return out, apply_jacobian(blocks, tangent, layout)
 
     return shape
@@ -160,13 +165,16 @@ class FitOptions:
     ``rtol``/``atol`` stop the outer solve (relative/absolute change of the displacements,
     cm); ``cg_steps`` caps the CG iterations of each damped Gauss-Newton step (the step is
     then inexact, which the trust region absorbs); ``penalty`` weighs ||d||^2 (cm^2 per
-    cm^2 of mesh error)."""
+    cm^2 of mesh error). ``exact_jacobian=False`` keeps the Jacobian of the start for every
+    step (faster; the trust region still only accepts steps that lower the true objective,
+    but the solve then stops where J_start^T r = 0, near the true minimum)."""
 
-    max_steps: int = 6
+    max_steps: int = 8
     rtol: float = 1e-3
     atol: float = 1e-4
-    cg_steps: int = 20
+    cg_steps: int = 15
     penalty: float = 0.0
+    exact_jacobian: bool = False
 
     def __post_init__(self):
         if int(self.max_steps) < 1 or int(self.cg_steps) < 1:
@@ -227,7 +235,6 @@ def fit_displacements(
     sum_v region_v ||deform(edit with d)_v - target_v||^2 + penalty ||d||^2 over d with
     ``optimistix.least_squares`` (Levenberg-Marquardt, ``lineax`` normal CG), started from
     ``edit.displacements``. Pure and jit/vmap-able; validate with ``NeuralRig.edit``."""
-    shape_of = _differentiable_shape(model, queries, canonical, edit, layout)
     weight = jnp.sqrt(region)[:, None]
     root_penalty = jnp.sqrt(jnp.asarray(options.penalty, target.dtype))
     start = edit.displacements
@@ -235,6 +242,8 @@ def fit_displacements(
     # start (Jacobi preconditioning of the normal equations: LSMR then needs few iterations)
     _, blocks = displacement_jacobian(model, queries, canonical, edit, layout)
     scale = _handle_scaling(blocks, layout, weight[:, 0], start.shape[0])
+    frozen = None if options.exact_jacobian else blocks
+    shape_of = _differentiable_shape(model, queries, canonical, edit, layout, frozen)
 
     def residual(z, args):
         del args
@@ -562,3 +571,36 @@ def interior_vertices(rig: NeuralRig, region: Float[ArrayLike, " V"], margin: fl
         raise ValueError(f"margin: expected >= 0, got {margin}")
     distance = dijkstra(rig.graph, directed=False, indices=outside, min_only=True)
     return np.flatnonzero(region & (distance > margin))
+
+
+def expression_region(
+    rig,
+    include: Sequence[str] = ("jaw", "mouth"),
+    exclude: Sequence[str] = ("eye", "brow"),
+    threshold: float = 0.1,
+) -> np.ndarray:
+    """(V,) bool: the vertices that some expression whose name starts with one of
+    ``include`` moves by more than ``threshold`` (rig units; ICT: 0.1 cm = 1 mm) and that no
+    expression starting with one of ``exclude`` moves that much. On ICT the default is the
+    mouth region: lips, chin, jaw line and cheeks, without the eyelids."""
+    names = tuple(rig.names)
+    deltas = np.asarray(rig.deltas)
+    moved = np.linalg.norm(deltas, axis=-1) > threshold  # (K, V)
+
+    def any_of(prefixes):
+        rows = [i for i, n in enumerate(names) if n.startswith(tuple(prefixes))]
+        return moved[rows].any(axis=0) if rows else np.zeros(deltas.shape[1], bool)
+
+    if not any(n.startswith(tuple(include)) for n in names):
+        raise ValueError(f"include: no expression of the rig starts with {tuple(include)}")
+    return any_of(include) & ~any_of(exclude)
+
+
+def max_acceleration(clip: Float[ArrayLike, "F V 3"]) -> float:
+    """The largest per-vertex second difference ||x_{f+1} - 2 x_f + x_{f-1}|| of a clip
+    (units per frame^2); 0 for fewer than 3 frames."""
+    clip = np.asarray(clip, np.float64)
+    if len(clip) < 3:
+        return 0.0
+    second = clip[2:] - 2.0 * clip[1:-1] + clip[:-2]
+    return float(np.linalg.norm(second, axis=-1).max())

@@ -1,0 +1,464 @@
+"""CANRig workflows on real data: pose A to B (direct and fitted), iterative layers, clip
+editing and dialogue replacement on the ict-quartic rig (issue 17).
+
+    python experiments/canrig_workflows.py \
+        --checkpoint experiments/results/canrig_workflows/model/checkpoint.eqx \
+        --out experiments/results/canrig_workflows
+
+Held-out poses: the Live Link capture's second half (frames 90-179) and 100 random sparse
+poses (``canrig.held_out_poses``, as ``canrig_eval.py``). Table 4 as the paper runs it: random
+(A, B) pairs of held-out poses, A != B, handles at random vertices (a new set per pair),
+20/75/200 handles x 1/2/4 cm, falloff 3/cm, the error of the result against B averaged over
+all 9,409 face vertices. Geodesic farthest-point handles from vertex 0 (``canrig_eval.py``'s
+placement) are reported beside it as a second protocol. Writes results.json, table.md and
+figures (a_to_b_error.png, layers.png, clip_edit.png, dialogue.png).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+import warnings
+from pathlib import Path
+
+import matplotlib.pyplot as plt
+import numpy as np
+
+from canrig_jax.canrig import (
+    RADII_CM,
+    NeuralRig,
+    evaluate_poses,
+    farthest_point_vertices,
+    held_out_poses,
+    influence_mask,
+    load_model,
+    split_capture,
+)
+from canrig_jax.canrig import workflows as wf
+from canrig_jax.canrig.layout import influence_reach
+from canrig_jax.data import load_livelinkface
+from canrig_jax.io import save_json, save_text
+from canrig_jax.metrics import CM_TO_MM
+from canrig_jax.render import plot_vertex_scalar, save_figure
+from canrig_jax.rig import ict_quartic_rig
+
+FALLOFF_PER_CM = 3.0
+HANDLE_COUNTS = (20, 75, 200)
+LAYER_SCHEDULE = ((20, 4.0), (75, 2.0), (200, 1.0))
+DISTANCE_LIMIT_CM = 5.0  # > the reach of a 4 cm mask at falloff 3/cm (4.77 cm): exact
+CLIP_HANDLES, CLIP_HALF_WINDOW, CLIP_RADIUS_CM = 12, 10, 3.0
+DIALOGUE_HANDLES, DIALOGUE_RADIUS_CM = 40, 1.0
+
+
+def _error_mm(a, b):
+    return np.linalg.norm(np.asarray(a) - np.asarray(b), axis=-1) * CM_TO_MM
+
+
+def _timed(fn, repeats=5):
+    fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return float(np.median(times) * 1e3)
+
+
+def _pairs(n_poses, n_pairs, rng):
+    a = rng.integers(0, n_poses, n_pairs)
+    b = (a + rng.integers(1, n_poses, n_pairs)) % n_poses
+    return np.stack([a, b], axis=1)
+
+
+def a_to_b_table(rig, shapes, pairs, placements, n_fit, options, progress=print, n_fit_main=0):
+    """{handles: {radius name: {direct_mm, fitted_mm, fitted_p95_mm, ...}}} for one handle
+    placement protocol (``placements(pair index, n) -> Handles``); the first ``n_fit`` pairs
+    are fitted too (``n_fit_main`` at 200 handles / 2 cm, the issue's target cell)."""
+    table = {}
+    for n in HANDLE_COUNTS:
+        table[str(n)] = {}
+        cells = {name: {"direct": [], "fitted": [], "fitted_vertices": []} for name in RADII_CM}
+        for p, (a, b) in enumerate(pairs):
+            handles = placements(p, n)
+            for name, radius in RADII_CM.items():
+                direct = wf.pose_a_to_b(rig, handles, shapes[a], shapes[b], radius, FALLOFF_PER_CM)
+                cells[name]["direct"].append(float(direct.error) * CM_TO_MM)
+                main_cell = n == 200 and name == "medium"
+                if p < (max(n_fit, n_fit_main) if main_cell else n_fit):
+                    fitted = wf.pose_a_to_b(
+                        rig, handles, shapes[a], shapes[b], radius, FALLOFF_PER_CM, fit=True,
+                        options=options,
+                    )  # fmt: skip
+                    cells[name]["fitted"].append(float(fitted.error) * CM_TO_MM)
+                    cells[name]["fitted_vertices"].append(_error_mm(fitted.shape, shapes[b]))
+            if (p + 1) % 100 == 0:
+                progress(f"  {n} handles: {p + 1}/{len(pairs)} pairs")
+        for name, cell in cells.items():
+            direct = np.array(cell["direct"])
+            fitted_pairs = len(cell["fitted"])
+            table[str(n)][name] = {
+                "direct_mm": float(direct.mean()),
+                "fitted_mm": float(np.mean(cell["fitted"])),
+                "fitted_p95_mm": float(np.percentile(np.concatenate(cell["fitted_vertices"]), 95)),
+                "direct_on_fitted_pairs_mm": float(direct[:fitted_pairs].mean()),
+                "fitted_never_worse": bool(
+                    np.all(np.array(cell["fitted"]) <= direct[:fitted_pairs])
+                ),
+                "pairs_direct": len(direct),
+                "pairs_fitted": fitted_pairs,
+            }
+        progress(f"  {n} handles: " + ", ".join(
+            f"{k} {v['direct_mm']:.3f} -> {v['fitted_mm']:.3f} mm" for k, v in table[str(n)].items()
+        ))  # fmt: skip
+    return table
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--checkpoint", type=Path, required=True)
+    parser.add_argument("--out", type=Path, required=True, help="output folder")
+    parser.add_argument("--data-dir", default=None, help="data folder (else $CANRIG_DATA)")
+    parser.add_argument("--quick", action="store_true", help="a few pairs, short clips")
+    parser.add_argument("--pairs", type=int, default=1000, help="(A, B) pairs, direct")
+    parser.add_argument("--fit-pairs", type=int, default=1000, help="the first N pairs fitted")
+    parser.add_argument(
+        "--fit-pairs-main", type=int, default=0, help="more fitted pairs at 200 handles / 2 cm"
+    )
+    parser.add_argument("--layer-pairs", type=int, default=50)
+    parser.add_argument("--fit-steps", type=int, default=wf.FitOptions().max_steps)
+    parser.add_argument("--lsmr-steps", type=int, default=wf.FitOptions().cg_steps)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.pairs, args.fit_pairs, args.layer_pairs = 4, 2, 2
+    options = wf.FitOptions(max_steps=args.fit_steps, cg_steps=args.lsmr_steps)
+    start_time = time.perf_counter()
+
+    quartic, _ = ict_quartic_rig(args.data_dir, progress=False)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*TongueOut", category=UserWarning)
+        capture = load_livelinkface(args.data_dir).weights_for(quartic.names, missing="zero")
+    _, capture_test = split_capture(capture)
+    poses = held_out_poses(capture_test, quartic.names, n_random=100)
+    shapes = evaluate_poses(quartic, poses)
+    neutral = np.asarray(quartic.neutral, np.float32)
+    model, state = load_model(args.checkpoint, neutral)
+    rig = NeuralRig(model, neutral, np.asarray(quartic.faces))
+    rng = np.random.default_rng(args.seed)
+    pairs = _pairs(len(shapes), args.pairs, rng)
+    n_fit = min(args.fit_pairs, args.pairs)
+
+    # ---------------------------------------------------------------- Table 4, A to B
+    handle_rng = np.random.default_rng([args.seed, 1])
+    random_sets = {
+        n: [handle_rng.choice(rig.n_vertices, n, replace=False) for _ in range(args.pairs)]
+        for n in HANDLE_COUNTS
+    }
+    geodesic = {
+        n: rig.handles(farthest_point_vertices(neutral, n, graph=rig.graph), limit=DISTANCE_LIMIT_CM)
+        for n in HANDLE_COUNTS
+    }  # fmt: skip
+    print(f"A to B: {args.pairs} pairs ({n_fit} fitted), random vertices")
+    a_to_b = {
+        "random_vertices": a_to_b_table(
+            rig,
+            shapes,
+            pairs,
+            lambda p, n: rig.handles(random_sets[n][p], limit=DISTANCE_LIMIT_CM),
+            n_fit,
+            options,
+            n_fit_main=min(args.fit_pairs_main, args.pairs),
+        ),  # fmt: skip
+    }
+    print("A to B: geodesic farthest-point handles")
+    a_to_b["geodesic_farthest"] = a_to_b_table(
+        rig, shapes, pairs, lambda p, n: geodesic[n], n_fit, options
+    )
+
+    # ---------------------------------------------------------------- layers (Figure 15)
+    layer_errors = {"direct": [], "fitted": []}
+    for p, (a, b) in enumerate(pairs[: args.layer_pairs]):
+        schedule = [
+            (rig.handles(handle_rng.choice(rig.n_vertices, n, replace=False)), radius)
+            for n, radius in LAYER_SCHEDULE
+        ]
+        for kind in layer_errors:
+            result = wf.iterative_layers(
+                rig, shapes[a], shapes[b], schedule, FALLOFF_PER_CM, fit=kind == "fitted",
+                options=options,
+            )  # fmt: skip
+            layer_errors[kind].append(result.errors * CM_TO_MM)
+    layers = {f"{k}_mm": np.mean(v, axis=0).tolist() for k, v in layer_errors.items()}
+    fitted_layers = np.array(layer_errors["fitted"])
+    layers["fitted_non_increasing_every_pair"] = bool(np.all(np.diff(fitted_layers, axis=1) <= 0))
+    layers["pairs"] = len(fitted_layers)
+    print(f"layers: direct {layers['direct_mm']}, fitted {layers['fitted_mm']}")
+
+    # ---------------------------------------------------------------- clip edit (Figure 10)
+    clip_weights = capture_test[:30] if args.quick else capture_test
+    clip = evaluate_poses(quartic, clip_weights)
+    frame = len(clip) // 2
+    mouth = wf.expression_region(quartic)
+    jaw = list(quartic.names).index("jawOpen")
+    wider = clip_weights[frame].copy()
+    wider[jaw] = min(1.0, wider[jaw] + 0.3)
+    wider_shape = evaluate_poses(quartic, wider[None])[0]
+    moved = np.linalg.norm(wider_shape - clip[frame], axis=1)
+    mouth_chin = np.flatnonzero(mouth & (moved > 0.05))  # the vertices the edit moves > 0.5 mm
+    clip_index = mouth_chin[
+        farthest_point_vertices(neutral[mouth_chin], CLIP_HANDLES, start=int(np.argmax(moved[mouth_chin])))
+    ]  # fmt: skip
+    clip_handles = rig.handles(clip_index)
+    solution = wf.pose_a_to_b(
+        rig, clip_handles, clip[frame], wider_shape, CLIP_RADIUS_CM, FALLOFF_PER_CM, fit=True,
+        region=mouth, options=options,
+    )  # fmt: skip
+    edited = wf.clip_edit(
+        rig, clip, frame, clip_handles, np.asarray(solution.displacements), CLIP_RADIUS_CM,
+        FALLOFF_PER_CM, CLIP_HALF_WINDOW,
+    )  # fmt: skip
+    lo, hi = edited.window
+    outside_window = np.r_[0:lo, hi + 1 : len(clip)]
+    clip_mask = np.asarray(
+        influence_mask(clip_handles.distance, CLIP_RADIUS_CM, FALLOFF_PER_CM, model.clamp)
+    )
+    outside_mask = clip_mask.max(axis=1) == 0
+    clip_edit = {
+        "outside_window_max_mm": float(
+            _error_mm(edited.clip[outside_window], clip[outside_window]).max(initial=0.0)
+        ),
+        "outside_window_bit_identical": bool(
+            np.array_equal(edited.clip[outside_window], clip[outside_window])
+        ),
+        "outside_mask_max_mm": float(_error_mm(edited.clip, clip)[:, outside_mask].max()),
+        "edit_error_mm": float(_error_mm(edited.clip[frame], wider_shape)[mouth].mean()),
+        "edit_error_before_mm": float(_error_mm(clip[frame], wider_shape)[mouth].mean()),
+        "max_acceleration_before": wf.max_acceleration(clip) * CM_TO_MM,
+        "max_acceleration_after": wf.max_acceleration(edited.clip) * CM_TO_MM,
+        "max_acceleration_of_the_edit": wf.max_acceleration(edited.clip - clip) * CM_TO_MM,
+        "frame": int(frame),
+        "window": [int(lo), int(hi)],
+        "handles": CLIP_HANDLES,
+        "radius_cm": CLIP_RADIUS_CM,
+        "outside_mask_vertices": int(outside_mask.sum()),
+    }
+    print(f"clip edit: {clip_edit}")
+
+    # ---------------------------------------------------------------- dialogue (Figure 12)
+    n_dialogue = 6 if args.quick else 45
+    source = evaluate_poses(quartic, capture[90 : 90 + n_dialogue])
+    target = evaluate_poses(quartic, capture[135 : 135 + n_dialogue])
+    reach = float(influence_reach(DIALOGUE_RADIUS_CM, FALLOFF_PER_CM, model.clamp))
+    interior = wf.interior_vertices(rig, mouth, reach)
+    dialogue_index = interior[farthest_point_vertices(neutral[interior], DIALOGUE_HANDLES)]
+    dialogue_handles = rig.handles(dialogue_index)
+    dialogue = {}
+    outputs = {}
+    for kind in ("direct", "fitted"):
+        out = wf.dialogue_replacement(
+            rig, source, target, dialogue_handles, DIALOGUE_RADIUS_CM, FALLOFF_PER_CM,
+            fit=kind == "fitted", region=mouth, options=options,
+        )  # fmt: skip
+        outputs[kind] = out
+        dialogue[kind] = {
+            "mouth_difference_mm": float(_error_mm(out, target)[:, mouth].mean()),
+            "rest_of_face_change_mm": float(_error_mm(out, source)[:, ~mouth].max()),
+        }
+    zero = wf.dialogue_replacement(
+        rig, source, source, dialogue_handles, DIALOGUE_RADIUS_CM, FALLOFF_PER_CM
+    )
+    dialogue_results = {
+        "rig_inversion_mm": float(_error_mm(zero, source).max()),
+        "mouth_difference_mm": dialogue["direct"]["mouth_difference_mm"],
+        "rest_of_face_change_mm": dialogue["direct"]["rest_of_face_change_mm"],
+        "fitted": dialogue["fitted"],
+        "source_mouth_difference_mm": float(_error_mm(source, target)[:, mouth].mean()),
+        "frames": {"source": [90, 89 + n_dialogue], "target": [135, 134 + n_dialogue]},
+        "mouth_mask_vertices": int(mouth.sum()),
+        "handles": DIALOGUE_HANDLES,
+        "radius_cm": DIALOGUE_RADIUS_CM,
+    }
+    print(f"dialogue: {dialogue_results}")
+
+    # ---------------------------------------------------------------- timing
+    a, b = shapes[pairs[0, 0]], shapes[pairs[0, 1]]
+    h200 = rig.handles(random_sets[200][0], limit=DISTANCE_LIMIT_CM)
+
+    def run(fit):
+        return wf.pose_a_to_b(rig, h200, a, b, 2.0, FALLOFF_PER_CM, fit=fit, options=options)
+
+    timing = {
+        "direct_ms_200_handles": _timed(lambda: run(False).shape.block_until_ready()),
+        "fit_ms_200_handles": _timed(lambda: run(True).shape.block_until_ready(), repeats=3),
+        "dialogue_ms_per_frame": _timed(
+            lambda: wf.dialogue_replacement(
+                rig, source, target, dialogue_handles, DIALOGUE_RADIUS_CM, FALLOFF_PER_CM
+            ),
+            repeats=3,
+        )
+        / len(source),
+    }
+    print(f"timing: {timing}")
+
+    results = {
+        "a_to_b": a_to_b,
+        "layers": layers,
+        "clip_edit": clip_edit,
+        "dialogue": dialogue_results,
+        "timing": timing,
+        "protocol": {
+            "pairs": args.pairs,
+            "fitted_pairs": n_fit,
+            "held_out_poses": {"capture_frames": len(capture_test), "random_poses": 100},
+            "falloff_per_cm": FALLOFF_PER_CM,
+            "radii_cm": RADII_CM,
+            "fit_options": {"max_steps": options.max_steps, "lsmr_steps": options.cg_steps},
+            "model": {
+                "checkpoint": str(args.checkpoint),
+                "train_steps": state["step"],
+                "train_minutes": state["seconds"] / 60.0,
+                "p_farthest": state["options"]["examples"]["p_farthest"],
+                "p_eval_radius": state["options"]["examples"]["p_eval_radius"],
+            },
+        },
+        "minutes": (time.perf_counter() - start_time) / 60.0,
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    save_json(args.out / "results.json", results)
+    table = _table(results)
+    save_text(args.out / "table.md", table)
+    _figure_a_to_b(
+        rig, shapes, pairs[0], random_sets[200][0], options, args.out / "a_to_b_error.png"
+    )
+    _figure_layers(layer_errors, args.out / "layers.png")
+    _figure_clip(clip, edited, frame, wider_shape, args.out / "clip_edit.png")
+    _figure_dialogue(
+        rig, source, target, outputs["direct"], mouth, dialogue_handles, args.out / "dialogue.png"
+    )
+    print(table)
+    print(f"wrote {args.out}/results.json, table.md and figures")
+    return results
+
+
+def _table(results):
+    model = results["protocol"]["model"]
+    trained_on = (
+        "random handle sets and radii (the paper's recipe)"
+        if model["p_farthest"] == 0 and model["p_eval_radius"] == 0
+        else f"{model['p_farthest']:.0%} evaluation handle sets, {model['p_eval_radius']:.0%} "
+        "evaluation radii"
+    )
+    lines = [
+        f"Pose A to pose B (Table 4 protocol): {results['protocol']['pairs']} random pairs of "
+        f"held-out ict-quartic poses (fitted on the first {results['protocol']['fitted_pairs']}), "
+        f"mean per-vertex error to B over the 9,409 face vertices (mm), falloff 3/cm. Model "
+        f"trained on {trained_on}, {model['train_steps']} steps.",
+        "",
+    ]
+    for protocol, table in results["a_to_b"].items():
+        lines += [
+            f"**{protocol}**: direct (all pairs) / direct on the fitted pairs / **fitted** / "
+            "fitted p95 (mm); fitted pairs per cell in brackets",
+            "",
+        ]
+        lines.append(
+            "| handles | " + " | ".join(f"{k} ({v:g} cm)" for k, v in RADII_CM.items()) + " |"
+        )
+        lines.append("|---" * (len(RADII_CM) + 1) + "|")
+        for n, row in table.items():
+            cells = [
+                f"{c['direct_mm']:.3f} / {c['direct_on_fitted_pairs_mm']:.3f} / "
+                f"**{c['fitted_mm']:.3f}** / {c['fitted_p95_mm']:.2f} ({c['pairs_fitted']})"
+                for c in row.values()
+            ]
+            lines.append(f"| {n} | " + " | ".join(cells) + " |")
+        lines.append("")
+    layers = results["layers"]
+    clip, dialogue, timing = results["clip_edit"], results["dialogue"], results["timing"]
+    rows = [
+        ("layers 20/4cm, 75/2cm, 200/1cm, direct (mm)", " / ".join(f"{x:.3f}" for x in layers["direct_mm"])),
+        ("layers, fitted (mm)", " / ".join(f"{x:.3f}" for x in layers["fitted_mm"])),
+        ("fitted layers non-increasing on every pair", layers["fitted_non_increasing_every_pair"]),
+        ("clip edit: outside window max (mm); bit-identical", f"{clip['outside_window_max_mm']:g}; {clip['outside_window_bit_identical']}"),
+        ("clip edit: outside every clamped mask max (mm)", f"{clip['outside_mask_max_mm']:g}"),
+        ("clip edit: mouth error to the target at the frame, before -> after (mm)", f"{clip['edit_error_before_mm']:.3f} -> {clip['edit_error_mm']:.3f}"),
+        ("clip: max acceleration before / after / of the edit alone (mm/frame^2)", f"{clip['max_acceleration_before']:.3f} / {clip['max_acceleration_after']:.3f} / {clip['max_acceleration_of_the_edit']:.3f}"),
+        ("dialogue: rig inversion (mm)", f"{dialogue['rig_inversion_mm']:g}"),
+        ("dialogue: mouth difference, direct / fitted / no edit (mm)", f"{dialogue['mouth_difference_mm']:.3f} / {dialogue['fitted']['mouth_difference_mm']:.3f} / {dialogue['source_mouth_difference_mm']:.3f}"),
+        ("dialogue: rest of face change, direct / fitted (mm)", f"{dialogue['rest_of_face_change_mm']:g} / {dialogue['fitted']['rest_of_face_change_mm']:g}"),
+        ("fitted A to B, 200 handles, 2 cm (ms, one call)", f"{timing['fit_ms_200_handles']:.0f}"),
+        ("direct A to B, 200 handles, 2 cm (ms, one call)", f"{timing['direct_ms_200_handles']:.1f}"),
+        ("dialogue replacement, batched over the clip (ms per frame)", f"{timing['dialogue_ms_per_frame']:.1f}"),
+    ]  # fmt: skip
+    lines += ["| quantity | value |", "|---|---|"] + [f"| {k} | {v} |" for k, v in rows]
+    return "\n".join(lines) + "\n"
+
+
+def _figure_a_to_b(rig, shapes, pair, index, options, path):
+    a, b = shapes[pair[0]], shapes[pair[1]]
+    handles = rig.handles(index, limit=DISTANCE_LIMIT_CM)
+    direct = wf.pose_a_to_b(rig, handles, a, b, 2.0, FALLOFF_PER_CM)
+    fitted = wf.pose_a_to_b(rig, handles, a, b, 2.0, FALLOFF_PER_CM, fit=True, options=options)
+    fig, axes = plt.subplots(1, 3, figsize=(10, 4.2))
+    plot_vertex_scalar(
+        axes[0], a, rig.faces, _error_mm(a, b), vmax=10.0, title="pose A (error to B)"
+    )
+    for ax, sol, name in ((axes[1], direct, "direct"), (axes[2], fitted, "fitted")):
+        err = _error_mm(sol.shape, b)
+        mapper = plot_vertex_scalar(
+            ax, np.asarray(sol.shape), rig.faces, err, vmax=10.0,
+            title=f"{name}: mean {err.mean():.2f} mm",
+        )  # fmt: skip
+    fig.suptitle("pose A to pose B, 200 random-vertex handles, radius 2 cm (Figure 9 analog)")
+    fig.colorbar(mapper, ax=axes, shrink=0.7, label="per-vertex error to B (mm)")
+    save_figure(fig, path)
+
+
+def _figure_layers(layer_errors, path):
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    for kind, errors in layer_errors.items():
+        errors = np.array(errors)
+        normalised = errors / errors[:, :1]
+        ax.plot(np.arange(1, errors.shape[1] + 1), normalised.mean(axis=0), "o-", label=kind)
+    ax.set_xticks([1, 2, 3], [f"{n} / {r:g} cm" for n, r in LAYER_SCHEDULE])
+    ax.set_ylabel("error / first layer's error")
+    ax.set_title("iterative layers (Figure 15 analog)")
+    ax.legend()
+    save_figure(fig, path)
+
+
+def _figure_clip(clip, edited, frame, wider_shape, path):
+    """Mouth opening over time: the vertical gap between the lowest upper-lip-region vertex
+    and the chin's most-moved vertex (a proxy: the vertex the jawOpen edit moves most)."""
+    moved = np.linalg.norm(wider_shape - clip[frame], axis=1)
+    chin = int(np.argmax(moved))
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    frames = np.arange(len(clip))
+    ax.plot(frames, clip[:, chin, 1] * CM_TO_MM, label="input clip")
+    ax.plot(frames, edited.clip[:, chin, 1] * CM_TO_MM, label="edited clip")
+    ax.axvline(frame, color="grey", lw=0.5)
+    ax.set_xlabel("frame (held-out capture half)")
+    ax.set_ylabel("height of the most-moved chin vertex (mm)")
+    twin = ax.twinx()
+    twin.plot(frames, edited.fade, "k--", lw=0.8, label="fade weight")
+    twin.set_ylabel("fade weight")
+    ax.legend(loc="lower left")
+    ax.set_title("clip edit: jaw opened wider at one frame, faded over ±10 frames")
+    save_figure(fig, path)
+
+
+def _figure_dialogue(rig, source, target, out, mouth, handles, path):
+    f = len(source) // 2
+    fig, axes = plt.subplots(1, 4, figsize=(13, 4.2))
+    plot_vertex_scalar(axes[0], source[f], rig.faces, mouth.astype(float), vmax=1.0, cmap="viridis", title="source frame, mouth mask")  # fmt: skip
+    axes[0].scatter(*source[f][handles.index][:, :2].T, s=4, c="red")
+    plot_vertex_scalar(axes[1], target[f], rig.faces, _error_mm(target[f], source[f]), vmax=10.0, title="target frame (vs source)")  # fmt: skip
+    plot_vertex_scalar(axes[2], out[f], rig.faces, _error_mm(out[f], target[f]), vmax=10.0, title="replaced (error to target)")  # fmt: skip
+    mapper = plot_vertex_scalar(axes[3], out[f], rig.faces, _error_mm(out[f], source[f]), vmax=10.0, title="change from source")  # fmt: skip
+    fig.colorbar(mapper, ax=axes[1:], shrink=0.7, label="mm")
+    fig.suptitle("dialogue replacement (Figure 12 analog): handles in red")
+    save_figure(fig, path)
+
+
+if __name__ == "__main__":
+    main()

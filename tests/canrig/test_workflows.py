@@ -1,0 +1,232 @@
+"""CANRig workflows on the ICT face: the one forward pass over batches and layouts, the exact
+structured Jacobian, fitted pose A to B (never worse than direct), layers (non-increasing
+exactly), clip editing and dialogue replacement (exact zeros outside the edit)."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from canrig_jax.canrig import (
+    CLAMP,
+    DENSE,
+    CANRig,
+    NeuralRig,
+    ShapePreservingCANRig,
+    deform,
+    farthest_point_vertices,
+    influence_mask,
+)
+from canrig_jax.canrig import workflows as wf
+from canrig_jax.canrig.layout import influence_reach
+from canrig_jax.rig import evaluate_batch
+
+FALLOFF = 3.0
+
+
+def _rig(ict_face, variant):
+    neutral = np.asarray(ict_face.neutral, np.float32)
+    options = {"fourier": 2, "interpolation_prior": True}
+    if variant == "shape_preserving":
+        model = ShapePreservingCANRig(
+            neutral, key=jax.random.PRNGKey(1), query_modulation=True, **options
+        )
+    else:
+        model = CANRig(neutral, key=jax.random.PRNGKey(1), **options)
+    return NeuralRig(model, neutral, np.asarray(ict_face.faces))
+
+
+@pytest.fixture(scope="module")
+def rig(ict_face):
+    """The shape-preserving model with every option (random weights: the properties tested
+    here hold for any weights)."""
+    return _rig(ict_face, "shape_preserving")
+
+
+@pytest.fixture(scope="module")
+def poses(ict_face, sparse_poses):
+    """Real ICT expressions (sparse poses of the rig), (4, V, 3)."""
+    return np.asarray(evaluate_batch(ict_face, sparse_poses[:4]))
+
+
+@pytest.fixture(scope="module")
+def few_handles(rig):
+    index = farthest_point_vertices(np.asarray(rig.canonical), 10, graph=rig.graph)
+    return rig.handles(index)
+
+
+@pytest.mark.parametrize("variant", ["shape_preserving", "canrig"])
+def test_jacobian_equals_autodiff(variant, ict_face, poses):
+    """The structured 3 x 3 blocks equal jax.jacfwd of the forward pass, dense and blocked."""
+    rig = _rig(ict_face, variant)
+    few_handles = rig.handles(farthest_point_vertices(np.asarray(rig.canonical), 4))
+    rng = np.random.default_rng(0)
+    displacements = rng.normal(0, 0.3, (few_handles.n_handles, 3)).astype(np.float32)
+    edit = rig.edit(few_handles, displacements, 5.0, FALLOFF, base=poses[0], beta=0.4)
+    for layout in (DENSE, rig.layout(few_handles, 5.0, FALLOFF)):
+        shape, blocks = wf.displacement_jacobian(
+            rig.model, rig.queries, rig.canonical, edit, layout
+        )
+
+        def forward(d, layout=layout):
+            return deform(rig.model, rig.queries, rig.canonical, edit.with_displacements(d), layout)
+
+        expected = jax.jacfwd(forward)(edit.displacements)  # (V, 3, H, 3)
+        basis = jnp.eye(few_handles.n_handles * 3).reshape(-1, few_handles.n_handles, 3)
+        columns = jax.vmap(lambda t, b=blocks, lo=layout: wf.apply_jacobian(b, t, lo))(basis)
+        ours = jnp.moveaxis(columns, 0, -1).reshape(expected.shape)
+        scale = float(jnp.abs(expected).max())
+        assert scale > 0.1
+        np.testing.assert_allclose(np.asarray(ours), np.asarray(expected), atol=2e-5 * scale)
+        np.testing.assert_allclose(shape, forward(edit.displacements), atol=1e-6)
+
+
+def test_model_steps_take_any_leading_shape(rig, few_handles, poses):
+    """encode -> attention -> decode on a (2, 3) batch equals the unbatched steps; deform
+    vmapped over edits equals a loop of single calls."""
+    model = rig.model
+    rng = np.random.default_rng(1)
+    handle_base = jnp.asarray(poses[:2][:, few_handles.index])  # (2, H, 3)
+    d = jnp.asarray(rng.normal(0, 0.2, (2, 3) + handle_base.shape[1:]), jnp.float32)
+    batched = model.encode_values(d, handle_base[:, None])  # (2, 3, heads, H, e)
+    single = model.encode_values(d[1, 2], handle_base[1])
+    np.testing.assert_allclose(np.asarray(batched[1, 2]), np.asarray(single), atol=1e-6)
+    edits = [
+        rig.edit(few_handles, rng.normal(0, 0.2, (10, 3)), 2.0, FALLOFF, base=p) for p in poses
+    ]
+    stacked = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *edits)
+    layout = rig.layout(few_handles, 2.0, FALLOFF)
+    vmapped = eqx.filter_vmap(lambda e: deform(model, rig.queries, rig.canonical, e, layout))(
+        stacked
+    )
+    for i, edit in enumerate(edits):
+        np.testing.assert_allclose(
+            np.asarray(vmapped[i]), np.asarray(rig.deform(edit, DENSE)), atol=5e-6
+        )
+
+
+def test_fit_is_never_worse_and_minimises(rig, poses):
+    """Fitted A to B: error <= direct and <= the base (exactly), no NaN, the reported error
+    the measured one; and the gradient of the objective (plain autodiff of the forward
+    pass, independent of the structured Jacobian) is much smaller than at the start."""
+    handles = rig.handles(np.random.default_rng(2).choice(rig.n_vertices, 60, replace=False))
+    a, b = poses[0], poses[1]
+    direct = wf.pose_a_to_b(rig, handles, a, b, 2.0, FALLOFF)
+    fitted = wf.pose_a_to_b(rig, handles, a, b, 2.0, FALLOFF, fit=True)
+    assert float(fitted.error) < float(direct.error)
+    assert float(fitted.error) <= float(fitted.base_error)
+    assert np.all(np.isfinite(np.asarray(fitted.displacements)))
+    edit = rig.edit(handles, direct.displacements, 2.0, FALLOFF, base=a)
+
+    def objective(d):
+        shape = deform(rig.model, rig.queries, rig.canonical, edit.with_displacements(d))
+        return 0.5 * jnp.sum((shape - b) ** 2)
+
+    gradient = jax.grad(objective)
+    start = float(jnp.linalg.norm(gradient(direct.displacements)))
+    end = float(jnp.linalg.norm(gradient(fitted.displacements)))
+    assert end < 0.2 * start
+    measured = np.linalg.norm(np.asarray(fitted.shape) - b, axis=1).mean()
+    assert float(fitted.error) == pytest.approx(measured, rel=1e-5)
+    # the exact-Jacobian solve reaches the same neighbourhood
+    exact = wf.pose_a_to_b(
+        rig, handles, a, b, 2.0, FALLOFF, fit=True,
+        options=wf.FitOptions(max_steps=3, exact_jacobian=True),
+    )  # fmt: skip
+    assert float(exact.error) <= float(direct.error)
+    assert abs(float(exact.error) - float(fitted.error)) < 0.1 * float(direct.error)
+
+
+def test_fit_in_a_region_only_lowers_the_region_error(rig, poses, ict_face):
+    handles = rig.handles(np.random.default_rng(3).choice(rig.n_vertices, 40, replace=False))
+    region = wf.expression_region(ict_face)
+    fitted = wf.pose_a_to_b(rig, handles, poses[2], poses[3], 2.0, FALLOFF, fit=True, region=region)
+    err = np.linalg.norm(np.asarray(fitted.shape) - poses[3], axis=1)
+    assert float(fitted.error) == pytest.approx(err[region].mean(), rel=1e-5)
+    assert float(fitted.error) <= float(fitted.direct_error)
+
+
+def test_fitted_layers_never_increase_exactly(rig, poses):
+    rng = np.random.default_rng(4)
+    schedule = [
+        (rig.handles(rng.choice(rig.n_vertices, n, replace=False)), radius)
+        for n, radius in ((6, 4.0), (20, 2.0), (40, 1.0))
+    ]
+    options = wf.FitOptions(max_steps=3, cg_steps=8)
+    fitted = wf.iterative_layers(
+        rig, poses[0], poses[2], schedule, FALLOFF, fit=True, options=options
+    )
+    errors = fitted.errors
+    assert np.all(np.diff(errors) <= 0.0)
+    start = np.linalg.norm(poses[0] - poses[2], axis=1).mean()
+    assert errors[0] <= start
+    direct = wf.iterative_layers(rig, poses[0], poses[2], schedule, FALLOFF)
+    assert errors[0] <= direct.errors[0] * (1 + 1e-6)  # same base: the fit is never worse
+
+
+def test_smoothstep_fade():
+    fade = wf.smoothstep_fade(41, 20, 10)
+    assert fade[20] == 1.0
+    assert np.all(fade[:10] == 0) and np.all(fade[31:] == 0) and np.all(fade[10:31] > 0)
+    np.testing.assert_allclose(fade[10:20], fade[30:20:-1])  # symmetric
+    assert np.all(np.diff(fade[9:21]) > 0)
+    # zero slope at the window's ends: the fade starts quadratically, well below the first
+    # step of a linear fade (1 / 11)
+    assert fade[10] < 0.3 / 11
+
+
+def test_clip_edit_is_local_in_time_and_space(rig, poses):
+    clip = np.concatenate([poses, poses[::-1], poses])  # 12 real frames
+    handles = rig.handles(farthest_point_vertices(np.asarray(rig.canonical), 6, graph=rig.graph))
+    displacements = np.random.default_rng(5).normal(0, 0.3, (6, 3)).astype(np.float32)
+    edited = wf.clip_edit(rig, clip, 5, handles, displacements, 1.5, FALLOFF, 3)
+    lo, hi = edited.window
+    assert (lo, hi) == (2, 8)
+    outside = np.r_[0:lo, hi + 1 : len(clip)]
+    assert np.array_equal(edited.clip[outside], clip[outside])  # bit-identical
+    mask = np.asarray(influence_mask(handles.distance, 1.5, FALLOFF, CLAMP))
+    unmasked = mask.max(axis=1) == 0
+    assert 1000 < unmasked.sum() < rig.n_vertices
+    assert np.array_equal(edited.clip[:, unmasked], clip[:, unmasked])
+    # the edited frame: the rig with the full displacements on that frame
+    expected = rig(handles, displacements, 1.5, FALLOFF, base=clip[5])
+    np.testing.assert_allclose(edited.clip[5], np.asarray(expected), atol=1e-6)
+    assert not np.allclose(edited.clip[4], clip[4])
+
+
+def test_dialogue_replacement_keeps_the_rest_of_the_face(rig, poses, ict_face):
+    mouth = wf.expression_region(ict_face)
+    reach = float(influence_reach(1.0, FALLOFF, rig.model.clamp))
+    interior = wf.interior_vertices(rig, mouth, reach)
+    assert 0 < len(interior) < mouth.sum()
+    index = interior[farthest_point_vertices(np.asarray(rig.canonical)[interior], 12)]
+    handles = rig.handles(index)
+    source, target = poses[:2], poses[2:]
+    out = wf.dialogue_replacement(rig, source, target, handles, 1.0, FALLOFF, region=mouth)
+    assert np.array_equal(out[:, ~mouth], source[:, ~mouth])  # exactly 0.0 outside the mask
+    # frame by frame equals single calls with that frame as base
+    for f in range(2):
+        single = rig(handles, target[f, index] - source[f, index], 1.0, FALLOFF, base=source[f])
+        np.testing.assert_allclose(out[f], np.asarray(single), atol=1e-6)
+    unchanged = wf.dialogue_replacement(rig, source, source, handles, 1.0, FALLOFF)
+    assert np.array_equal(unchanged, source)  # rig inversion error 0.0 by construction
+    fitted = wf.dialogue_replacement(
+        rig, source, target, handles, 1.0, FALLOFF, fit=True, region=mouth
+    )
+    assert np.array_equal(fitted[:, ~mouth], source[:, ~mouth])
+    mouth_error = [np.linalg.norm(x - target, axis=-1)[:, mouth].mean() for x in (out, fitted)]
+    assert mouth_error[1] <= mouth_error[0] + 1e-6
+
+
+def test_mouth_region_on_ict(ict_face):
+    """The default region holds the vertices jawOpen moves most and none of those eyeBlink
+    moves."""
+    mouth = wf.expression_region(ict_face)
+    deltas = np.linalg.norm(np.asarray(ict_face.deltas), axis=-1)
+    names = list(ict_face.names)
+    assert mouth[np.argmax(deltas[names.index("jawOpen")])]
+    assert not mouth[deltas[names.index("eyeBlink_L")] > 0.1].any()
+    assert 0.1 < mouth.mean() < 0.8
