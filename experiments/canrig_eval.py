@@ -22,6 +22,7 @@ import numpy as np
 
 from canrig_jax.canrig import (
     CLAMP,
+    EVAL_FALLOFF_PER_CM,
     RADII_CM,
     NeuralRig,
     evaluate_poses,
@@ -35,10 +36,11 @@ from canrig_jax.canrig import (
 from canrig_jax.data import load_livelinkface
 from canrig_jax.io import save_json, save_text
 from canrig_jax.metrics import CM_TO_MM
+from canrig_jax.provenance import experiment_command, provenance
 from canrig_jax.render import plot_vertex_scalar, save_figure
 from canrig_jax.rig import ict_quartic_rig
 
-FALLOFF_PER_CM = 3.0
+FALLOFF_PER_CM = EVAL_FALLOFF_PER_CM
 HANDLE_COUNTS = (20, 75, 200)
 
 
@@ -201,6 +203,7 @@ def main(argv=None):
         "outside_region_vertices_max": outside_count,
         "blocked_vs_dense_max_mm": blocked_vs_dense,
     }
+    results["provenance"] = provenance(experiment_command(__file__, argv))
     args.out.mkdir(parents=True, exist_ok=True)
     save_json(args.out / "results.json", results)
 

@@ -25,6 +25,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from canrig_jax.canrig import (
+    EVAL_FALLOFF_PER_CM,
     RADII_CM,
     NeuralRig,
     evaluate_poses,
@@ -39,10 +40,11 @@ from canrig_jax.canrig.layout import influence_reach
 from canrig_jax.data import load_livelinkface
 from canrig_jax.io import save_json, save_text
 from canrig_jax.metrics import CM_TO_MM
+from canrig_jax.provenance import experiment_command, provenance
 from canrig_jax.render import plot_vertex_scalar, save_figure
 from canrig_jax.rig import ict_quartic_rig
 
-FALLOFF_PER_CM = 3.0
+FALLOFF_PER_CM = EVAL_FALLOFF_PER_CM
 HANDLE_COUNTS = (20, 75, 200)
 LAYER_SCHEDULE = ((20, 4.0), (75, 2.0), (200, 1.0))
 DISTANCE_LIMIT_CM = 5.0  # > the reach of a 4 cm mask at falloff 3/cm (4.77 cm): exact
@@ -86,9 +88,15 @@ def a_to_b_table(rig, shapes, pairs, placements, n_fit, options, progress=print,
                 main_cell = n == 200 and name == "medium"
                 if p < (max(n_fit, n_fit_main) if main_cell else n_fit):
                     fitted = wf.pose_a_to_b(
-                        rig, handles, shapes[a], shapes[b], radius, FALLOFF_PER_CM, fit=True,
+                        rig,
+                        handles,
+                        shapes[a],
+                        shapes[b],
+                        radius,
+                        FALLOFF_PER_CM,
+                        fit=True,
                         options=options,
-                    )  # fmt: skip
+                    )
                     cells[name]["fitted"].append(float(fitted.error) * CM_TO_MM)
                     cells[name]["fitted_vertices"].append(_error_mm(fitted.shape, shapes[b]))
             if (p + 1) % 100 == 0:
@@ -107,9 +115,13 @@ def a_to_b_table(rig, shapes, pairs, placements, n_fit, options, progress=print,
                 "pairs_direct": len(direct),
                 "pairs_fitted": fitted_pairs,
             }
-        progress(f"  {n} handles: " + ", ".join(
-            f"{k} {v['direct_mm']:.3f} -> {v['fitted_mm']:.3f} mm" for k, v in table[str(n)].items()
-        ))  # fmt: skip
+        progress(
+            f"  {n} handles: "
+            + ", ".join(
+                f"{k} {v['direct_mm']:.3f} -> {v['fitted_mm']:.3f} mm"
+                for k, v in table[str(n)].items()
+            )
+        )
     return table
 
 
@@ -155,9 +167,11 @@ def main(argv=None):
         for n in HANDLE_COUNTS
     }
     geodesic = {
-        n: rig.handles(farthest_point_vertices(neutral, n, graph=rig.graph), limit=DISTANCE_LIMIT_CM)
+        n: rig.handles(
+            farthest_point_vertices(neutral, n, graph=rig.graph), limit=DISTANCE_LIMIT_CM
+        )
         for n in HANDLE_COUNTS
-    }  # fmt: skip
+    }
     print(f"A to B: {args.pairs} pairs ({n_fit} fitted), random vertices")
     a_to_b = {
         "random_vertices": a_to_b_table(
@@ -168,7 +182,7 @@ def main(argv=None):
             n_fit,
             options,
             n_fit_main=min(args.fit_pairs_main, args.pairs),
-        ),  # fmt: skip
+        ),
     }
     print("A to B: geodesic farthest-point handles")
     a_to_b["geodesic_farthest"] = a_to_b_table(
@@ -177,16 +191,21 @@ def main(argv=None):
 
     # ---------------------------------------------------------------- layers (Figure 15)
     layer_errors = {"direct": [], "fitted": []}
-    for p, (a, b) in enumerate(pairs[: args.layer_pairs]):
+    for a, b in pairs[: args.layer_pairs]:
         schedule = [
             (rig.handles(handle_rng.choice(rig.n_vertices, n, replace=False)), radius)
             for n, radius in LAYER_SCHEDULE
         ]
         for kind in layer_errors:
             result = wf.iterative_layers(
-                rig, shapes[a], shapes[b], schedule, FALLOFF_PER_CM, fit=kind == "fitted",
+                rig,
+                shapes[a],
+                shapes[b],
+                schedule,
+                FALLOFF_PER_CM,
+                fit=kind == "fitted",
                 options=options,
-            )  # fmt: skip
+            )
             layer_errors[kind].append(result.errors * CM_TO_MM)
     layers = {f"{k}_mm": np.mean(v, axis=0).tolist() for k, v in layer_errors.items()}
     fitted_layers = np.array(layer_errors["fitted"])
@@ -206,17 +225,32 @@ def main(argv=None):
     moved = np.linalg.norm(wider_shape - clip[frame], axis=1)
     mouth_chin = np.flatnonzero(mouth & (moved > 0.05))  # the vertices the edit moves > 0.5 mm
     clip_index = mouth_chin[
-        farthest_point_vertices(neutral[mouth_chin], CLIP_HANDLES, start=int(np.argmax(moved[mouth_chin])))
-    ]  # fmt: skip
+        farthest_point_vertices(
+            neutral[mouth_chin], CLIP_HANDLES, start=int(np.argmax(moved[mouth_chin]))
+        )
+    ]
     clip_handles = rig.handles(clip_index)
     solution = wf.pose_a_to_b(
-        rig, clip_handles, clip[frame], wider_shape, CLIP_RADIUS_CM, FALLOFF_PER_CM, fit=True,
-        region=mouth, options=options,
-    )  # fmt: skip
+        rig,
+        clip_handles,
+        clip[frame],
+        wider_shape,
+        CLIP_RADIUS_CM,
+        FALLOFF_PER_CM,
+        fit=True,
+        region=mouth,
+        options=options,
+    )
     edited = wf.clip_edit(
-        rig, clip, frame, clip_handles, np.asarray(solution.displacements), CLIP_RADIUS_CM,
-        FALLOFF_PER_CM, CLIP_HALF_WINDOW,
-    )  # fmt: skip
+        rig,
+        clip,
+        frame,
+        clip_handles,
+        np.asarray(solution.displacements),
+        CLIP_RADIUS_CM,
+        FALLOFF_PER_CM,
+        CLIP_HALF_WINDOW,
+    )
     lo, hi = edited.window
     outside_window = np.r_[0:lo, hi + 1 : len(clip)]
     clip_mask = np.asarray(
@@ -256,9 +290,16 @@ def main(argv=None):
     outputs = {}
     for kind in ("direct", "fitted"):
         out = wf.dialogue_replacement(
-            rig, source, target, dialogue_handles, DIALOGUE_RADIUS_CM, FALLOFF_PER_CM,
-            fit=kind == "fitted", region=mouth, options=options,
-        )  # fmt: skip
+            rig,
+            source,
+            target,
+            dialogue_handles,
+            DIALOGUE_RADIUS_CM,
+            FALLOFF_PER_CM,
+            fit=kind == "fitted",
+            region=mouth,
+            options=options,
+        )
         outputs[kind] = out
         dialogue[kind] = {
             "mouth_difference_mm": float(_error_mm(out, target)[:, mouth].mean()),
@@ -323,6 +364,7 @@ def main(argv=None):
         },
         "minutes": (time.perf_counter() - start_time) / 60.0,
     }
+    results["provenance"] = provenance(experiment_command(__file__, argv))
     args.out.mkdir(parents=True, exist_ok=True)
     save_json(args.out / "results.json", results)
     table = _table(results)
@@ -376,20 +418,56 @@ def _table(results):
     layers = results["layers"]
     clip, dialogue, timing = results["clip_edit"], results["dialogue"], results["timing"]
     rows = [
-        ("layers 20/4cm, 75/2cm, 200/1cm, direct (mm)", " / ".join(f"{x:.3f}" for x in layers["direct_mm"])),
+        (
+            "layers 20/4cm, 75/2cm, 200/1cm, direct (mm)",
+            " / ".join(f"{x:.3f}" for x in layers["direct_mm"]),
+        ),
         ("layers, fitted (mm)", " / ".join(f"{x:.3f}" for x in layers["fitted_mm"])),
         ("fitted layers non-increasing on every pair", layers["fitted_non_increasing_every_pair"]),
-        ("clip edit: outside window max (mm); bit-identical", f"{clip['outside_window_max_mm']:g}; {clip['outside_window_bit_identical']}"),
+        (
+            "clip edit: outside window max (mm); bit-identical",
+            f"{clip['outside_window_max_mm']:g}; {clip['outside_window_bit_identical']}",
+        ),
         ("clip edit: outside every clamped mask max (mm)", f"{clip['outside_mask_max_mm']:g}"),
-        ("clip edit: mouth error to the target at the frame, before -> after (mm)", f"{clip['edit_error_before_mm']:.3f} -> {clip['edit_error_mm']:.3f}"),
-        ("clip: max acceleration before / after / of the edit alone (mm/frame^2)", f"{clip['max_acceleration_before']:.3f} / {clip['max_acceleration_after']:.3f} / {clip['max_acceleration_of_the_edit']:.3f}"),
+        (
+            "clip edit: mouth error to the target at the frame, before -> after (mm)",
+            f"{clip['edit_error_before_mm']:.3f} -> {clip['edit_error_mm']:.3f}",
+        ),
+        (
+            "clip: max acceleration before / after / of the edit alone (mm/frame^2)",
+            " / ".join(
+                f"{clip[k]:.3f}"
+                for k in ("max_acceleration_before", "max_acceleration_after")
+                + ("max_acceleration_of_the_edit",)
+            ),
+        ),
         ("dialogue: rig inversion (mm)", f"{dialogue['rig_inversion_mm']:g}"),
-        ("dialogue: mouth difference, direct / fitted / no edit (mm)", f"{dialogue['mouth_difference_mm']:.3f} / {dialogue['fitted']['mouth_difference_mm']:.3f} / {dialogue['source_mouth_difference_mm']:.3f}"),
-        ("dialogue: rest of face change, direct / fitted (mm)", f"{dialogue['rest_of_face_change_mm']:g} / {dialogue['fitted']['rest_of_face_change_mm']:g}"),
+        (
+            "dialogue: mouth difference, direct / fitted / no edit (mm)",
+            " / ".join(
+                f"{x:.3f}"
+                for x in (
+                    dialogue["mouth_difference_mm"],
+                    dialogue["fitted"]["mouth_difference_mm"],
+                    dialogue["source_mouth_difference_mm"],
+                )
+            ),
+        ),
+        (
+            "dialogue: rest of face change, direct / fitted (mm)",
+            f"{dialogue['rest_of_face_change_mm']:g} / "
+            f"{dialogue['fitted']['rest_of_face_change_mm']:g}",
+        ),
         ("fitted A to B, 200 handles, 2 cm (ms, one call)", f"{timing['fit_ms_200_handles']:.0f}"),
-        ("direct A to B, 200 handles, 2 cm (ms, one call)", f"{timing['direct_ms_200_handles']:.1f}"),
-        ("dialogue replacement, batched over the clip (ms per frame)", f"{timing['dialogue_ms_per_frame']:.1f}"),
-    ]  # fmt: skip
+        (
+            "direct A to B, 200 handles, 2 cm (ms, one call)",
+            f"{timing['direct_ms_200_handles']:.1f}",
+        ),
+        (
+            "dialogue replacement, batched over the clip (ms per frame)",
+            f"{timing['dialogue_ms_per_frame']:.1f}",
+        ),
+    ]
     lines += ["| quantity | value |", "|---|---|"] + [f"| {k} | {v} |" for k, v in rows]
     return "\n".join(lines) + "\n"
 
@@ -406,9 +484,13 @@ def _figure_a_to_b(rig, shapes, pair, index, options, path):
     for ax, sol, name in ((axes[1], direct, "direct"), (axes[2], fitted, "fitted")):
         err = _error_mm(sol.shape, b)
         mapper = plot_vertex_scalar(
-            ax, np.asarray(sol.shape), rig.faces, err, vmax=10.0,
+            ax,
+            np.asarray(sol.shape),
+            rig.faces,
+            err,
+            vmax=10.0,
             title=f"{name}: mean {err.mean():.2f} mm",
-        )  # fmt: skip
+        )
     fig.suptitle("pose A to pose B, 200 random-vertex handles, radius 2 cm (Figure 9 analog)")
     fig.colorbar(mapper, ax=axes, shrink=0.7, label="per-vertex error to B (mm)")
     save_figure(fig, path)
@@ -450,11 +532,40 @@ def _figure_clip(clip, edited, frame, wider_shape, path):
 def _figure_dialogue(rig, source, target, out, mouth, handles, path):
     f = len(source) // 2
     fig, axes = plt.subplots(1, 4, figsize=(13, 4.2))
-    plot_vertex_scalar(axes[0], source[f], rig.faces, mouth.astype(float), vmax=1.0, cmap="viridis", title="source frame, mouth mask")  # fmt: skip
+    plot_vertex_scalar(
+        axes[0],
+        source[f],
+        rig.faces,
+        mouth.astype(float),
+        vmax=1.0,
+        cmap="viridis",
+        title="source frame, mouth mask",
+    )
     axes[0].scatter(*source[f][handles.index][:, :2].T, s=4, c="red")
-    plot_vertex_scalar(axes[1], target[f], rig.faces, _error_mm(target[f], source[f]), vmax=10.0, title="target frame (vs source)")  # fmt: skip
-    plot_vertex_scalar(axes[2], out[f], rig.faces, _error_mm(out[f], target[f]), vmax=10.0, title="replaced (error to target)")  # fmt: skip
-    mapper = plot_vertex_scalar(axes[3], out[f], rig.faces, _error_mm(out[f], source[f]), vmax=10.0, title="change from source")  # fmt: skip
+    plot_vertex_scalar(
+        axes[1],
+        target[f],
+        rig.faces,
+        _error_mm(target[f], source[f]),
+        vmax=10.0,
+        title="target frame (vs source)",
+    )
+    plot_vertex_scalar(
+        axes[2],
+        out[f],
+        rig.faces,
+        _error_mm(out[f], target[f]),
+        vmax=10.0,
+        title="replaced (error to target)",
+    )
+    mapper = plot_vertex_scalar(
+        axes[3],
+        out[f],
+        rig.faces,
+        _error_mm(out[f], source[f]),
+        vmax=10.0,
+        title="change from source",
+    )
     fig.colorbar(mapper, ax=axes[1:], shrink=0.7, label="mm")
     fig.suptitle("dialogue replacement (Figure 12 analog): handles in red")
     save_figure(fig, path)

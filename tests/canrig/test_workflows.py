@@ -133,9 +133,15 @@ def test_fit_is_never_worse_and_minimises(rig, poses):
     assert float(fitted.error) == pytest.approx(measured, rel=1e-5)
     # the exact-Jacobian solve reaches the same neighbourhood
     exact = wf.pose_a_to_b(
-        rig, handles, a, b, 2.0, FALLOFF, fit=True,
+        rig,
+        handles,
+        a,
+        b,
+        2.0,
+        FALLOFF,
+        fit=True,
         options=wf.FitOptions(max_steps=3, exact_jacobian=True),
-    )  # fmt: skip
+    )
     assert float(exact.error) <= float(direct.error)
     assert abs(float(exact.error) - float(fitted.error)) < 0.1 * float(direct.error)
 

@@ -3,6 +3,7 @@ zero-preserving MLPs, the shape-preserving variant, training on real rig shapes.
 
 from .attention import masked_attention_weights, masked_cross_attention
 from .data import (
+    EVAL_FALLOFF_PER_CM,
     RADII_CM,
     ExampleOptions,
     Examples,
@@ -49,6 +50,7 @@ __all__ = [
     "block_layout",
     "edit_mask",
     "CLAMP",
+    "EVAL_FALLOFF_PER_CM",
     "RADII_CM",
     "CANRig",
     "ExampleOptions",

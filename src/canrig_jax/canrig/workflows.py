@@ -343,9 +343,13 @@ def pose_a_to_b(
     target = rig.check_base(target, "target")
     region = _check_region(rig, region)
     edit = rig.edit(
-        handles, direct_displacements(source, target, handles), radius, falloff,
-        base=source, beta=beta,
-    )  # fmt: skip
+        handles,
+        direct_displacements(source, target, handles),
+        radius,
+        falloff,
+        base=source,
+        beta=beta,
+    )
     layout = DENSE if dense else rig.layout(handles, radius, falloff)
     if fit:
         return fit_displacements(
@@ -420,9 +424,16 @@ def iterative_layers(
     solutions = []
     for handles, radius in schedule:
         solution = pose_a_to_b(
-            rig, handles, current, target, radius, falloff, fit=fit, region=region,
+            rig,
+            handles,
+            current,
+            target,
+            radius,
+            falloff,
+            fit=fit,
+            region=region,
             options=options,
-        )  # fmt: skip
+        )
         solutions.append(solution)
         current = solution.shape
     return LayerResult(tuple(solutions))
@@ -491,9 +502,14 @@ def clip_edit(
     lo, hi = frame - half_window, frame + half_window + 1
     scaled = fade[lo:hi, None, None] * np.asarray(edit.displacements)[None]
     edited = _edit_frames(
-        rig.model, rig.queries, rig.canonical, edit, jnp.asarray(clip[lo:hi]),
-        jnp.asarray(scaled), layout,
-    )  # fmt: skip
+        rig.model,
+        rig.queries,
+        rig.canonical,
+        edit,
+        jnp.asarray(clip[lo:hi]),
+        jnp.asarray(scaled),
+        layout,
+    )
     out = clip.copy()
     out[lo:hi] = np.asarray(edited)
     return ClipEdit(out, fade, (lo, hi - 1))
@@ -544,14 +560,26 @@ def dialogue_replacement(
     layout = rig.layout(handles, radius, falloff)
     if fit:
         solutions = _fit_frames(
-            rig.model, rig.queries, rig.canonical, edit, jnp.asarray(source),
-            jnp.asarray(target), weights, layout, options,
-        )  # fmt: skip
+            rig.model,
+            rig.queries,
+            rig.canonical,
+            edit,
+            jnp.asarray(source),
+            jnp.asarray(target),
+            weights,
+            layout,
+            options,
+        )
         return np.asarray(solutions.shape)
     out = _edit_frames(
-        rig.model, rig.queries, rig.canonical, edit, jnp.asarray(source),
-        jnp.asarray(displacements), layout,
-    )  # fmt: skip
+        rig.model,
+        rig.queries,
+        rig.canonical,
+        edit,
+        jnp.asarray(source),
+        jnp.asarray(displacements),
+        layout,
+    )
     return np.asarray(out)
 
 
