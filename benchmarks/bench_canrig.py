@@ -1,23 +1,25 @@
-"""Speed of the CANRig forward pass on the ICT face (issue 5, "Targets").
+"""Speed of the CANRig forward pass and its workflows on the ICT face (issues 5 and 17).
 
     python benchmarks/bench_canrig.py [--checkpoint experiments/results/canrig/checkpoint.eqx]
                                       [--repeats 30] [--out FILE]
 
-9,409 vertices, 200 handles (geodesic farthest-point spread, as in the evaluation), medium
-radius 2 cm, falloff 3/cm, warm jit, float32, median over ``--repeats`` calls. Rows, all in
-one process:
+9,409 vertices, 200 handles, falloff 3/cm, warm jit, float32, median over ``--repeats``
+calls, all rows in one process:
 
-- **NeuralRig call** (the library's entry point): input validation in Python, the count of
-  handles per vertex block (one small device->host read), then the jitted block-sparse
-  forward (``canrig/blocks.py``) with the queries of S_0 cached and the masks computed from
-  the placed handles' distances in the jit (radius and falloff are run-time arrays). Also
-  at the small and large radius (1 and 4 cm), where the block width differs.
-- **dense, cached queries**: ``deform``, the dense (V x H) attention, queries cached.
+- **NeuralRig call** (the library's entry point): input validation in Python, the block
+  layout on the host (which handles reach which vertex block), then the jitted forward
+  pass ``deform`` with the block layout gathering around the one attention; radius 2, 1 and
+  4 cm (the block width differs). Handles: geodesic farthest-point spread.
+- **dense, cached queries**: ``deform`` with the dense layout.
 - **reference: dense, uncached queries**: the same network with the queries of all 9,409
-  vertices recomputed inside every call (the naive prototype of the issue).
+  vertices recomputed inside every call (the naive prototype).
+- **pose A to B, direct / fitted** (``workflows.pose_a_to_b``), 200 random-vertex handles,
+  2 cm: one call each (fitted: Levenberg-Marquardt with the Jacobian of the start, the
+  default, and with the exact Jacobian every step).
+- **dialogue replacement**: 45 frames batched with ``jax.vmap`` (direct), per frame.
 - **handle placement**: the Dijkstra runs from 200 handles (once per placement, not per edit).
 
-Target: <= 20 ms on this CPU. A Markdown table is printed (and written to ``--out``).
+Targets: forward <= 20 ms; fitted A to B <= 150 ms; dialogue <= 30 ms per frame.
 """
 
 from __future__ import annotations
@@ -31,39 +33,28 @@ from pathlib import Path
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from canrig_jax.canrig import (
+    DENSE,
     NeuralRig,
     ShapePreservingCANRig,
     deform,
     farthest_point_vertices,
     load_model,
 )
+from canrig_jax.canrig import workflows as wf
 from canrig_jax.io import save_text
-from canrig_jax.rig import ict_linear_rig
+from canrig_jax.rig import evaluate_batch, ict_linear_rig
 
 DEFAULT_CHECKPOINT = Path(__file__).parents[1] / "experiments/results/canrig/checkpoint.eqx"
-TARGET_MS = 20.0
+TARGETS_MS = {"forward": 20.0, "fitted": 150.0, "dialogue": 30.0}
 
 
 @eqx.filter_jit
-def uncached_forward(model, canonical, handle_index, distance, displacements, radius, falloff):
-    """Reference: queries recomputed from S_0 in every call."""
-    queries = model.encode_queries(canonical)
-    return deform(
-        model,
-        queries,
-        canonical,
-        canonical,
-        handle_index,
-        distance,
-        displacements,
-        radius,
-        falloff,
-        jnp.asarray(0.0, jnp.float32),
-    )
+def uncached_forward(model, canonical, edit):
+    """Reference: queries recomputed from S_0 in every call, dense attention."""
+    return deform(model, model.encode_queries(canonical), canonical, edit, DENSE)
 
 
 def _time(fn, repeats):
@@ -88,7 +79,7 @@ def main(argv=None):
     neutral, faces = np.asarray(face.neutral, np.float32), np.asarray(face.faces)
     if args.checkpoint.exists():
         model, _ = load_model(args.checkpoint, neutral)
-        source = f"trained ({args.checkpoint.name})"
+        source = f"trained ({args.checkpoint.parent.name}/{args.checkpoint.name})"
     else:
         model = ShapePreservingCANRig(neutral, key=jax.random.PRNGKey(0))
         source = "untrained (speed does not depend on the weights)"
@@ -98,15 +89,9 @@ def main(argv=None):
     handles = rig.handles(index)
     placement_ms = (time.perf_counter() - start) * 1e3
     h = handles.n_handles
-    displacements = np.random.default_rng(0).normal(0, 0.3, (h, 3)).astype(np.float32)
-    radius, falloff = np.full(h, 2.0, np.float32), np.full(h, 3.0, np.float32)
-    args_dev = (
-        jnp.asarray(handles.index),
-        handles.distance,
-        jnp.asarray(displacements),
-        jnp.asarray(radius),
-        jnp.asarray(falloff),
-    )
+    rng = np.random.default_rng(0)
+    displacements = rng.normal(0, 0.3, (h, 3)).astype(np.float32)
+    edit = rig.edit(handles, displacements, 2.0, 3.0)
     rows = [
         (
             f"NeuralRig call, block-sparse, radius {r:g} cm",
@@ -115,41 +100,69 @@ def main(argv=None):
         for r in (2.0, 1.0, 4.0)
     ]
     rows += [
-        (
-            "dense, cached queries (deform)",
-            _time(
-                lambda: deform(
-                    model,
-                    rig.queries,
-                    rig.canonical,
-                    rig.canonical,
-                    args_dev[0],
-                    args_dev[1],
-                    *args_dev[2:],
-                    jnp.asarray(0.0, jnp.float32),
-                ),
-                args.repeats,
-            ),
-        ),
+        ("dense, cached queries", _time(lambda: rig.deform(edit, DENSE), args.repeats)),
         (
             "reference: dense, uncached queries",
-            _time(lambda: uncached_forward(model, rig.canonical, *args_dev), args.repeats),
+            _time(lambda: uncached_forward(model, rig.canonical, edit), args.repeats),
         ),
     ]
-    same = np.allclose(
-        np.asarray(rig(handles, displacements, 2.0, 3.0)),
-        np.asarray(uncached_forward(model, rig.canonical, *args_dev)),
-        atol=1e-5,
+    same = float(
+        np.abs(
+            np.asarray(rig(handles, displacements, 2.0, 3.0))
+            - np.asarray(uncached_forward(model, rig.canonical, edit))
+        ).max()
     )
     reference_ms = rows[-1][1][0]
+
+    # workflows on real poses: A, B two sparse ICT expressions
+    poses = np.zeros((47, face.n_blendshapes), np.float32)
+    for row in poses:
+        active = rng.choice(face.n_blendshapes, 6, replace=False)
+        row[active] = rng.uniform(0.1, 1.0, 6)
+    shapes = np.asarray(evaluate_batch(face, poses))
+    random_handles = rig.handles(rng.choice(rig.n_vertices, h, replace=False), limit=5.0)
+    a, b = shapes[0], shapes[1]
+
+    def a_to_b(fit, options=None):
+        options = options or wf.FitOptions()
+        return wf.pose_a_to_b(rig, random_handles, a, b, 2.0, 3.0, fit=fit, options=options).shape
+
+    few = max(3, args.repeats // 6)
+    direct_ms = _time(lambda: a_to_b(False), args.repeats)
+    workflow_rows = [
+        ("pose A to B, direct", direct_ms),
+        ("pose A to B, fitted (Jacobian of the start)", _time(lambda: a_to_b(True), few)),
+        (
+            "pose A to B, fitted (exact Jacobian every step)",
+            _time(lambda: a_to_b(True, wf.FitOptions(exact_jacobian=True)), few),
+        ),
+    ]
+    mouth = wf.expression_region(face)
+    interior = wf.interior_vertices(rig, mouth, 1.8)
+    mouth_handles = rig.handles(interior[farthest_point_vertices(neutral[interior], 40)])
+    source, target = shapes[2:47:2][:45], shapes[1:47:2][:45]
+    n_frames = min(len(source), len(target))
+    batch_ms = _time(
+        lambda: wf.dialogue_replacement(
+            rig, source[:n_frames], target[:n_frames], mouth_handles, 1.0, 3.0
+        ),
+        few,
+    )
+    workflow_rows.append(
+        (
+            f"dialogue replacement, {n_frames} frames batched, per frame",
+            tuple(x / n_frames for x in batch_ms),
+        )
+    )
+
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     lines = [
-        f"CANRig forward, {rig.n_vertices} vertices, {h} handles, radius 2 cm, falloff 3/cm, "
-        f"float32, warm jit, median of {args.repeats}; model {source}",
+        f"CANRig forward, {rig.n_vertices} vertices, {h} handles (geodesic farthest points), "
+        f"radius 2 cm, falloff 3/cm, float32, warm jit, median of {args.repeats}; model {source}",
         f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
         f"load average {load:.1f} at the end, jax {jax.__version__}",
         "",
-        "| variant | median ms | min ms | vs reference |",
+        "| variant | median ms | min ms | vs dense uncached reference |",
         "|---|---|---|---|",
     ]
     for name, (median, best) in rows:
@@ -157,14 +170,31 @@ def main(argv=None):
     lines.append(f"| handle placement (Dijkstra, once per placement) | {placement_ms:.0f} | | |")
     lines += [
         "",
-        f"outputs agree with the reference: {same}; target <= {TARGET_MS:g} ms: "
-        f"{'met' if rows[0][1][0] <= TARGET_MS else 'not met'}",
+        f"block-sparse vs reference: max difference {same:.2e} cm; forward target <= "
+        f"{TARGETS_MS['forward']:g} ms: "
+        f"{'met' if rows[0][1][0] <= TARGETS_MS['forward'] else 'not met'}",
+        "",
+        f"Workflows, {h} random-vertex handles, radius 2 cm (A, B: sparse ICT expressions); "
+        f"median of {few} calls",
+        "",
+        "| workflow | median ms | min ms | vs direct A to B |",
+        "|---|---|---|---|",
+    ]
+    for name, (median, best) in workflow_rows:
+        lines.append(f"| {name} | {median:.1f} | {best:.1f} | {median / direct_ms[0]:.1f}x |")
+    fitted_ms, dialogue_ms = workflow_rows[1][1][0], workflow_rows[-1][1][0]
+    lines += [
+        "",
+        f"fitted target <= {TARGETS_MS['fitted']:g} ms: "
+        f"{'met' if fitted_ms <= TARGETS_MS['fitted'] else 'not met'}; dialogue target <= "
+        f"{TARGETS_MS['dialogue']:g} ms/frame: "
+        f"{'met' if dialogue_ms <= TARGETS_MS['dialogue'] else 'not met'}",
     ]
     table = "\n".join(lines) + "\n"
     print(table)
     if args.out is not None:
         save_text(args.out, table)
-    return rows
+    return rows, workflow_rows
 
 
 if __name__ == "__main__":
