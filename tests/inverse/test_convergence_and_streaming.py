@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from canrig_jax import inverse
+from canrig_jax.inverse.metrics import CARDINALITY_TOL
 from canrig_jax.rig import evaluate
 
 
@@ -22,7 +23,7 @@ def noisy(ict_quartic, livelink_weights):
 
 
 def _cardinality(weights):
-    return (np.asarray(weights) > inverse.metrics.CARDINALITY_TOL).sum(1)
+    return (np.asarray(weights) > CARDINALITY_TOL).sum(1)
 
 
 def test_stopping_rule_and_newton_step_reach_the_minimum_of_plain_cd_in_fewer_passes(
