@@ -49,7 +49,8 @@ HANDLE_COUNTS = (20, 75, 200)
 LAYER_SCHEDULE = ((20, 4.0), (75, 2.0), (200, 1.0))
 DISTANCE_LIMIT_CM = 5.0  # > the reach of a 4 cm mask at falloff 3/cm (4.77 cm): exact
 CLIP_HANDLES, CLIP_HALF_WINDOW, CLIP_RADIUS_CM = 12, 10, 3.0
-DIALOGUE_HANDLES, DIALOGUE_RADIUS_CM = 40, 1.0
+DIALOGUE_HANDLES, DIALOGUE_RADIUS_CM = 60, 1.5
+MOUTH_THRESHOLD_CM = 0.3  # the mouth mask: what jaw*/mouth* move > 3 mm, eye*/brow* do not
 
 
 def _error_mm(a, b):
@@ -217,7 +218,7 @@ def main(argv=None):
     clip_weights = capture_test[:30] if args.quick else capture_test
     clip = evaluate_poses(quartic, clip_weights)
     frame = len(clip) // 2
-    mouth = wf.expression_region(quartic)
+    mouth = wf.expression_region(quartic, threshold=MOUTH_THRESHOLD_CM)
     jaw = list(quartic.names).index("jawOpen")
     wider = clip_weights[frame].copy()
     wider[jaw] = min(1.0, wider[jaw] + 0.3)
@@ -316,6 +317,9 @@ def main(argv=None):
         "source_mouth_difference_mm": float(_error_mm(source, target)[:, mouth].mean()),
         "frames": {"source": [90, 89 + n_dialogue], "target": [135, 134 + n_dialogue]},
         "mouth_mask_vertices": int(mouth.sum()),
+        "mouth_mask": f"expression_region(threshold={MOUTH_THRESHOLD_CM} cm): vertices some "
+        "jaw*/mouth* expression of the ict-quartic rig moves more than that and no eye*/brow* "
+        "expression does",
         "handles": DIALOGUE_HANDLES,
         "radius_cm": DIALOGUE_RADIUS_CM,
     }
