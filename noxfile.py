@@ -66,6 +66,19 @@ STANDARD_EXPERIMENTS = (
         "--out",
         "experiments/results/canrig",
     ),
+    (
+        "canrig_train.py",
+        *("--out", "experiments/results/canrig_workflows/model", "--minutes", "80"),
+        *("--steps", "28000", "--decay-start", "10000", "--decay-steps", "18000"),
+        *("--decay-floor", "0.02", "--no-progress", "--width", "96", "--fourier", "6"),
+        "--interpolation-prior",
+    ),
+    (
+        "canrig_workflows.py",
+        *("--checkpoint", "experiments/results/canrig_workflows/model/checkpoint.eqx"),
+        *("--out", "experiments/results/canrig_workflows", "--pairs", "1000"),
+        *("--fit-pairs", "30", "--fit-pairs-main", "200", "--layer-pairs", "30"),
+    ),
 )
 """The standard configurations whose outputs are committed under experiments/results/ (the
 same commands as each folder's COMMAND file)."""

@@ -15,7 +15,7 @@ from canrig_jax.provenance import COMMAND_FILE, experiment_command, provenance
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "experiments" / "results"
 SCRIPTS = sorted(p.name for p in (ROOT / "experiments").glob("*.py"))
-PENDING = {"inverse_rig.py", "canrig_eval.py", "canrig_workflows.py"}
+PENDING: set[str] = set()
 """Scripts whose owners adopt ``provenance`` in their own change (see issue 21)."""
 
 
