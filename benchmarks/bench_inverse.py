@@ -97,6 +97,12 @@ def main(argv=None) -> str:
     single_s, _ = time_single_frames(problem, targets[:60], converged)
     warm_s, _ = time_single_frames(problem, targets[:60], converged, warm_start=True)
     paper_single_s, _ = time_single_frames(problem, targets[:60], paper)
+    no_newton = inverse.QuarticCD(alpha=args.alpha, newton=False)
+    no_newton_s, _ = time_batched(problem, targets, no_newton)
+    no_newton_passes = np.asarray(
+        inverse.solve_sequence(problem, targets, no_newton).stats["steps"]
+    )
+    no_newton_single_s, _ = time_single_frames(problem, targets[:60], no_newton)
     joshi_ms = _median_ms(lambda b: inverse.solve(problem, b, inverse.Joshi()).weights, targets[0])
 
     offset = jnp.asarray((targets[0] - np.asarray(problem.neutral)).ravel())
@@ -120,6 +126,15 @@ def main(argv=None) -> str:
         ),
         ("JAX QuarticCD converged, one frame per call (Stream, median of 60)", single_s * 1e3),
         ("JAX QuarticCD converged, one frame per call, warm-started", warm_s * 1e3),
+        (
+            f"JAX QuarticCD converged without Newton steps (tol 1e-5; "
+            f"{no_newton_passes.mean():.1f} passes mean, {no_newton_passes.max()} max), batched",
+            no_newton_s * 1e3,
+        ),
+        (
+            "JAX QuarticCD converged without Newton steps, one frame per call",
+            no_newton_single_s * 1e3,
+        ),
         ("JAX Joshi, one frame per call (fixed cost of a compiled call)", joshi_ms),
         (f"projection M^T (b - b0) alone, (P, 3V) row-major, {megabytes:.0f} MB", projection_ms),
         ("projection alone in the old (3V, P) layout, basis.T @ x", transposed_ms),

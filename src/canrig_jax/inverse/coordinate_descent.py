@@ -175,6 +175,10 @@ class AbstractCoordinateDescent(AbstractInverseMethod):
             return run
 
         branches = [sized_update(width) for width in widths]
+        qg_rows = [
+            (lambda w: lambda g_i, i: g_i[:w] @ model.support_gram[i, :w])(width)
+            for width in widths
+        ]
 
         def update(state, i):
             weights, gradient = state
@@ -200,7 +204,8 @@ class AbstractCoordinateDescent(AbstractInverseMethod):
             """Projected Gauss-Newton step on the free weights, kept if it lowers E."""
             g = jax.vmap(derivative, (None, 0))(weights, indices)  # (K, m)
             grad = jnp.einsum("km,km->k", g, gradient[model.support]) + alpha
-            qg = jnp.einsum("kmp,km->kp", model.support_gram, g)  # row i: (Q G)[:, i]
+            # row i: (Q G)[:, i] = g_i^T Q[S_i, :], each at its support's padded width
+            qg = jax.lax.map(lambda i: jax.lax.switch(bucket[i], qg_rows, g[i], i), indices)
             jac = jnp.zeros((k, width), weights.dtype).at[indices[:, None], model.support].add(g)
             hessian = jac @ qg.T  # G^T Q G
             free = (weights > 0) & (weights < upper)
