@@ -151,6 +151,7 @@ def _jit_solve(problem, target, method):
     return inverse.solve(problem, target, method)
 
 
+@pytest.mark.slow
 def test_jaxopt_through_evaluate_agrees_with_the_gram_objective(setup):
     _, problem, _, targets = setup
     # the same L-BFGS-B iterations on the two forms of one objective reach the same value
