@@ -28,7 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ..rig.blendshape import BlendshapeRig, _check_finite, evaluate
+from ..checks import check_finite as _check_finite
+from ..rig.blendshape import BlendshapeRig, evaluate
 from .frames import LocalFrames, frame_matrices, local_frames, local_to_world, to_local
 from .metric import (
     blendshape_metric,
