@@ -151,6 +151,19 @@ def test_remeshed_rig_evaluates_to_the_carried_expressions(data_dir):
     np.testing.assert_allclose(np.asarray(evaluate(carried, weights)), expected, atol=1e-5)
 
 
+def test_remeshed_rig_keeps_the_rig_unit(data_dir):
+    """A head in decimetres stays in decimetres on the new mesh (and evaluates there)."""
+    face = load_ict(data_dir, parts=FACE)
+    rig = BlendshapeRig(face.neutral / 10, face.deltas[:3] / 10, (), face.names[:3], face.faces,
+                        units="dm")  # fmt: skip
+    coarse = decimate(rig.neutral, face.faces, 1000)
+    carried = remesh_rig(rig, coarse)
+    assert carried.units == "dm"
+    weights = np.array([1.0, 0.5, 0.0], np.float32)
+    expected = coarse.map.carry(np.asarray(evaluate(rig, weights), np.float64))
+    np.testing.assert_allclose(np.asarray(evaluate(carried, weights)), expected, atol=1e-6)
+
+
 def test_bad_input(head, decimated):
     vertices = np.concatenate([head.neutral, head.neutral[:1] + 10])
     with pytest.raises(ValueError, match="^vertices:.*isolated"):

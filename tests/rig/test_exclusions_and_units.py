@@ -54,3 +54,28 @@ def test_synthesis_thresholds_follow_the_rig_unit(data_dir):
     np.testing.assert_array_equal(np.asarray(pairs_cm.indices), np.asarray(pairs_dm.indices))
     dense_cm = pairs_cm.to_dense(cm.n_vertices)
     np.testing.assert_allclose(pairs_dm.to_dense(cm.n_vertices) * 10, dense_cm, atol=2e-4)
+
+
+def test_save_load_keeps_the_rig_unit(data_dir, tmp_path):
+    from canrig_jax.rig import evaluate, load_rig, save_rig
+
+    linear = ict_linear_rig(data_dir)
+    dm = BlendshapeRig(linear.neutral / 10, linear.deltas / 10, (), linear.names, linear.faces,
+                       units="dm")  # fmt: skip
+    loaded = load_rig(save_rig(tmp_path / "dm.npz", dm))
+    assert loaded.units == "dm"
+    weights = np.zeros(dm.n_blendshapes, np.float32)
+    weights[list(dm.index(["jawOpen", "mouthSmile_L"]))] = (0.7, 0.4)
+    np.testing.assert_array_equal(evaluate(loaded, weights), evaluate(dm, weights))
+    # a file written before rigs had units holds ICT's centimetres
+    with np.load(tmp_path / "dm.npz", allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files if k != "units"}
+    np.savez(tmp_path / "old.npz", **arrays)
+    assert load_rig(tmp_path / "old.npz").units == "cm"
+
+
+def test_exclusive_pairs_is_exported_from_rig():
+    import canrig_jax.rig as rig_package
+
+    assert "exclusive_pairs" in rig_package.__all__
+    assert rig_package.exclusive_pairs is exclusive_pairs

@@ -56,6 +56,34 @@ def test_coactivation_excludes_opposite_directions():
     assert [0, 1] not in got.tolist() and len(got) == 2
 
 
+def test_coactivation_excludes_opposites_in_any_spelling(ict_face, data_dir):
+    """ICT names (``eyeLookUp_L``), their ARKit spelling (``eyeLookUpLeft``) and the capture's
+    Unreal names (``EyeLookUpLeft``) all exclude the six pairs of opposite directions."""
+    from canrig_jax.data import load_livelinkface, to_arkit
+    from canrig_jax.rig import MUTUALLY_EXCLUSIVE
+
+    ict = list(ict_face.names)
+    unreal = list(load_livelinkface(data_dir).names)
+    for names, variant in ((ict, ict), (ict, [to_arkit(n) for n in ict]), (unreal, unreal)):
+        k, canonical = len(names), [to_arkit(n) for n in names]
+        banned = {
+            tuple(sorted((canonical.index(to_arkit(a)), canonical.index(to_arkit(b)))))
+            for a, b in MUTUALLY_EXCLUSIVE
+        }
+        assert len(banned) == 6
+        expected = {(i, j) for i in range(k) for j in range(i + 1, k)} - banned
+        got = coactivation_pairs(np.ones((2, k)), k * k, variant)  # every pair co-activates
+        assert {tuple(p) for p in got.tolist()} == expected
+
+
+def test_fix_shape_rig_keeps_the_rig_unit(tiny_rig):
+    from canrig_jax.rig import BlendshapeRig
+
+    dm = BlendshapeRig(tiny_rig.neutral, tiny_rig.deltas, (), tiny_rig.names, tiny_rig.faces,
+                       units="dm")  # fmt: skip
+    assert fix_shape_rig(dm, np.array([[0, 1]]), sculpt_of(dm)).units == "dm"
+
+
 def test_bad_input(tiny_rig):
     sculpt = sculpt_of(tiny_rig)
     with pytest.raises(ValueError, match="triggers"):

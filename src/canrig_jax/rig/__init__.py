@@ -16,6 +16,7 @@ from .synthesis import (
     MUTUALLY_EXCLUSIVE,
     SynthesisOptions,
     SynthesisReport,
+    exclusive_pairs,
     overlapping_pairs,
     synthesize_correctives,
 )
@@ -33,6 +34,7 @@ __all__ = [
     "deformation_transfer",
     "evaluate",
     "evaluate_batch",
+    "exclusive_pairs",
     "ict_linear_rig",
     "ict_quartic_rig",
     "load_rig",

@@ -22,6 +22,7 @@ def save_rig(path: str | os.PathLike, rig: BlendshapeRig) -> Path:
         "deltas": np.asarray(rig.deltas),
         "names": np.array(rig.names, dtype=str),
         "orders": np.array([c.order for c in rig.correctives], dtype=np.int32),
+        "units": np.array(rig.units, dtype=str),
     }
     if rig.faces is not None:
         arrays["faces"] = np.asarray(rig.faces)
@@ -33,7 +34,8 @@ def save_rig(path: str | os.PathLike, rig: BlendshapeRig) -> Path:
 
 
 def load_rig(path: str | os.PathLike) -> BlendshapeRig:
-    """Read a rig written by ``save_rig``; a damaged file raises ``CorruptFileError`` (a
+    """Read a rig written by ``save_rig`` (its ``units`` too; "cm" for a file written before
+    rigs had units); a damaged file raises ``CorruptFileError`` (a
     ValueError) naming it, a missing one FileNotFoundError."""
     if not isinstance(path, str | os.PathLike):
         raise TypeError(f"path: expected a file path, got {type(path).__name__}")
@@ -44,8 +46,9 @@ def load_rig(path: str | os.PathLike) -> BlendshapeRig:
     for n in orders:
         keys += [f"order{n}_indices", f"order{n}_vertices", f"order{n}_deltas"]
     with np.load(path, allow_pickle=False) as z:
-        has_faces = "faces" in z.files
-    z = read_arrays(path, keys + (["faces"] if has_faces else []))
+        has_faces, has_units = "faces" in z.files, "units" in z.files
+    optional = (["faces"] if has_faces else []) + (["units"] if has_units else [])
+    z = read_arrays(path, keys + optional)
     try:
         correctives = tuple(
             Corrective(z[f"order{n}_indices"], z[f"order{n}_vertices"], z[f"order{n}_deltas"])
@@ -57,6 +60,7 @@ def load_rig(path: str | os.PathLike) -> BlendshapeRig:
             correctives,
             tuple(str(n) for n in z["names"]),
             z["faces"] if has_faces else None,
+            str(z["units"]) if has_units else "cm",  # files from before ``units``: ICT's cm
         )
     except (ValueError, TypeError) as error:
         raise CorruptFileError(f"{path}: corrupt rig file ({error})") from error

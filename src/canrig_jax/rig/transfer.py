@@ -17,7 +17,8 @@ from .blendshape import BlendshapeRig, Corrective
 
 def remesh_rig(rig: BlendshapeRig, remeshed: Remeshed) -> BlendshapeRig:
     """The rig carried onto the new triangulation: neutral = the remeshed vertices, deltas and
-    correctives interpolated by the surface map (a ground-truth rig for the new mesh)."""
+    correctives interpolated by the surface map (a ground-truth rig for the new mesh), in the
+    rig's ``units``."""
     if not isinstance(rig, BlendshapeRig):
         raise TypeError(f"rig: expected a BlendshapeRig, got {type(rig).__name__}")
     if not isinstance(remeshed, Remeshed):
@@ -39,6 +40,7 @@ def remesh_rig(rig: BlendshapeRig, remeshed: Remeshed) -> BlendshapeRig:
         tuple(correctives),
         rig.names,
         remeshed.faces.astype(np.int32),
+        units=rig.units,
     )
 
 

@@ -20,7 +20,7 @@ from jaxtyping import ArrayLike, Float, Int
 
 from ..checks import check_real
 from ..rig.blendshape import BlendshapeRig, Corrective, evaluate_batch
-from ..rig.synthesis import MUTUALLY_EXCLUSIVE
+from ..rig.synthesis import MUTUALLY_EXCLUSIVE, exclusive_pairs
 
 
 def coactivation_pairs(
@@ -32,8 +32,10 @@ def coactivation_pairs(
     """The ``n_pairs`` blendshape pairs that co-activate most in an animation.
 
     The score of a pair (a, b) is sum_t w_{t,a} w_{t,b}, the total of its FSM trigger over the
-    frames; pairs named in ``exclude`` (opposite directions of one control) and pairs that
-    never co-activate are skipped. Returns (N, 2) indices, N <= n_pairs, best first.
+    frames; pairs named in ``exclude`` (opposite directions of one control, matched by
+    canonical ARKit name as in ``rig.exclusive_pairs``, so ``names`` may be ICT, ARKit or
+    Unreal spellings) and pairs that never co-activate are skipped. Returns (N, 2) indices,
+    N <= n_pairs, best first.
     """
     animation = np.asarray(animation, np.float64)
     if animation.ndim != 2 or animation.shape[0] == 0:
@@ -49,10 +51,7 @@ def coactivation_pairs(
     a, b = np.triu_indices(k, 1)
     keep = score[a, b] > 0
     if names:
-        index = {n: i for i, n in enumerate(names)}
-        banned = {
-            tuple(sorted((index[x], index[y]))) for x, y in exclude if x in index and y in index
-        }
+        banned = set(exclusive_pairs(names, exclude))  # canonical ARKit names, any spelling
         keep &= np.array([(i, j) not in banned for i, j in zip(a, b, strict=True)], bool)
     a, b, s = a[keep], b[keep], score[a, b][keep]
     order = np.argsort(-s, kind="stable")[:n_pairs]
@@ -113,4 +112,6 @@ def fix_shape_rig(
         )
     base = np.asarray(evaluate_batch(rig, corners))
     table = Corrective.from_dense(triggers, desired - base)  # raises on repeated indices
-    return BlendshapeRig(rig.neutral, rig.deltas, (*rig.correctives, table), rig.names, rig.faces)
+    return BlendshapeRig(
+        rig.neutral, rig.deltas, (*rig.correctives, table), rig.names, rig.faces, units=rig.units
+    )
