@@ -1,0 +1,104 @@
+"""Every Python block of README.md runs as written, in order, in one fresh process.
+
+The blocks are concatenated into one script whose line numbers are README.md's own (every
+line outside a ```python block is blank, and each block's opening fence becomes a marker
+print), so a traceback points at the README line, and the last marker names the block.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+MARKER = "@@README-BLOCK"
+
+
+@dataclass(frozen=True)
+class Block:
+    heading: str  # the nearest heading above the block
+    start: int  # 1-based README line of the opening fence
+    source: str
+
+
+def python_blocks(text: str) -> list[Block]:
+    """The ```python blocks of a Markdown text, in order, each with its heading."""
+    blocks, heading, fence, body, start = [], "(top of README)", None, [], 0
+    for number, line in enumerate(text.splitlines(), start=1):
+        stripped = line.strip()
+        if fence is None:
+            if stripped.startswith("```"):
+                fence, body, start = stripped[3:].strip().lower(), [], number
+            elif re.match(r"#{1,6} ", line):
+                heading = line.lstrip("#").strip()
+        elif stripped.startswith("```"):
+            if fence == "python":
+                blocks.append(Block(heading, start, "\n".join(body)))
+            fence = None
+        else:
+            body.append(line)
+    if fence is not None:
+        raise ValueError(f"README.md: code block opened at line {start} is never closed")
+    return blocks
+
+
+def readme_script(text: str, blocks: list[Block]) -> str:
+    """One script of all blocks, each at its README line numbers, a marker on each fence."""
+    lines = [""] * len(text.splitlines())
+    for i, block in enumerate(blocks):
+        lines[block.start - 1] = f"print({f'{MARKER} {i}'!r}, flush=True)"
+        for offset, line in enumerate(block.source.splitlines(), start=1):
+            lines[block.start - 1 + offset] = line
+    return "\n".join(lines) + "\n"
+
+
+def test_python_blocks_are_found_with_their_headings():
+    text = "# A\n```python\nx = 1\n```\n## B\n```bash\nls\n```\n```python\ny = x\n```\n"
+    blocks = python_blocks(text)
+    assert [(b.heading, b.start, b.source) for b in blocks] == [
+        ("A", 2, "x = 1"),
+        ("B", 9, "y = x"),
+    ]
+    script = readme_script(text, blocks).splitlines()
+    assert script[2] == "x = 1" and script[9] == "y = x" and script[5] == ""
+    with pytest.raises(ValueError, match="never closed"):
+        python_blocks("```python\nx = 1\n")
+
+
+@pytest.mark.slow
+def test_readme_python_blocks_run_in_order_in_a_fresh_process(tmp_path):
+    text = README.read_text()
+    blocks = python_blocks(text)
+    assert blocks, "README.md has no ```python blocks"
+    script = tmp_path / "readme_blocks.py"
+    script.write_text(readme_script(text, blocks))
+    env = dict(os.environ, MPLBACKEND="Agg", PYTHONUNBUFFERED="1")
+    done = subprocess.run(
+        [sys.executable, str(script)],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=3600,
+    )
+    if done.returncode == 0:
+        return
+    reached = [int(m) for m in re.findall(rf"^{MARKER} (\d+)$", done.stdout, flags=re.M)]
+    if not reached:
+        where = "before the first block"
+    else:
+        block = blocks[reached[-1]]
+        where = f"block {reached[-1] + 1} of {len(blocks)}, under '{block.heading}'"
+        where += f" (README line {block.start})"
+    pytest.fail(
+        f"README.md python {where} failed (traceback line numbers are README.md lines):\n"
+        f"{done.stderr[-6000:]}",
+        pytrace=False,
+    )
