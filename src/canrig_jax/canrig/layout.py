@@ -159,9 +159,11 @@ def block_layout(
     """The layout for handles whose distance to each block is ``nearest`` (``block_distance``)
     and whose masks vanish beyond ``reach`` (``influence_reach``); host-side, no device work.
 
-    Leading axes of ``nearest`` and ``reach`` give a batch of layouts (one per edit, for
-    ``jax.vmap``) sharing one ``width``: the next power of two above the largest count of
-    handles within reach of a block (at most H), or ``width`` if given (it must be enough)."""
+    ``blocks`` and ``position`` given as device arrays (the rig's, padding already V) are
+    used as they are, with no copy per call. Leading axes of ``nearest`` and ``reach`` give a
+    batch of layouts (one per edit, for ``jax.vmap``) sharing one ``width``: the next power
+    of two above the largest count of handles within reach of a block (at most H), or
+    ``width`` if given (it must be enough)."""
     nearest = np.asarray(nearest, np.float32)
     within = nearest <= np.asarray(reach)[..., None, :]  # (..., B, H)
     h = within.shape[-1]
@@ -174,9 +176,9 @@ def block_layout(
     # handles within reach first (stable: by index), then the nearest others (mask 0 there)
     order = np.argsort(~within, axis=-1, kind="stable")[..., :width]
     lead = order.shape[:-2]
-    blocks = np.where(blocks < 0, len(position), blocks).astype(np.int32)
-    return BlockLayout(
-        blocks=jnp.asarray(np.broadcast_to(blocks, (*lead, *blocks.shape))),
-        position=jnp.asarray(np.broadcast_to(position, (*lead, *position.shape))),
-        chosen=jnp.asarray(order.astype(np.int32)),
-    )
+    if lead or not isinstance(blocks, jax.Array) or not isinstance(position, jax.Array):
+        blocks = np.where(np.asarray(blocks) < 0, len(position), blocks).astype(np.int32)
+        blocks = jnp.asarray(np.broadcast_to(blocks, (*lead, *blocks.shape)))
+        position = jnp.asarray(np.broadcast_to(position, (*lead, *np.shape(position))))
+    chosen = jnp.asarray(order.astype(np.int32))
+    return BlockLayout(blocks=blocks, position=position, chosen=chosen)

@@ -237,11 +237,15 @@ class AbstractCANRig(eqx.Module):
         mask: Float[Array, "..."],
         beta: float | Float[Array, ""] | None = None,
         layout: Layout = DENSE,
+        local_queries: Float[Array, "..."] | None = None,
     ) -> Trace:
-        """The forward pass with its intermediates (``__call__`` returns ``.shape``)."""
+        """The forward pass with its intermediates (``__call__`` returns ``.shape``).
+        ``local_queries``: ``layout.vertices(queries, axis=-2)`` if cached by the caller."""
         keys = layout.handles(self.encode_keys(handle_canonical), axis=-2)
         values = layout.handles(self.encode_values(displacements, handle_base), axis=-2)
-        attention = self.attention(layout.vertices(queries, axis=-2), keys, mask, beta)
+        if local_queries is None:
+            local_queries = layout.vertices(queries, axis=-2)
+        attention = self.attention(local_queries, keys, mask, beta)
         attended = layout.scatter(self.merge_heads(jnp.matmul(attention, values)))
         shape = base + self.decode(attended, base, queries)
         if self.interpolation_prior:
@@ -259,6 +263,7 @@ class AbstractCANRig(eqx.Module):
         mask: Float[Array, "..."],
         beta: float | Float[Array, ""] | None = None,
         layout: Layout = DENSE,
+        local_queries: Float[Array, "..."] | None = None,
     ) -> Float[Array, "N 3"]:
         """The deformed shape at the N vertices: base + network output (+ prior).
 
@@ -267,7 +272,15 @@ class AbstractCANRig(eqx.Module):
         is used by the shape-preserving variant only. ``layout`` gathers vertices and
         handles around the attention and scatters back; every layout gives the same result."""
         return self.trace(
-            queries, base, handle_canonical, handle_base, displacements, mask, beta, layout
+            queries,
+            base,
+            handle_canonical,
+            handle_base,
+            displacements,
+            mask,
+            beta,
+            layout,
+            local_queries,
         ).shape
 
 

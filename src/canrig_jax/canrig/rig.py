@@ -24,7 +24,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from .layout import DENSE, Layout, block_distance, block_layout, influence_reach, vertex_blocks
+from .layout import (
+    DENSE,
+    BlockLayout,
+    Layout,
+    block_distance,
+    block_layout,
+    influence_reach,
+    vertex_blocks,
+)
 from .masks import check_handle_parameters, edge_graph, influence_mask, weighted_geodesic_distance
 from .model import AbstractCANRig
 
@@ -89,10 +97,12 @@ def deform(
     canonical: Float[Array, "V 3"],
     edit: HandleEdit,
     layout: Layout = DENSE,
+    local_queries: Float[Array, "..."] | None = None,
 ) -> Float[Array, "V 3"]:
     """The shape of ``edit``: the one jitted forward pass (no validation; build ``edit``
     with ``NeuralRig.edit``). ``layout`` (``NeuralRig.layout``) only changes where the
-    attention runs, not the result. Batch over edits with ``jax.vmap``."""
+    attention runs, not the result; ``local_queries`` may cache
+    ``layout.vertices(queries, axis=-2)``. Batch over edits with ``jax.vmap``."""
     return model(
         queries,
         edit.base,
@@ -102,6 +112,7 @@ def deform(
         edit_mask(edit, model.clamp, layout),
         edit.beta,
         layout,
+        local_queries,
     )
 
 
@@ -145,6 +156,10 @@ class NeuralRig:
         position[flat[flat >= 0]] = np.flatnonzero(flat >= 0)
         self.blocks = np.where(blocks < 0, len(canonical), blocks).astype(np.int32)
         self.block_position = position
+        self._device_blocks = (jnp.asarray(self.blocks), jnp.asarray(position))
+        # the queries gathered into the blocks once (the layout's first step, cached)
+        blocked = BlockLayout(*self._device_blocks, chosen=jnp.zeros((len(blocks), 1), jnp.int32))
+        self.block_queries = blocked.vertices(self.queries, axis=-2)
 
     @property
     def n_vertices(self) -> int:
@@ -245,13 +260,15 @@ class NeuralRig:
         h = self._check_handles(handles)
         radius, falloff = check_handle_parameters(radius, falloff, h)
         reach = influence_reach(radius, falloff, self.model.clamp)
-        return block_layout(
-            self.blocks, self.block_position, handles.block_distance, reach, width=width
-        )
+        return block_layout(*self._device_blocks, handles.block_distance, reach, width=width)
 
     def deform(self, edit: HandleEdit, layout: Layout = DENSE) -> Float[Array, "V 3"]:
-        """``deform`` with this rig's model, queries and neutral."""
-        return deform(self.model, self.queries, self.canonical, edit, layout)
+        """``deform`` with this rig's model, queries and neutral (and, for one of its block
+        layouts, the queries already gathered into the blocks)."""
+        cached = None
+        if isinstance(layout, BlockLayout) and layout.blocks is self._device_blocks[0]:
+            cached = self.block_queries
+        return deform(self.model, self.queries, self.canonical, edit, layout, cached)
 
     def __call__(
         self,
