@@ -189,6 +189,12 @@ WORKFLOWS = [
         "clip",
     ),
     raises(
+        "clip-complex",
+        lambda c: wf.clip_edit(c.rig, c.clip + 1j, 2, c.handles, c.d, 1.0, 3.0, 1),
+        TypeError,
+        "clip",
+    ),
+    raises(
         "clip-nan",
         lambda c: wf.clip_edit(c.rig, np.stack([c.nan_pose] * 5), 2, c.handles, c.d, 1.0, 3.0, 1),
         ValueError,

@@ -116,13 +116,17 @@ def deform(
     )
 
 
-def _check_points(name: str, value, n_vertices: int) -> np.ndarray:
+def check_points(name: str, value, n_vertices: int, *, frames: bool = False) -> np.ndarray:
+    """``value`` as float32 points of the mesh, (V, 3) or with ``frames`` (F >= 1, V, 3):
+    real, finite, the mesh's vertex count; else TypeError/ValueError naming ``name``."""
     array = np.asarray(value)
     if not np.issubdtype(array.dtype, np.floating) and not np.issubdtype(array.dtype, np.integer):
         raise TypeError(f"{name}: expected real numbers, got dtype {array.dtype}")
-    if array.shape != (n_vertices, 3):
+    expected = "(F, V, 3) with F >= 1 frames" if frames else "(V, 3)"
+    if array.shape[-2:] != (n_vertices, 3) or array.ndim != (3 if frames else 2) or not len(array):
         raise ValueError(
-            f"{name}: expected shape ({n_vertices}, 3) (the mesh's vertex count), got {array.shape}"
+            f"{name}: expected shape {expected}, V = {n_vertices} (the mesh's vertex count), "
+            f"got {array.shape}"
         )
     array = array.astype(np.float32)
     if not np.all(np.isfinite(array)):
@@ -211,7 +215,7 @@ class NeuralRig:
         """``base`` as a checked (V, 3) float32 device array; None: the neutral."""
         if base is None:
             return self.canonical
-        return jnp.asarray(_check_points(name, base, self.n_vertices))
+        return jnp.asarray(check_points(name, base, self.n_vertices))
 
     def edit(
         self,

@@ -41,7 +41,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from .layout import DENSE, Layout
 from .model import AbstractCANRig
-from .rig import HandleEdit, Handles, NeuralRig, deform, edit_mask
+from .rig import HandleEdit, Handles, NeuralRig, check_points, deform, edit_mask
 
 # --------------------------------------------------------------------------- Jacobian
 
@@ -299,15 +299,7 @@ def _check_region(rig: NeuralRig, region, name: str = "region") -> Array:
 
 
 def _check_clip(rig: NeuralRig, clip, name: str) -> np.ndarray:
-    clip = np.asarray(clip)
-    if clip.ndim != 3 or clip.shape[1:] != (rig.n_vertices, 3) or len(clip) == 0:
-        raise ValueError(
-            f"{name}: expected shape (F, {rig.n_vertices}, 3) with F >= 1 frames, got {clip.shape}"
-        )
-    clip = clip.astype(np.float32)
-    if not np.all(np.isfinite(clip)):
-        raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
-    return clip
+    return check_points(name, clip, rig.n_vertices, frames=True)
 
 
 def direct_displacements(
