@@ -139,12 +139,12 @@ def main(argv=None):
     )
     parser.add_argument("--layer-pairs", type=int, default=50)
     parser.add_argument("--fit-steps", type=int, default=wf.FitOptions().max_steps)
-    parser.add_argument("--lsmr-steps", type=int, default=wf.FitOptions().cg_steps)
+    parser.add_argument("--lsmr-steps", type=int, default=wf.FitOptions().lsmr_steps)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     if args.quick:
         args.pairs, args.fit_pairs, args.layer_pairs = 4, 2, 2
-    options = wf.FitOptions(max_steps=args.fit_steps, cg_steps=args.lsmr_steps)
+    options = wf.FitOptions(max_steps=args.fit_steps, lsmr_steps=args.lsmr_steps)
     start_time = time.perf_counter()
 
     quartic, _ = ict_quartic_rig(args.data_dir, progress=False)
@@ -357,7 +357,7 @@ def main(argv=None):
             "held_out_poses": {"capture_frames": len(capture_test), "random_poses": 100},
             "falloff_per_cm": FALLOFF_PER_CM,
             "radii_cm": RADII_CM,
-            "fit_options": {"max_steps": options.max_steps, "lsmr_steps": options.cg_steps},
+            "fit_options": {"max_steps": options.max_steps, "lsmr_steps": options.lsmr_steps},
             "model": {
                 "checkpoint": str(args.checkpoint),
                 "train_steps": state["step"],

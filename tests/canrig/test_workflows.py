@@ -161,7 +161,7 @@ def test_fitted_layers_never_increase_exactly(rig, poses):
         (rig.handles(rng.choice(rig.n_vertices, n, replace=False)), radius)
         for n, radius in ((6, 4.0), (20, 2.0), (40, 1.0))
     ]
-    options = wf.FitOptions(max_steps=3, cg_steps=8)
+    options = wf.FitOptions(max_steps=3, lsmr_steps=8)
     fitted = wf.iterative_layers(
         rig, poses[0], poses[2], schedule, FALLOFF, fit=True, options=options
     )

@@ -28,7 +28,7 @@ from .masks import (
 )
 from .mlp import ZeroPreservingMLP
 from .model import AbstractCANRig, Architecture, CANRig, ShapePreservingCANRig, parameter_count
-from .rig import HandleEdit, Handles, NeuralRig, deform, edit_mask
+from .rig import HandleEdit, Handles, NeuralRig, deform, edit_mask, trace_edit
 from .train import (
     TrainOptions,
     TrainResult,
@@ -66,6 +66,7 @@ __all__ = [
     "capture_mixes_of",
     "correlation_edge_factor",
     "deform",
+    "trace_edit",
     "edge_graph",
     "evaluate_poses",
     "farthest_point_vertices",

@@ -34,7 +34,7 @@ from .layout import (
     vertex_blocks,
 )
 from .masks import check_handle_parameters, edge_graph, influence_mask, weighted_geodesic_distance
-from .model import AbstractCANRig
+from .model import AbstractCANRig, Trace
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,6 +90,28 @@ def edit_mask(edit: HandleEdit, clamp: float, layout: Layout = DENSE) -> Float[A
     )
 
 
+def trace_edit(
+    model: AbstractCANRig,
+    queries: Float[Array, "heads V d"],
+    canonical: Float[Array, "V 3"],
+    edit: HandleEdit,
+    layout: Layout = DENSE,
+    local_queries: Float[Array, "..."] | None = None,
+) -> Trace:
+    """``AbstractCANRig.trace`` of ``edit``: the forward pass with its intermediates."""
+    return model.trace(
+        queries,
+        edit.base,
+        canonical[edit.index],
+        edit.base[edit.index],
+        edit.displacements,
+        edit_mask(edit, model.clamp, layout),
+        edit.beta,
+        layout,
+        local_queries,
+    )
+
+
 @eqx.filter_jit
 def deform(
     model: AbstractCANRig,
@@ -103,17 +125,7 @@ def deform(
     with ``NeuralRig.edit``). ``layout`` (``NeuralRig.layout``) only changes where the
     attention runs, not the result; ``local_queries`` may cache
     ``layout.vertices(queries, axis=-2)``. Batch over edits with ``jax.vmap``."""
-    return model(
-        queries,
-        edit.base,
-        canonical[edit.index],
-        edit.base[edit.index],
-        edit.displacements,
-        edit_mask(edit, model.clamp, layout),
-        edit.beta,
-        layout,
-        local_queries,
-    )
+    return trace_edit(model, queries, canonical, edit, layout, local_queries).shape
 
 
 def check_points(name: str, value, n_vertices: int, *, frames: bool = False) -> np.ndarray:

@@ -41,7 +41,15 @@ from scipy.sparse.csgraph import dijkstra
 
 from .layout import DENSE, Layout
 from .model import AbstractCANRig
-from .rig import HandleEdit, Handles, NeuralRig, check_points, deform, edit_mask
+from .rig import (
+    HandleEdit,
+    Handles,
+    NeuralRig,
+    check_points,
+    deform,
+    edit_mask,
+    trace_edit,
+)
 
 # --------------------------------------------------------------------------- Jacobian
 
@@ -74,25 +82,15 @@ def displacement_jacobian(
     layout: Layout = DENSE,
 ) -> tuple[Float[Array, "V 3"], Float[Array, "... 3 3"]]:
     """The shape of ``edit`` and the exact Jacobian of ``deform`` with respect to
-    ``edit.displacements``, as 3 x 3 blocks in the layout's local form: (V, H, 3, 3) for the
-    dense layout, (B, S, W, 3, 3) for a block layout (block b, slot s, its w-th handle).
+    ``edit.displacements``, as 3 x 3 blocks in the layout's local form: (V, 3, H, 3) for the
+    dense layout, (B, S, 3, W, 3) for a block layout (block b, slot s, its w-th handle):
+    blocks[..., s, i, w, j] = d shape[s, i] / d displacements[w, j].
 
     Only the values depend on d, so the block of vertex v and handle h is
     sum_k A^k_vh G_v^k U_h^k + P_vh I (A the attention of head k, G the output MLP's
     Jacobian, U the value MLP's, P the interpolation prior's weight)."""
-    handle_base = edit.base[edit.index]
-    mask = edit_mask(edit, model.clamp, layout)
-    trace = model.trace(
-        queries,
-        edit.base,
-        canonical[edit.index],
-        handle_base,
-        edit.displacements,
-        mask,
-        edit.beta,
-        layout,
-    )
-    value_jac = _value_jacobian(model, edit.displacements, handle_base)  # (H, k, e, 3)
+    trace = trace_edit(model, queries, canonical, edit, layout)
+    value_jac = _value_jacobian(model, edit.displacements, edit.base[edit.index])  # (H,k,e,3)
     decode_jac = _decode_jacobian(model, trace.attended, edit.base, queries)  # (V, 3, k, e)
     # per head k: (S*3 x e) @ (e x W*3) batched matmuls, then weighted by A^k and summed
     local_decode = jnp.moveaxis(layout.vertices(decode_jac, axis=0), -2, -4)  # (.., k, S, 3, e)
@@ -104,6 +102,7 @@ def displacement_jacobian(
     weights = trace.attention[..., :, :, None, :, None]  # (.., k, S, 1, W, 1)
     blocks = jnp.sum(weights * products, axis=-5)  # (.., S, 3, W, 3)
     if model.interpolation_prior:
+        mask = edit_mask(edit, model.clamp, layout)  # the trace's (XLA computes it once)
         prior = model.interpolation_weights(mask)  # (.., S, W)
         blocks = blocks + prior[..., :, None, :, None] * jnp.eye(3, dtype=blocks.dtype)[:, None]
     return trace.shape, blocks
@@ -163,23 +162,24 @@ class FitOptions:
     """Levenberg-Marquardt settings of ``fit_displacements``.
 
     ``rtol``/``atol`` stop the outer solve (relative/absolute change of the displacements,
-    cm); ``cg_steps`` caps the CG iterations of each damped Gauss-Newton step (the step is
-    then inexact, which the trust region absorbs); ``penalty`` weighs ||d||^2 (cm^2 per
-    cm^2 of mesh error). ``exact_jacobian=False`` keeps the Jacobian of the start for every
-    step (faster; the trust region still only accepts steps that lower the true objective,
-    but the solve then stops where J_start^T r = 0, near the true minimum)."""
+    cm); ``lsmr_steps`` is the fixed number of LSMR iterations of each damped Gauss-Newton
+    step (the step is then inexact, which the trust region absorbs); ``penalty`` weighs
+    ||d||^2 (cm^2 per cm^2 of mesh error). ``exact_jacobian=False`` keeps the Jacobian of
+    the start for every step (faster; the trust region still only accepts steps that lower
+    the true objective, but the solve then stops where J_start^T r = 0, near the true
+    minimum)."""
 
     max_steps: int = 8
     rtol: float = 1e-3
     atol: float = 1e-4
-    cg_steps: int = 15
+    lsmr_steps: int = 15
     penalty: float = 0.0
     exact_jacobian: bool = False
 
     def __post_init__(self):
-        if int(self.max_steps) < 1 or int(self.cg_steps) < 1:
+        if int(self.max_steps) < 1 or int(self.lsmr_steps) < 1:
             raise ValueError(
-                f"max_steps, cg_steps: expected >= 1, got {self.max_steps}, {self.cg_steps}"
+                f"max_steps, lsmr_steps: expected >= 1, got {self.max_steps}, {self.lsmr_steps}"
             )
         for name in ("rtol", "atol"):
             if not getattr(self, name) > 0:
@@ -233,7 +233,7 @@ def fit_displacements(
 ) -> FitSolution:
     """The handle displacements whose shape best matches ``target``: minimises
     sum_v region_v ||deform(edit with d)_v - target_v||^2 + penalty ||d||^2 over d with
-    ``optimistix.least_squares`` (Levenberg-Marquardt, ``lineax`` normal CG), started from
+    ``optimistix.least_squares`` (Levenberg-Marquardt, ``lineax.LSMR`` steps), started from
     ``edit.displacements``. Pure and jit/vmap-able; validate with ``NeuralRig.edit``."""
     weight = jnp.sqrt(region)[:, None]
     root_penalty = jnp.sqrt(jnp.asarray(options.penalty, target.dtype))
@@ -254,7 +254,7 @@ def fit_displacements(
         rtol=options.rtol,
         atol=options.atol,
         # a fixed number of LSMR iterations per damped step (truncated: tolerances 0)
-        linear_solver=lx.LSMR(rtol=0.0, atol=0.0, max_steps=options.cg_steps),
+        linear_solver=lx.LSMR(rtol=0.0, atol=0.0, max_steps=options.lsmr_steps),
     )
     z0 = jnp.linalg.solve(scale, start[..., None])[..., 0]
     solution = optx.least_squares(residual, solver, z0, max_steps=options.max_steps, throw=False)
@@ -286,11 +286,9 @@ def _check_region(rig: NeuralRig, region, name: str = "region") -> Array:
     if region is None:
         return jnp.ones(rig.n_vertices, jnp.float32)
     region = np.asarray(region)
-    if region.dtype == bool:
-        region = region.astype(np.float32)
     if region.shape != (rig.n_vertices,):
         raise ValueError(f"{name}: expected shape ({rig.n_vertices},), got {region.shape}")
-    region = region.astype(np.float32)
+    region = region.astype(np.float32)  # bool masks become 0/1 weights
     if not np.all(np.isfinite(region)) or region.min() < 0:
         raise ValueError(f"{name}: expected finite weights >= 0")
     if not region.sum() > 0:
