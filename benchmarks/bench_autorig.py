@@ -32,11 +32,19 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-from canrig_jax.autorig import generate_rig, load_model, quartic_pose_set
-from canrig_jax.autorig.rig import DEFAULT_POSE_CHUNK, pad_to_bucket, predict_displacements
-from canrig_jax.autorig.train import TrainOptions, head_inputs, make_model
+from canrig_jax import save_text
+from canrig_jax.autorig import (
+    DEFAULT_POSE_CHUNK,
+    TrainOptions,
+    generate_rig,
+    head_inputs,
+    load_model,
+    make_model,
+    pad_to_bucket,
+    predict_displacements,
+    quartic_pose_set,
+)
 from canrig_jax.data import load_ict
-from canrig_jax.io import save_text
 from canrig_jax.mesh import decimate
 from canrig_jax.rig import ict_quartic_rig
 

@@ -36,16 +36,20 @@ import equinox as eqx
 import jax
 import numpy as np
 
+from canrig_jax import save_text
 from canrig_jax.canrig import (
     DENSE,
+    FitOptions,
     NeuralRig,
     ShapePreservingCANRig,
     deform,
+    dialogue_replacement,
+    expression_region,
     farthest_point_vertices,
+    interior_vertices,
     load_model,
+    pose_a_to_b,
 )
-from canrig_jax.canrig import workflows as wf
-from canrig_jax.io import save_text
 from canrig_jax.rig import evaluate_batch, ict_linear_rig
 
 DEFAULT_CHECKPOINT = Path(__file__).parents[1] / "experiments/results/canrig/checkpoint.eqx"
@@ -125,8 +129,8 @@ def main(argv=None):
     a, b = shapes[0], shapes[1]
 
     def a_to_b(fit, options=None):
-        options = options or wf.FitOptions()
-        return wf.pose_a_to_b(rig, random_handles, a, b, 2.0, 3.0, fit=fit, options=options).shape
+        options = options or FitOptions()
+        return pose_a_to_b(rig, random_handles, a, b, 2.0, 3.0, fit=fit, options=options).shape
 
     few = max(3, args.repeats // 6)
     direct_ms = _time(lambda: a_to_b(False), args.repeats)
@@ -135,16 +139,16 @@ def main(argv=None):
         ("pose A to B, fitted (Jacobian of the start)", _time(lambda: a_to_b(True), few)),
         (
             "pose A to B, fitted (exact Jacobian every step)",
-            _time(lambda: a_to_b(True, wf.FitOptions(exact_jacobian=True)), few),
+            _time(lambda: a_to_b(True, FitOptions(exact_jacobian=True)), few),
         ),
     ]
-    mouth = wf.expression_region(face)
-    interior = wf.interior_vertices(rig, mouth, 1.8)
+    mouth = expression_region(face)
+    interior = interior_vertices(rig, mouth, 1.8)
     mouth_handles = rig.handles(interior[farthest_point_vertices(neutral[interior], 40)])
     n_frames = 22
     source_clip, target_clip = shapes[2 : 2 + n_frames], shapes[2 + n_frames : 2 + 2 * n_frames]
     batch_ms = _time(
-        lambda: wf.dialogue_replacement(rig, source_clip, target_clip, mouth_handles, 1.0, 3.0),
+        lambda: dialogue_replacement(rig, source_clip, target_clip, mouth_handles, 1.0, 3.0),
         few,
     )
     workflow_rows.append(

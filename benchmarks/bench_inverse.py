@@ -29,16 +29,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from canrig_jax import inverse
+from canrig_jax import inverse, save_text
 from canrig_jax.data import load_livelinkface
-from canrig_jax.inverse.reference import (
+from canrig_jax.inverse import (
     NumpyDenseRig,
     decreasing_norm_order,
     numpy_quartic_cd,
     time_batched,
     time_single_frames,
 )
-from canrig_jax.io import save_text
 from canrig_jax.rig import BlendshapeRig, evaluate_batch, ict_quartic_rig
 
 NOISE_VARIANCE_CM2 = 0.03

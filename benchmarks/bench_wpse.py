@@ -21,11 +21,9 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from canrig_jax import wpse
-from canrig_jax.io import save_text
-from canrig_jax.rig import evaluate_batch, ict_linear_rig
-from canrig_jax.rig.poses import random_sparse_poses
-from canrig_jax.wpse.reference import time_runtime
+from canrig_jax import save_text, wpse
+from canrig_jax.rig import evaluate_batch, ict_linear_rig, random_sparse_poses
+from canrig_jax.wpse import time_runtime
 
 DEFAULT_OUT = Path(__file__).parent / "results" / "bench_wpse.md"
 

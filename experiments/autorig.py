@@ -24,10 +24,12 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
+from canrig_jax import CM_TO_MM, COMMAND_FILE, experiment_command, provenance, save_json, save_text
 from canrig_jax.autorig import (
     TrainOptions,
     error_stats,
     generate_rig,
+    head_inputs,
     ict_autorig_dataset,
     load_model,
     penetration,
@@ -35,15 +37,11 @@ from canrig_jax.autorig import (
     training_set,
     transfer_poses,
 )
-from canrig_jax.autorig.train import head_inputs
 from canrig_jax.canrig import parameter_count
 from canrig_jax.data import load_ict
-from canrig_jax.io import save_json, save_text
 from canrig_jax.mesh import decimate
-from canrig_jax.metrics import CM_TO_MM
-from canrig_jax.provenance import COMMAND_FILE, experiment_command, provenance
 from canrig_jax.render import plot_vertex_scalar, save_figure
-from canrig_jax.rig.gltf import export_gltf, load_gltf_rig
+from canrig_jax.rig import export_gltf, load_gltf_rig
 
 MODELS = {"raf": {}, "raf_no_global_encoder": {"global_size": 0}}
 SPLITS = ("same_topology", "unseen_topology")

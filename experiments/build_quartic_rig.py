@@ -14,14 +14,19 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
+from canrig_jax import (
+    CM_TO_MM,
+    distance_percentile_mm,
+    experiment_command,
+    per_vertex_distance,
+    provenance,
+    save_json,
+    save_text,
+)
 from canrig_jax.data import load_livelinkface
-from canrig_jax.io import save_json, save_text
 from canrig_jax.mesh import DeformationGradientBlend
-from canrig_jax.metrics import CM_TO_MM, distance_percentile_mm, per_vertex_distance
-from canrig_jax.provenance import experiment_command, provenance
 from canrig_jax.render import plot_vertex_scalar, save_figure
-from canrig_jax.rig import evaluate_batch, ict_quartic_rig
-from canrig_jax.rig.poses import random_sparse_poses
+from canrig_jax.rig import evaluate_batch, ict_quartic_rig, random_sparse_poses
 
 
 def main(argv=None):

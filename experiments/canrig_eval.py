@@ -20,6 +20,7 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
+from canrig_jax import CM_TO_MM, experiment_command, provenance, save_json, save_text
 from canrig_jax.canrig import (
     CLAMP,
     EVAL_FALLOFF_PER_CM,
@@ -34,9 +35,6 @@ from canrig_jax.canrig import (
     split_capture,
 )
 from canrig_jax.data import load_livelinkface
-from canrig_jax.io import save_json, save_text
-from canrig_jax.metrics import CM_TO_MM
-from canrig_jax.provenance import experiment_command, provenance
 from canrig_jax.render import plot_vertex_scalar, save_figure
 from canrig_jax.rig import ict_quartic_rig
 

@@ -20,13 +20,18 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from canrig_jax.canrig import TrainOptions, parameter_count, split_capture, train
-from canrig_jax.canrig.data import FARTHEST_METRICS, DataOptions
-from canrig_jax.canrig.train import LOSSES, VARIANTS
-from canrig_jax.cli import add_dataclass_options, from_args
+from canrig_jax import add_dataclass_options, experiment_command, from_args, provenance, save_json
+from canrig_jax.canrig import (
+    FARTHEST_METRICS,
+    LOSSES,
+    VARIANTS,
+    DataOptions,
+    TrainOptions,
+    parameter_count,
+    split_capture,
+    train,
+)
 from canrig_jax.data import load_livelinkface
-from canrig_jax.io import save_json
-from canrig_jax.provenance import experiment_command, provenance
 from canrig_jax.render import save_figure
 from canrig_jax.rig import ict_quartic_rig
 

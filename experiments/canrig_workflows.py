@@ -24,23 +24,28 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
+from canrig_jax import CM_TO_MM, experiment_command, provenance, save_json, save_text
 from canrig_jax.canrig import (
     EVAL_FALLOFF_PER_CM,
     RADII_CM,
+    FitOptions,
     NeuralRig,
+    clip_edit,
+    dialogue_replacement,
     evaluate_poses,
+    expression_region,
     farthest_point_vertices,
     held_out_poses,
     influence_mask,
+    influence_reach,
+    interior_vertices,
+    iterative_layers,
     load_model,
+    max_acceleration,
+    pose_a_to_b,
     split_capture,
 )
-from canrig_jax.canrig import workflows as wf
-from canrig_jax.canrig.layout import influence_reach
 from canrig_jax.data import load_livelinkface
-from canrig_jax.io import save_json, save_text
-from canrig_jax.metrics import CM_TO_MM
-from canrig_jax.provenance import experiment_command, provenance
 from canrig_jax.render import plot_vertex_scalar, save_figure
 from canrig_jax.rig import ict_quartic_rig
 
@@ -84,11 +89,11 @@ def a_to_b_table(rig, shapes, pairs, placements, n_fit, options, progress=print,
         for p, (a, b) in enumerate(pairs):
             handles = placements(p, n)
             for name, radius in RADII_CM.items():
-                direct = wf.pose_a_to_b(rig, handles, shapes[a], shapes[b], radius, FALLOFF_PER_CM)
+                direct = pose_a_to_b(rig, handles, shapes[a], shapes[b], radius, FALLOFF_PER_CM)
                 cells[name]["direct"].append(float(direct.error) * CM_TO_MM)
                 main_cell = n == 200 and name == "medium"
                 if p < (max(n_fit, n_fit_main) if main_cell else n_fit):
-                    fitted = wf.pose_a_to_b(
+                    fitted = pose_a_to_b(
                         rig,
                         handles,
                         shapes[a],
@@ -138,13 +143,13 @@ def main(argv=None):
         "--fit-pairs-main", type=int, default=0, help="more fitted pairs at 200 handles / 2 cm"
     )
     parser.add_argument("--layer-pairs", type=int, default=50)
-    parser.add_argument("--fit-steps", type=int, default=wf.FitOptions().max_steps)
-    parser.add_argument("--lsmr-steps", type=int, default=wf.FitOptions().lsmr_steps)
+    parser.add_argument("--fit-steps", type=int, default=FitOptions().max_steps)
+    parser.add_argument("--lsmr-steps", type=int, default=FitOptions().lsmr_steps)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     if args.quick:
         args.pairs, args.fit_pairs, args.layer_pairs = 4, 2, 2
-    options = wf.FitOptions(max_steps=args.fit_steps, lsmr_steps=args.lsmr_steps)
+    options = FitOptions(max_steps=args.fit_steps, lsmr_steps=args.lsmr_steps)
     start_time = time.perf_counter()
 
     quartic, _ = ict_quartic_rig(args.data_dir, progress=False)
@@ -198,7 +203,7 @@ def main(argv=None):
             for n, radius in LAYER_SCHEDULE
         ]
         for kind in layer_errors:
-            result = wf.iterative_layers(
+            result = iterative_layers(
                 rig,
                 shapes[a],
                 shapes[b],
@@ -218,7 +223,7 @@ def main(argv=None):
     clip_weights = capture_test[:30] if args.quick else capture_test
     clip = evaluate_poses(quartic, clip_weights)
     frame = len(clip) // 2
-    mouth = wf.expression_region(quartic, threshold=MOUTH_THRESHOLD_CM)
+    mouth = expression_region(quartic, threshold=MOUTH_THRESHOLD_CM)
     jaw = list(quartic.names).index("jawOpen")
     wider = clip_weights[frame].copy()
     wider[jaw] = min(1.0, wider[jaw] + 0.3)
@@ -231,7 +236,7 @@ def main(argv=None):
         )
     ]
     clip_handles = rig.handles(clip_index)
-    solution = wf.pose_a_to_b(
+    solution = pose_a_to_b(
         rig,
         clip_handles,
         clip[frame],
@@ -242,7 +247,7 @@ def main(argv=None):
         region=mouth,
         options=options,
     )
-    edited = wf.clip_edit(
+    edited = clip_edit(
         rig,
         clip,
         frame,
@@ -258,7 +263,7 @@ def main(argv=None):
         influence_mask(clip_handles.distance, CLIP_RADIUS_CM, FALLOFF_PER_CM, model.clamp)
     )
     outside_mask = clip_mask.max(axis=1) == 0
-    clip_edit = {
+    clip_numbers = {
         "outside_window_max_mm": float(
             _error_mm(edited.clip[outside_window], clip[outside_window]).max(initial=0.0)
         ),
@@ -268,29 +273,29 @@ def main(argv=None):
         "outside_mask_max_mm": float(_error_mm(edited.clip, clip)[:, outside_mask].max()),
         "edit_error_mm": float(_error_mm(edited.clip[frame], wider_shape)[mouth].mean()),
         "edit_error_before_mm": float(_error_mm(clip[frame], wider_shape)[mouth].mean()),
-        "max_acceleration_before": wf.max_acceleration(clip) * CM_TO_MM,
-        "max_acceleration_after": wf.max_acceleration(edited.clip) * CM_TO_MM,
-        "max_acceleration_of_the_edit": wf.max_acceleration(edited.clip - clip) * CM_TO_MM,
+        "max_acceleration_before": max_acceleration(clip) * CM_TO_MM,
+        "max_acceleration_after": max_acceleration(edited.clip) * CM_TO_MM,
+        "max_acceleration_of_the_edit": max_acceleration(edited.clip - clip) * CM_TO_MM,
         "frame": int(frame),
         "window": [int(lo), int(hi)],
         "handles": CLIP_HANDLES,
         "radius_cm": CLIP_RADIUS_CM,
         "outside_mask_vertices": int(outside_mask.sum()),
     }
-    print(f"clip edit: {clip_edit}")
+    print(f"clip edit: {clip_numbers}")
 
     # ---------------------------------------------------------------- dialogue (Figure 12)
     n_dialogue = 6 if args.quick else 45
     source = evaluate_poses(quartic, capture[90 : 90 + n_dialogue])
     target = evaluate_poses(quartic, capture[135 : 135 + n_dialogue])
     reach = float(influence_reach(DIALOGUE_RADIUS_CM, FALLOFF_PER_CM, model.clamp))
-    interior = wf.interior_vertices(rig, mouth, reach)
+    interior = interior_vertices(rig, mouth, reach)
     dialogue_index = interior[farthest_point_vertices(neutral[interior], DIALOGUE_HANDLES)]
     dialogue_handles = rig.handles(dialogue_index)
     dialogue = {}
     outputs = {}
     for kind in ("direct", "fitted"):
-        out = wf.dialogue_replacement(
+        out = dialogue_replacement(
             rig,
             source,
             target,
@@ -306,7 +311,7 @@ def main(argv=None):
             "mouth_difference_mm": float(_error_mm(out, target)[:, mouth].mean()),
             "rest_of_face_change_mm": float(_error_mm(out, source)[:, ~mouth].max()),
         }
-    zero = wf.dialogue_replacement(
+    zero = dialogue_replacement(
         rig, source, source, dialogue_handles, DIALOGUE_RADIUS_CM, FALLOFF_PER_CM
     )
     dialogue_results = {
@@ -330,13 +335,13 @@ def main(argv=None):
     h200 = rig.handles(random_sets[200][0], limit=DISTANCE_LIMIT_CM)
 
     def run(fit):
-        return wf.pose_a_to_b(rig, h200, a, b, 2.0, FALLOFF_PER_CM, fit=fit, options=options)
+        return pose_a_to_b(rig, h200, a, b, 2.0, FALLOFF_PER_CM, fit=fit, options=options)
 
     timing = {
         "direct_ms_200_handles": _timed(lambda: run(False).shape.block_until_ready()),
         "fit_ms_200_handles": _timed(lambda: run(True).shape.block_until_ready(), repeats=3),
         "dialogue_ms_per_frame": _timed(
-            lambda: wf.dialogue_replacement(
+            lambda: dialogue_replacement(
                 rig, source, target, dialogue_handles, DIALOGUE_RADIUS_CM, FALLOFF_PER_CM
             ),
             repeats=3,
@@ -348,7 +353,7 @@ def main(argv=None):
     results = {
         "a_to_b": a_to_b,
         "layers": layers,
-        "clip_edit": clip_edit,
+        "clip_edit": clip_numbers,
         "dialogue": dialogue_results,
         "timing": timing,
         "protocol": {
@@ -479,8 +484,8 @@ def _table(results):
 def _figure_a_to_b(rig, shapes, pair, index, options, path):
     a, b = shapes[pair[0]], shapes[pair[1]]
     handles = rig.handles(index, limit=DISTANCE_LIMIT_CM)
-    direct = wf.pose_a_to_b(rig, handles, a, b, 2.0, FALLOFF_PER_CM)
-    fitted = wf.pose_a_to_b(rig, handles, a, b, 2.0, FALLOFF_PER_CM, fit=True, options=options)
+    direct = pose_a_to_b(rig, handles, a, b, 2.0, FALLOFF_PER_CM)
+    fitted = pose_a_to_b(rig, handles, a, b, 2.0, FALLOFF_PER_CM, fit=True, options=options)
     fig, axes = plt.subplots(1, 3, figsize=(10, 4.2))
     plot_vertex_scalar(
         axes[0], a, rig.faces, _error_mm(a, b), vmax=10.0, title="pose A (error to B)"

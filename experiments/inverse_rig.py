@@ -17,25 +17,37 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from canrig_jax import inverse
-from canrig_jax.data import load_livelinkface
-from canrig_jax.data.paths import data_file
-from canrig_jax.inverse.metrics import mm_per_unit, roughness, select_alpha, summarize
-from canrig_jax.inverse.reference import (
+from canrig_jax import (
+    COMMAND_FILE,
+    experiment_command,
+    inverse,
+    per_vertex_distance,
+    provenance,
+    save_json,
+    save_text,
+)
+from canrig_jax.data import data_file, load_livelinkface
+from canrig_jax.inverse import (
     measure_reference,
     minimum,
+    mm_per_unit,
+    roughness,
+    select_alpha,
+    summarize,
     time_batched,
     time_single_frames,
 )
-from canrig_jax.io import save_json, save_text
 from canrig_jax.mesh import triangulate_quads
-from canrig_jax.metrics import per_vertex_distance
-from canrig_jax.provenance import COMMAND_FILE, experiment_command, provenance
 from canrig_jax.render import plot_vertex_scalar, save_figure
-from canrig_jax.rig import BlendshapeRig, evaluate, evaluate_batch, ict_quartic_rig
-from canrig_jax.rig.blendshape import UNIT_IN_CM
-from canrig_jax.rig.poses import random_sparse_poses
-from canrig_jax.rig.synthesis import synthesize_correctives
+from canrig_jax.rig import (
+    UNIT_IN_CM,
+    BlendshapeRig,
+    evaluate,
+    evaluate_batch,
+    ict_quartic_rig,
+    random_sparse_poses,
+    synthesize_correctives,
+)
 
 NOISE_VARIANCE_CM2 = 0.03  # as in the paper
 

@@ -21,9 +21,9 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from canrig_jax import CM_TO_MM, COMMAND_FILE, experiment_command, provenance, save_json, save_text
 from canrig_jax.autorig import LearnedDiffusion
 from canrig_jax.data import ict_identity, load_ict, load_mediapipe_face
-from canrig_jax.io import save_json, save_text
 from canrig_jax.mesh import (
     MeshOperators,
     closest_point_correspondence,
@@ -32,8 +32,6 @@ from canrig_jax.mesh import (
     identity_correspondence,
     mesh_geometry,
 )
-from canrig_jax.metrics import CM_TO_MM
-from canrig_jax.provenance import COMMAND_FILE, experiment_command, provenance
 from canrig_jax.render import plot_vertex_scalar, save_figure
 from canrig_jax.rig import BlendshapeRig, deformation_transfer
 

@@ -25,16 +25,26 @@ import jax.numpy as jnp
 import matplotlib.pyplot as plt
 import numpy as np
 
-from canrig_jax import wpse
+from canrig_jax import (
+    CM_TO_MM,
+    experiment_command,
+    per_vertex_distance,
+    provenance,
+    save_json,
+    save_text,
+    wpse,
+)
 from canrig_jax.data import load_livelinkface
-from canrig_jax.io import save_json, save_text
 from canrig_jax.mesh import DeformationGradientBlend
-from canrig_jax.metrics import CM_TO_MM, per_vertex_distance
-from canrig_jax.provenance import experiment_command, provenance
 from canrig_jax.render import plot_vertex_scalar, save_figure
-from canrig_jax.rig import evaluate, evaluate_batch, ict_linear_rig, ict_quartic_rig
-from canrig_jax.rig.poses import random_sparse_poses
-from canrig_jax.wpse.reference import time_runtime
+from canrig_jax.rig import (
+    evaluate,
+    evaluate_batch,
+    ict_linear_rig,
+    ict_quartic_rig,
+    random_sparse_poses,
+)
+from canrig_jax.wpse import time_runtime
 
 BUDGETS = (10, 50)
 MIN_EDIT_DISTANCE = 0.5  # weight units between edited frames ("spread out")

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from canrig_jax.provenance import COMMAND_FILE, experiment_command, provenance
+from canrig_jax import COMMAND_FILE, experiment_command, provenance
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "experiments" / "results"

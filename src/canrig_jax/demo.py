@@ -15,10 +15,10 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from . import inverse
+from ._metrics import CM_TO_MM, per_vertex_distance
 from .data import load_livelinkface
-from .inverse.metrics import summarize
+from .inverse import summarize
 from .mesh import DeformationGradientBlend
-from .metrics import CM_TO_MM, per_vertex_distance
 from .render import plot_vertex_scalar, save_figure
 from .rig import evaluate_batch, ict_quartic_rig
 

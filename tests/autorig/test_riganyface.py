@@ -14,24 +14,24 @@ from canrig_jax.autorig import (
     RigAnyFace,
     TrainOptions,
     generate_rig,
+    head_inputs,
+    head_rig,
     load_model,
     make_head,
     outside_fraction,
+    pad_to_bucket,
     penetration,
     pose_displacements,
     quartic_pose_set,
+    rig_from_poses,
     spectral_diffusion,
     spectral_diffusion_and_gradient,
     train,
     training_set,
     winding_numbers,
 )
-from canrig_jax.autorig.data import head_rig
-from canrig_jax.autorig.rig import pad_to_bucket, rig_from_poses
-from canrig_jax.autorig.train import head_inputs
 from canrig_jax.data import INNER_PARTS, load_ict
-from canrig_jax.rig import evaluate
-from canrig_jax.rig.gltf import export_gltf, load_gltf_rig
+from canrig_jax.rig import evaluate, export_gltf, load_gltf_rig
 
 
 @pytest.fixture(scope="module")

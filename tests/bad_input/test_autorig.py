@@ -10,13 +10,14 @@ import pytest
 
 from canrig_jax.autorig import (
     PoseSet,
+    TrainOptions,
     generate_rig,
     heat_kernel_signature,
     hks_times,
+    make_model,
     pose_displacements,
     quartic_pose_set,
 )
-from canrig_jax.autorig.train import TrainOptions, make_model
 from canrig_jax.data import load_mediapipe_face
 from canrig_jax.mesh import mesh_operators
 from canrig_jax.rig import BlendshapeRig, Corrective

@@ -12,8 +12,17 @@ import numpy as np
 import optimistix as optx
 import pytest
 
-from canrig_jax.canrig import NeuralRig, ShapePreservingCANRig
-from canrig_jax.canrig import workflows as wf
+from canrig_jax.canrig import (
+    FitOptions,
+    NeuralRig,
+    ShapePreservingCANRig,
+    clip_edit,
+    dialogue_replacement,
+    expression_region,
+    interior_vertices,
+    iterative_layers,
+    pose_a_to_b,
+)
 
 from .conftest import handled, raises, run_case
 
@@ -110,19 +119,19 @@ def test_neural_rig(case, ctx):
 POSE_A_TO_B = [
     raises(
         "target-nan",
-        lambda c: wf.pose_a_to_b(c.rig, c.handles, c.neutral, c.nan_pose, 1.0, 3.0),
+        lambda c: pose_a_to_b(c.rig, c.handles, c.neutral, c.nan_pose, 1.0, 3.0),
         ValueError,
         "target",
     ),
     raises(
         "source-wrong-shape",
-        lambda c: wf.pose_a_to_b(c.rig, c.handles, c.neutral[None], c.pose, 1.0, 3.0),
+        lambda c: pose_a_to_b(c.rig, c.handles, c.neutral[None], c.pose, 1.0, 3.0),
         ValueError,
         "source",
     ),
     raises(
         "region-selects-nothing",
-        lambda c: wf.pose_a_to_b(
+        lambda c: pose_a_to_b(
             c.rig, c.handles, c.neutral, c.pose, 1.0, 3.0, fit=True, region=c.nowhere
         ),
         ValueError,
@@ -130,23 +139,23 @@ POSE_A_TO_B = [
     ),
     raises(
         "region-wrong-shape",
-        lambda c: wf.pose_a_to_b(c.rig, c.handles, c.neutral, c.pose, 1.0, 3.0, region=np.ones(7)),
+        lambda c: pose_a_to_b(c.rig, c.handles, c.neutral, c.pose, 1.0, 3.0, region=np.ones(7)),
         ValueError,
         "region",
     ),
     raises(
         "region-negative",
-        lambda c: wf.pose_a_to_b(
+        lambda c: pose_a_to_b(
             c.rig, c.handles, c.neutral, c.pose, 1.0, 3.0, region=-np.ones(c.rig.n_vertices)
         ),
         ValueError,
         "region",
     ),
-    raises("fit-no-steps", lambda c: wf.FitOptions(max_steps=0), ValueError, "max_steps"),
-    raises("fit-negative-penalty", lambda c: wf.FitOptions(penalty=-1.0), ValueError, "penalty"),
+    raises("fit-no-steps", lambda c: FitOptions(max_steps=0), ValueError, "max_steps"),
+    raises("fit-negative-penalty", lambda c: FitOptions(penalty=-1.0), ValueError, "penalty"),
     handled(
         "one-step-fit-reports-its-result-without-nan",
-        lambda c: wf.pose_a_to_b(
+        lambda c: pose_a_to_b(
             c.rig,
             c.handles,
             c.neutral,
@@ -154,7 +163,7 @@ POSE_A_TO_B = [
             1.0,
             3.0,
             fit=True,
-            options=wf.FitOptions(max_steps=1),
+            options=FitOptions(max_steps=1),
         ),
         lambda s, c: (
             np.testing.assert_array_equal(s.result == optx.RESULTS.successful, False),
@@ -172,61 +181,61 @@ def test_pose_a_to_b(case, ctx):
 WORKFLOWS = [
     raises(
         "layers-empty-schedule",
-        lambda c: wf.iterative_layers(c.rig, c.neutral, c.pose, [], 3.0),
+        lambda c: iterative_layers(c.rig, c.neutral, c.pose, [], 3.0),
         ValueError,
         "schedule",
     ),
     raises(
         "layers-schedule-without-handles",
-        lambda c: wf.iterative_layers(c.rig, c.neutral, c.pose, [([1, 2], 1.0)], 3.0),
+        lambda c: iterative_layers(c.rig, c.neutral, c.pose, [([1, 2], 1.0)], 3.0),
         ValueError,
         "schedule[0]",
     ),
     raises(
         "clip-wrong-shape",
-        lambda c: wf.clip_edit(c.rig, c.clip[:, :-1], 2, c.handles, c.d, 1.0, 3.0, 1),
+        lambda c: clip_edit(c.rig, c.clip[:, :-1], 2, c.handles, c.d, 1.0, 3.0, 1),
         ValueError,
         "clip",
     ),
     raises(
         "clip-complex",
-        lambda c: wf.clip_edit(c.rig, c.clip + 1j, 2, c.handles, c.d, 1.0, 3.0, 1),
+        lambda c: clip_edit(c.rig, c.clip + 1j, 2, c.handles, c.d, 1.0, 3.0, 1),
         TypeError,
         "clip",
     ),
     raises(
         "clip-nan",
-        lambda c: wf.clip_edit(c.rig, np.stack([c.nan_pose] * 5), 2, c.handles, c.d, 1.0, 3.0, 1),
+        lambda c: clip_edit(c.rig, np.stack([c.nan_pose] * 5), 2, c.handles, c.d, 1.0, 3.0, 1),
         ValueError,
         "clip",
     ),
     raises(
         "clip-frame-outside",
-        lambda c: wf.clip_edit(c.rig, c.clip, 5, c.handles, c.d, 1.0, 3.0, 1),
+        lambda c: clip_edit(c.rig, c.clip, 5, c.handles, c.d, 1.0, 3.0, 1),
         ValueError,
         "frame",
     ),
     raises(
         "clip-fade-window-outside",
-        lambda c: wf.clip_edit(c.rig, c.clip, 1, c.handles, c.d, 1.0, 3.0, 2),
+        lambda c: clip_edit(c.rig, c.clip, 1, c.handles, c.d, 1.0, 3.0, 2),
         ValueError,
         "half_window",
     ),
     raises(
         "clip-negative-window",
-        lambda c: wf.clip_edit(c.rig, c.clip, 1, c.handles, c.d, 1.0, 3.0, -1),
+        lambda c: clip_edit(c.rig, c.clip, 1, c.handles, c.d, 1.0, 3.0, -1),
         ValueError,
         "half_window",
     ),
     raises(
         "dialogue-frame-mismatch",
-        lambda c: wf.dialogue_replacement(c.rig, c.clip, c.clip[:3], c.handles, 1.0, 3.0),
+        lambda c: dialogue_replacement(c.rig, c.clip, c.clip[:3], c.handles, 1.0, 3.0),
         ValueError,
         "target",
     ),
     raises(
         "dialogue-target-nan",
-        lambda c: wf.dialogue_replacement(
+        lambda c: dialogue_replacement(
             c.rig, c.clip, np.stack([c.nan_pose] * 5), c.handles, 1.0, 3.0
         ),
         ValueError,
@@ -234,7 +243,7 @@ WORKFLOWS = [
     ),
     raises(
         "dialogue-mouth-mask-empty",
-        lambda c: wf.dialogue_replacement(
+        lambda c: dialogue_replacement(
             c.rig, c.clip, c.clip, c.handles, 1.0, 3.0, region=c.nowhere
         ),
         ValueError,
@@ -242,19 +251,19 @@ WORKFLOWS = [
     ),
     raises(
         "region-prefix-matches-nothing",
-        lambda c: wf.expression_region(c.ict_face, include=("tongue",)),
+        lambda c: expression_region(c.ict_face, include=("tongue",)),
         ValueError,
         "include",
     ),
     raises(
         "interior-of-nothing",
-        lambda c: wf.interior_vertices(c.rig, c.nowhere, 1.0),
+        lambda c: interior_vertices(c.rig, c.nowhere, 1.0),
         ValueError,
         "region",
     ),
     handled(
         "zero-window-edits-one-frame",
-        lambda c: wf.clip_edit(c.rig, c.clip, 2, c.handles, c.d + 0.1, 1.0, 3.0, 0),
+        lambda c: clip_edit(c.rig, c.clip, 2, c.handles, c.d + 0.1, 1.0, 3.0, 0),
         lambda out, c: (
             np.testing.assert_array_equal(out.clip[[0, 1, 3, 4]], c.clip[[0, 1, 3, 4]]),
             np.testing.assert_array_equal(out.fade, [0, 0, 1, 0, 0]),

@@ -10,15 +10,16 @@ import jax
 import numpy as np
 import pytest
 
-from canrig_jax import autorig, canrig
-from canrig_jax.checkpoint import (
+from canrig_jax import (
+    CorruptFileError,
+    autorig,
+    canrig,
     load_checkpoint,
     read_checkpoint_state,
     save_checkpoint,
     seal_checkpoint,
 )
 from canrig_jax.data import FACE, load_ict
-from canrig_jax.io import CorruptFileError
 
 from .conftest import handled, raises, run_case
 

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from canrig_jax import CorruptFileError
 from canrig_jax.data import (
     ict_identity,
     load_ict,
@@ -18,7 +19,6 @@ from canrig_jax.data import (
     load_mediapipe_face,
     retarget_weights,
 )
-from canrig_jax.io import CorruptFileError
 
 from .conftest import handled, raises, run_case
 

@@ -7,7 +7,7 @@ import types
 import numpy as np
 import pytest
 
-from canrig_jax.io import CorruptFileError
+from canrig_jax import CorruptFileError
 from canrig_jax.mesh import subdivide
 from canrig_jax.rig import (
     BlendshapeRig,
@@ -15,11 +15,12 @@ from canrig_jax.rig import (
     deformation_transfer,
     evaluate,
     evaluate_batch,
+    export_gltf,
+    load_gltf_rig,
     load_rig,
     remesh_rig,
     save_rig,
 )
-from canrig_jax.rig.gltf import export_gltf, load_gltf_rig
 
 from .conftest import handled, raises, run_case
 

@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 
 from canrig_jax import canrig, mesh
-from canrig_jax.canrig import CLAMP, correlation_edge_factor, influence_mask
-from canrig_jax.canrig.masks import MIN_EDGE_FACTOR
+from canrig_jax.canrig import CLAMP, MIN_EDGE_FACTOR, correlation_edge_factor, influence_mask
 from canrig_jax.mesh import (
     edge_graph,
     farthest_point_vertices,

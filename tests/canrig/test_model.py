@@ -189,7 +189,7 @@ def test_block_sparse_forward_equals_dense(neural_rig, placed, ict_face, sparse_
 
 
 def test_vertex_blocks_partition_the_mesh(face):
-    from canrig_jax.canrig.layout import vertex_blocks
+    from canrig_jax.canrig import vertex_blocks
 
     blocks = vertex_blocks(face[0], 48)
     assert blocks.shape[1] <= 48
@@ -203,8 +203,7 @@ def test_influence_reach_bounds_every_non_zero_clamped_mask(neural_rig, placed):
     """The block-sparse path picks handles by distance alone: every handle with a non-zero
     clamped mask on a block's vertex lies within its reach of that block, and the reach is
     tight (the mask just inside it, 1 % short, is still above the clamp)."""
-    from canrig_jax.canrig.layout import influence_reach
-    from canrig_jax.canrig.masks import influence_mask
+    from canrig_jax.canrig import influence_mask, influence_reach
 
     clamp = neural_rig.model.clamp
     rng = np.random.default_rng(2)

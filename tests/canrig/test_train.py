@@ -15,20 +15,18 @@ import numpy as np
 import pytest
 
 from canrig_jax.canrig import (
+    EUCLIDEAN_SOFTNESS_MM,
+    DataOptions,
     ExampleOptions,
     TrainOptions,
     build_training_set,
     capture_mixes_of,
     load_model,
+    make_optimiser,
+    read_checkpoint_state,
     sample_examples,
     split_capture,
     train,
-)
-from canrig_jax.canrig.data import DataOptions
-from canrig_jax.canrig.train import (
-    EUCLIDEAN_SOFTNESS_MM,
-    make_optimiser,
-    read_checkpoint_state,
     vertex_penalty,
 )
 

@@ -14,14 +14,23 @@ from canrig_jax.canrig import (
     CLAMP,
     DENSE,
     CANRig,
+    FitOptions,
     NeuralRig,
     ShapePreservingCANRig,
+    apply_jacobian,
+    clip_edit,
     deform,
+    dialogue_replacement,
+    displacement_jacobian,
+    expression_region,
     farthest_point_vertices,
     influence_mask,
+    influence_reach,
+    interior_vertices,
+    iterative_layers,
+    pose_a_to_b,
+    smoothstep_fade,
 )
-from canrig_jax.canrig import workflows as wf
-from canrig_jax.canrig.layout import influence_reach
 from canrig_jax.rig import evaluate_batch
 
 FALLOFF = 3.0
@@ -67,16 +76,14 @@ def test_jacobian_equals_autodiff(variant, ict_face, poses):
     displacements = rng.normal(0, 0.3, (few_handles.n_handles, 3)).astype(np.float32)
     edit = rig.edit(few_handles, displacements, 5.0, FALLOFF, base=poses[0], beta=0.4)
     for layout in (DENSE, rig.layout(few_handles, 5.0, FALLOFF)):
-        shape, blocks = wf.displacement_jacobian(
-            rig.model, rig.queries, rig.canonical, edit, layout
-        )
+        shape, blocks = displacement_jacobian(rig.model, rig.queries, rig.canonical, edit, layout)
 
         def forward(d, layout=layout):
             return deform(rig.model, rig.queries, rig.canonical, edit.with_displacements(d), layout)
 
         expected = jax.jacfwd(forward)(edit.displacements)  # (V, 3, H, 3)
         basis = jnp.eye(few_handles.n_handles * 3).reshape(-1, few_handles.n_handles, 3)
-        columns = jax.vmap(lambda t, b=blocks, lo=layout: wf.apply_jacobian(b, t, lo))(basis)
+        columns = jax.vmap(lambda t, b=blocks, lo=layout: apply_jacobian(b, t, lo))(basis)
         ours = jnp.moveaxis(columns, 0, -1).reshape(expected.shape)
         scale = float(jnp.abs(expected).max())
         assert scale > 0.1
@@ -114,8 +121,8 @@ def test_fit_is_never_worse_and_minimises(rig, poses):
     pass, independent of the structured Jacobian) is much smaller than at the start."""
     handles = rig.handles(np.random.default_rng(2).choice(rig.n_vertices, 60, replace=False))
     a, b = poses[0], poses[1]
-    direct = wf.pose_a_to_b(rig, handles, a, b, 2.0, FALLOFF)
-    fitted = wf.pose_a_to_b(rig, handles, a, b, 2.0, FALLOFF, fit=True)
+    direct = pose_a_to_b(rig, handles, a, b, 2.0, FALLOFF)
+    fitted = pose_a_to_b(rig, handles, a, b, 2.0, FALLOFF, fit=True)
     assert float(fitted.error) < float(direct.error)
     assert float(fitted.error) <= float(fitted.base_error)
     assert np.all(np.isfinite(np.asarray(fitted.displacements)))
@@ -132,7 +139,7 @@ def test_fit_is_never_worse_and_minimises(rig, poses):
     measured = np.linalg.norm(np.asarray(fitted.shape) - b, axis=1).mean()
     assert float(fitted.error) == pytest.approx(measured, rel=1e-5)
     # the exact-Jacobian solve reaches the same neighbourhood
-    exact = wf.pose_a_to_b(
+    exact = pose_a_to_b(
         rig,
         handles,
         a,
@@ -140,7 +147,7 @@ def test_fit_is_never_worse_and_minimises(rig, poses):
         2.0,
         FALLOFF,
         fit=True,
-        options=wf.FitOptions(max_steps=3, exact_jacobian=True),
+        options=FitOptions(max_steps=3, exact_jacobian=True),
     )
     assert float(exact.error) <= float(direct.error)
     assert abs(float(exact.error) - float(fitted.error)) < 0.1 * float(direct.error)
@@ -148,8 +155,8 @@ def test_fit_is_never_worse_and_minimises(rig, poses):
 
 def test_fit_in_a_region_only_lowers_the_region_error(rig, poses, ict_face):
     handles = rig.handles(np.random.default_rng(3).choice(rig.n_vertices, 40, replace=False))
-    region = wf.expression_region(ict_face)
-    fitted = wf.pose_a_to_b(rig, handles, poses[2], poses[3], 2.0, FALLOFF, fit=True, region=region)
+    region = expression_region(ict_face)
+    fitted = pose_a_to_b(rig, handles, poses[2], poses[3], 2.0, FALLOFF, fit=True, region=region)
     err = np.linalg.norm(np.asarray(fitted.shape) - poses[3], axis=1)
     assert float(fitted.error) == pytest.approx(err[region].mean(), rel=1e-5)
     assert float(fitted.error) <= float(fitted.direct_error)
@@ -161,20 +168,18 @@ def test_fitted_layers_never_increase_exactly(rig, poses):
         (rig.handles(rng.choice(rig.n_vertices, n, replace=False)), radius)
         for n, radius in ((6, 4.0), (20, 2.0), (40, 1.0))
     ]
-    options = wf.FitOptions(max_steps=3, lsmr_steps=8)
-    fitted = wf.iterative_layers(
-        rig, poses[0], poses[2], schedule, FALLOFF, fit=True, options=options
-    )
+    options = FitOptions(max_steps=3, lsmr_steps=8)
+    fitted = iterative_layers(rig, poses[0], poses[2], schedule, FALLOFF, fit=True, options=options)
     errors = fitted.errors
     assert np.all(np.diff(errors) <= 0.0)
     start = np.linalg.norm(poses[0] - poses[2], axis=1).mean()
     assert errors[0] <= start
-    direct = wf.iterative_layers(rig, poses[0], poses[2], schedule, FALLOFF)
+    direct = iterative_layers(rig, poses[0], poses[2], schedule, FALLOFF)
     assert errors[0] <= direct.errors[0] * (1 + 1e-6)  # same base: the fit is never worse
 
 
 def test_smoothstep_fade():
-    fade = wf.smoothstep_fade(41, 20, 10)
+    fade = smoothstep_fade(41, 20, 10)
     assert fade[20] == 1.0
     assert np.all(fade[:10] == 0) and np.all(fade[31:] == 0) and np.all(fade[10:31] > 0)
     np.testing.assert_allclose(fade[10:20], fade[30:20:-1])  # symmetric
@@ -188,7 +193,7 @@ def test_clip_edit_is_local_in_time_and_space(rig, poses):
     clip = np.concatenate([poses, poses[::-1], poses])  # 12 real frames
     handles = rig.handles(farthest_point_vertices(np.asarray(rig.canonical), 6, graph=rig.graph))
     displacements = np.random.default_rng(5).normal(0, 0.3, (6, 3)).astype(np.float32)
-    edited = wf.clip_edit(rig, clip, 5, handles, displacements, 1.5, FALLOFF, 3)
+    edited = clip_edit(rig, clip, 5, handles, displacements, 1.5, FALLOFF, 3)
     lo, hi = edited.window
     assert (lo, hi) == (2, 8)
     outside = np.r_[0:lo, hi + 1 : len(clip)]
@@ -204,22 +209,22 @@ def test_clip_edit_is_local_in_time_and_space(rig, poses):
 
 
 def test_dialogue_replacement_keeps_the_rest_of_the_face(rig, poses, ict_face):
-    mouth = wf.expression_region(ict_face)
+    mouth = expression_region(ict_face)
     reach = float(influence_reach(1.0, FALLOFF, rig.model.clamp))
-    interior = wf.interior_vertices(rig, mouth, reach)
+    interior = interior_vertices(rig, mouth, reach)
     assert 0 < len(interior) < mouth.sum()
     index = interior[farthest_point_vertices(np.asarray(rig.canonical)[interior], 12)]
     handles = rig.handles(index)
     source, target = poses[:2], poses[2:]
-    out = wf.dialogue_replacement(rig, source, target, handles, 1.0, FALLOFF, region=mouth)
+    out = dialogue_replacement(rig, source, target, handles, 1.0, FALLOFF, region=mouth)
     assert np.array_equal(out[:, ~mouth], source[:, ~mouth])  # exactly 0.0 outside the mask
     # frame by frame equals single calls with that frame as base
     for f in range(2):
         single = rig(handles, target[f, index] - source[f, index], 1.0, FALLOFF, base=source[f])
         np.testing.assert_allclose(out[f], np.asarray(single), atol=1e-6)
-    unchanged = wf.dialogue_replacement(rig, source, source, handles, 1.0, FALLOFF)
+    unchanged = dialogue_replacement(rig, source, source, handles, 1.0, FALLOFF)
     assert np.array_equal(unchanged, source)  # rig inversion error 0.0 by construction
-    fitted = wf.dialogue_replacement(
+    fitted = dialogue_replacement(
         rig, source, target, handles, 1.0, FALLOFF, fit=True, region=mouth
     )
     assert np.array_equal(fitted[:, ~mouth], source[:, ~mouth])
@@ -230,7 +235,7 @@ def test_dialogue_replacement_keeps_the_rest_of_the_face(rig, poses, ict_face):
 def test_mouth_region_on_ict(ict_face):
     """The default region holds the vertices jawOpen moves most and none of those eyeBlink
     moves."""
-    mouth = wf.expression_region(ict_face)
+    mouth = expression_region(ict_face)
     deltas = np.linalg.norm(np.asarray(ict_face.deltas), axis=-1)
     names = list(ict_face.names)
     assert mouth[np.argmax(deltas[names.index("jawOpen")])]

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import trimesh
 
+import canrig_jax.data._paths as paths_module  # patched: the default folder
 from canrig_jax.data import (
     ENV_VAR,
     FACE,
@@ -21,7 +22,6 @@ from canrig_jax.data import (
     load_identity_modes,
     resolve_data_dir,
 )
-from canrig_jax.data import paths as paths_module
 
 RAW = "ict-facekit/raw"
 

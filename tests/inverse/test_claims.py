@@ -12,9 +12,8 @@ import numpy as np
 import pytest
 
 from canrig_jax import inverse
-from canrig_jax.inverse.metrics import roughness, select_alpha, summarize
-from canrig_jax.rig import evaluate_batch
-from canrig_jax.rig.poses import random_sparse_poses
+from canrig_jax.inverse import roughness, select_alpha, summarize
+from canrig_jax.rig import evaluate_batch, random_sparse_poses
 
 ALPHAS = (0.0, 0.5, 1.0, 2.0, 5.0, 10.0)
 

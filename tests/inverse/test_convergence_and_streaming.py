@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from canrig_jax import inverse
-from canrig_jax.inverse.metrics import CARDINALITY_TOL
+from canrig_jax.inverse import CARDINALITY_TOL
 from canrig_jax.rig import evaluate
 
 
@@ -103,7 +103,7 @@ def test_converged_quartic_cd_reaches_an_independent_float64_lbfgsb_minimum(
 ):
     """SciPy's float64 L-BFGS-B from zero on the same objective (``reference.minimum``,
     gradient written out independently) finds no lower value than converged QuarticCD."""
-    from canrig_jax.inverse.reference import minimum
+    from canrig_jax.inverse import minimum
 
     problem, alpha = ict_quartic_problem, 5.0
     for target in noisy[:2]:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from canrig_jax import inverse
-from canrig_jax.inverse.metrics import frame_metrics, roughness, select_alpha
+from canrig_jax.inverse import frame_metrics, roughness, select_alpha
 from canrig_jax.rig import evaluate
 
 

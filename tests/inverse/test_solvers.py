@@ -139,7 +139,7 @@ def test_lmmm_majoriser_decreases_the_pairwise_objective_and_beats_its_start(set
 
 
 def test_cubic_root_of_the_lmmm_step_solves_the_derivative():
-    from canrig_jax.inverse.lmmm import _increasing_cubic_root
+    from canrig_jax.inverse._lmmm import _increasing_cubic_root  # internal algebra
 
     rng = np.random.default_rng(0)
     a, c2, c4 = rng.normal(size=50), rng.uniform(0, 5, 50), rng.uniform(0.1, 50, 50)

@@ -12,9 +12,9 @@ from canrig_jax.mesh import (
     connected_components,
     decimate,
     flip_quad_split,
+    quad_pairs,
     subdivide,
 )
-from canrig_jax.mesh.remesh import quad_pairs
 from canrig_jax.rig import BlendshapeRig, Corrective, evaluate, remesh_rig
 
 

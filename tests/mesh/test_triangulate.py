@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from canrig_jax.data.paths import data_file
+from canrig_jax.data import data_file
 from canrig_jax.mesh import triangulate_quads
 
 

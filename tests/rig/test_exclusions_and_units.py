@@ -6,14 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from canrig_jax.data.names import to_arkit
-from canrig_jax.data.paths import data_file
-from canrig_jax.rig import BlendshapeRig, ict_linear_rig
-from canrig_jax.rig.poses import random_sparse_poses
-from canrig_jax.rig.synthesis import (
+from canrig_jax.data import data_file, to_arkit
+from canrig_jax.rig import (
     MUTUALLY_EXCLUSIVE,
+    BlendshapeRig,
     SynthesisOptions,
     exclusive_pairs,
+    ict_linear_rig,
+    random_sparse_poses,
     synthesize_correctives,
 )
 

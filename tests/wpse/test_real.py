@@ -7,9 +7,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from canrig_jax.metrics import CM_TO_MM
+from canrig_jax import CM_TO_MM
 from canrig_jax.rig import evaluate
 from canrig_jax.wpse import (
+    NumpyEditEvaluator,
     apply,
     blendshape_metric,
     fit_prepared,
@@ -17,9 +18,9 @@ from canrig_jax.wpse import (
     frame_matrices,
     local_frames,
     prepare_edits,
+    reference_vertex_frames,
     retained_fraction,
 )
-from canrig_jax.wpse.reference import NumpyEditEvaluator, reference_vertex_frames
 
 
 @pytest.fixture(scope="module")

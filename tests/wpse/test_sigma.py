@@ -11,9 +11,9 @@ from canrig_jax.wpse import (
     gui_from_sigma,
     loo_residuals,
     prepare_edits,
+    reference_coefficients,
     sigma_from_gui,
 )
-from canrig_jax.wpse.reference import reference_coefficients
 
 
 def test_gui_mapping_fixed_points_and_monotone():

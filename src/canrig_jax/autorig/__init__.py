@@ -1,29 +1,50 @@
 """RigAnyFace: DiffusionNet in equinox, the FACS-conditioned auto-rigger, its data and metrics."""
 
-from .data import (
+from ._data import (
     AutorigDataset,
     PoseSet,
     RiggedHead,
+    head_rig,
     ict_autorig_dataset,
     make_head,
     pose_displacements,
     quartic_pose_set,
     transfer_poses,
 )
-from .diffusion import (
+from ._diffusion import (
     LearnedDiffusion,
     implicit_diffusion,
     spectral_diffusion,
     spectral_diffusion_and_gradient,
 )
-from .diffusion_net import DiffusionNet, DiffusionNetBlock, SpatialGradientFeatures
-from .features import heat_kernel_signature, hks_times, mass_weighted_mean
-from .metrics import error_stats, outside_fraction, penetration, winding_numbers
-from .model import ConditionalBlock, RigAnyFace, normalise
-from .rig import GeneratedRig, generate_rig, predict_displacements, rig_from_poses
-from .train import TrainOptions, TrainResult, load_model, train, training_set
+from ._diffusion_net import DiffusionNet, DiffusionNetBlock, SpatialGradientFeatures
+from ._features import heat_kernel_signature, hks_times, mass_weighted_mean
+from ._metrics import error_stats, outside_fraction, penetration, winding_numbers
+from ._model import ConditionalBlock, RigAnyFace, normalise
+from ._rig import (
+    DEFAULT_POSE_CHUNK,
+    GeneratedRig,
+    generate_rig,
+    pad_to_bucket,
+    predict_displacements,
+    rig_from_poses,
+)
+from ._train import (
+    TrainOptions,
+    TrainResult,
+    head_inputs,
+    load_model,
+    make_model,
+    train,
+    training_set,
+)
 
 __all__ = [
+    "DEFAULT_POSE_CHUNK",
+    "head_inputs",
+    "head_rig",
+    "make_model",
+    "pad_to_bucket",
     "AutorigDataset",
     "ConditionalBlock",
     "DiffusionNet",

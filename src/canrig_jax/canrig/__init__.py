@@ -1,10 +1,14 @@
 """CANRig (Mohammadi, Weiss et al.): geodesic influence masks, masked cross-attention with
-zero-preserving MLPs, the shape-preserving variant, training on real rig shapes."""
+zero-preserving MLPs, the shape-preserving variant, training on real rig shapes, and the
+workflows an artist runs on it (pose A to B direct and fitted, iterative layers, clip editing,
+dialogue replacement)."""
 
-from .attention import masked_attention_weights, masked_cross_attention
-from .data import (
+from ._attention import masked_attention_weights, masked_cross_attention
+from ._data import (
     EVAL_FALLOFF_PER_CM,
+    FARTHEST_METRICS,
     RADII_CM,
+    DataOptions,
     ExampleOptions,
     Examples,
     TrainingSet,
@@ -17,29 +21,93 @@ from .data import (
     sample_examples,
     split_capture,
 )
-from .layout import DENSE, BlockLayout, DenseLayout, Layout, block_layout
-from .masks import (
+from ._layout import (
+    DENSE,
+    BlockLayout,
+    DenseLayout,
+    Layout,
+    block_layout,
+    influence_reach,
+    vertex_blocks,
+)
+from ._masks import (
     CLAMP,
+    MIN_EDGE_FACTOR,
+    check_handle_parameters,
     correlation_edge_factor,
     edge_graph,
     influence_mask,
     mesh_edges,
     weighted_geodesic_distance,
 )
-from .mlp import ZeroPreservingMLP
-from .model import AbstractCANRig, Architecture, CANRig, ShapePreservingCANRig, parameter_count
-from .rig import HandleEdit, Handles, NeuralRig, deform, edit_mask, trace_edit
-from .train import (
+from ._mlp import ZeroPreservingMLP
+from ._model import AbstractCANRig, Architecture, CANRig, ShapePreservingCANRig, parameter_count
+from ._rig import HandleEdit, Handles, NeuralRig, deform, edit_mask, trace_edit
+from ._train import (
+    EUCLIDEAN_SOFTNESS_MM,
+    LOSSES,
+    VARIANTS,
     TrainOptions,
     TrainResult,
     load_checkpoint,
     load_model,
+    make_optimiser,
+    read_checkpoint_state,
     save_checkpoint,
     train,
     train_step,
+    vertex_penalty,
+)
+from ._workflows import (
+    ClipEdit,
+    FitOptions,
+    FitSolution,
+    LayerResult,
+    apply_jacobian,
+    clip_edit,
+    dialogue_replacement,
+    direct_displacements,
+    displacement_jacobian,
+    expression_region,
+    fit_displacements,
+    interior_vertices,
+    iterative_layers,
+    max_acceleration,
+    pose_a_to_b,
+    region_error,
+    smoothstep_fade,
 )
 
 __all__ = [
+    "ClipEdit",
+    "FitOptions",
+    "FitSolution",
+    "LayerResult",
+    "apply_jacobian",
+    "clip_edit",
+    "dialogue_replacement",
+    "direct_displacements",
+    "displacement_jacobian",
+    "expression_region",
+    "fit_displacements",
+    "interior_vertices",
+    "iterative_layers",
+    "max_acceleration",
+    "pose_a_to_b",
+    "region_error",
+    "smoothstep_fade",
+    "DataOptions",
+    "EUCLIDEAN_SOFTNESS_MM",
+    "FARTHEST_METRICS",
+    "LOSSES",
+    "MIN_EDGE_FACTOR",
+    "VARIANTS",
+    "check_handle_parameters",
+    "influence_reach",
+    "make_optimiser",
+    "read_checkpoint_state",
+    "vertex_blocks",
+    "vertex_penalty",
     "DENSE",
     "AbstractCANRig",
     "Architecture",

@@ -1,6 +1,6 @@
 """Loaders for the real assets in the shared data folder (ICT, Live Link Face, MediaPipe)."""
 
-from .ict import (
+from ._ict import (
     ENCLOSING_PARTS,
     FACE,
     ICT_PARTS,
@@ -11,12 +11,14 @@ from .ict import (
     load_ict_obj_folder,
     load_identity_modes,
 )
-from .livelinkface import LiveLinkCapture, load_livelinkface
-from .mediapipe import MediaPipeFace, load_mediapipe_face
-from .names import ARKIT_NAMES, RetargetReport, retarget_weights, to_arkit
-from .paths import ENV_VAR, resolve_data_dir
+from ._livelinkface import LiveLinkCapture, load_livelinkface
+from ._mediapipe import MediaPipeFace, load_mediapipe_face
+from ._names import ARKIT_NAMES, RetargetReport, retarget_weights, to_arkit
+from ._paths import ENV_VAR, data_file, read_arrays, resolve_data_dir
 
 __all__ = [
+    "data_file",
+    "read_arrays",
     "ARKIT_NAMES",
     "ENCLOSING_PARTS",
     "ENV_VAR",

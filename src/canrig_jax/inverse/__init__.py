@@ -7,12 +7,13 @@
 Every method is an ``AbstractInverseMethod`` (``METHODS`` lists the classes):
 ``QuarticCD``, ``LinearCD`` (coordinate descent, ``AbstractCoordinateDescent``), ``Seol``,
 ``Joshi``, ``Cetinaslan``, ``LMMM``, ``JaxoptLBFGSB``. Coordinate orders in ``ORDERS``;
-whole takes with ``solve_sequence``; live capture with ``Stream``; metrics in
-``inverse.metrics``; the NumPy reference of Algorithm 1 in ``inverse.reference``.
+whole takes with ``solve_sequence``; live capture with ``Stream``; metrics
+(``summarize``, ``roughness``, ``select_alpha``); the NumPy reference of Algorithm 1
+(``numpy_quartic_cd``, ``minimum``) for checks and speed ratios.
 """
 
-from .base import AbstractInverseMethod, Iterate
-from .coordinate_descent import (
+from ._base import AbstractInverseMethod, Iterate
+from ._coordinate_descent import (
     ORDERS,
     AbstractCoordinateDescent,
     LinearCD,
@@ -21,17 +22,47 @@ from .coordinate_descent import (
     objective,
     static_order,
 )
-from .jaxopt_solver import JaxoptLBFGSB
-from .least_squares import Cetinaslan, Joshi
-from .lmmm import LMMM
-from .problem import InverseProblem, prepare
-from .solution import Solution
-from .solve import Stream, solve, solve_sequence
+from ._jaxopt_solver import JaxoptLBFGSB
+from ._least_squares import Cetinaslan, Joshi
+from ._lmmm import LMMM
+from ._metrics import (
+    CARDINALITY_TOL,
+    frame_metrics,
+    mm_per_unit,
+    roughness,
+    select_alpha,
+    summarize,
+)
+from ._problem import InverseProblem, prepare
+from ._reference import (
+    NumpyDenseRig,
+    decreasing_norm_order,
+    measure_reference,
+    minimum,
+    numpy_quartic_cd,
+    time_batched,
+    time_single_frames,
+)
+from ._solution import Solution
+from ._solve import Stream, solve, solve_sequence
 
 METHODS = (QuarticCD, LinearCD, Seol, Joshi, Cetinaslan, LMMM, JaxoptLBFGSB)
 """Every inverse-rig method class (each a final ``AbstractInverseMethod``)."""
 
 __all__ = [
+    "CARDINALITY_TOL",
+    "NumpyDenseRig",
+    "decreasing_norm_order",
+    "frame_metrics",
+    "measure_reference",
+    "minimum",
+    "mm_per_unit",
+    "numpy_quartic_cd",
+    "roughness",
+    "select_alpha",
+    "summarize",
+    "time_batched",
+    "time_single_frames",
     "METHODS",
     "ORDERS",
     "AbstractCoordinateDescent",

@@ -3,49 +3,53 @@
 The layer above ``data``: it knows arrays (vertices, faces, per-vertex data) and nothing of
 rigs; ``canrig_jax.rig`` builds rigs from it."""
 
-from ..cache import mesh_fingerprint
-from .checks import check_mesh, check_vertices
-from .deformation_gradient import (
+from .._cache import mesh_fingerprint
+from ._checks import check_mesh, check_vertices
+from ._deformation_gradient import (
     DeformationGradientBlend,
     FallbackCounts,
     triangle_edges,
     triangle_frames,
 )
-from .geodesic import (
+from ._geodesic import (
     edge_graph,
     farthest_point_vertices,
     mesh_edges,
     weighted_geodesic_distance,
 )
-from .operators import (
+from ._operators import (
     MeshGeometry,
     MeshOperators,
     SparseMatrix,
+    compute_geometry,
     mesh_geometry,
     mesh_operators,
     pad_vertices,
     stack_operators,
 )
-from .remesh import (
+from ._remesh import (
     Remeshed,
     SurfaceMap,
     closest_surface_points,
     decimate,
     flip_quad_split,
+    quad_pairs,
     subdivide,
     vertex_surface_map,
 )
-from .topology import connected_components, vertex_adjacency
-from .transfer import (
+from ._topology import connected_components, vertex_adjacency
+from ._transfer import (
     TriangleCorrespondence,
     closest_point_correspondence,
     identity_correspondence,
     similarity_transform,
     transfer_deltas,
 )
-from .triangulate import triangulate_quads as triangulate_quads
+from ._triangulate import triangulate_quads as triangulate_quads
 
 __all__ = [
+    "compute_geometry",
+    "quad_pairs",
     "DeformationGradientBlend",
     "FallbackCounts",
     "connected_components",

@@ -1,5 +1,5 @@
 """Figures: per-vertex scalar maps on meshes (matplotlib, no GPU)."""
 
-from .mesh_plot import plot_vertex_scalar, save_figure
+from ._mesh_plot import plot_vertex_scalar, save_figure
 
 __all__ = ["plot_vertex_scalar", "save_figure"]

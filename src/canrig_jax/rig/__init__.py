@@ -1,7 +1,8 @@
 """The blendshape rig of any corrective order, its (batched) evaluation, corrective synthesis,
 the ict-quartic rig, and rigs carried onto other meshes (remeshing, deformation transfer)."""
 
-from .blendshape import (
+from ._blendshape import (
+    UNIT_IN_CM,
     BlendshapeRig,
     Corrective,
     check_weights,
@@ -9,10 +10,12 @@ from .blendshape import (
     evaluate,
     evaluate_batch,
 )
-from .ict_quartic import ict_linear_rig, ict_quartic_rig
-from .io import load_rig, save_rig
-from .nonlinear import deformation_gradient_blend
-from .synthesis import (
+from ._gltf import export_gltf, load_gltf_rig
+from ._ict_quartic import ict_linear_rig, ict_quartic_rig
+from ._io import load_rig, save_rig
+from ._nonlinear import deformation_gradient_blend
+from ._poses import random_sparse_poses
+from ._synthesis import (
     MUTUALLY_EXCLUSIVE,
     SynthesisOptions,
     SynthesisReport,
@@ -20,9 +23,13 @@ from .synthesis import (
     overlapping_pairs,
     synthesize_correctives,
 )
-from .transfer import deformation_transfer, remesh_rig
+from ._transfer import deformation_transfer, remesh_rig
 
 __all__ = [
+    "UNIT_IN_CM",
+    "export_gltf",
+    "load_gltf_rig",
+    "random_sparse_poses",
     "MUTUALLY_EXCLUSIVE",
     "BlendshapeRig",
     "Corrective",

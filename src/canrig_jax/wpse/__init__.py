@@ -9,7 +9,7 @@ mesh = wpse.apply(model, w, evaluate(rig, w))          # jit / vmap over frames
 ```
 """
 
-from .frames import (
+from ._frames import (
     LocalFrames,
     frame_matrices,
     local_frames,
@@ -17,17 +17,17 @@ from .frames import (
     to_local,
     to_world,
 )
-from .fsm import coactivation_pairs, fix_shape_rig
-from .layers import LayeredEdits, apply_layered, assign_layers, fit_layered
-from .metric import (
+from ._fsm import coactivation_pairs, fix_shape_rig
+from ._layers import LayeredEdits, apply_layered, assign_layers, fit_layered
+from ._metric import (
     blendshape_metric,
     euclidean_metric,
     gaussian_kernel,
     pairwise_pose_distance_sq,
     pose_distance_sq,
 )
-from .protocol import retained_fraction, select_edit_frames
-from .pse import (
+from ._protocol import retained_fraction, select_edit_frames
+from ._pse import (
     DUPLICATE_DISTANCE,
     EditData,
     PoseSpaceEdit,
@@ -41,8 +41,15 @@ from .pse import (
     prepare_edits,
     solve_coefficients,
 )
-from .search import SearchResult, region_energy, search_edits
-from .sigma import (
+from ._reference import (
+    NumpyEditEvaluator,
+    reference_coefficients,
+    reference_frames,
+    reference_vertex_frames,
+    time_runtime,
+)
+from ._search import SearchResult, region_energy, search_edits
+from ._sigma import (
     GUI_MIN,
     GUI_OFFSET,
     GUI_SCALE,
@@ -55,6 +62,11 @@ from .sigma import (
 )
 
 __all__ = [
+    "NumpyEditEvaluator",
+    "reference_coefficients",
+    "reference_frames",
+    "reference_vertex_frames",
+    "time_runtime",
     "DUPLICATE_DISTANCE",
     "GUI_MIN",
     "GUI_OFFSET",

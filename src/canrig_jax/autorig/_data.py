@@ -1,0 +1,336 @@
+"""Rigged training heads for RigAnyFace, from the real ICT assets.
+
+* **Poses** (``PoseSet``): the 53 ICT expressions (one-hot pose vectors) plus combination
+  poses (several ones) taken from the ict-quartic rig — the combinations whose corrective
+  terms move the face most, by order (the paper used 48 FACS + 48 corrective poses). The
+  ground-truth displacement of a pose is the quartic rig evaluated with weight 1 on its
+  expressions (deltas plus every corrective whose expressions are all active).
+* **Heads** (``RiggedHead``): an ICT identity (neutral + sum c_i mode_i, c ~ N(0, 1), the kit's
+  ``randomize_identity``), whole head with all 17 parts, remeshed (``canrig_jax.mesh``)
+  and its ground-truth displacements carried to the new vertices by the surface map. In the
+  ICT model expression offsets are shared by all identities, so the ground truth of an
+  identity is the shared displacement field sampled on its own surface.
+
+Units: ``RiggedHead`` stores centimetres; ``normalise`` gives the unit-sphere view the
+network is trained on.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..data import ICTFaceModel, ict_identity, load_ict
+from ..mesh import Remeshed, closest_point_correspondence, decimate, subdivide
+from ..rig import BlendshapeRig, deformation_transfer, evaluate_batch
+
+
+@dataclasses.dataclass(frozen=True)
+class PoseSet:
+    """Poses of an auto-rig: each a set of basis expressions at weight 1.
+
+    Attributes:
+        basis_names: the A basis expressions (ICT: 53 ARKit names); pose vectors have length A.
+        combinations: P tuples of basis indices; the first A are the single expressions
+            (0,), (1,), ... in order, the rest combination poses of 2 to 4 expressions.
+    """
+
+    basis_names: tuple[str, ...]
+    combinations: tuple[tuple[int, ...], ...]
+
+    def __post_init__(self):
+        a = len(self.basis_names)
+        if tuple(self.combinations[:a]) != tuple((i,) for i in range(a)):
+            raise ValueError("combinations: the first A poses must be the single expressions")
+        for combo in self.combinations:
+            if len(set(combo)) != len(combo) or not all(0 <= i < a for i in combo):
+                raise ValueError(f"combinations: {combo} is not a set of basis indices < {a}")
+
+    @property
+    def n_basis(self) -> int:
+        return len(self.basis_names)
+
+    @property
+    def n_poses(self) -> int:
+        return len(self.combinations)
+
+    @property
+    def labels(self) -> tuple[str, ...]:
+        return tuple("+".join(self.basis_names[i] for i in c) for c in self.combinations)
+
+    def vectors(self) -> np.ndarray:
+        """(P, A) float32 pose vectors A_i (ones on the pose's expressions)."""
+        out = np.zeros((self.n_poses, self.n_basis), np.float32)
+        for p, combo in enumerate(self.combinations):
+            out[p, list(combo)] = 1.0
+        return out
+
+    def to_dict(self) -> dict:
+        return {
+            "basis_names": list(self.basis_names),
+            "combinations": [list(c) for c in self.combinations],
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> PoseSet:
+        return cls(tuple(d["basis_names"]), tuple(tuple(c) for c in d["combinations"]))
+
+
+def quartic_pose_set(rig: BlendshapeRig, per_order: dict[int, int] | None = None) -> PoseSet:
+    """The rig's single expressions plus its largest correctives as combination poses.
+
+    Args:
+        rig: a rig with correctives (the ict-quartic rig).
+        per_order: how many combinations of each order to take, by decreasing corrective
+            magnitude (sum of vertex offset norms); default {2: 25, 3: 12, 4: 6}, i.e. 53 + 43
+            = 96 poses, the paper's count.
+    """
+    per_order = {2: 25, 3: 12, 4: 6} if per_order is None else per_order
+    if not isinstance(rig, BlendshapeRig):
+        raise TypeError(f"rig: expected a BlendshapeRig, got {type(rig).__name__}")
+    for order, count in per_order.items():
+        if not isinstance(count, int | np.integer) or count < 0 or order < 2:
+            raise ValueError(
+                f"per_order: expected counts >= 0 for orders >= 2, got {order}: {count!r}"
+            )
+    combos = [(i,) for i in range(rig.n_blendshapes)]
+    for order, count in sorted(per_order.items()):
+        table = rig.corrective(order)
+        available = 0 if table is None else int(table.indices.shape[0])
+        if count > available:
+            raise ValueError(
+                f"per_order: asked for {count} order-{order} combinations, the rig has {available}"
+            )
+        if count == 0:
+            continue
+        size = np.linalg.norm(np.asarray(table.deltas), axis=-1).sum(axis=1)
+        best = np.argsort(-size, kind="stable")[:count]
+        combos += [tuple(int(i) for i in np.asarray(table.indices)[j]) for j in best]
+    return PoseSet(tuple(rig.names), tuple(combos))
+
+
+def pose_displacements(rig: BlendshapeRig, poses: PoseSet) -> np.ndarray:
+    """(P, V, 3) float32 ground truth: the rig at weight 1 on each pose's expressions."""
+    if not isinstance(rig, BlendshapeRig) or not isinstance(poses, PoseSet):
+        raise TypeError(
+            f"rig, poses: expected a BlendshapeRig and a PoseSet, got {type(rig).__name__}, "
+            f"{type(poses).__name__}"
+        )
+    if tuple(rig.names) != poses.basis_names:
+        raise ValueError("rig: its blendshape names differ from the pose set's basis names")
+    neutral = np.asarray(rig.neutral)
+    posed = evaluate_batch(rig, poses.vectors())
+    return np.asarray(posed) - neutral[None]
+
+
+def head_rig(face_rig: BlendshapeRig, head: ICTFaceModel) -> BlendshapeRig:
+    """The whole-head rig: ICT's head deltas plus the face rig's correctives (the face part
+    is the head's first vertices, so corrective vertex indices carry over unchanged)."""
+    if tuple(face_rig.names) != tuple(head.names):
+        raise ValueError("face_rig: its blendshape names differ from the head's")
+    n_face = face_rig.n_vertices
+    if not np.array_equal(head.vertex_ids[:n_face], np.arange(n_face)) or not np.allclose(
+        np.asarray(face_rig.neutral), head.neutral[:n_face], atol=1e-5
+    ):
+        raise ValueError("face_rig: its vertices are not the first vertices of the head")
+    return BlendshapeRig(head.neutral, head.deltas, face_rig.correctives, head.names, head.faces)
+
+
+def vertex_parts(head: ICTFaceModel) -> np.ndarray:
+    """(V,) index into ``head.part_names`` of every vertex."""
+    part = np.empty(head.n_vertices, np.int32)
+    for i, (lo, hi) in enumerate(head.part_vertex_range):
+        part[lo:hi] = i
+    return part
+
+
+@dataclasses.dataclass(frozen=True)
+class RiggedHead:
+    """One training or test head with its ground-truth rig (centimetres).
+
+    Attributes:
+        name: e.g. "id07/decimate_1300".
+        vertices: (V, 3) neutral; faces: (F, 3).
+        displacements: (P, V, 3) ground-truth offsets for each pose of the pose set.
+        landmarks: (68,) vertex nearest each ICT Multi-PIE landmark.
+        parts: (V,) ICT part index of each vertex (of the source vertex it lies on).
+        identity: (n,) identity coefficients; topology: remeshing label.
+    """
+
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    displacements: np.ndarray
+    landmarks: np.ndarray
+    parts: np.ndarray
+    identity: np.ndarray
+    topology: str
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.vertices.shape[0])
+
+
+TOPOLOGIES = ("decimate_<n>", "subdivide_<n>")
+
+
+def remesh_head(
+    vertices: np.ndarray, faces: np.ndarray, topology: str
+) -> tuple[Remeshed, Remeshed | None]:
+    """``decimate_<n>``: quadric decimation to ~n vertices; ``subdivide_<n>``: decimation to
+    ~n vertices then one midpoint subdivision (~4n vertices, a regular 1-to-4 pattern).
+
+    Returns (decimated, subdivided or None)."""
+    kind, _, count = topology.partition("_")
+    if kind not in ("decimate", "subdivide") or not count.isdigit():
+        raise ValueError(f"topology: expected one of {TOPOLOGIES}, got {topology!r}")
+    coarse = decimate(vertices, faces, int(count))
+    if kind == "decimate":
+        return coarse, None
+    return coarse, subdivide(coarse.vertices, coarse.faces)
+
+
+def make_head(
+    head: ICTFaceModel,
+    displacements: np.ndarray,
+    coefficients: np.ndarray,
+    topology: str,
+    *,
+    name: str,
+    data_dir=None,
+) -> RiggedHead:
+    """An ICT identity remeshed to ``topology`` with the head's pose displacements carried.
+
+    Args:
+        head: the whole ICT head (``load_ict(parts=None)``).
+        displacements: (P, V_head, 3) pose displacements on the head (``pose_displacements``).
+        coefficients: (n,) identity coefficients.
+        topology: see ``remesh_head``.
+    """
+    neutral = ict_identity(coefficients, data_dir, model=head)
+    coarse, fine = remesh_head(neutral, head.faces, topology)
+    carried = coarse.map.carry(displacements.astype(np.float64))
+    source_parts = vertex_parts(head)
+    corner = np.argmax(coarse.map.barycentric, axis=1)
+    parts = source_parts[head.faces[coarse.map.triangle, corner]]
+    vertices, faces = coarse.vertices, coarse.faces
+    if fine is not None:
+        carried = fine.map.carry(carried)
+        corner = np.argmax(fine.map.barycentric, axis=1)
+        parts = parts[coarse.faces[fine.map.triangle, corner]]
+        vertices, faces = fine.vertices, fine.faces
+    landmarks = cKDTree(vertices).query(neutral[head.landmarks])[1]
+    return RiggedHead(
+        name=name,
+        vertices=np.asarray(vertices, np.float32),
+        faces=np.asarray(faces, np.int32),
+        displacements=np.asarray(carried, np.float32),
+        landmarks=np.asarray(landmarks, np.int32),
+        parts=np.asarray(parts, np.int32),
+        identity=np.asarray(coefficients, np.float32),
+        topology=topology,
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class AutorigDataset:
+    """Training and held-out heads of one pose set.
+
+    Attributes:
+        poses: the ``PoseSet``; head: the whole ICT head (generic identity, original mesh);
+        head_displacements: (P, 26719, 3) ground truth on the original head;
+        train: heads of the training identities in ``train_topologies``;
+        test: {"same_topology": ..., "unseen_topology": ...} heads of held-out identities.
+    """
+
+    poses: PoseSet
+    head: ICTFaceModel
+    head_displacements: np.ndarray
+    train: list[RiggedHead]
+    test: dict[str, list[RiggedHead]]
+
+
+def ict_autorig_dataset(
+    data_dir=None,
+    *,
+    n_train: int = 24,
+    n_test: int = 8,
+    train_topologies: tuple[str, ...] = ("decimate_1000", "decimate_1600"),
+    unseen_topology: str = "decimate_1300",
+    per_order: dict[int, int] | None = None,
+    seed: int = 0,
+    progress: bool = True,
+) -> AutorigDataset:
+    """ICT identities remeshed into training and held-out heads with ground-truth rigs.
+
+    Training identities (``n_train``) appear in every ``train_topologies``; held-out
+    identities (``n_test``, drawn from another random stream) appear in the first training
+    topology ("same_topology": same remeshing recipe, new identity) and in
+    ``unseen_topology`` (a resolution never seen in training).
+    """
+    from ..rig import ict_quartic_rig
+
+    if unseen_topology in train_topologies:
+        raise ValueError(f"unseen_topology: {unseen_topology!r} is also a training topology")
+    if n_train < 1 or n_test < 1:
+        raise ValueError(f"n_train, n_test: expected >= 1, got {n_train}, {n_test}")
+    head = load_ict(data_dir, parts=None)
+    face_rig, _ = ict_quartic_rig(data_dir, progress=progress)
+    poses = quartic_pose_set(face_rig, per_order)
+    displacements = pose_displacements(head_rig(face_rig, head), poses)
+    jobs = []
+    train_rng = np.random.default_rng([seed, 0])
+    for i in range(n_train):
+        coefficients = train_rng.standard_normal(100)
+        jobs += [("train", f"train{i:02d}/{t}", coefficients, t) for t in train_topologies]
+    test_rng = np.random.default_rng([seed, 1])
+    for i in range(n_test):
+        coefficients = test_rng.standard_normal(100)
+        jobs.append(
+            (
+                "same_topology",
+                f"test{i:02d}/{train_topologies[0]}",
+                coefficients,
+                train_topologies[0],
+            )
+        )
+        jobs.append(
+            ("unseen_topology", f"test{i:02d}/{unseen_topology}", coefficients, unseen_topology)
+        )
+    if progress:
+        from tqdm.auto import tqdm
+
+        jobs = tqdm(jobs, desc="heads", dynamic_ncols=True)
+    split: dict[str, list[RiggedHead]] = {"train": [], "same_topology": [], "unseen_topology": []}
+    for group, name, coefficients, topology in jobs:
+        split[group].append(
+            make_head(head, displacements, coefficients, topology, name=name, data_dir=data_dir)
+        )
+    return AutorigDataset(
+        poses=poses,
+        head=head,
+        head_displacements=displacements,
+        train=split["train"],
+        test={k: split[k] for k in ("same_topology", "unseen_topology")},
+    )
+
+
+def transfer_poses(dataset: AutorigDataset, head: RiggedHead) -> np.ndarray:
+    """The deformation-transfer baseline: every ground-truth pose of the generic ICT head
+    carried onto ``head`` (Sumner & Popović; landmark + closest-point correspondence).
+
+    Returns (P, V, 3) displacements on ``head`` (centimetres)."""
+    source = dataset.head
+    source_rig = BlendshapeRig(
+        source.neutral, dataset.head_displacements, (), dataset.poses.labels, source.faces
+    )
+    correspondence = closest_point_correspondence(
+        source.neutral, source.faces, head.vertices, head.faces, source.landmarks, head.landmarks
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "correctives are not transferred": there are none
+        transferred = deformation_transfer(source_rig, head.vertices, correspondence)
+    return np.asarray(transferred.deltas)

@@ -1,0 +1,92 @@
+"""Evaluation of generated rigs: vertex errors and inner-part penetration."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from .._metrics import CM_TO_MM
+
+
+@jax.jit
+def winding_numbers(
+    points: Float[Array, "N 3"], triangles: Float[Array, "T 3 3"]
+) -> Float[Array, " N"]:
+    """Generalised winding number of each point w.r.t. a triangle soup (Jacobson et al.
+    2013): the sum of signed solid angles (Van Oosterom & Strackee) over 4 pi. About +-1
+    inside a closed, consistently oriented surface, 0 outside, fractional near holes."""
+
+    def one(p):
+        a, b, c = (triangles[:, i] - p for i in range(3))
+        la, lb, lc = (jnp.linalg.norm(x, axis=1) for x in (a, b, c))
+        numerator = jnp.sum(a * jnp.cross(b, c), axis=1)
+        denominator = (
+            la * lb * lc
+            + jnp.sum(a * b, axis=1) * lc
+            + jnp.sum(a * c, axis=1) * lb
+            + jnp.sum(b * c, axis=1) * la
+        )
+        return jnp.sum(2.0 * jnp.arctan2(numerator, denominator)) / (4.0 * jnp.pi)
+
+    return jax.lax.map(one, points, batch_size=32)
+
+
+@jax.jit
+def _pose_winding_numbers(posed, inner_index, enclosing):
+    """(P, N) winding numbers of the ``inner_index`` vertices of each posed mesh w.r.t. its
+    ``enclosing`` triangles (jitted once per shape, not per call)."""
+    return jax.lax.map(lambda v: winding_numbers(v[inner_index], v[enclosing]), posed)
+
+
+def outside_fraction(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    inner: np.ndarray,
+    enclosing_faces: np.ndarray,
+) -> np.ndarray:
+    """Per pose, the fraction of ``inner`` vertices (bool (V,)) whose winding number w.r.t.
+    the ``enclosing_faces`` (bool (F,)) of the same mesh is below one half in magnitude,
+    i.e. that lie outside the enclosing surface.
+
+    Args:
+        vertices: (V, 3) one mesh or (P, V, 3) several poses of it.
+
+    Returns:
+        (P,) fractions (a 0-d array for one mesh).
+    """
+    inner = np.asarray(inner, bool)
+    if not inner.any():
+        raise ValueError("inner: no inner-part vertices to test")
+    enclosing = np.asarray(faces)[np.asarray(enclosing_faces, bool)]
+    if enclosing.shape[0] == 0:
+        raise ValueError("enclosing_faces: selects no triangles")
+    posed = jnp.asarray(vertices, jnp.float32)
+    single = posed.ndim == 2
+    posed = posed[None] if single else posed
+    w = _pose_winding_numbers(posed, jnp.asarray(np.flatnonzero(inner)), jnp.asarray(enclosing))
+    fraction = np.mean(np.abs(np.asarray(w)) < 0.5, axis=1)
+    return fraction[0] if single else fraction
+
+
+def penetration(head, displacements: np.ndarray, part_names) -> float:
+    """Mean over poses of the fraction of inner-part vertices (teeth, gums, eyeballs) outside
+    the skin (face, head and neck) of ``head`` posed by ``displacements`` (P, V, 3)."""
+    from ..data import ENCLOSING_PARTS, INNER_PARTS
+
+    index = lambda parts: [list(part_names).index(p) for p in parts]  # noqa: E731
+    inner = np.isin(head.parts, index(INNER_PARTS))
+    skin = np.isin(head.parts, index(ENCLOSING_PARTS))[head.faces].all(axis=1)
+    posed = head.vertices[None] + np.asarray(displacements)
+    return float(outside_fraction(posed, head.faces, inner, skin).mean())
+
+
+def error_stats(predicted: np.ndarray, truth: np.ndarray, scale: float = 1.0) -> dict:
+    """{"mae_mm", "q95_mm"} of per-vertex distances over all poses; inputs in centimetres,
+    or in unit-sphere units with ``scale`` the head's cm per unit."""
+    distance = np.linalg.norm(np.asarray(predicted) - np.asarray(truth), axis=-1) * scale
+    return {
+        "mae_mm": float(distance.mean() * CM_TO_MM),
+        "q95_mm": float(np.percentile(distance, 95) * CM_TO_MM),
+    }

@@ -1,0 +1,193 @@
+"""Rig generation: a neutral head in, a ``BlendshapeRig`` out, in one batched call.
+
+``generate_rig`` normalises the head to the unit sphere, computes (or loads) its operators,
+predicts every pose of the pose set at once and scales back to the head's units. Single
+expressions become the rig's deltas; a combination pose becomes a corrective of its order,
+its prediction minus its expressions' predictions and minus the correctives of its
+sub-combinations (Racković eq. (5)), so evaluating the rig with weight 1 on a combination's
+expressions reproduces the predicted combination pose.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..mesh import MeshOperators, check_mesh, mesh_operators
+from ..rig import BlendshapeRig, Corrective
+from ._data import PoseSet
+from ._model import RigAnyFace, normalise
+
+DEFAULT_MEMORY_BUDGET = 4 * 2**30
+"""Bytes of activations ``generate_rig`` may plan for (4 GiB)."""
+
+
+def activation_bytes(model: RigAnyFace, n_vertices: int, n_poses: int, k: int) -> int:
+    """Rough peak activation memory of one forward pass (float32): a few (V, P, width)
+    tensors per conditional block plus the dense operators (V, k)."""
+    width = model.first.out_features
+    per_block = 8 * n_vertices * n_poses * width
+    return 4 * (per_block + 4 * n_vertices * k)
+
+
+DEFAULT_POSE_CHUNK = 16
+"""Poses per pass through the conditional blocks in ``generate_rig`` (see ``RigAnyFace``)."""
+
+
+@eqx.filter_jit
+def predict_displacements(model, poses, vertices, operators, pose_chunk=None):
+    """The jitted forward pass ``model(poses, vertices, operators)``: (P, V, 3) displacements
+    of every pose (no validation; ``generate_rig`` is the checked entry point)."""
+    return model(poses, vertices, operators, pose_chunk=pose_chunk)
+
+
+@dataclasses.dataclass(frozen=True)
+class GeneratedRig:
+    """A generated rig with the raw predictions and timings.
+
+    Attributes:
+        rig: the ``BlendshapeRig`` (head units, deltas named after the basis expressions,
+            correctives for the combination poses).
+        displacements: (P, V, 3) predicted displacement of every pose (head units).
+        seconds: wall time in total, of the operators, and of the network.
+    """
+
+    rig: BlendshapeRig
+    displacements: np.ndarray
+    seconds: dict
+
+
+def pad_to_bucket(operators: MeshOperators, bucket: int) -> MeshOperators:
+    """``operators`` padded so every size is a multiple of ``bucket`` (sparse entries: of
+    8 ``bucket``)."""
+    if bucket < 1:
+        raise ValueError(f"bucket: expected >= 1, got {bucket}")
+    up = lambda n, b=bucket: -(-int(n) // b) * b  # noqa: E731
+    nnz = {
+        name: up(getattr(operators, name).values.shape[0], 8 * bucket)
+        for name in ("laplacian", "gradient_x", "gradient_y")
+    }
+    return operators.pad(
+        up(operators.n_vertices),
+        up(operators.faces.shape[0]),
+        int(operators.eigenvalues.shape[0]),
+        nnz,
+    )
+
+
+def rig_from_poses(
+    neutral: np.ndarray, faces: np.ndarray, displacements: np.ndarray, poses: PoseSet
+) -> BlendshapeRig:
+    """A ``BlendshapeRig`` whose poses reproduce ``displacements`` (P, V, 3)."""
+    a = poses.n_basis
+    deltas = displacements[:a]
+    terms: dict[frozenset, np.ndarray] = {}  # corrective of each combination so far
+    order = sorted(range(a, poses.n_poses), key=lambda p: len(poses.combinations[p]))
+    for p in order:
+        combo = frozenset(poses.combinations[p])
+        # the rig at weight 1 on `combo` adds every corrective of a subset of it
+        lower = sum((v for s, v in terms.items() if s < combo), np.zeros_like(deltas[0]))
+        terms[combo] = displacements[p] - deltas[sorted(combo)].sum(axis=0) - lower
+    by_order: dict[int, tuple[list, list]] = {}
+    for p in order:
+        combo = poses.combinations[p]
+        indices, dense = by_order.setdefault(len(combo), ([], []))
+        indices.append(combo)
+        dense.append(terms[frozenset(combo)])
+    correctives = tuple(
+        Corrective.from_dense(np.asarray(indices), np.stack(dense))
+        for _, (indices, dense) in sorted(by_order.items())
+    )
+    return BlendshapeRig(neutral, deltas, correctives, poses.basis_names, faces)
+
+
+def generate_rig(
+    model: RigAnyFace,
+    poses: PoseSet,
+    vertices,
+    faces,
+    *,
+    k: int = 128,
+    operators: MeshOperators | None = None,
+    cache=False,
+    memory_budget: int = DEFAULT_MEMORY_BUDGET,
+    bucket: int = 256,
+    pose_chunk: int | None = DEFAULT_POSE_CHUNK,
+) -> GeneratedRig:
+    """Build the rig of a neutral head (any triangulation, any number of parts).
+
+    Args:
+        model: a trained ``RigAnyFace``; poses: its ``PoseSet``.
+        vertices: (V, 3) neutral head in any units (the rig comes back in the same units);
+            faces: (F, 3) triangles.
+        k: eigenpairs for the operators (the model's training value).
+        operators: precomputed operators of the *normalised* head (skips their cost).
+        cache: operator disk cache (``False``: compute, a cold start; see ``mesh_operators``).
+        memory_budget: refuse heads whose activations would exceed this many bytes.
+        bucket: pad vertex, face and operator sizes up to a multiple of this, so heads of
+            similar size share one compiled network (padding does not change the result).
+        pose_chunk: poses per pass through the network's conditional blocks (``None``: all
+            at once); the result does not depend on it, the speed and memory do.
+
+    Raises ValueError for a head without faces, non-finite or ill-shaped input, a pose set
+    that does not match the model, or a head too large for ``memory_budget``.
+    """
+    start = time.perf_counter()
+    if not isinstance(model, RigAnyFace):
+        raise TypeError(f"model: expected a trained RigAnyFace, got {type(model).__name__}")
+    if not isinstance(poses, PoseSet):
+        raise TypeError(f"poses: expected the model's PoseSet, got {type(poses).__name__}")
+    for name, value in (("k", k), ("bucket", bucket), ("memory_budget", memory_budget)):
+        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+            raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+    vertices, faces = check_mesh(vertices, faces)
+    if poses.n_basis != model.n_pose_inputs:
+        raise ValueError(
+            f"poses: pose vectors of length {poses.n_basis}, the model takes {model.n_pose_inputs}"
+        )
+    if pose_chunk is not None and pose_chunk < 1:
+        raise ValueError(f"pose_chunk: expected a positive number of poses, got {pose_chunk}")
+    per_pass = poses.n_poses if pose_chunk is None else min(pose_chunk, poses.n_poses)
+    needed = activation_bytes(model, vertices.shape[0], per_pass, k)
+    if needed > memory_budget:
+        raise ValueError(
+            f"vertices: a head of {vertices.shape[0]} vertices needs ~{needed / 2**30:.1f} GiB "
+            f"for {per_pass} poses per pass, above memory_budget={memory_budget / 2**30:.1f} GiB; "
+            "decimate it, lower pose_chunk or raise memory_budget"
+        )
+    unit, _, scale = normalise(vertices)
+    unit = unit.astype(np.float32)
+    if operators is None:
+        operators = mesh_operators(unit, faces, k=k, cache=cache)
+    elif operators.n_vertices != unit.shape[0]:
+        raise ValueError(
+            f"operators: built for {operators.n_vertices} vertices, the head has {unit.shape[0]}"
+        )
+    after_operators = time.perf_counter()
+    padded = pad_to_bucket(operators, bucket)
+    unit_padded = np.zeros((padded.n_vertices, 3), np.float32)
+    unit_padded[: unit.shape[0]] = unit
+    predicted = predict_displacements(
+        model, jnp.asarray(poses.vectors()), jnp.asarray(unit_padded), padded, pose_chunk
+    )
+    predicted = np.asarray(jax.block_until_ready(predicted), np.float64)[:, : unit.shape[0]]
+    predicted = predicted * scale
+    after_network = time.perf_counter()
+    if not np.all(np.isfinite(predicted)):
+        raise ValueError("model: produced non-finite displacements for this head")
+    rig = rig_from_poses(vertices.astype(np.float32), faces, predicted.astype(np.float32), poses)
+    end = time.perf_counter()
+    return GeneratedRig(
+        rig=rig,
+        displacements=predicted.astype(np.float32),
+        seconds={
+            "total": end - start,
+            "operators": after_operators - start,
+            "network": after_network - after_operators,
+        },
+    )

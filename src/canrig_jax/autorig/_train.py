@@ -1,0 +1,290 @@
+"""Training RigAnyFace with 3D supervision (the paper's stage 2).
+
+Loss on heads normalised to the unit sphere: the mean squared vertex error over the poses of
+a batch plus ``landmark_weight`` times the same on the 68 landmark vertices, both divided by
+the training set's mean squared displacement (so the loss starts near 1 whatever the units).
+Adam with linear warm-up and cosine decay (optax). Each step draws ``heads_per_step`` heads
+and ``poses_per_step`` of their poses from ``numpy.random.default_rng([seed, step])``, so a
+run resumed from its checkpoint (one file, written atomically) draws the same batches and
+ends at the same model as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jaxtyping import Array, Float, Int
+
+from .._checkpoint import (
+    load_checkpoint,
+    read_checkpoint_state,
+    run_training,
+    save_checkpoint,
+)
+from .._metrics import CM_TO_MM
+from ..mesh import MeshOperators, mesh_operators, pad_vertices, stack_operators
+from ._data import PoseSet, RiggedHead
+from ._model import RigAnyFace, normalise
+
+CHECKPOINT_FORMAT = "riganyface-checkpoint-1"
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainOptions:
+    width: int = 32
+    n_shared: int = 2
+    n_conditional: int = 2
+    global_size: int = 32
+    global_width: int = 32
+    k: int = 128
+    method: str = "spectral"
+    learning_rate: float = 1e-3
+    warmup_steps: int = 200
+    steps: int = 2500
+    max_minutes: float | None = None
+    heads_per_step: int = 2
+    poses_per_step: int = 8
+    landmark_weight: float = 1.0
+    seed: int = 0
+    checkpoint_every: int = 200
+    log_every: int = 20
+
+    def __post_init__(self):
+        if not self.learning_rate > 0:
+            raise ValueError(f"learning_rate: expected > 0, got {self.learning_rate}")
+        if self.steps < 1 or self.warmup_steps < 0 or self.warmup_steps >= self.steps:
+            raise ValueError(
+                f"steps, warmup_steps: expected steps >= 1 and 0 <= warmup_steps < steps, got "
+                f"{self.steps}, {self.warmup_steps}"
+            )
+        if self.heads_per_step < 1 or self.poses_per_step < 1:
+            raise ValueError("heads_per_step, poses_per_step: expected >= 1")
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def make_model(options: TrainOptions, n_pose_inputs: int, output_scale: float) -> RigAnyFace:
+    return RigAnyFace(
+        n_pose_inputs,
+        width=options.width,
+        n_shared=options.n_shared,
+        n_conditional=options.n_conditional,
+        global_size=options.global_size,
+        global_width=options.global_width,
+        method=options.method,
+        output_scale=output_scale,
+        key=jax.random.PRNGKey(options.seed),
+    )
+
+
+def optimiser(options: TrainOptions) -> optax.GradientTransformation:
+    """Adam with linear warm-up to ``learning_rate`` and cosine decay to 0 at ``steps``."""
+    return _adam_warmup_cosine(options.learning_rate, options.warmup_steps, options.steps)
+
+
+@functools.lru_cache(maxsize=8)
+def _adam_warmup_cosine(learning_rate: float, warmup_steps: int, steps: int):
+    # one object per schedule: the jitted step takes the optimiser as a static argument, so it
+    # then compiles once per process, also across resumed runs
+    schedule = optax.warmup_cosine_decay_schedule(0.0, learning_rate, warmup_steps, steps)
+    return optax.adam(schedule)
+
+
+class TrainingSet(eqx.Module):
+    """Heads padded to one size and stacked, on the device (unit-sphere units).
+
+    Attributes:
+        vertices: (N, V, 3); displacements: (N, P, V, 3); operators: stacked (N, ...).
+        landmarks: (N, L) landmark vertices; poses: (P, A) pose vectors.
+        scale: (N,) each head's normalisation scale (its units per unit-sphere unit).
+    """
+
+    vertices: Float[Array, "N V 3"]
+    displacements: Float[Array, "N P V 3"]
+    operators: MeshOperators
+    landmarks: Int[Array, "N L"]
+    poses: Float[Array, "P A"]
+    scale: Float[Array, " N"]
+
+    @property
+    def n_heads(self) -> int:
+        return int(self.vertices.shape[0])
+
+
+def head_inputs(
+    vertices, faces, *, k: int, cache=None
+) -> tuple[np.ndarray, MeshOperators, np.ndarray, float]:
+    """(unit-sphere vertices, operators, centre, scale) of one head."""
+    unit, centre, scale = normalise(vertices)
+    return unit.astype(np.float32), mesh_operators(unit, faces, k=k, cache=cache), centre, scale
+
+
+def training_set(
+    heads: list[RiggedHead], poses: PoseSet, *, k: int, cache=None, progress: bool = True
+) -> TrainingSet:
+    """Normalise, compute (cached) operators and stack ``heads`` for training."""
+    if not heads:
+        raise ValueError("heads: expected at least one head")
+    iterator = heads
+    if progress:
+        from tqdm.auto import tqdm
+
+        iterator = tqdm(heads, desc="operators", dynamic_ncols=True)
+    units, ops, displacements, scales = [], [], [], []
+    for head in iterator:
+        if head.displacements.shape[0] != poses.n_poses:
+            raise ValueError(
+                f"heads: {head.name} has {head.displacements.shape[0]} poses, the pose set "
+                f"{poses.n_poses}"
+            )
+        unit, operators, _, scale = head_inputs(head.vertices, head.faces, k=k, cache=cache)
+        units.append(unit)
+        ops.append(operators)
+        displacements.append(np.moveaxis(head.displacements / scale, 0, 1))  # (V, P, 3)
+        scales.append(scale)
+    n_vertices = max(u.shape[0] for u in units)
+    return TrainingSet(
+        vertices=pad_vertices(units, n_vertices),
+        displacements=jnp.moveaxis(pad_vertices(displacements, n_vertices), 2, 1),
+        operators=stack_operators(ops),
+        landmarks=jnp.asarray(np.stack([h.landmarks for h in heads]), jnp.int32),
+        poses=jnp.asarray(poses.vectors()),
+        scale=jnp.asarray(scales, jnp.float32),
+    )
+
+
+def mean_square_displacement(data: TrainingSet) -> float:
+    """Mean over real vertices and poses of |d|^2 (unit-sphere units): the loss scale."""
+    mask = np.asarray(data.operators.vertex_mask)  # (N, V)
+    squared = np.sum(np.asarray(data.displacements) ** 2, axis=-1)  # (N, P, V)
+    return float((squared * mask[:, None]).sum() / (mask.sum() * squared.shape[1]))
+
+
+def batch_loss(model: RigAnyFace, data: TrainingSet, heads, poses, landmark_weight, reference):
+    """Loss and mean vertex error (unit-sphere units) of ``heads`` (B,) x ``poses`` (B, Q)."""
+
+    def one(h, pose_ids):
+        ops = jax.tree.map(lambda x: x[h], data.operators)
+        predicted = model(data.poses[pose_ids], data.vertices[h], ops)  # (Q, V, 3)
+        error = predicted - data.displacements[h][pose_ids]
+        squared = jnp.sum(error**2, axis=-1)  # (Q, V)
+        mask = ops.vertex_mask
+        vertex_term = jnp.sum(squared * mask) / (jnp.sum(mask) * squared.shape[0])
+        landmark_term = jnp.mean(squared[:, data.landmarks[h]])
+        distance = jnp.sum(jnp.sqrt(squared + 1e-20) * mask) / (jnp.sum(mask) * squared.shape[0])
+        return vertex_term + landmark_weight * landmark_term, distance
+
+    loss, distance = jax.vmap(one)(heads, poses)
+    return jnp.mean(loss) / reference, jnp.mean(distance)
+
+
+@eqx.filter_jit
+def train_step(model, opt_state, data, heads, poses, optim, landmark_weight, reference):
+    (loss, distance), grads = eqx.filter_value_and_grad(batch_loss, has_aux=True)(
+        model, data, heads, poses, landmark_weight, reference
+    )
+    updates, opt_state = optim.update(grads, opt_state, eqx.filter(model, eqx.is_array))
+    return eqx.apply_updates(model, updates), opt_state, loss, distance
+
+
+@dataclasses.dataclass
+class TrainResult:
+    model: RigAnyFace
+    step: int
+    seconds: float
+    history: list
+
+
+def load_model(path) -> tuple[RigAnyFace, PoseSet, dict]:
+    """(model, pose set, header) of a training checkpoint."""
+    state = read_checkpoint_state(path, CHECKPOINT_FORMAT)
+    options = TrainOptions(**state["options"])
+    poses = PoseSet.from_dict(state["poses"])
+    like = make_model(options, poses.n_basis, state["output_scale"])
+    like_opt = optimiser(options).init(eqx.filter(like, eqx.is_array))
+    (model, _), state = load_checkpoint(path, (like, like_opt), CHECKPOINT_FORMAT)
+    return model, poses, state
+
+
+def train(
+    data: TrainingSet,
+    poses: PoseSet,
+    options: TrainOptions,
+    *,
+    checkpoint: str | os.PathLike | None = None,
+    progress: bool = True,
+    stop_after: int | None = None,
+) -> TrainResult:
+    """Train (or resume from ``checkpoint`` when it exists) for ``options.steps`` steps or
+    ``options.max_minutes`` of accumulated training time, whichever comes first. A checkpoint
+    resumes only with the same options except ``max_minutes``. ``stop_after`` ends this call
+    after that many steps (a simulated interruption, for tests)."""
+    if data.poses.shape[0] != poses.n_poses:
+        raise ValueError(f"data: {data.poses.shape[0]} poses, the pose set {poses.n_poses}")
+    if options.poses_per_step > poses.n_poses:
+        raise ValueError(
+            f"poses_per_step: {options.poses_per_step} exceeds the {poses.n_poses} poses"
+        )
+    reference = mean_square_displacement(data)
+    output_scale = float(np.sqrt(reference))
+    model = make_model(options, poses.n_basis, output_scale)
+    optim = optimiser(options)
+    opt_state = optim.init(eqx.filter(model, eqx.is_array))
+    step, seconds, history = 0, 0.0, []
+    if checkpoint is not None and os.path.exists(checkpoint):
+        state = read_checkpoint_state(checkpoint, CHECKPOINT_FORMAT)
+        saved = TrainOptions(**state["options"])
+        if dataclasses.replace(saved, max_minutes=options.max_minutes) != options:
+            raise ValueError(f"checkpoint: {checkpoint} was written with different options")
+        output_scale = state["output_scale"]
+        model = make_model(options, poses.n_basis, output_scale)
+        opt_state = optim.init(eqx.filter(model, eqx.is_array))
+        (model, opt_state), state = load_checkpoint(
+            checkpoint, (model, opt_state), CHECKPOINT_FORMAT
+        )
+        step, seconds, history = state["step"], state["seconds"], state["history"]
+
+    def save(step, seconds, history):
+        if checkpoint is not None:
+            state = {
+                "options": options.to_dict(),
+                "poses": poses.to_dict(),
+                "output_scale": output_scale,
+                "reference": reference,
+                "step": step,
+                "seconds": seconds,
+                "history": history,
+            }
+            save_checkpoint(checkpoint, (model, opt_state), state, CHECKPOINT_FORMAT)
+
+    landmark_weight = jnp.asarray(options.landmark_weight, jnp.float32)
+    reference_j = jnp.asarray(reference, jnp.float32)
+    mm_per_unit = float(np.mean(np.asarray(data.scale))) * CM_TO_MM
+
+    def one_step(step):
+        nonlocal model, opt_state
+        rng = np.random.default_rng([options.seed, step])
+        heads = rng.integers(0, data.n_heads, options.heads_per_step)
+        pose_ids = np.stack(
+            [
+                rng.choice(poses.n_poses, options.poses_per_step, replace=False)
+                for _ in range(options.heads_per_step)
+            ]
+        )
+        model, opt_state, loss, distance = train_step(
+            model, opt_state, data, heads, pose_ids, optim, landmark_weight, reference_j
+        )
+        return {"loss": loss, "error_unit": distance, "error_mm": distance * mm_per_unit}
+
+    step, seconds = run_training(
+        one_step, save, options, step, seconds, history, progress, "riganyface", stop_after
+    )
+    return TrainResult(model=model, step=step, seconds=seconds, history=history)

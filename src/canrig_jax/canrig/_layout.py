@@ -1,0 +1,198 @@
+"""Where the attention runs: a layout gathers vertices and handles into local groups around
+the attention of ``AbstractCANRig.trace`` and scatters the result back to vertex order. It
+never changes the maths, so every layout gives the dense result (up to float summation order).
+
+``DENSE`` is the identity: every vertex attends to every handle, (N, H).
+
+``BlockLayout`` (block-sparse inference): influence masks are local, so each vertex needs only
+the handles whose clamped mask on it is non-zero. The mesh's vertices are split once into
+compact blocks (``vertex_blocks``: recursive median bisection along the longest axis). Once per
+handle placement, the distance from each handle to the nearest vertex of each block is kept
+(``block_distance``). A clamped mask is exactly 0 beyond a distance that depends only on the
+handle's radius and falloff (``influence_reach``), so per call the host lists the handles
+within reach of each block (``block_layout``, at most ``width`` of them: the next power of two
+above the largest count, so nothing is ever truncated and few shapes compile) without touching
+the (V, H) masks. Masks and attention are then computed on (block vertices x block handles):
+a handle outside a block's list has mask 0 on all of its vertices and contributes nothing.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+
+class DenseLayout(eqx.Module):
+    """Every vertex attends to every handle: all gathers and the scatter are identities."""
+
+    def vertices(self, x: Float[Array, "*A N *C"], axis: int) -> Float[Array, "*A N *C"]:
+        return x
+
+    def handles(self, x: Float[Array, "*A H *C"], axis: int) -> Float[Array, "*A H *C"]:
+        return x
+
+    def distance(self, distance: Float[Array, "N H"]) -> Float[Array, "N H"]:
+        return distance
+
+    def per_handle(self, x: Float[Array, " H"]) -> Float[Array, " H"]:
+        return x
+
+    def scatter(self, x: Float[Array, "N F"]) -> Float[Array, "N F"]:
+        return x
+
+    def sum_handles(self, x: Float[Array, "H ..."], n_handles: int) -> Float[Array, "H ..."]:
+        return x
+
+    def sum_handle_pairs(
+        self, x: Float[Array, "H H ..."], n_handles: int
+    ) -> Float[Array, "H H ..."]:
+        return x
+
+
+DENSE = DenseLayout()
+
+
+def _gather(x, index, axis):
+    """x with ``axis`` replaced by the (G, K) ``index`` grid, the group axis G moved first."""
+    axis = axis % x.ndim
+    return jnp.moveaxis(jnp.take(x, index, axis=axis), axis, 0)
+
+
+class BlockLayout(eqx.Module):
+    """Vertex blocks and, per block, the handles within reach of it.
+
+    Attributes:
+        blocks: (B, S) vertex indices per block; padding slots hold V (a row of inf distance).
+        position: (V,) each vertex's slot in the flattened (B * S) block order.
+        chosen: (B, W) handle indices per block, those within reach first.
+    """
+
+    blocks: Int[Array, "B S"]
+    position: Int[Array, " V"]
+    chosen: Int[Array, "B W"]
+
+    def vertices(self, x: Float[Array, "*A V *C"], axis: int) -> Float[Array, "B *A S *C"]:
+        pad_shape = list(x.shape)
+        pad_shape[axis % x.ndim] = 1
+        padded = jnp.concatenate([x, jnp.zeros(pad_shape, x.dtype)], axis=axis)
+        return _gather(padded, self.blocks, axis)
+
+    def handles(self, x: Float[Array, "*A H *C"], axis: int) -> Float[Array, "B *A W *C"]:
+        return _gather(x, self.chosen, axis)
+
+    def distance(self, distance: Float[Array, "V H"]) -> Float[Array, "B S W"]:
+        padded = jnp.concatenate([distance, jnp.full((1, distance.shape[1]), jnp.inf)])
+        return padded[self.blocks[:, :, None], self.chosen[:, None, :]]
+
+    def per_handle(self, x: Float[Array, " H"]) -> Float[Array, "B 1 W"]:
+        return x[self.chosen][:, None, :]
+
+    def scatter(self, x: Float[Array, "B S F"]) -> Float[Array, "V F"]:
+        return x.reshape(-1, x.shape[-1])[self.position]
+
+    def sum_handles(self, x: Float[Array, "B W *C"], n_handles: int) -> Float[Array, "H ..."]:
+        """The transpose of ``handles``: per handle, the sum over the blocks listing it."""
+        flat = x.reshape(-1, *x.shape[2:])
+        return jax.ops.segment_sum(flat, self.chosen.reshape(-1), num_segments=n_handles)
+
+    def sum_handle_pairs(
+        self, x: Float[Array, "B W W *C"], n_handles: int
+    ) -> Float[Array, "H H *C"]:
+        """Per pair of handles, the sum over the blocks listing both (a normal matrix's
+        assembly from per-block products)."""
+        rows, cols = self.chosen[:, :, None], self.chosen[:, None, :]
+        out = jnp.zeros((n_handles, n_handles, *x.shape[3:]), x.dtype)
+        return out.at[rows, cols].add(x)
+
+    @property
+    def width(self) -> int:
+        return int(self.chosen.shape[1])
+
+
+Layout = DenseLayout | BlockLayout
+
+
+def vertex_blocks(vertices: np.ndarray, max_size: int = 48) -> np.ndarray:
+    """(B, S) vertex indices in compact blocks of equal size S <= max_size (-1 pads the last
+    slots of blocks one shorter). Recursive median bisection along the longest extent."""
+    vertices = np.asarray(vertices, np.float64)
+    if max_size < 1:
+        raise ValueError(f"max_size: expected >= 1, got {max_size}")
+    blocks = [np.arange(len(vertices))]
+    while max(len(b) for b in blocks) > max_size:
+        split = []
+        for block in blocks:
+            points = vertices[block]
+            axis = int(np.argmax(points.max(axis=0) - points.min(axis=0)))
+            order = block[np.argsort(points[:, axis], kind="stable")]
+            half = (len(order) + 1) // 2
+            split += [order[:half], order[half:]]
+        blocks = split
+    size = max(len(b) for b in blocks)
+    out = np.full((len(blocks), size), -1, np.int64)
+    for row, block in enumerate(blocks):
+        out[row, : len(block)] = block
+    return out.astype(np.int32)
+
+
+def block_distance(blocks: np.ndarray, distance: np.ndarray) -> np.ndarray:
+    """(B, H) distance from each handle to the nearest vertex of each block (host, once per
+    handle placement); ``distance`` is (V, H), padding slots (-1 or V) count as infinite."""
+    distance = np.asarray(distance, np.float32)
+    padded = np.concatenate([distance, np.full((1, distance.shape[1]), np.inf, np.float32)])
+    blocks = np.where(blocks < 0, len(distance), blocks)
+    return padded[blocks].min(axis=1)
+
+
+def influence_reach(radius: np.ndarray, falloff: np.ndarray, clamp: float) -> np.ndarray:
+    """(H,) distance beyond which a handle's clamped mask is exactly 0.
+
+    0.5 (1 - tanh(g (d - r))) < clamp  <=>  d > r + atanh(1 - 2 clamp) / g. A relative and
+    absolute margin of 1e-3 covers float32 rounding of the mask (a handle kept a little past
+    its reach only adds zeros). With clamp 0 no mask is exactly 0 in exact arithmetic, so
+    every handle reaches everywhere.
+    """
+    radius = np.asarray(radius, np.float64)
+    if clamp <= 0.0:
+        return np.full(radius.shape, np.inf)
+    reach = radius + np.arctanh(1.0 - 2.0 * clamp) / np.asarray(falloff, np.float64)
+    return reach * (1.0 + 1e-3) + 1e-3
+
+
+def block_layout(
+    blocks: np.ndarray,
+    position: np.ndarray,
+    nearest: Float[np.ndarray, "... B H"],
+    reach: Float[np.ndarray, "... H"],
+    *,
+    width: int | None = None,
+) -> BlockLayout:
+    """The layout for handles whose distance to each block is ``nearest`` (``block_distance``)
+    and whose masks vanish beyond ``reach`` (``influence_reach``); host-side, no device work.
+
+    ``blocks`` and ``position`` given as device arrays (the rig's, padding already V) are
+    used as they are, with no copy per call. Leading axes of ``nearest`` and ``reach`` give a
+    batch of layouts (one per edit, for ``jax.vmap``) sharing one ``width``: the next power
+    of two above the largest count of handles within reach of a block (at most H), or
+    ``width`` if given (it must be enough)."""
+    nearest = np.asarray(nearest, np.float32)
+    within = nearest <= np.asarray(reach)[..., None, :]  # (..., B, H)
+    h = within.shape[-1]
+    most = max(int(within.sum(axis=-1).max(initial=0)), 1)
+    needed = min(1 << (most - 1).bit_length(), h)
+    if width is None:
+        width = needed
+    elif not needed <= width <= h:
+        raise ValueError(f"width: expected {needed} <= width <= {h}, got {width}")
+    # handles within reach first (stable: by index), then the nearest others (mask 0 there)
+    order = np.argsort(~within, axis=-1, kind="stable")[..., :width]
+    lead = order.shape[:-2]
+    if lead or not isinstance(blocks, jax.Array) or not isinstance(position, jax.Array):
+        blocks = np.where(np.asarray(blocks) < 0, len(position), blocks).astype(np.int32)
+        blocks = jnp.asarray(np.broadcast_to(blocks, (*lead, *blocks.shape)))
+        position = jnp.asarray(np.broadcast_to(position, (*lead, *np.shape(position))))
+    chosen = jnp.asarray(order.astype(np.int32))
+    return BlockLayout(blocks=blocks, position=position, chosen=chosen)

@@ -1,0 +1,81 @@
+"""The one interface every inverse-rig method implements.
+
+A method is a small, immutable ``eqx.Module``: its hyper-parameters are fields, and
+``inverse.solve`` calls it with the prepared problem, the target's offset from the neutral,
+the (clipped) initial weights and a PRNG key. Concrete methods are final (never subclassed);
+families that share code (coordinate descent) have their own abstract base.
+"""
+
+import abc
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+from equinox import AbstractClassVar, AbstractVar
+from jaxtyping import Array, Bool, Float, Int
+
+from ._problem import InverseProblem
+
+
+class Iterate(NamedTuple):
+    """What a method returns to ``solve``.
+
+    Attributes:
+        weights: (K,) the method's solution.
+        history: (T,) objective after each step of the method (pass, iteration); T = 1 for a
+            closed form.
+        steps: number of passes / iterations actually taken.
+        converged: False when an iterative method stopped at its cap before its tolerance.
+    """
+
+    weights: Float[Array, " K"]
+    history: Float[Array, " T"]
+    steps: Int[Array, ""]
+    converged: Bool[Array, ""]
+
+
+class AbstractInverseMethod(eqx.Module):
+    """An inverse-rig method: weights in [0, ``upper``]^K from a target mesh.
+
+    Attributes:
+        alpha: the method's regularisation weight (>= 0).
+        upper: upper bound of the box the weights live in (``jnp.inf`` for none).
+        penalises_l1: class constant: True when the method minimises the L1-penalised
+            objective 1/2 ||f(w) - b||^2 + alpha 1^T w, so that ``Solution.objective``
+            includes alpha 1^T w; False for methods whose alpha means something else.
+    """
+
+    alpha: AbstractVar[float]
+    upper: AbstractVar[float]
+    penalises_l1: AbstractClassVar[bool]
+
+    @abc.abstractmethod
+    def __call__(
+        self,
+        problem: InverseProblem,
+        offset: Float[Array, " N"],
+        init: Float[Array, " K"],
+        key: jax.Array,
+    ) -> Iterate:
+        """Solve for one frame; ``offset`` = (b - b0).ravel() in rig units. jit/vmap-safe."""
+
+
+def check_alpha(alpha) -> None:
+    if isinstance(alpha, jax.core.Tracer):
+        return
+    if not alpha >= 0:
+        raise ValueError(f"alpha: expected a non-negative, finite weight, got {alpha}")
+    if alpha == float("inf"):
+        raise ValueError(f"alpha: expected a finite weight, got {alpha}")
+
+
+def check_upper(upper) -> None:
+    if isinstance(upper, jax.core.Tracer):
+        return
+    if not upper > 0:
+        raise ValueError(f"upper: expected a positive upper bound, got {upper}")
+
+
+def check_count(name: str, value) -> None:
+    if isinstance(value, bool) or not (isinstance(value, int) and value >= 1):
+        raise ValueError(f"{name}: expected an integer >= 1, got {value!r}")

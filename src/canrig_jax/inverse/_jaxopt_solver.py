@@ -1,0 +1,66 @@
+"""A joint bounded solver through jaxopt on the same objective and the same ``evaluate``."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import equinox as eqx
+import jax.numpy as jnp
+import jaxopt
+
+from ..rig import evaluate
+from ._base import AbstractInverseMethod, Iterate, check_alpha, check_count, check_upper
+from ._problem import InverseProblem
+
+
+class JaxoptLBFGSB(AbstractInverseMethod):
+    """``jaxopt.LBFGSB`` on 1/2 ||f(w) - b||^2 + alpha 1^T w over [0, upper]^K (the L1 term is
+    smooth on the box), from the initial weights (zero by default).
+
+    A frame whose run ends with a non-finite value (a failed line search can divide by a
+    zero curvature pair; seen for one frame in 335 under ``vmap``) returns the best finite
+    point it has, the start, with ``converged`` False, so ``Solution.result`` names the
+    failure and no NaN reaches the caller.
+
+    Attributes:
+        objective: ``"evaluate"`` differentiates ``rig.evaluate`` itself (3V-sized work per
+            call); ``"gram"`` the same function in coefficient space (P x P work, about 40x
+            cheaper on ict-quartic). Both give the same minimiser.
+    """
+
+    alpha: float = 0.0
+    maxiter: int = eqx.field(static=True, default=200)
+    tol: float = 1e-4
+    objective: str = eqx.field(static=True, default="gram")
+    upper: float = 1.0
+    penalises_l1: ClassVar[bool] = True
+
+    def __check_init__(self):
+        check_alpha(self.alpha)
+        check_count("maxiter", self.maxiter)
+        check_upper(self.upper)
+        if self.objective not in ("gram", "evaluate"):
+            raise ValueError(f"objective: expected 'gram' or 'evaluate', got {self.objective!r}")
+
+    def __call__(self, problem: InverseProblem, offset, init, key) -> Iterate:
+        rig = problem.rig
+        target = problem.neutral + offset.reshape(-1, 3)
+        projection, offset_sq = problem.projection(offset), offset @ offset
+
+        def fun(weights):
+            if self.objective == "gram":
+                return problem.objective(weights, projection, offset_sq, self.alpha)
+            residual = evaluate(rig, weights) - target
+            return 0.5 * jnp.sum(residual**2) + self.alpha * jnp.sum(weights)
+
+        solver = jaxopt.LBFGSB(
+            fun=fun, maxiter=self.maxiter, tol=self.tol, stop_if_linesearch_fails=True
+        )
+        bounds = (jnp.zeros_like(init), jnp.full_like(init, self.upper))
+        params, state = solver.run(init, bounds=bounds)
+        value = problem.objective(params, projection, offset_sq, self.alpha)
+        finite = jnp.all(jnp.isfinite(params)) & jnp.isfinite(value)
+        weights = jnp.where(finite, jnp.clip(params, 0.0, self.upper), init)  # box round-off
+        history = jnp.where(finite, value, fun(init))[None]
+        converged = finite & (state.error <= self.tol)
+        return Iterate(weights, history, state.iter_num, converged)

@@ -1,0 +1,238 @@
+"""One entry point for every inverse-rig method: ``solve(problem, target, method) -> Solution``.
+
+``solve`` validates its inputs in plain Python and then calls one jit-compiled function
+that takes the prepared problem, the target and the method as arguments, so it compiles once
+per (problem shape, method type and static settings) and is reused by every later call, by
+``solve_sequence`` and by ``Stream``. Inside a caller's ``jit``/``vmap`` it is traced inline.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, ArrayLike, Float
+
+from .._checks import check_finite, is_concrete
+from ..rig import BlendshapeRig
+from ._base import AbstractInverseMethod
+from ._coordinate_descent import objective
+from ._problem import InverseProblem, prepare
+from ._solution import Solution
+
+
+def _check_method(method) -> None:
+    if not isinstance(method, AbstractInverseMethod):
+        got = f"the string {method!r}" if isinstance(method, str) else type(method).__name__
+        raise TypeError(
+            "method: expected an inverse-rig method object (an inverse.AbstractInverseMethod, "
+            f"e.g. inverse.QuarticCD(alpha=0.5)), got {got}"
+        )
+
+
+def _check_problem(problem) -> InverseProblem:
+    if isinstance(problem, BlendshapeRig):
+        return prepare(problem)
+    if not isinstance(problem, InverseProblem):
+        raise TypeError(
+            f"problem: expected inverse.prepare(rig) (an InverseProblem) or a BlendshapeRig, "
+            f"got {type(problem).__name__}"
+        )
+    return problem
+
+
+def _check_target(problem: InverseProblem, name: str, target, batched: bool) -> None:
+    shape = jnp.shape(target)
+    expected = (problem.n_vertices, 3)
+    if (shape[1:] if batched else shape) != expected or (batched and len(shape) != 3):
+        want = "(T, " + ", ".join(map(str, expected)) + ")" if batched else str(expected)
+        raise ValueError(f"{name}: expected shape {want} to match the rig, got {shape}")
+    if not is_concrete(target):
+        return
+    values = np.asarray(target)
+    if not np.issubdtype(values.dtype, np.floating) and not np.issubdtype(values.dtype, np.integer):
+        raise TypeError(f"{name}: expected real numbers, got dtype {values.dtype}")
+    if batched:
+        bad = np.flatnonzero(~np.isfinite(values).all(axis=(1, 2)))
+        if bad.size:
+            raise ValueError(
+                f"{name}: frames {bad[:10].tolist()} contain non-finite values (NaN or inf)"
+            )
+    else:
+        check_finite(name, values)
+
+
+def _solve_one(problem, target, method, init, key) -> Solution:
+    """The traced body: one frame, inputs already validated."""
+    dtype = problem.columns.dtype
+    offset = (jnp.asarray(target, dtype) - problem.neutral).reshape(-1)
+    init = jnp.clip(jnp.asarray(init, dtype), 0.0, method.upper)
+    run = method(problem, offset, init, key)
+    l1 = method.alpha if method.penalises_l1 else 0.0
+    value = objective(problem, run.weights, offset, l1)
+    finite = jnp.all(jnp.isfinite(run.weights)) & jnp.isfinite(value)
+    weights = jnp.where(finite, run.weights, init)
+    value = jnp.where(finite, value, objective(problem, init, offset, l1))
+    result = optx.RESULTS.where(
+        finite,
+        optx.RESULTS.where(run.converged, optx.RESULTS.successful, optx.RESULTS.max_steps_reached),
+        optx.RESULTS.nonlinear_divergence,
+    )
+    stats = {"steps": jnp.asarray(run.steps, jnp.int32), "converged": run.converged & finite}
+    return Solution(weights=weights, objective=value, history=run.history, result=result,
+                    stats=stats)  # fmt: skip
+
+
+_solve_jit = eqx.filter_jit(_solve_one)
+
+
+def _traced_floats(method: AbstractInverseMethod) -> AbstractInverseMethod:
+    """The method with its Python-float fields (alpha, tol, upper) as arrays, so that
+    ``filter_jit`` traces them: a sweep over alpha reuses one compiled function."""
+    return jax.tree.map(lambda x: jnp.asarray(x) if isinstance(x, float | int) else x, method)
+
+
+def _key(key) -> jax.Array:
+    if key is None:
+        return jax.random.key(0)
+    if not (isinstance(key, jax.Array) and jnp.issubdtype(key.dtype, jax.dtypes.prng_key)):
+        raise TypeError(f"key: expected a typed PRNG key (jax.random.key), got {key!r}")
+    return key
+
+
+def _check_init(problem: InverseProblem, init, name: str = "init"):
+    k = problem.n_blendshapes
+    if init is None:
+        return jnp.zeros(k, problem.columns.dtype)
+    if jnp.shape(init) != (k,):
+        raise ValueError(f"{name}: expected shape ({k},), got {jnp.shape(init)}")
+    check_finite(name, init)
+    return init
+
+
+def solve(
+    problem: InverseProblem | BlendshapeRig,
+    target: Float[ArrayLike, "V 3"],
+    method: AbstractInverseMethod,
+    *,
+    init: Float[ArrayLike, " K"] | None = None,
+    key: jax.Array | None = None,
+) -> Solution:
+    """Recover rig weights from a target mesh (units of the rig) with ``method``.
+
+    Args:
+        problem: ``prepare(rig)`` (prepare once and reuse; a rig is prepared on each call).
+        target: (V, 3) mesh to match, finite.
+        method: a method object (``METHODS`` lists every class: ``QuarticCD``, ``LinearCD``,
+            ``Seol``, ``Joshi``, ``Cetinaslan``, ``LMMM``, ``JaxoptLBFGSB``).
+        init: (K,) initial weights for iterative methods (default zeros, as the paper),
+            clipped to the method's box.
+        key: PRNG key for ``order="random"`` (default ``jax.random.key(0)``).
+
+    Compiled once per problem shape and method type (the problem, target and method are
+    arguments of one jitted function). Batch with ``solve_sequence`` or
+    ``jax.vmap(lambda b: solve(problem, b, method))``. The returned objective is
+    1/2 ||f(w) - b||^2 (+ alpha 1^T w for methods with ``penalises_l1``) under the full rig,
+    whatever rig the method assumed. Raises TypeError/ValueError naming the argument for bad
+    input, before any compilation.
+    """
+    _check_method(method)
+    problem = _check_problem(problem)
+    _check_target(problem, "target", target, batched=False)
+    init = _check_init(problem, init)
+    return _solve_jit(problem, target, _traced_floats(method), init, _key(key))
+
+
+@eqx.filter_jit
+def _solve_batch(problem, targets, method, keys):
+    init = jnp.zeros(problem.n_blendshapes, problem.columns.dtype)
+    return jax.vmap(lambda b, k: _solve_one(problem, b, method, init, k))(targets, keys)
+
+
+@eqx.filter_jit
+def _solve_warm(problem, targets, method, keys):
+    def step(previous, frame):
+        target, key = frame
+        solution = _solve_one(problem, target, method, previous, key)
+        return solution.weights, solution  # finite: a failed frame returns its start
+
+    init = jnp.zeros(problem.n_blendshapes, problem.columns.dtype)
+    _, solutions = jax.lax.scan(step, init, (targets, keys))
+    return solutions
+
+
+def solve_sequence(
+    problem: InverseProblem | BlendshapeRig,
+    targets: Float[ArrayLike, "T V 3"],
+    method: AbstractInverseMethod,
+    *,
+    warm_start: bool = False,
+    key: jax.Array | None = None,
+) -> Solution:
+    """Solve a whole take; returns a Solution whose leaves have a leading frame axis.
+
+    Frames are independent and ``vmap``ped unless ``warm_start``, in which case each frame
+    starts from the previous frame's weights (a ``scan``; a frame that fails returns its start,
+    never NaN, so it cannot poison later frames). Warm starts can keep mutually exclusive
+    shapes active across frames, as Racković et al. warn. Each frame gets its own key
+    (``jax.random.split(key, T)``), so the ``random`` order draws a fresh permutation per
+    frame and pass.
+
+    Compiled once per problem shape, take length and method type: later calls with other
+    targets or another alpha reuse the compiled function. Every frame is checked first: a
+    non-finite frame raises a ValueError listing the frames.
+    """
+    _check_method(method)
+    problem = _check_problem(problem)
+    _check_target(problem, "targets", targets, batched=True)
+    if not isinstance(warm_start, bool):
+        raise TypeError(f"warm_start: expected a bool, got {warm_start!r}")
+    targets = jnp.asarray(targets, problem.columns.dtype)
+    keys = jax.random.split(_key(key), targets.shape[0])
+    run = _solve_warm if warm_start else _solve_batch
+    return run(problem, targets, _traced_floats(method), keys)
+
+
+class Stream:
+    """One-frame-at-a-time solving for live capture: ``prepare`` once, then one compiled call
+    per frame (the same compiled function as ``solve``), warm-started from the previous
+    frame's weights when ``warm_start`` (weights are always finite: a failed frame returns
+    its start).
+
+        stream = inverse.Stream(problem, inverse.QuarticCD(alpha=5.0), warm_start=True)
+        for mesh in capture:
+            weights = stream(mesh).weights
+
+    Frame t uses the key ``jax.random.fold_in(key, t)``.
+    """
+
+    def __init__(
+        self,
+        problem: InverseProblem | BlendshapeRig,
+        method: AbstractInverseMethod,
+        *,
+        warm_start: bool = False,
+        key: jax.Array | None = None,
+    ):
+        _check_method(method)
+        self.problem = _check_problem(problem)
+        self.method = _traced_floats(method)
+        self.warm_start = bool(warm_start)
+        self.key = _key(key)
+        self.frame = 0
+        self.previous: Array = jnp.zeros(self.problem.n_blendshapes, self.problem.columns.dtype)
+
+    def __call__(self, target: Float[ArrayLike, "V 3"]) -> Solution:
+        _check_target(self.problem, "target", target, batched=False)
+        init = self.previous if self.warm_start else jnp.zeros_like(self.previous)
+        key = jax.random.fold_in(self.key, self.frame)
+        solution = _solve_jit(self.problem, target, self.method, init, key)
+        self.frame += 1
+        if self.warm_start:
+            self.previous = solution.weights
+        return solution
+
+
+__all__ = ["Stream", "solve", "solve_sequence"]

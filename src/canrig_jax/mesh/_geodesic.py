@@ -1,0 +1,127 @@
+"""Graph geometry of a triangle mesh: edges, the edge-length graph, geodesic distances along
+it, and farthest-point sampling.
+
+Distances are shortest paths on the mesh's edge graph, each edge weighted by its 3D length
+(times an optional per-edge factor; ``scipy.sparse.csgraph.dijkstra``), so a vertex on the
+upper lip reaches the lower lip only around the mouth corner, never across the mouth gap.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from jaxtyping import ArrayLike
+from scipy.sparse.csgraph import dijkstra
+
+from ._checks import check_mesh, check_vertices
+
+MIN_EDGE_LENGTH = 1e-12
+"""csgraph treats stored zeros as missing edges: lengths are floored at this."""
+
+
+def mesh_edges(faces: np.ndarray) -> np.ndarray:
+    """(E, 2) unique undirected edges (i < j) of a triangle mesh."""
+    faces = np.asarray(faces)
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"faces: expected shape (F, 3) triangles, got {faces.shape}")
+    if faces.size and not np.issubdtype(faces.dtype, np.integer):
+        raise ValueError(f"faces: expected integer vertex indices, got dtype {faces.dtype}")
+    faces = faces.astype(np.int64)
+    pairs = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    pairs = np.sort(pairs, axis=1)
+    return np.unique(pairs, axis=0)
+
+
+def edge_graph(
+    vertices: np.ndarray, faces: np.ndarray, edge_factor: np.ndarray | None = None
+) -> sp.csr_matrix:
+    """(V, V) symmetric sparse graph, edge weights = 3D edge length (times ``edge_factor``,
+    one positive factor per edge of ``mesh_edges(faces)``, if given)."""
+    vertices, faces = check_mesh(vertices, faces)
+    edges = mesh_edges(faces)
+    length = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
+    if edge_factor is not None:
+        edge_factor = np.asarray(edge_factor, np.float64)
+        if edge_factor.shape != (len(edges),):
+            raise ValueError(
+                f"edge_factor: expected shape ({len(edges)},), got {edge_factor.shape}"
+            )
+        if not np.all(np.isfinite(edge_factor)) or np.any(edge_factor <= 0):
+            raise ValueError("edge_factor: expected finite factors > 0")
+        length = length * edge_factor
+    length = np.maximum(length, MIN_EDGE_LENGTH)
+    n = len(vertices)
+    graph = sp.coo_matrix((length, (edges[:, 0], edges[:, 1])), shape=(n, n))
+    return (graph + graph.T).tocsr()
+
+
+def _check_graph(graph) -> sp.csr_matrix:
+    if not sp.issparse(graph) or graph.ndim != 2 or graph.shape[0] != graph.shape[1]:
+        raise TypeError(
+            f"graph: expected a square scipy.sparse matrix (edge_graph), got {type(graph).__name__}"
+        )
+    return graph
+
+
+def weighted_geodesic_distance(
+    graph: sp.csr_matrix, sources: ArrayLike, *, limit: float = np.inf
+) -> np.ndarray:
+    """(H, V) float32 shortest-path distance from each source vertex to every vertex, along
+    ``graph`` (``edge_graph``).
+
+    Vertices farther than ``limit`` (or unreachable) get ``inf``; a finite limit makes many
+    sources on a large mesh cheap.
+    """
+    graph = _check_graph(graph)
+    sources = np.asarray(sources)
+    n = graph.shape[0]
+    if sources.ndim != 1 or sources.size == 0:
+        raise ValueError(f"sources: expected a non-empty 1-D index array, got {sources.shape}")
+    if not np.issubdtype(sources.dtype, np.integer):
+        raise ValueError(f"sources: expected integer vertex indices, got {sources.dtype}")
+    if sources.min() < 0 or sources.max() >= n:
+        raise ValueError(
+            f"sources: indices must lie in [0, {n}), got {sources.min()}..{sources.max()}"
+        )
+    if not limit > 0:
+        raise ValueError(f"limit: expected > 0, got {limit}")
+    return dijkstra(graph, directed=False, indices=sources, limit=limit).astype(np.float32)
+
+
+def farthest_point_vertices(
+    vertices: np.ndarray, n: int, start: int = 0, *, graph: sp.csr_matrix | None = None
+) -> np.ndarray:
+    """(n,) vertex indices by farthest-point sampling from vertex ``start``: evenly spread
+    points (e.g. handles, as an animator would place them).
+
+    Distances are Euclidean, or with ``graph`` (``edge_graph``, (V, V)) geodesic along the
+    mesh: then both lips and both eyelids get their share although they touch in 3D. Another
+    connected component is infinitely far, so each component gets a point first.
+    """
+    vertices = check_vertices(vertices)
+    if isinstance(n, bool) or not isinstance(n, int | np.integer):
+        raise TypeError(f"n: expected an integer count, got {n!r}")
+    if not 1 <= n <= len(vertices):
+        raise ValueError(f"n: expected 1 <= n <= {len(vertices)}, got {n}")
+    if isinstance(start, bool) or not isinstance(start, int | np.integer):
+        raise TypeError(f"start: expected an integer vertex index, got {start!r}")
+    if not 0 <= start < len(vertices):
+        raise ValueError(f"start: expected a vertex index in [0, {len(vertices)}), got {start}")
+    if graph is not None:
+        graph = _check_graph(graph)
+        if graph.shape != (len(vertices), len(vertices)):
+            raise ValueError(
+                f"graph: expected shape ({len(vertices)}, {len(vertices)}), got {graph.shape}"
+            )
+
+    def distance(i):
+        if graph is None:
+            return np.linalg.norm(vertices - vertices[i], axis=1)
+        return weighted_geodesic_distance(graph, np.array([i]))[0]
+
+    chosen = [int(start)]
+    nearest = distance(start)
+    for _ in range(n - 1):
+        chosen.append(int(np.argmax(nearest)))
+        nearest = np.minimum(nearest, distance(chosen[-1]))
+    return np.asarray(chosen, np.int32)

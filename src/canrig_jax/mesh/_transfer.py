@@ -1,0 +1,362 @@
+"""Deformation transfer (Sumner & Popović 2004): a source rig's expressions onto a new head.
+
+For every source triangle s and expression k the deformation gradient
+Q_ks = [v1 - v0, v2 - v0, n~]_k [v1 - v0, v2 - v0, n~]_0^{-1} (Sumner & Popović's frame with
+the scaled normal n~ = n / sqrt|n|, the foundation's ``deformation_gradient`` code) is applied
+to the edges of the corresponding target triangle t, and the target's positions are found by
+one sparse least-squares solve, prefactorised once per target mesh:
+
+    u_k = argmin_u  || D (x0 + u) - Q_{k s(t)} E0_t ||^2  +  lambda || u - a_k ||^2,
+
+with D the (3T, V) edge-difference operator, E0 the target's rest edges, and a_k the source
+deltas carried to the target vertices by the correspondence's surface map. Gradients and
+anchors are first rotated into the target's orientation, Q -> R Q R^T and a -> s R a, with
+(s, R) the similarity between the carried source neutral and the target, so the transfer
+commutes with a rigid motion or scaling of the target. The small ridge
+(``screening`` times the mean diagonal of D^T D) only fixes what edges cannot: the
+translation of each connected component (jaw-driven lower teeth translate as a whole).
+
+The correspondence is a ``TriangleCorrespondence``: a source triangle for every target
+triangle plus a surface map of the target vertices on the source. On identical topology it is
+the identity (``identity_correspondence``); otherwise ``closest_point_correspondence`` aligns
+the source to the target by a similarity transform on landmarks (Umeyama), warps it with a
+thin-plate spline through the same landmarks (a non-rigid alignment), matches connected
+components (similar area, smallest mean distance) and takes closest points component by
+component; each target triangle is driven by the source triangles under four points inside
+it (centroid and towards each corner), their gradients averaged with source-area weights.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from scipy.interpolate import RBFInterpolator
+from scipy.spatial import cKDTree
+
+from .._checks import check_real
+from ._deformation_gradient import triangle_frames
+from ._operators import check_mesh
+from ._remesh import SurfaceMap, closest_surface_points, vertex_surface_map
+from ._topology import connected_components, vertex_adjacency
+
+_EDGES = ((0, 1), (1, 2), (2, 0))
+
+
+@dataclasses.dataclass(frozen=True)
+class TriangleCorrespondence:
+    """Which source triangle drives each target triangle, and where target vertices lie on
+    the source.
+
+    Attributes:
+        source_triangle: (T,) source face per target face, or (T, S) S source faces
+            sampled inside each target face (their gradients are averaged, weighted by
+            source area).
+        vertex_map: ``SurfaceMap`` of the target vertices on the source mesh.
+        target_faces: (T, 3) the target triangles.
+        method: "identity" or "closest_point".
+    """
+
+    source_triangle: np.ndarray
+    vertex_map: SurfaceMap
+    target_faces: np.ndarray
+    method: str
+
+    @property
+    def n_target_vertices(self) -> int:
+        return int(self.vertex_map.n_points)
+
+
+def identity_correspondence(faces: np.ndarray, n_vertices: int) -> TriangleCorrespondence:
+    """The correspondence of a mesh with itself (same topology, any shape)."""
+    faces = np.asarray(faces, np.int64)
+    return TriangleCorrespondence(
+        np.arange(faces.shape[0]),
+        vertex_surface_map(faces, n_vertices, np.arange(n_vertices)),
+        faces,
+        "identity",
+    )
+
+
+def similarity_transform(
+    source_points: np.ndarray, target_points: np.ndarray
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares scale s, rotation R and translation t with target ~ s R source + t
+    (Umeyama 1991). Points are (L, 3), L >= 3."""
+    x = np.asarray(source_points, np.float64)
+    y = np.asarray(target_points, np.float64)
+    if x.shape != y.shape or x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 3:
+        raise ValueError(
+            f"source_points, target_points: expected equal shapes (L, 3) with L >= 3, got "
+            f"{x.shape} and {y.shape}"
+        )
+    mx, my = x.mean(0), y.mean(0)
+    xc, yc = x - mx, y - my
+    u, sigma, vt = np.linalg.svd(yc.T @ xc / x.shape[0])
+    sign = np.eye(3)
+    sign[2, 2] = np.sign(np.linalg.det(u @ vt)) or 1.0
+    rotation = u @ sign @ vt
+    scale = float(np.trace(np.diag(sigma) @ sign) / np.mean(np.sum(xc**2, axis=1)))
+    return scale, rotation, my - scale * rotation @ mx
+
+
+_SAMPLES = np.array(
+    [[1 / 3, 1 / 3, 1 / 3], [2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]]
+)
+"""Barycentric points sampled in each target face: the centroid and one towards each corner."""
+
+
+def _component_areas(vertices, faces, labels) -> np.ndarray:
+    cross = np.cross(
+        vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]]
+    )
+    return np.bincount(labels[faces[:, 0]], 0.5 * np.linalg.norm(cross, axis=1), labels.max() + 1)
+
+
+def _match_components(source, source_faces, source_labels, target, target_faces, target_labels):
+    """Source component for each target component: among source components of similar
+    area (ratio within 1/2..2; all when none), the one its vertices are nearest to on
+    average. Area keeps teeth off the lips they sit behind; distance picks left or right."""
+    source_area = _component_areas(source, source_faces, source_labels)
+    target_area = _component_areas(target, target_faces, target_labels)
+    trees: dict[int, cKDTree] = {}
+    match = np.zeros(target_labels.max() + 1, np.int64)
+    for label in np.unique(target_labels):
+        points = target[target_labels == label]
+        ratio = target_area[label] / np.maximum(source_area, 1e-30)
+        candidates = np.flatnonzero((ratio > 0.5) & (ratio < 2.0))
+        if candidates.size == 0:
+            candidates = np.unique(source_labels)
+        cost = []
+        for c in candidates:
+            if c not in trees:
+                trees[c] = cKDTree(source[source_labels == c])
+            cost.append(trees[c].query(points)[0].mean())
+        match[label] = candidates[int(np.argmin(cost))]
+    return match
+
+
+def _smoothed_pull(
+    source, source_faces, source_labels, target, target_faces, target_face_label, match
+):
+    """(V_s, 3) smooth displacement of the source towards its closest points on the target
+    components matched to each source component (zero where none is matched)."""
+    displacement = np.zeros_like(source)
+    for component in np.unique(match):
+        members = np.flatnonzero(source_labels == component)
+        faces = target_faces[np.isin(target_face_label, np.flatnonzero(match == component))]
+        if faces.size == 0:
+            continue
+        found = closest_surface_points(source[members], target, faces)
+        closest = np.einsum("nk,nkd->nd", found.barycentric, target[faces[found.triangle]])
+        displacement[members] = closest - source[members]
+    adjacency = vertex_adjacency(source_faces, len(source))
+    degree = np.maximum(np.asarray(adjacency.sum(axis=1)).ravel(), 1.0)
+    average = sp.diags(1.0 / degree) @ adjacency
+    for _ in range(20):
+        displacement = 0.5 * displacement + 0.5 * (average @ displacement)
+    return displacement
+
+
+def closest_point_correspondence(
+    source_vertices: np.ndarray,
+    source_faces: np.ndarray,
+    target_vertices: np.ndarray,
+    target_faces: np.ndarray,
+    source_landmarks: np.ndarray,
+    target_landmarks: np.ndarray,
+    *,
+    nonrigid: bool = True,
+    match_components: bool = True,
+    refine_iterations: int = 3,
+) -> TriangleCorrespondence:
+    """Correspondence of two heads of different topology from landmarks and closest points.
+
+    Args:
+        source_vertices, source_faces: the source head (the rig's neutral).
+        target_vertices, target_faces: the target head.
+        source_landmarks, target_landmarks: (L,) vertex indices of the same L >= 3 landmarks
+            (e.g. ICT's Multi-PIE 68) on each mesh.
+        nonrigid: after the similarity alignment, warp the source by a thin-plate spline that
+            takes its landmarks onto the target's.
+        match_components: restrict each target component to one source component of similar
+            area that its vertices are nearest to (keeps teeth on teeth, eyes on eyes).
+        refine_iterations: after the spline warp, times each source vertex is moved towards
+            its closest point on the matched target components, the displacement smoothed
+            over the source mesh (20 steps of neighbour averaging); a simple non-rigid ICP.
+    """
+    sv, sf = check_mesh(source_vertices, source_faces)
+    tv, tf = check_mesh(target_vertices, target_faces)
+    sl = np.asarray(source_landmarks, np.int64)
+    tl = np.asarray(target_landmarks, np.int64)
+    if sl.shape != tl.shape or sl.ndim != 1 or sl.size < 3:
+        raise ValueError(
+            f"source_landmarks, target_landmarks: expected equal (L,) vertex lists with L >= 3, "
+            f"got {sl.shape} and {tl.shape}"
+        )
+    for name, ids, n in (("source_landmarks", sl, len(sv)), ("target_landmarks", tl, len(tv))):
+        if ids.min() < 0 or ids.max() >= n:
+            raise ValueError(f"{name}: vertex indices must lie in [0, {n})")
+    scale, rotation, shift = similarity_transform(sv[sl], tv[tl])
+    aligned = scale * sv @ rotation.T + shift
+    if nonrigid:
+        warp = RBFInterpolator(aligned[sl], tv[tl] - aligned[sl], kernel="thin_plate_spline")
+        aligned = aligned + warp(aligned)
+
+    source_labels = connected_components(sf, len(sv))
+    target_labels = connected_components(tf, len(tv))
+    if not match_components:
+        source_labels = np.zeros_like(source_labels)
+        target_labels = np.zeros_like(target_labels)
+    match = _match_components(aligned, sf, source_labels, tv, tf, target_labels)
+    target_face_component = target_labels[tf[:, 0]]
+    for _ in range(refine_iterations if nonrigid else 0):
+        aligned = aligned + _smoothed_pull(
+            aligned, sf, source_labels, tv, tf, target_face_component, match
+        )
+    source_face_label = source_labels[sf[:, 0]]
+    target_face_label = target_labels[tf[:, 0]]
+    triangle = np.zeros(len(tv), np.int64)
+    barycentric = np.zeros((len(tv), 3))
+    distance = np.zeros(len(tv))
+    source_triangle = np.zeros((len(tf), len(_SAMPLES)), np.int64)
+    samples = np.einsum("sk,tkd->tsd", _SAMPLES, tv[tf])  # (T, S, 3) points in each face
+    for label in np.unique(target_labels):
+        members = np.flatnonzero(target_labels == label)
+        chosen = np.flatnonzero(source_face_label == match[label])
+        sub = closest_surface_points(tv[members], aligned, sf[chosen])
+        triangle[members] = chosen[sub.triangle]
+        barycentric[members] = sub.barycentric
+        distance[members] = sub.distance
+        faces_here = np.flatnonzero(target_face_label == label)
+        points = samples[faces_here].reshape(-1, 3)
+        source_triangle[faces_here] = chosen[
+            closest_surface_points(points, aligned, sf[chosen]).triangle
+        ].reshape(-1, len(_SAMPLES))
+    vertex_map = SurfaceMap(triangle, barycentric, sf, len(sv), distance)
+    return TriangleCorrespondence(source_triangle, vertex_map, tf, "closest_point")
+
+
+def _difference_operator(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
+    """(3T, V): row (e, t) = x[faces[t, b]] - x[faces[t, a]] for edge e = (a, b), edge-major."""
+    n_tri = faces.shape[0]
+    rows = np.arange(3 * n_tri)
+    heads = np.concatenate([faces[:, b] for _, b in _EDGES])
+    tails = np.concatenate([faces[:, a] for a, _ in _EDGES])
+    return sp.csr_matrix(
+        (np.r_[np.ones(3 * n_tri), -np.ones(3 * n_tri)], (np.r_[rows, rows], np.r_[heads, tails])),
+        shape=(3 * n_tri, n_vertices),
+    )
+
+
+def transfer_deltas(
+    source_neutral: np.ndarray,
+    source_deltas: np.ndarray,
+    source_faces: np.ndarray,
+    target_neutral: np.ndarray,
+    correspondence: TriangleCorrespondence,
+    *,
+    screening: float = 1e-3,
+    min_area: float = 1e-10,
+    batch_size: int = 8,
+) -> np.ndarray:
+    """Transfer every blendshape (``source_deltas``) of a source mesh onto ``target_neutral``.
+
+    Args:
+        source_neutral: (Vs, 3) source rest vertices, triangulated by ``source_faces``.
+        source_deltas: (K, Vs, 3) source blendshape offsets.
+        source_faces: (Fs, 3) source triangles.
+        target_neutral: (V, 3) target rest vertices, triangulated by
+            ``correspondence.target_faces``.
+        correspondence: from ``identity_correspondence`` or ``closest_point_correspondence``.
+        screening: ridge towards the carried source deltas, relative to the mean diagonal of
+            D^T D (fixes each component's translation; small keeps shape from gradients).
+        min_area: source triangles below this area (squared units) in the neutral or an
+            expression keep the identity deformation.
+        batch_size: expressions per solve batch.
+
+    Returns:
+        (K, V, 3) float64 target blendshape offsets. ``canrig_jax.rig.deformation_transfer``
+        wraps this for a ``BlendshapeRig``.
+    """
+    source_neutral, source_faces_all = check_mesh(source_neutral, source_faces)
+    source_deltas = np.asarray(source_deltas)
+    if source_deltas.ndim != 3 or source_deltas.shape[1:] != source_neutral.shape:
+        raise ValueError(
+            f"source_deltas: expected shape (K, {source_neutral.shape[0]}, 3), got "
+            f"{source_deltas.shape}"
+        )
+    source_deltas = source_deltas.astype(np.float64)
+    if not np.all(np.isfinite(source_deltas)):
+        raise ValueError("source_deltas: contains non-finite values")
+    tv = np.asarray(target_neutral)
+    if tv.ndim != 2 or tv.shape[1] != 3:
+        raise ValueError(f"target_neutral: expected shape (V, 3), got {tv.shape}")
+    check_real("target_neutral", tv)
+    tv = tv.astype(np.float64)
+    if not np.all(np.isfinite(tv)):
+        raise ValueError("target_neutral: contains non-finite positions")
+    if correspondence.n_target_vertices != tv.shape[0]:
+        raise ValueError(
+            f"target_neutral: {tv.shape[0]} vertices, the correspondence maps "
+            f"{correspondence.n_target_vertices}"
+        )
+    tv, target_faces = check_mesh(tv, np.asarray(correspondence.target_faces, np.int64))
+    if correspondence.vertex_map.n_source != source_neutral.shape[0]:
+        raise ValueError(
+            f"correspondence: maps onto a source of {correspondence.vertex_map.n_source} "
+            f"vertices, the source mesh has {source_neutral.shape[0]}"
+        )
+    if not (np.isfinite(screening) and screening > 0):
+        raise ValueError(f"screening: expected a positive ridge, got {screening}")
+    source_triangle = np.asarray(correspondence.source_triangle, np.int64)
+    source_triangle = source_triangle.reshape(source_triangle.shape[0], -1)  # (T, S)
+    n_samples = source_triangle.shape[1]
+    source_faces = source_faces_all[source_triangle.ravel()]
+
+    rest_frame, rest_area = triangle_frames(source_neutral, source_faces)
+    rest_ok = rest_area >= min_area
+    sample_weight = np.where(rest_ok, rest_area, 0.0).reshape(-1, n_samples)
+    sample_weight /= np.maximum(sample_weight.sum(axis=1, keepdims=True), 1e-300)
+    inverse_rest = np.linalg.inv(np.where(rest_ok[:, None, None], rest_frame, np.eye(3)))
+    target_edges = np.stack(
+        [tv[target_faces[:, b]] - tv[target_faces[:, a]] for a, b in _EDGES], axis=-1
+    )  # (T, 3 coords, 3 edges)
+
+    n_vertices = tv.shape[0]
+    difference = _difference_operator(target_faces, n_vertices)
+    normal_matrix = (difference.T @ difference).tocsc()
+    ridge = screening * normal_matrix.diagonal().mean()
+    solve = spla.factorized((normal_matrix + ridge * sp.identity(n_vertices)).tocsc())
+    rest_difference = difference @ tv  # (3T, 3)
+    # Source gradients and anchor deltas are expressed in the target's orientation (and the
+    # anchors in its size): the similarity taking the source neutral, carried to the target
+    # vertices, onto the target neutral. Without it a rotated target would be deformed along
+    # the source's axes (Sumner & Popović assume aligned meshes).
+    scale, rotation, _ = similarity_transform(correspondence.vertex_map.carry(source_neutral), tv)
+    anchor_map = scale * rotation
+
+    deltas = np.zeros((source_deltas.shape[0], n_vertices, 3))
+    for start in range(0, source_deltas.shape[0], batch_size):
+        chunk = source_deltas[start : start + batch_size]
+        frame, area = triangle_frames(source_neutral[None] + chunk, source_faces)
+        gradient = frame @ inverse_rest  # (B, T, 3, 3)
+        keep = rest_ok[None] & (area >= min_area)
+        gradient = np.where(keep[..., None, None], gradient, np.eye(3))
+        gradient = gradient.reshape(chunk.shape[0], -1, n_samples, 3, 3)
+        gradient = np.einsum("btsij,ts->btij", gradient, sample_weight)
+        no_weight = sample_weight.sum(axis=1) == 0
+        gradient[:, no_weight] = np.eye(3)
+        gradient = rotation @ gradient @ rotation.T  # in the target's orientation
+        edges = gradient @ target_edges  # (B, T, 3 coords, 3 edges)
+        wanted = np.moveaxis(edges, -1, 1).reshape(chunk.shape[0], -1, 3)  # (B, 3T, 3)
+        anchor = correspondence.vertex_map.carry(chunk) @ anchor_map.T  # (B, V, 3)
+        rhs = difference.T @ np.moveaxis(wanted - rest_difference, 0, 1).reshape(
+            wanted.shape[1], -1
+        ) + ridge * np.moveaxis(anchor, 0, 1).reshape(n_vertices, -1)
+        deltas[start : start + chunk.shape[0]] = np.moveaxis(
+            solve(rhs).reshape(n_vertices, chunk.shape[0], 3), 1, 0
+        )
+    return deltas
