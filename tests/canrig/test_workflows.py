@@ -28,6 +28,7 @@ from canrig_jax.canrig import (
     influence_reach,
     interior_vertices,
     iterative_layers,
+    normal_matrix,
     pose_a_to_b,
     smoothstep_fade,
 )
@@ -91,6 +92,43 @@ def test_jacobian_equals_autodiff(variant, ict_face, poses):
         np.testing.assert_allclose(shape, forward(edit.displacements), atol=1e-6)
 
 
+def test_normal_matrix_equals_autodiff(rig, poses):
+    """J^T W J assembled from the blocks (dense and block layouts, with a region weight)
+    equals the one from jax.jacfwd of the forward pass."""
+    handles = rig.handles(np.random.default_rng(6).choice(rig.n_vertices, 12, replace=False))
+    displacements = np.random.default_rng(7).normal(0, 0.3, (12, 3)).astype(np.float32)
+    edit = rig.edit(handles, displacements, 3.0, FALLOFF, base=poses[1])
+    weight = jnp.asarray(np.random.default_rng(8).uniform(0, 1, rig.n_vertices), jnp.float32)
+
+    def forward(d):
+        return deform(rig.model, rig.queries, rig.canonical, edit.with_displacements(d))
+
+    jac = jax.jacfwd(forward)(edit.displacements).reshape(rig.n_vertices, 3, 36)
+    expected = np.einsum("vip,v,viq->pq", np.asarray(jac, np.float64), np.asarray(weight), jac)
+    scale = np.abs(expected).max()
+    assert scale > 0.1
+    for layout in (DENSE, rig.layout(handles, 3.0, FALLOFF, multiple=8)):
+        _, blocks = displacement_jacobian(rig.model, rig.queries, rig.canonical, edit, layout)
+        ours = np.asarray(normal_matrix(blocks, weight, 12, layout))
+        np.testing.assert_allclose(ours, expected, atol=1e-4 * scale)
+
+
+def test_layout_width_rules(rig):
+    """The width is the next power of two (default) or the next multiple above the largest
+    count of handles within reach of a block, and both layouts give the dense result."""
+    handles = rig.handles(np.random.default_rng(9).choice(rig.n_vertices, 50, replace=False))
+    reach = influence_reach(np.full(50, 2.0), np.full(50, FALLOFF), rig.model.clamp)
+    most = int((np.asarray(handles.block_distance) <= reach).sum(axis=1).max())
+    power = rig.layout(handles, 2.0, FALLOFF)
+    tight = rig.layout(handles, 2.0, FALLOFF, multiple=8)
+    assert power.width == min(1 << (most - 1).bit_length(), 50)
+    assert tight.width == min(-(-most // 8) * 8, 50) and tight.width <= power.width
+    edit = rig.edit(handles, np.full((50, 3), 0.2, np.float32), 2.0, FALLOFF)
+    dense = np.asarray(rig.deform(edit, DENSE))
+    for layout in (power, tight):
+        np.testing.assert_allclose(np.asarray(rig.deform(edit, layout)), dense, atol=5e-6)
+
+
 def test_model_steps_take_any_leading_shape(rig, few_handles, poses):
     """encode -> attention -> decode on a (2, 3) batch equals the unbatched steps; deform
     vmapped over edits equals a loop of single calls."""
@@ -147,7 +185,7 @@ def test_fit_is_never_worse_and_minimises(rig, poses):
         2.0,
         FALLOFF,
         fit=True,
-        options=FitOptions(max_steps=3, exact_jacobian=True),
+        options=FitOptions(exact_jacobian=True, damped=True, max_steps=4),
     )
     assert float(exact.error) <= float(direct.error)
     assert abs(float(exact.error) - float(fitted.error)) < 0.1 * float(direct.error)
@@ -168,7 +206,7 @@ def test_fitted_layers_never_increase_exactly(rig, poses):
         (rig.handles(rng.choice(rig.n_vertices, n, replace=False)), radius)
         for n, radius in ((6, 4.0), (20, 2.0), (40, 1.0))
     ]
-    options = FitOptions(max_steps=3, lsmr_steps=8)
+    options = FitOptions()
     fitted = iterative_layers(rig, poses[0], poses[2], schedule, FALLOFF, fit=True, options=options)
     errors = fitted.errors
     assert np.all(np.diff(errors) <= 0.0)

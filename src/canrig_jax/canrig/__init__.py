@@ -59,6 +59,7 @@ from ._train import (
     vertex_penalty,
 )
 from ._workflows import (
+    FIT_WIDTH_MULTIPLE,
     ClipEdit,
     FitOptions,
     FitSolution,
@@ -73,6 +74,7 @@ from ._workflows import (
     interior_vertices,
     iterative_layers,
     max_acceleration,
+    normal_matrix,
     pose_a_to_b,
     region_error,
     smoothstep_fade,
@@ -81,6 +83,7 @@ from ._workflows import (
 __all__ = [
     "ClipEdit",
     "FitOptions",
+    "FIT_WIDTH_MULTIPLE",
     "FitSolution",
     "LayerResult",
     "apply_jacobian",
@@ -93,6 +96,7 @@ __all__ = [
     "interior_vertices",
     "iterative_layers",
     "max_acceleration",
+    "normal_matrix",
     "pose_a_to_b",
     "region_error",
     "smoothstep_fade",

@@ -169,6 +169,7 @@ def block_layout(
     reach: Float[np.ndarray, "... H"],
     *,
     width: int | None = None,
+    multiple: int | None = None,
 ) -> BlockLayout:
     """The layout for handles whose distance to each block is ``nearest`` (``block_distance``)
     and whose masks vanish beyond ``reach`` (``influence_reach``); host-side, no device work.
@@ -176,13 +177,19 @@ def block_layout(
     ``blocks`` and ``position`` given as device arrays (the rig's, padding already V) are
     used as they are, with no copy per call. Leading axes of ``nearest`` and ``reach`` give a
     batch of layouts (one per edit, for ``jax.vmap``) sharing one ``width``: the next power
-    of two above the largest count of handles within reach of a block (at most H), or
-    ``width`` if given (it must be enough)."""
+    of two above the largest count of handles within reach of a block (at most H), the
+    next multiple of ``multiple`` if given (tighter, more shapes to compile: the fit's
+    Jacobian costs grow with the width), or ``width`` if given (it must be enough)."""
     nearest = np.asarray(nearest, np.float32)
     within = nearest <= np.asarray(reach)[..., None, :]  # (..., B, H)
     h = within.shape[-1]
     most = max(int(within.sum(axis=-1).max(initial=0)), 1)
-    needed = min(1 << (most - 1).bit_length(), h)
+    if multiple is None:
+        needed = min(1 << (most - 1).bit_length(), h)
+    elif multiple >= 1:
+        needed = min(-(-most // multiple) * multiple, h)
+    else:
+        raise ValueError(f"multiple: expected an integer >= 1, got {multiple}")
     if width is None:
         width = needed
     elif not needed <= width <= h:

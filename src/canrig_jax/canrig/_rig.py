@@ -269,14 +269,17 @@ class NeuralRig:
         falloff: float | Float[ArrayLike, " H"],
         *,
         width: int | None = None,
+        multiple: int | None = None,
     ) -> Layout:
         """The block-sparse layout of these handles at this radius and falloff (host-side:
         which handles reach which vertex block). One layout serves any displacements and base
-        shapes, e.g. every frame of a clip."""
+        shapes, e.g. every frame of a clip. ``width``/``multiple``: see ``block_layout``."""
         h = self._check_handles(handles)
         radius, falloff = check_handle_parameters(radius, falloff, h)
         reach = influence_reach(radius, falloff, self.model.clamp)
-        return block_layout(*self._device_blocks, handles.block_distance, reach, width=width)
+        return block_layout(
+            *self._device_blocks, handles.block_distance, reach, width=width, multiple=multiple
+        )
 
     def deform(self, edit: HandleEdit, layout: Layout = DENSE) -> Float[Array, "V 3"]:
         """``deform`` with this rig's model, queries and neutral (and, for one of its block
