@@ -11,12 +11,28 @@ from ._ict import (
     load_ict_obj_folder,
     load_identity_modes,
 )
+from ._livelink_csv import (
+    LIVELINK_CSV_CHANNELS,
+    LIVELINK_ROTATIONS,
+    capture_from_weights,
+    format_timecode,
+    parse_timecode,
+    read_livelink_csv,
+    write_livelink_csv,
+)
 from ._livelinkface import LiveLinkCapture, load_livelinkface
 from ._mediapipe import MediaPipeFace, load_mediapipe_face
 from ._names import ARKIT_NAMES, RetargetReport, retarget_weights, to_arkit
 from ._paths import ENV_VAR, data_file, read_arrays, resolve_data_dir
 
 __all__ = [
+    "LIVELINK_CSV_CHANNELS",
+    "LIVELINK_ROTATIONS",
+    "capture_from_weights",
+    "format_timecode",
+    "parse_timecode",
+    "read_livelink_csv",
+    "write_livelink_csv",
     "data_file",
     "read_arrays",
     "ARKIT_NAMES",

@@ -25,6 +25,9 @@ class LiveLinkCapture:
         rotation_names: the 9 rotation channel names (``HeadYaw``, ..., ``RightEyeRoll``).
         frame_number: (T,) int64 timecode frame numbers; they can jump (gaps).
         fps: frames per second of the timecode.
+        sub_frame: (T,) fraction of a frame of each timecode (None when unknown).
+        blendshape_count: the ``BlendShapeCount`` column of a Live Link Face CSV (None when
+            the capture did not come from one).
     """
 
     weights: np.ndarray
@@ -33,6 +36,8 @@ class LiveLinkCapture:
     rotation_names: tuple[str, ...]
     frame_number: np.ndarray
     fps: float
+    sub_frame: np.ndarray | None = None
+    blendshape_count: int | None = None
 
     @property
     def n_frames(self) -> int:
@@ -54,7 +59,15 @@ def load_livelinkface(data_dir: str | os.PathLike | None = None) -> LiveLinkCapt
     path = data_file("livelinkface/dao_livelinkface.npz", data_dir)
     z = read_arrays(
         path,
-        ("anim_weights", "names", "head_eye_rotations", "rotation_names", "frame_number", "fps"),
+        (
+            "anim_weights",
+            "names",
+            "head_eye_rotations",
+            "rotation_names",
+            "frame_number",
+            "sub_frame",
+            "fps",
+        ),
     )
     return LiveLinkCapture(
         weights=z["anim_weights"].astype(np.float32),
@@ -63,4 +76,5 @@ def load_livelinkface(data_dir: str | os.PathLike | None = None) -> LiveLinkCapt
         rotation_names=tuple(str(n) for n in z["rotation_names"]),
         frame_number=z["frame_number"].astype(np.int64),
         fps=float(z["fps"]),
+        sub_frame=z["sub_frame"].astype(np.float64),
     )
