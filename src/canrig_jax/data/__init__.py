@@ -1,5 +1,14 @@
 """Loaders for the real assets in the shared data folder (ICT, Live Link Face, MediaPipe)."""
 
+from ._head_file import (
+    HEAD_FORMATS,
+    HEAD_SIZE_CM,
+    HEAD_UNITS_CM,
+    HeadMesh,
+    infer_units,
+    load_head,
+    save_obj,
+)
 from ._ict import (
     ENCLOSING_PARTS,
     FACE,
@@ -26,6 +35,13 @@ from ._names import ARKIT_NAMES, RetargetReport, retarget_weights, to_arkit
 from ._paths import ENV_VAR, data_file, read_arrays, resolve_data_dir
 
 __all__ = [
+    "HEAD_FORMATS",
+    "HEAD_SIZE_CM",
+    "HEAD_UNITS_CM",
+    "HeadMesh",
+    "infer_units",
+    "load_head",
+    "save_obj",
     "LIVELINK_CSV_CHANNELS",
     "LIVELINK_ROTATIONS",
     "capture_from_weights",

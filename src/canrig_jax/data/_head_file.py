@@ -1,0 +1,156 @@
+"""Head meshes from files (OBJ, PLY, glTF/GLB through trimesh), with their length unit.
+
+A head file carries no unit. ``load_head`` takes the unit from the caller or infers it from
+the bounding box: a human head with some neck, cropped or whole, spans about 15 to 45 cm
+along its longest side (ICT's head: 33.8 cm, MakeHuman's crop: 3.76 dm). A stated unit that
+puts the box outside that range is warned about (a head 3.76 cm tall is a unit mistake).
+The ICT raw OBJ folder keeps its own loader (``load_ict_obj_folder``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from .._io import atomic_path, check_output_path
+
+HEAD_FORMATS = (".obj", ".ply", ".gltf", ".glb")
+"""File extensions ``load_head`` reads."""
+
+HEAD_UNITS_CM = {"mm": 0.1, "cm": 1.0, "dm": 10.0, "m": 100.0}
+"""Length of one unit in centimetres (the same table as ``rig.UNIT_IN_CM``)."""
+
+HEAD_SIZE_CM = (15.0, 45.0)
+"""Longest bounding-box side of a human head (with some neck) in centimetres."""
+
+
+@dataclasses.dataclass(frozen=True)
+class HeadMesh:
+    """A triangle mesh read from a file.
+
+    Attributes:
+        vertices: (V, 3) float32 positions in ``units`` (as stored in the file).
+        faces: (F, 3) int32 triangles (polygons fan-split by trimesh).
+        units: "mm", "cm", "dm" or "m".
+        inferred: True when ``units`` was inferred from the bounding box.
+        path: the file it came from.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    units: str
+    inferred: bool
+    path: Path
+
+    @property
+    def size_cm(self) -> float:
+        """Longest bounding-box side in centimetres."""
+        extent = self.vertices.max(axis=0) - self.vertices.min(axis=0)
+        return float(extent.max()) * HEAD_UNITS_CM[self.units]
+
+    def vertices_in(self, units: str) -> np.ndarray:
+        """(V, 3) float32 vertices converted to ``units``."""
+        if units not in HEAD_UNITS_CM:
+            raise ValueError(f"units: expected one of {tuple(HEAD_UNITS_CM)}, got {units!r}")
+        scale = HEAD_UNITS_CM[self.units] / HEAD_UNITS_CM[units]
+        return (self.vertices.astype(np.float64) * scale).astype(np.float32)
+
+
+def infer_units(extent: float) -> str | None:
+    """The unit in which a longest side of ``extent`` is a head's size, or None."""
+    lo, hi = HEAD_SIZE_CM
+    for unit, cm in HEAD_UNITS_CM.items():
+        if lo <= extent * cm <= hi:
+            return unit
+    return None
+
+
+def load_head(path: str | os.PathLike, units: str | None = None) -> HeadMesh:
+    """Read a head mesh (OBJ, PLY, glTF or GLB; a scene's meshes are concatenated).
+
+    Args:
+        path: the file.
+        units: the file's length unit ("mm", "cm", "dm", "m"); ``None`` infers it from the
+            bounding box (a ValueError when no unit gives a head's size).
+
+    Raises FileNotFoundError for a missing file and ValueError naming the file for an empty
+    file, an unknown extension, a file that holds no triangle mesh, or non-finite positions;
+    warns when the box is not a head's size (``HEAD_SIZE_CM``) in the stated ``units``.
+    """
+    import trimesh
+
+    if not isinstance(path, str | os.PathLike):
+        raise TypeError(f"path: expected a file path, got {type(path).__name__}")
+    path = Path(path)
+    if units is not None and units not in HEAD_UNITS_CM:
+        raise ValueError(f"units: expected one of {tuple(HEAD_UNITS_CM)}, got {units!r}")
+    if not path.exists():
+        raise FileNotFoundError(f"path: head file {path} not found")
+    if not path.is_file():
+        raise ValueError(f"path: {path} is not a file")
+    if path.suffix.lower() not in HEAD_FORMATS:
+        raise ValueError(
+            f"path: {path} has extension {path.suffix!r}, expected one of {HEAD_FORMATS}"
+        )
+    if path.stat().st_size == 0:
+        raise ValueError(f"path: head file {path} is empty")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            loaded = trimesh.load(path, force="mesh", process=False)
+    except Exception as error:  # trimesh raises many kinds on a file that is not a mesh
+        raise ValueError(
+            f"path: {path} is not a readable mesh ({type(error).__name__}: {error})"
+        ) from error
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise ValueError(f"path: {path} holds no triangle mesh (no faces)")
+    vertices = np.asarray(loaded.vertices, np.float32)
+    faces = np.asarray(loaded.faces, np.int32)
+    if not np.all(np.isfinite(vertices)):
+        raise ValueError(f"path: {path} has non-finite vertex positions")
+    extent = float((vertices.max(axis=0) - vertices.min(axis=0)).max())
+    if extent <= 0:
+        raise ValueError(f"path: {path} has all its vertices at one point")
+    inferred = units is None
+    if inferred:
+        units = infer_units(extent)
+        if units is None:
+            raise ValueError(
+                f"path: {path} spans {extent:.4g} (longest side): no unit of "
+                f"{tuple(HEAD_UNITS_CM)} makes that a head's {HEAD_SIZE_CM[0]:g}-"
+                f"{HEAD_SIZE_CM[1]:g} cm; give the units"
+            )
+    else:
+        size_cm = extent * HEAD_UNITS_CM[units]
+        lo, hi = HEAD_SIZE_CM
+        if not lo <= size_cm <= hi:
+            guess = infer_units(extent)
+            hint = (
+                f"; in {guess} it would be {extent * HEAD_UNITS_CM[guess]:.1f} cm" if guess else ""
+            )
+            warnings.warn(
+                f"{path}: the bounding box's longest side is {extent:.4g} {units} = "
+                f"{size_cm:.3g} cm, not a human head's {lo:g}-{hi:g} cm: is the unit right?{hint}",
+                stacklevel=2,
+            )
+    return HeadMesh(vertices, faces, units, inferred, path)
+
+
+def save_obj(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) -> Path:
+    """Write a triangle mesh as a Wavefront OBJ (positions and faces only), atomically."""
+    check_output_path(path)
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise ValueError(f"vertices: expected shape (V, 3), got {vertices.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"faces: expected shape (F, 3), got {faces.shape}")
+    lines = [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in vertices]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+    with atomic_path(path) as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
+    return Path(path)
