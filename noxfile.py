@@ -92,3 +92,19 @@ def experiments(session):
     for script, *arguments in STANDARD_EXPERIMENTS:
         if not session.posargs or script in session.posargs:
             session.run("python", f"experiments/{script}", *arguments)
+
+
+@nox.session
+def gltf(session):
+    """The Khronos glTF validator (npm gltf-validator into ./node_modules, git-ignored) and
+    the glTF and command-line tests that use it (add -m slow for the end-to-end run)."""
+    session.install("-e", ".[dev]")
+    session.run("npm", "install", "--no-save", "gltf-validator@2.0.0-dev.3.10", external=True)
+    session.run(
+        "python",
+        "-m",
+        "pytest",
+        "tests/rig/test_gltf_animation.py",
+        "tests/test_commands.py",
+        *session.posargs,
+    )

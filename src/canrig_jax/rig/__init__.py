@@ -11,6 +11,12 @@ from ._blendshape import (
     evaluate_batch,
 )
 from ._gltf import export_gltf, load_gltf_rig
+from ._gltf_animation import (
+    export_animated_gltf,
+    head_rotation_quaternions,
+    morph_target_weights,
+)
+from ._gltf_validate import find_gltf_validator, validate_gltf
 from ._ict_quartic import ict_linear_rig, ict_quartic_rig
 from ._io import load_rig, save_rig
 from ._nonlinear import deformation_gradient_blend
@@ -28,6 +34,11 @@ from ._transfer import deformation_transfer, remesh_rig
 __all__ = [
     "UNIT_IN_CM",
     "export_gltf",
+    "export_animated_gltf",
+    "find_gltf_validator",
+    "validate_gltf",
+    "head_rotation_quaternions",
+    "morph_target_weights",
     "load_gltf_rig",
     "random_sparse_poses",
     "MUTUALLY_EXCLUSIVE",

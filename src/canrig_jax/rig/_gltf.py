@@ -26,57 +26,70 @@ _FLOAT, _UINT32 = 5126, 5125
 _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
 
 
-def export_gltf(rig: BlendshapeRig, path: str | os.PathLike) -> Path:
-    """Write ``rig`` as a binary glTF 2.0 file (.glb), atomically. Needs faces.
+class _Buffer:
+    """One glTF binary buffer with its buffer views and accessors, built up in order."""
 
-    A ``path`` that cannot be written (a folder, under a file, no permission) raises an
-    OSError naming ``path`` before anything is written."""
+    def __init__(self):
+        self.blob = bytearray()
+        self.views: list[dict] = []
+        self.accessors: list[dict] = []
+
+    def add(self, array: np.ndarray, component: int, kind: str, target=None, bounds=False) -> int:
+        """Append ``array`` (rows of ``kind``: "SCALAR", "VEC3", "VEC4"); its accessor index."""
+        offset = len(self.blob)
+        self.blob.extend(np.ascontiguousarray(array).tobytes())
+        while len(self.blob) % 4:
+            self.blob.append(0)
+        view = {"buffer": 0, "byteOffset": offset, "byteLength": array.nbytes}
+        if target is not None:
+            view["target"] = target
+        self.views.append(view)
+        accessor = {
+            "bufferView": len(self.views) - 1,
+            "componentType": component,
+            "count": int(array.size) if kind == "SCALAR" else int(array.shape[0]),
+            "type": kind,
+        }
+        if bounds:
+            rows = array.reshape(accessor["count"], -1)
+            accessor["min"] = rows.min(axis=0).tolist()
+            accessor["max"] = rows.max(axis=0).tolist()
+        self.accessors.append(accessor)
+        return len(self.accessors) - 1
+
+
+def _check_rig(rig: BlendshapeRig, path) -> None:
     if not isinstance(rig, BlendshapeRig):
         raise TypeError(f"rig: expected a BlendshapeRig, got {type(rig).__name__}")
     check_output_path(path)
     if rig.faces is None:
         raise ValueError("rig: glTF export needs a rig with faces")
+
+
+def _rig_document(rig: BlendshapeRig) -> tuple[dict, _Buffer, list[list[int]]]:
+    """The glTF document and buffer of ``rig`` (one node, one mesh, one morph target per
+    blendshape and per corrective term) and the driver indices of each corrective target."""
     n = rig.n_vertices
     neutral = np.asarray(rig.neutral, np.float32)
     faces = np.asarray(rig.faces, np.uint32)
     targets = [np.asarray(d, np.float32) for d in np.asarray(rig.deltas)]
     names = list(rig.names) or [f"shape{i}" for i in range(len(targets))]
-    correctives = []
+    correctives, drivers_of = [], []
     for table in rig.correctives:
         dense = table.to_dense(n)
         for row, indices in enumerate(np.asarray(table.indices)):
             drivers = [names[i] for i in indices]
             correctives.append({"target": len(targets), "drivers": drivers})
+            drivers_of.append([int(i) for i in indices])
             targets.append(dense[row])
             names.append("+".join(drivers))
 
-    blob = bytearray()
-    views, accessors = [], []
-
-    def add(array: np.ndarray, component: int, kind: str, target: int | None, bounds: bool):
-        offset = len(blob)
-        blob.extend(array.tobytes())
-        while len(blob) % 4:
-            blob.append(0)
-        view = {"buffer": 0, "byteOffset": offset, "byteLength": array.nbytes}
-        if target is not None:
-            view["target"] = target
-        views.append(view)
-        accessor = {
-            "bufferView": len(views) - 1,
-            "componentType": component,
-            "count": int(array.shape[0]) if kind == "VEC3" else int(array.size),
-            "type": kind,
-        }
-        if bounds:
-            accessor["min"] = array.min(axis=0).tolist()
-            accessor["max"] = array.max(axis=0).tolist()
-        accessors.append(accessor)
-        return len(accessors) - 1
-
-    position = add(neutral, _FLOAT, "VEC3", _ARRAY_BUFFER, True)
-    indices = add(faces.reshape(-1), _UINT32, "SCALAR", _ELEMENT_ARRAY_BUFFER, False)
-    target_accessors = [{"POSITION": add(t, _FLOAT, "VEC3", _ARRAY_BUFFER, True)} for t in targets]
+    buffer = _Buffer()
+    position = buffer.add(neutral, _FLOAT, "VEC3", _ARRAY_BUFFER, True)
+    indices = buffer.add(faces.reshape(-1), _UINT32, "SCALAR", _ELEMENT_ARRAY_BUFFER)
+    target_accessors = [
+        {"POSITION": buffer.add(t, _FLOAT, "VEC3", _ARRAY_BUFFER, True)} for t in targets
+    ]
     document = {
         "asset": {"version": "2.0", "generator": "canrig_jax"},
         "scene": 0,
@@ -98,21 +111,41 @@ def export_gltf(rig: BlendshapeRig, path: str | os.PathLike) -> Path:
                     "targetNames": names,
                     "blendshapes": len(rig.names),
                     "correctives": correctives,
+                    "units": rig.units,
                 },
             }
         ],
-        "buffers": [{"byteLength": len(blob)}],
-        "bufferViews": views,
-        "accessors": accessors,
+    }
+    return document, buffer, drivers_of
+
+
+def _write_glb(path, document: dict, buffer: _Buffer) -> Path:
+    """Write ``document`` and ``buffer`` as one .glb file, atomically."""
+    document = {
+        **document,
+        "buffers": [{"byteLength": len(buffer.blob)}],
+        "bufferViews": buffer.views,
+        "accessors": buffer.accessors,
     }
     text = json.dumps(document).encode()
     text += b" " * (-len(text) % 4)
     chunks = struct.pack("<II", len(text), 0x4E4F534A) + text
-    chunks += struct.pack("<II", len(blob), 0x004E4942) + bytes(blob)
+    chunks += struct.pack("<II", len(buffer.blob), 0x004E4942) + bytes(buffer.blob)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.write(struct.pack("<III", 0x46546C67, 2, 12 + len(chunks)))
         f.write(chunks)
     return Path(path)
+
+
+def export_gltf(rig: BlendshapeRig, path: str | os.PathLike) -> Path:
+    """Write ``rig`` as a binary glTF 2.0 file (.glb), atomically. Needs faces.
+
+    Positions are in the rig's units (recorded in ``mesh.extras.units``; glTF viewers assume
+    metres). A ``path`` that cannot be written (a folder, under a file, no permission)
+    raises an OSError naming ``path`` before anything is written."""
+    _check_rig(rig, path)
+    document, buffer, _ = _rig_document(rig)
+    return _write_glb(path, document, buffer)
 
 
 def _read_glb(path) -> tuple[dict, bytes]:
@@ -188,4 +221,5 @@ def load_gltf_rig(path: str | os.PathLike) -> BlendshapeRig:
         correctives,
         tuple(names[:k]),
         np.asarray(loaded.faces, np.int32),
+        units=extras.get("units", "cm"),
     )
