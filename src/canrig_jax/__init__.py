@@ -4,7 +4,8 @@ The package's one door: every subpackage (``rig``, ``mesh``, ``inverse``, ``wpse
 ``canrig``, ``autorig``, ``data``, ``render``) keeps its implementation in private ``_x.py``
 modules and re-exports its public names from its ``__init__``. The shared utilities below
 (cache, input checks, checkpoints, atomic files, metrics, provenance, command-line
-options from dataclasses) are re-exported here.
+options from dataclasses) are re-exported here, with ``run_command(argv)``, the ``canrig``
+console script's entry point.
 """
 
 from ._cache import CACHE_ENV_VAR, cache_dir, fingerprint, mesh_fingerprint
@@ -17,6 +18,7 @@ from ._checkpoint import (
 )
 from ._checks import check_finite, check_real, is_concrete, native
 from ._cli import add_dataclass_options, from_args
+from ._commands import main as run_command
 from ._io import (
     CorruptFileError,
     atomic_path,
@@ -63,6 +65,7 @@ __all__ = [
     "per_vertex_distance",
     "provenance",
     "read_checkpoint_state",
+    "run_command",
     "run_training",
     "save_checkpoint",
     "save_json",

@@ -1,0 +1,466 @@
+"""The ``canrig`` command: one path from a head file and a phone capture to an animated rig.
+
+Subcommands (``canrig SUBCOMMAND --help`` for each):
+
+- ``canrig autorig HEAD -o rig.glb``: RigAnyFace on a head file (OBJ, PLY, glTF, GLB).
+- ``canrig animate RIG TAKE.csv -o anim.glb``: drive a rig from a Live Link Face CSV.
+- ``canrig invert RIG MESHES -o take.csv``: the inverse rig of a mesh sequence (a folder of
+  OBJ files or an ``.npz``) written as a Live Link Face CSV.
+- ``canrig correct RIG EDITS -o rig.glb``: WPSE from sculpted frames, baked into the glTF.
+
+Errors in the inputs are reported as one line naming the file (exit status 2); nothing
+partial is written (every output is written atomically, after the work is done).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ._cli import add_dataclass_options, from_args
+
+DEFAULT_MODEL = (
+    Path(__file__).resolve().parents[2]
+    / "experiments"
+    / "results"
+    / "autorig"
+    / "checkpoint_raf.eqx"
+)
+"""The committed RigAnyFace checkpoint (present in a source checkout)."""
+
+INVERSE_METHODS = {
+    "quartic": "QuarticCD",
+    "linear": "LinearCD",
+    "seol": "Seol",
+    "joshi": "Joshi",
+    "cetinaslan": "Cetinaslan",
+    "lmmm": "LMMM",
+    "lbfgsb": "JaxoptLBFGSB",
+}
+"""``--method`` values of ``canrig invert`` and the ``canrig_jax.inverse`` class of each."""
+
+
+class CommandError(Exception):
+    """A user-facing error: printed as one line, exit status 2."""
+
+
+class _Progress:
+    """Stage messages with elapsed seconds on stderr (silenced by ``--quiet``)."""
+
+    def __init__(self, quiet: bool):
+        self.quiet, self.start = quiet, time.perf_counter()
+
+    def __call__(self, message: str) -> None:
+        if not self.quiet:
+            print(f"[{time.perf_counter() - self.start:6.1f} s] {message}", file=sys.stderr)
+
+
+def _output(path: str, suffixes: Sequence[str]) -> Path:
+    """An output path whose folder exists and whose extension is one of ``suffixes``."""
+    out = Path(path)
+    if out.suffix.lower() not in suffixes:
+        raise CommandError(f"-o {out}: expected a {' or '.join(suffixes)} file name")
+    if out.is_dir():
+        raise CommandError(f"-o {out}: is a folder, expected a file name")
+    if not out.parent.is_dir():
+        raise CommandError(f"-o {out}: the folder {out.parent} does not exist")
+    return out
+
+
+def _input(path: str, what: str) -> Path:
+    p = Path(path)
+    if not p.exists():
+        raise CommandError(f"{what} {p}: not found")
+    return p
+
+
+def _load_rig(path: str):
+    """A rig from a ``.glb`` written by canrig (``load_gltf_rig``) or a ``.npz`` (``load_rig``)."""
+    from .rig import load_gltf_rig, load_rig
+
+    p = _input(path, "RIG")
+    if p.suffix.lower() == ".glb":
+        return load_gltf_rig(p)
+    if p.suffix.lower() == ".npz":
+        return load_rig(p)
+    raise CommandError(f"RIG {p}: expected a .glb (canrig autorig) or a .npz rig")
+
+
+def _arkit_columns(rig) -> tuple[np.ndarray, list[str]]:
+    """(K_rig, K_csv) matrix mapping a rig's weights onto the Live Link Face channels it drives
+    (ICT halves averaged) and those channel names."""
+    from .data import LIVELINK_CSV_CHANNELS, retarget_weights, to_arkit
+
+    present = {to_arkit(n) for n in rig.names}
+    channels = [c for c in LIVELINK_CSV_CHANNELS if to_arkit(c) in present]
+    eye = np.eye(rig.n_blendshapes, dtype=np.float32)
+    mixing, _ = retarget_weights(eye, rig.names, channels)
+    return mixing, channels
+
+
+# ---------------------------------------------------------------------------------- autorig
+def _autorig(args) -> None:
+    from . import autorig
+    from .data import load_head
+    from .rig import export_gltf
+
+    out = _output(args.output, (".glb",))
+    model_path = Path(args.model) if args.model else DEFAULT_MODEL
+    if not model_path.is_file():
+        raise CommandError(f"--model {model_path}: RigAnyFace checkpoint not found")
+    progress = _Progress(args.quiet)
+    head = load_head(_input(args.head, "HEAD"), units=args.units)
+    progress(
+        f"read {head.path}: {len(head.vertices)} vertices, {len(head.faces)} triangles, "
+        f"units {head.units}{' (inferred)' if head.inferred else ''}, {head.size_cm:.1f} cm tall"
+    )
+    model, poses, _ = autorig.load_model(model_path)
+    progress(f"loaded RigAnyFace from {model_path} ({poses.n_poses} training poses)")
+    chunk = {} if args.pose_chunk is None else {"pose_chunk": args.pose_chunk}
+    generated = autorig.generate_rig(
+        model, poses, head.vertices_in("cm"), head.faces, k=args.k, **chunk
+    )
+    seconds = generated.seconds
+    rig = generated.rig
+    progress(
+        f"generated {rig.n_blendshapes} blendshapes and "
+        f"{sum(int(c.indices.shape[0]) for c in rig.correctives)} correctives "
+        f"(operators {seconds['operators']:.1f} s, network {seconds['network']:.1f} s)"
+    )
+    export_gltf(rig, out)
+    progress(f"wrote {out} (centimetres)")
+
+
+# ---------------------------------------------------------------------------------- animate
+def _animate(args) -> None:
+    from . import save_npz
+    from .data import read_livelink_csv
+    from .rig import evaluate_batch, export_animated_gltf, validate_gltf
+
+    out = _output(args.output, (".glb",))
+    meshes_out = _output(args.meshes, (".npz",)) if args.meshes else None
+    progress = _Progress(args.quiet)
+    rig = _load_rig(args.rig)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        take = read_livelink_csv(_input(args.take, "TAKE"), fps=args.fps)
+    for w in caught:
+        progress(f"note: {w.message}")
+    progress(
+        f"read {args.take}: {take.n_frames} frames at {take.fps:g} fps "
+        f"({'given' if args.fps else 'from the timecodes'}), {len(take.names)} channels, "
+        f"rotations {list(take.rotation_names) or 'none'}"
+    )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        weights = take.weights_for(rig.names, missing=args.missing)
+    for w in caught:
+        progress(f"note: {w.message}")
+    times = (take.frame_number - take.frame_number[0]) / take.fps
+    if take.n_frames > 1 and np.any(np.diff(times) <= 0):
+        progress("note: timecodes repeat or go back; keys placed one frame apart instead")
+        times = np.arange(take.n_frames) / take.fps
+    head = None
+    if args.head_rotation:
+        have = [n for n in ("HeadYaw", "HeadPitch", "HeadRoll") if n in take.rotation_names]
+        if len(have) == 3:
+            index = [take.rotation_names.index(n) for n in have]
+            head = take.head_eye_rotations[:, index] * args.rotation_scale
+        else:
+            progress("note: no HeadYaw/HeadPitch/HeadRoll columns; no head rotation")
+    export_animated_gltf(rig, weights, out, fps=take.fps, times=times, head_rotation=head)
+    progress(f"wrote {out}: {take.n_frames} keys, {rig.n_blendshapes} channels")
+    if meshes_out is not None:
+        meshes = np.asarray(evaluate_batch(rig, weights, chunk=64), np.float32)
+        save_npz(meshes_out, meshes=meshes, weights=weights, names=np.asarray(rig.names))
+        progress(f"wrote {meshes_out}: the rig's meshes at every frame ({meshes.shape})")
+    if args.validate:
+        report = validate_gltf(out)
+        issues = report["issues"]
+        progress(
+            f"Khronos glTF validator: {issues['numErrors']} errors, "
+            f"{issues['numWarnings']} warnings"
+        )
+        if issues["numErrors"]:
+            raise CommandError(f"{out}: the glTF validator found {issues['numErrors']} errors")
+
+
+# ----------------------------------------------------------------------------------- invert
+def _read_meshes(path: Path, n_vertices: int, units: str) -> np.ndarray:
+    from .data import load_head, read_arrays
+
+    if path.is_dir():
+        files = sorted(p for p in path.iterdir() if p.suffix.lower() == ".obj")
+        if not files:
+            raise CommandError(f"MESHES {path}: the folder holds no .obj files")
+        meshes = []
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # sizes are checked against the rig below
+            for f in files:
+                meshes.append(load_head(f, units=units).vertices)
+    elif path.suffix.lower() == ".npz":
+        with np.load(path, allow_pickle=False) as z:
+            key = next((k for k in ("meshes", "vertices") if k in z.files), None)
+        if key is None:
+            raise CommandError(f"MESHES {path}: expected an array 'meshes' (T, V, 3)")
+        meshes = read_arrays(path, (key,))[key]
+    else:
+        raise CommandError(f"MESHES {path}: expected a folder of .obj files or an .npz")
+    meshes = np.asarray(meshes, np.float32)
+    if meshes.ndim != 3 or meshes.shape[1:] != (n_vertices, 3):
+        raise CommandError(
+            f"MESHES {path}: meshes of shape {meshes.shape[1:]}, the rig has ({n_vertices}, 3)"
+        )
+    if not np.all(np.isfinite(meshes)):
+        raise CommandError(f"MESHES {path}: non-finite vertex positions")
+    return meshes
+
+
+def _invert(args) -> None:
+    import jax
+    from tqdm import tqdm
+
+    from . import inverse
+    from .data import capture_from_weights, read_livelink_csv, write_livelink_csv
+
+    out = _output(args.output, (".csv",))
+    progress = _Progress(args.quiet)
+    rig = _load_rig(args.rig)
+    meshes = _read_meshes(_input(args.meshes, "MESHES"), rig.n_vertices, rig.units)
+    progress(f"read {meshes.shape[0]} meshes of {meshes.shape[1]} vertices")
+    cls = getattr(inverse, INVERSE_METHODS[args.method])
+    fields = {f.name for f in dataclasses.fields(cls)}
+    options = from_args(inverse.QuarticCD, args)
+    method = cls(**{k: getattr(options, k) for k in fields if hasattr(options, k)})
+    problem = inverse.prepare(rig)
+    progress(f"prepared the inverse problem; solving with {method}")
+    chunk = min(args.chunk, meshes.shape[0])
+    solved = []
+    for start in tqdm(range(0, meshes.shape[0], chunk), disable=args.quiet, desc="frames"):
+        block = meshes[start : start + chunk]
+        pad = chunk - block.shape[0]  # one compiled shape: the last block is padded
+        block = np.concatenate([block, np.repeat(block[-1:], pad, axis=0)])
+        solution = inverse.solve_sequence(problem, block, method, key=jax.random.key(start))
+        solved.append(np.asarray(solution.weights)[: chunk - pad])
+    weights = np.concatenate(solved)
+    mixing, channels = _arkit_columns(rig)
+    write_livelink_csv(out, capture_from_weights(weights @ mixing, channels, fps=args.fps))
+    progress(f"wrote {out}: {weights.shape[0]} frames, {len(channels)} Live Link Face channels")
+    if args.reference:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            reference = read_livelink_csv(_input(args.reference, "--reference"))
+            expected = reference.weights_for(rig.names, missing="zero")
+        if expected.shape != weights.shape:
+            raise CommandError(
+                f"--reference {args.reference}: {expected.shape[0]} frames, the meshes "
+                f"{weights.shape[0]}"
+            )
+        error = np.abs(weights - expected)
+        print(
+            f"weight error against {args.reference} over {weights.shape[0]} frames x "
+            f"{weights.shape[1]} channels: mean {error.mean():.4f}, RMS "
+            f"{np.sqrt((error**2).mean()):.4f}, max {error.max():.4f}"
+        )
+
+
+# ---------------------------------------------------------------------------------- correct
+def _correct(args) -> None:
+    from . import wpse
+    from .data import read_arrays, read_livelink_csv
+    from .rig import BlendshapeRig, evaluate_batch, export_animated_gltf, export_gltf
+
+    out = _output(args.output, (".glb",))
+    progress = _Progress(args.quiet)
+    rig = _load_rig(args.rig)
+    edits_path = _input(args.edits, "EDITS")
+    data = read_arrays(edits_path, ("poses", "meshes"))
+    poses, sculpted = np.asarray(data["poses"], np.float32), np.asarray(data["meshes"], np.float32)
+    if poses.ndim != 2 or poses.shape[1] != rig.n_blendshapes:
+        raise CommandError(
+            f"EDITS {edits_path}: poses of shape {poses.shape}, expected (P, {rig.n_blendshapes})"
+        )
+    if sculpted.shape != (poses.shape[0], rig.n_vertices, 3):
+        raise CommandError(
+            f"EDITS {edits_path}: meshes of shape {sculpted.shape}, expected "
+            f"({poses.shape[0]}, {rig.n_vertices}, 3)"
+        )
+    edits = sculpted - np.asarray(evaluate_batch(rig, poses))
+    prepared = wpse.prepare_edits(rig, poses, edits)
+    sigma = args.sigma if args.sigma is not None else float(wpse.fit_sigma(prepared).sigma)
+    model = wpse.fit_prepared(prepared, sigma)
+    progress(f"fitted WPSE on {poses.shape[0]} sculpted frames, sigma {sigma:.4g}")
+    if args.take:
+        take = read_livelink_csv(_input(args.take, "--take"))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            frame_weights = take.weights_for(rig.names, missing="zero")
+    else:
+        frame_weights = poses
+    posed = np.asarray(evaluate_batch(rig, frame_weights), np.float32)
+    corrected = np.stack(
+        [np.asarray(wpse.apply(model, w, p)) for w, p in zip(frame_weights, posed, strict=True)]
+    )
+    corrections = corrected - posed
+    # the correction baked: one morph target per frame, switched on at its own key only
+    t = frame_weights.shape[0]
+    baked = BlendshapeRig(
+        rig.neutral,
+        np.concatenate([np.asarray(rig.deltas), corrections]),
+        rig.correctives,
+        (*rig.names, *(f"wpse_frame_{i:04d}" for i in range(t))),
+        rig.faces,
+        units=rig.units,
+    )
+    if args.take:
+        weights = np.concatenate([frame_weights, np.eye(t, dtype=np.float32)], axis=1)
+        export_animated_gltf(baked, weights, out, fps=take.fps)
+        where = f"animated over the {t} frames of {args.take}"
+    else:
+        export_gltf(baked, out)
+        where = f"as {t} targets wpse_frame_i, one per sculpted pose (weight 1 at that pose)"
+    print(
+        "correction: BAKED (glTF morph targets are linear; WPSE's pose-space RBF cannot run in "
+        f"a glTF player): {where}; max correction {np.abs(corrections).max():.4g} {rig.units}"
+    )
+    progress(f"wrote {out}")
+
+
+# ------------------------------------------------------------------------------------ main
+def build_parser() -> argparse.ArgumentParser:
+    from .inverse import ORDERS, QuarticCD
+
+    parser = argparse.ArgumentParser(
+        prog="canrig",
+        description="From a head file and a phone capture to an animated rig (canrig_jax).",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="SUBCOMMAND")
+
+    def command(name: str, help: str, inputs: Sequence[tuple[str, str]], out_help: str):
+        p = sub.add_parser(name, help=help, description=help)
+        for arg, text in inputs:
+            p.add_argument(arg, help=text)
+        p.add_argument("-o", "--output", required=True, help=out_help)
+        p.add_argument("--quiet", action="store_true", help="no progress messages")
+        return p
+
+    p = command(
+        "autorig",
+        "RigAnyFace: generate a blendshape rig (53 ICT/ARKit shapes + correctives) for a head.",
+        [("head", "head mesh: .obj, .ply, .gltf or .glb")],
+        "the rig, a .glb with named morph targets (centimetres)",
+    )
+    p.add_argument(
+        "--units",
+        choices=("mm", "cm", "dm", "m"),
+        help="the head file's length unit (default: inferred from its size)",
+    )
+    p.add_argument("--model", help=f"RigAnyFace checkpoint (default: {DEFAULT_MODEL})")
+    p.add_argument("--k", type=int, default=128, help="Laplacian eigenpairs (default: %(default)s)")
+    p.add_argument("--pose-chunk", type=int, help="poses per network pass (default: the library's)")
+    p.set_defaults(run=_autorig)
+
+    p = command(
+        "animate",
+        "Drive a rig with a Live Link Face CSV take: an animated glTF (morph weights over time).",
+        [("rig", "the rig: .glb from canrig autorig, or a .npz rig"), ("take", "the .csv take")],
+        "the animated .glb",
+    )
+    p.add_argument("--fps", type=int, help="the take's frame rate (default: from the timecodes)")
+    p.add_argument(
+        "--head-rotation",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="animate HeadYaw/HeadPitch/HeadRoll as the head's rotation (default: on)",
+    )
+    p.add_argument(
+        "--rotation-scale",
+        type=float,
+        default=1.0,
+        help="radians per unit of the take's rotation columns (default: %(default)s)",
+    )
+    p.add_argument(
+        "--missing",
+        choices=("zero", "raise"),
+        default="zero",
+        help="a rig channel the take lacks: weight 0 (reported) or an error (default: zero)",
+    )
+    p.add_argument("--meshes", help="also write the rig's mesh at every frame to this .npz")
+    p.add_argument(
+        "--validate",
+        action="store_true",
+        help="run the Khronos glTF validator (needs node and npm gltf-validator)",
+    )
+    p.set_defaults(run=_animate)
+
+    p = command(
+        "invert",
+        "Inverse rig: the weights of a mesh sequence, written as a Live Link Face CSV.",
+        [
+            ("rig", "the rig: .glb from canrig autorig, or a .npz rig"),
+            ("meshes", "a folder of .obj frames (sorted by name) or an .npz with 'meshes'"),
+        ],
+        "the .csv take",
+    )
+    p.add_argument(
+        "--method",
+        choices=tuple(INVERSE_METHODS),
+        default="quartic",
+        help="solver (default: %(default)s; quartic = Racković's coordinate descent)",
+    )
+    add_dataclass_options(
+        p,
+        QuarticCD,
+        exclude=("trace", "newton", "upper"),
+        choices={"order": ORDERS},
+        help={
+            "alpha": "L1 sparsity weight (methods that take it)",
+            "passes": "coordinate-descent passes",
+            "tol": "stop when a pass improves the objective by less",
+            "order": "coordinate order",
+        },
+    )
+    p.add_argument("--fps", type=int, default=60, help="frame rate written (default: 60)")
+    p.add_argument("--chunk", type=int, default=32, help="frames per solve (default: 32)")
+    p.add_argument("--reference", help="a .csv take to report the weight error against")
+    p.set_defaults(run=_invert)
+
+    p = command(
+        "correct",
+        "WPSE: correct a rig from sculpted frames; the correction is baked into the glTF.",
+        [
+            ("rig", "the rig: .glb from canrig autorig, or a .npz rig"),
+            ("edits", "an .npz with 'poses' (P, K) rig weights and 'meshes' (P, V, 3) sculpts"),
+        ],
+        "the corrected .glb",
+    )
+    p.add_argument("--sigma", type=float, help="RBF width (default: leave-one-out fit)")
+    p.add_argument("--take", help="bake the corrected rig over this .csv take (animated)")
+    p.set_defaults(run=_correct)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``canrig`` console script; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        args.run(args)
+    except CommandError as error:
+        print(f"canrig {args.command}: error: {error}", file=sys.stderr)
+        return 2
+    except (ValueError, OSError, RuntimeError) as error:
+        print(f"canrig {args.command}: error: {error}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
