@@ -154,6 +154,30 @@ def test_correct_bakes_the_sculpts(workspace, capsys, tmp_path):
     np.testing.assert_allclose(np.asarray(evaluate_batch(fixed, on)), posed + bump, atol=2e-3)
 
 
+@pytest.mark.slow
+def test_correct_over_a_take(workspace, capsys, tmp_path):
+    """--take: one baked WPSE target per frame, animated one-hot at its own key."""
+    root, rig = workspace
+    poses = np.zeros((2, rig.n_blendshapes), np.float32)
+    poses[0, 3] = poses[1, 17] = 1.0
+    posed = np.array(evaluate_batch(rig, poses))
+    posed[:, :100, 2] += 0.1
+    np.savez(tmp_path / "edits.npz", poses=poses, meshes=posed)
+    lines = (root / "take.csv").read_text().splitlines()
+    (tmp_path / "short.csv").write_text("\n".join(lines[:13]) + "\n")  # 12 frames
+    status, out, err = _run(
+        capsys,
+        *("correct", root / "rig.npz", tmp_path / "edits.npz", "-o", tmp_path / "take.glb"),
+        *("--take", tmp_path / "short.csv", "--sigma", "0.5"),
+    )
+    assert status == 0, err
+    assert "BAKED" in out and "animated over the 12 frames" in out
+    animated = load_gltf_rig(tmp_path / "take.glb")
+    assert animated.n_blendshapes == 53 + 12
+    if find_gltf_validator() is not None:
+        assert validate_gltf(tmp_path / "take.glb")["issues"]["numErrors"] == 0
+
+
 def test_errors_name_the_file_and_write_nothing(workspace, capsys, tmp_path):
     root, _ = workspace
     cases = [
