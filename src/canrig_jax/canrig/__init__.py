@@ -1,7 +1,7 @@
 """CANRig (Mohammadi, Weiss et al.): geodesic influence masks, masked cross-attention with
 zero-preserving MLPs, the shape-preserving variant, training on real rig shapes, and the
 workflows an artist runs on it (pose A to B direct and fitted, iterative layers, clip editing,
-dialogue replacement)."""
+dialogue replacement), and patch blendshapes (PBS) for the whole head."""
 
 from ._attention import masked_attention_weights, masked_cross_attention
 from ._data import (
@@ -42,6 +42,15 @@ from ._masks import (
 )
 from ._mlp import ZeroPreservingMLP
 from ._model import AbstractCANRig, Architecture, CANRig, ShapePreservingCANRig, parameter_count
+from ._pbs import (
+    PatchLayout,
+    check_basis,
+    fit_pbs,
+    global_blendshape_fit,
+    patch_layout,
+    pbs_basis,
+    pbs_shape,
+)
 from ._rig import HandleEdit, Handles, NeuralRig, deform, edit_mask, trace_edit
 from ._train import (
     EUCLIDEAN_SOFTNESS_MM,
@@ -81,6 +90,13 @@ from ._workflows import (
 )
 
 __all__ = [
+    "PatchLayout",
+    "check_basis",
+    "fit_pbs",
+    "global_blendshape_fit",
+    "patch_layout",
+    "pbs_basis",
+    "pbs_shape",
     "ClipEdit",
     "FitOptions",
     "FIT_WIDTH_MULTIPLE",
