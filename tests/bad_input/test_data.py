@@ -12,11 +12,13 @@ import pytest
 from canrig_jax import CorruptFileError
 from canrig_jax.data import (
     ict_identity,
+    load_head,
     load_ict,
     load_ict_obj_folder,
     load_identity_modes,
     load_livelinkface,
     load_mediapipe_face,
+    read_livelink_csv,
     retarget_weights,
 )
 
@@ -239,4 +241,78 @@ RETARGET = [
 
 @pytest.mark.parametrize("case", RETARGET)
 def test_retarget_weights(case, ctx):
+    run_case(case, ctx)
+
+
+def _file(c, name: str, text: str | bytes) -> Path:
+    path = c.root / "issue20" / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if isinstance(text, bytes):
+        path.write_bytes(text)
+    else:
+        path.write_text(text)
+    return path
+
+
+_HEADER = "Timecode,BlendShapeCount,EyeBlinkLeft,JawOpen\n"
+
+READ_LIVELINK_CSV = [
+    raises("missing", lambda c: read_livelink_csv(c.root / "no.csv"), FileNotFoundError, "no.csv"),
+    raises("not-a-path", lambda c: read_livelink_csv(3), TypeError, "path"),
+    raises(
+        "empty", lambda c: read_livelink_csv(_file(c, "e.csv", "")), ValueError, "e.csv, line 1"
+    ),
+    raises(
+        "no-rows", lambda c: read_livelink_csv(_file(c, "n.csv", _HEADER)), ValueError, "no rows"
+    ),
+    raises(
+        "bad-timecode",
+        lambda c: read_livelink_csv(_file(c, "t.csv", _HEADER + "1:2:3,2,0,0\n")),
+        ValueError,
+        "t.csv, line 2: malformed timecode",
+    ),
+    raises(
+        "non-numeric",
+        lambda c: read_livelink_csv(_file(c, "v.csv", _HEADER + "00:00:00:01.000,2,0,zero\n")),
+        ValueError,
+        "v.csv, line 2: JawOpen = 'zero'",
+    ),
+    raises(
+        "duplicated",
+        lambda c: read_livelink_csv(
+            _file(c, "d.csv", "Timecode,JawOpen,jawOpen\n00:00:00:01.000,0,0\n")
+        ),
+        ValueError,
+        "duplicated channel",
+    ),
+    raises(
+        "frame-over-fps",
+        lambda c: read_livelink_csv(_file(c, "f.csv", _HEADER + "00:00:00:40.000,2,0,0\n"), fps=30),
+        ValueError,
+        "f.csv, line 2",
+    ),
+]
+
+
+@pytest.mark.parametrize("case", READ_LIVELINK_CSV)
+def test_read_livelink_csv(case, ctx):
+    run_case(case, ctx)
+
+
+LOAD_HEAD = [
+    raises("missing", lambda c: load_head(c.root / "no.obj"), FileNotFoundError, "no.obj"),
+    raises("folder", lambda c: load_head(c.empty), ValueError, "is not a file"),
+    raises("empty", lambda c: load_head(_file(c, "e.obj", "")), ValueError, "e.obj is empty"),
+    raises(
+        "not-a-mesh", lambda c: load_head(_file(c, "x.ply", b"\x00\x01junk")), ValueError, "x.ply"
+    ),
+    raises(
+        "unit", lambda c: load_head(_file(c, "u.obj", "v 0 0 0\n"), units="ft"), ValueError, "units"
+    ),
+    raises("extension", lambda c: load_head(_file(c, "h.fbx", "x")), ValueError, "h.fbx"),
+]
+
+
+@pytest.mark.parametrize("case", LOAD_HEAD)
+def test_load_head(case, ctx):
     run_case(case, ctx)

@@ -15,6 +15,7 @@ from canrig_jax.rig import (
     deformation_transfer,
     evaluate,
     evaluate_batch,
+    export_animated_gltf,
     export_gltf,
     load_gltf_rig,
     load_rig,
@@ -339,4 +340,67 @@ RIGS_ON_OTHER_MESHES = [
 
 @pytest.mark.parametrize("case", RIGS_ON_OTHER_MESHES)
 def test_rigs_on_other_meshes(case, ctx):
+    run_case(case, ctx)
+
+
+def _animated(c, weights, **kw):
+    return export_animated_gltf(c.rig, weights, c.root / "anim.glb", **kw)
+
+
+def _keys_read_back(path, c):
+    """The morph weights written: the rig's 2 weights and the corrective's product."""
+    from canrig_jax.rig import morph_target_weights
+
+    np.testing.assert_allclose(
+        morph_target_weights(c.rig, np.array([[1.0, 0.5], [0.0, 2.0]])),
+        [[1.0, 0.5, 0.5], [0.0, 2.0, 0.0]],
+    )
+    assert path.stat().st_size > 0
+
+
+ANIMATED_GLTF = [
+    raises("weights-1d", lambda c: _animated(c, np.zeros(2)), ValueError, "weights"),
+    raises("weights-no-frames", lambda c: _animated(c, np.zeros((0, 2))), ValueError, "weights"),
+    raises("weights-wrong-k", lambda c: _animated(c, np.zeros((3, 5))), ValueError, "weights"),
+    raises("weights-nan", lambda c: _animated(c, np.full((3, 2), np.nan)), ValueError, "weights"),
+    raises(
+        "weights-complex", lambda c: _animated(c, np.zeros((3, 2), complex)), TypeError, "weights"
+    ),
+    raises("fps-zero", lambda c: _animated(c, np.zeros((3, 2)), fps=0.0), ValueError, "fps"),
+    raises(
+        "times-repeat",
+        lambda c: _animated(c, np.zeros((3, 2)), times=np.array([0.0, 0.1, 0.1])),
+        ValueError,
+        "times",
+    ),
+    raises(
+        "times-shape",
+        lambda c: _animated(c, np.zeros((3, 2)), times=np.zeros(2)),
+        ValueError,
+        "times",
+    ),
+    raises(
+        "rotation-shape",
+        lambda c: _animated(c, np.zeros((3, 2)), head_rotation=np.zeros((3, 2))),
+        ValueError,
+        "head_rotation",
+    ),
+    raises(
+        "under-a-file",
+        lambda c: export_animated_gltf(c.rig, np.zeros((3, 2)), c.root / "a_file" / "x.glb"),
+        NotADirectoryError,
+        "path",
+    ),
+    raises(
+        "not-a-rig",
+        lambda c: export_animated_gltf(NEUTRAL, np.zeros((3, 2)), c.root / "x.glb"),
+        TypeError,
+        "rig",
+    ),
+    handled("weights-over-one", lambda c: _animated(c, np.full((2, 2), 2.0)), _keys_read_back),
+]
+
+
+@pytest.mark.parametrize("case", ANIMATED_GLTF)
+def test_export_animated_gltf(case, ctx):
     run_case(case, ctx)
