@@ -5,7 +5,8 @@ The package's one door: every subpackage (``rig``, ``mesh``, ``inverse``, ``wpse
 modules and re-exports its public names from its ``__init__``. The shared utilities below
 (cache, input checks, checkpoints, atomic files, metrics, provenance, command-line
 options from dataclasses) are re-exported here, with ``run_command(argv)``, the ``canrig``
-console script's entry point.
+console script's entry point, and data-parallel training over devices (``device_mesh``,
+``shard_batch``, ``replicate``, ``data_parallel_step``).
 """
 
 from ._cache import CACHE_ENV_VAR, cache_dir, fingerprint, mesh_fingerprint
@@ -37,10 +38,16 @@ from ._provenance import (
     provenance,
     with_provenance,
 )
+from ._sharding import BATCH_AXIS, data_parallel_step, device_mesh, replicate, shard_batch
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "BATCH_AXIS",
+    "data_parallel_step",
+    "device_mesh",
+    "replicate",
+    "shard_batch",
     "CACHE_ENV_VAR",
     "COMMAND_FILE",
     "CM_TO_MM",

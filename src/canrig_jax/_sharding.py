@@ -1,0 +1,92 @@
+"""Data-parallel training over the available devices with JAX's own sharding.
+
+The batch is split along its leading axis over a one-axis ``jax.sharding.Mesh`` of N devices
+(``device_mesh(N)``); parameters and optimiser state are replicated on every device. A jitted
+step on such inputs is partitioned by XLA (GSPMD): each device computes its part of the
+batch, and the mean loss and its gradient are all-reduced, so N devices follow the same
+trajectory as one, to float tolerance (the reduction order differs).
+
+Multi-host: call ``jax.distributed.initialize()`` (coordinator address, process count and id,
+or a cluster's environment) in every process before anything else touches JAX; then
+``jax.devices()`` lists every host's devices, ``device_mesh()`` spans them all, and each
+process must feed the same global batch (or build it with
+``jax.make_array_from_process_local_data``).
+
+On CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` (set before JAX is imported)
+gives N host devices for testing.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+BATCH_AXIS = "batch"
+"""Name of the mesh axis the batch is split over."""
+
+
+def device_mesh(devices: int | None = None) -> Mesh:
+    """A one-axis mesh (``BATCH_AXIS``) over the first ``devices`` devices (default: all)."""
+    available = jax.devices()
+    if devices is None:
+        devices = len(available)
+    if isinstance(devices, bool) or not isinstance(devices, int | np.integer) or devices < 1:
+        raise ValueError(f"devices: expected a positive number of devices, got {devices!r}")
+    if devices > len(available):
+        raise ValueError(
+            f"devices: {devices} requested, {len(available)} available "
+            f"({available[0].platform}); on CPU set "
+            f"XLA_FLAGS=--xla_force_host_platform_device_count={devices} before importing jax"
+        )
+    return Mesh(np.asarray(available[:devices]), (BATCH_AXIS,))
+
+
+def shard_batch(tree, mesh: Mesh):
+    """Every array leaf of ``tree`` split along its leading axis over ``mesh``'s devices.
+
+    Raises ValueError naming the leaf's shape when its leading axis is not a multiple of the
+    number of devices (pad the batch or pick a batch size that divides)."""
+    n = mesh.devices.size
+    sharding = NamedSharding(mesh, PartitionSpec(BATCH_AXIS))
+
+    def put(leaf):
+        if not eqx.is_array(leaf):
+            return leaf
+        if leaf.ndim == 0 or leaf.shape[0] % n:
+            raise ValueError(
+                f"batch: a leaf of shape {leaf.shape} cannot be split over {n} devices "
+                "(its leading axis must be a multiple of the device count)"
+            )
+        return jax.device_put(leaf, sharding)
+
+    return jax.tree_util.tree_map(put, tree)
+
+
+def replicate(tree, mesh: Mesh):
+    """Every array leaf of ``tree`` copied to all of ``mesh``'s devices."""
+    sharding = NamedSharding(mesh, PartitionSpec())
+    return jax.tree_util.tree_map(
+        lambda leaf: jax.device_put(leaf, sharding) if eqx.is_array(leaf) else leaf, tree
+    )
+
+
+def data_parallel_step(loss_fn: Callable, optimiser) -> Callable:
+    """A jitted optimiser step ``step(model, opt_state, batch) -> (model, opt_state, loss)``.
+
+    ``loss_fn(model, batch)`` is the mean loss over the batch; ``optimiser`` an optax
+    transformation. Called on a replicated model and state (``replicate``) and a sharded
+    batch (``shard_batch``), the step runs data-parallel over the mesh; on single-device
+    inputs it is the ordinary step. One function for both: the device count is a property
+    of the inputs, not of the code."""
+
+    @eqx.filter_jit
+    def step(model, opt_state, batch):
+        loss, grads = eqx.filter_value_and_grad(loss_fn)(model, batch)
+        updates, opt_state = optimiser.update(grads, opt_state, eqx.filter(model, eqx.is_array))
+        return eqx.apply_updates(model, updates), opt_state, loss
+
+    return step
