@@ -132,7 +132,8 @@ def _autorig(args) -> None:
     progress(
         f"generated {rig.n_blendshapes} blendshapes and "
         f"{sum(int(c.indices.shape[0]) for c in rig.correctives)} correctives "
-        f"(operators {seconds['operators']:.1f} s, network {seconds['network']:.1f} s)"
+        f"(operators {seconds.get('operators', float('nan')):.1f} s, "
+        f"network {seconds.get('network', float('nan')):.1f} s)"
     )
     export_gltf(rig, out)
     progress(f"wrote {out} (centimetres)")
