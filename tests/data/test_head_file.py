@@ -18,7 +18,7 @@ def makehuman(data_dir):
     return z["neutral"], z["faces"]
 
 
-@pytest.mark.parametrize("suffix", [".obj", ".ply", ".glb"])
+@pytest.mark.parametrize("suffix", [".obj", ".ply", ".glb", ".gltf"])
 def test_formats_round_trip_and_units_inferred(makehuman, tmp_path, suffix):
     vertices, faces = makehuman
     path = tmp_path / f"head{suffix}"
