@@ -1,5 +1,8 @@
-"""RigAnyFace on ICT identities: train with and without the global encoder, evaluate against
-deformation transfer on held-out identities of seen and unseen triangulations.
+"""RigAnyFace on ICT identities: train with and without the global encoder and as a
+correction on top of deformation transfer (``raf_dt_residual``); evaluate against no motion,
+copied ICT deltas and deformation transfer on held-out identities (by pose class and vertex
+class, the worst poses) and on the MakeHuman hm08 head against its person-made ARKit targets
+(evaluation only: nothing is trained or tuned on it).
 
     python experiments/autorig.py --out experiments/results/autorig            # standard
     python experiments/autorig.py --out /tmp/autorig --quick                   # tests
@@ -8,9 +11,18 @@ deformation transfer on held-out identities of seen and unseen triangulations.
 ``--timing-only`` re-measures only the rig generation time (``rig_seconds``) of an existing
 results.json with its RAF checkpoint and re-renders table.md.
 
-Writes DIR/results.json, DIR/table.md, DIR/training_loss.png, DIR/poses_<head>.png (predicted
-poses with 0-5 mm error maps next to the ground truth), DIR/rig.glb (one predicted rig as
-glTF 2.0 with named morph targets) and the two checkpoints (rerunning resumes from them).
+Writes DIR/results.json, DIR/table.md, DIR/training_loss.png, DIR/poses_<head>.png and
+DIR/makehuman.png (predicted poses with 0-5 mm error maps next to the ground truth),
+DIR/rig.glb (one predicted rig as glTF 2.0 with named morph targets) and the checkpoints
+(rerunning resumes from them). ``--cache DIR`` keeps the training heads' transferred poses
+(the residual model's base) between runs.
+
+MakeHuman protocol: the head is converted from decimetres to centimetres; the ICT face part
+is fitted to it by a trimmed-ICP similarity (start: identity rotation, nose tips together),
+which places ICT's 68 landmarks on its skin (nearest vertex); the correspondence is the
+library's ``head_correspondence`` from those landmarks (no hand-picked vertices). The 51
+ARKit shapes it shares with ICT are compared; ICT's ``browInnerUp_L/_R`` and
+``cheekPuff_L/_R`` are summed.
 """
 
 from __future__ import annotations
@@ -26,16 +38,26 @@ import numpy as np
 
 from canrig_jax import CM_TO_MM, COMMAND_FILE, experiment_command, provenance, save_json, save_text
 from canrig_jax.autorig import (
+    ACTIVE_MM,
+    STATIC_MM,
     TrainOptions,
+    class_errors,
+    copy_poses,
     error_stats,
+    fit_head_landmarks,
     generate_rig,
+    head_correspondence,
     head_inputs,
     ict_autorig_dataset,
+    load_makehuman,
     load_model,
     penetration,
+    sculpted_target_errors,
+    shared_shape_matrix,
     train,
     training_set,
     transfer_poses,
+    worst_poses,
 )
 from canrig_jax.canrig import parameter_count
 from canrig_jax.data import load_ict
@@ -44,7 +66,11 @@ from canrig_jax.render import plot_vertex_scalar, save_figure
 from canrig_jax.rig import export_gltf, load_gltf_rig
 
 MODELS = {"raf": {}, "raf_no_global_encoder": {"global_size": 0}}
+RESIDUAL = "raf_dt_residual"
+RESIDUAL_OPTIONS = {"residual": True, "loss": "euclidean", "static_weight": 1.0}
+BASELINES = ("no_motion", "copy_deltas", "deformation_transfer")
 SPLITS = ("same_topology", "unseen_topology")
+HELDOUT_SPLIT = "unseen_topology"
 
 
 def main(argv=None):
@@ -57,6 +83,13 @@ def main(argv=None):
     parser.add_argument("--train-identities", type=int, default=24)
     parser.add_argument("--test-identities", type=int, default=8)
     parser.add_argument("--learning-rate", type=float, default=1e-3)
+    parser.add_argument(
+        "--residual-steps",
+        type=int,
+        default=2000,
+        help="steps of the DT + residual model (its cosine schedule ends there; no clock cut)",
+    )
+    parser.add_argument("--cache", type=Path, default=None, help="cache of transferred poses")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-progress", action="store_true")
     parser.add_argument(
@@ -112,11 +145,36 @@ def main(argv=None):
         print(f"{name}: {result.step} steps in {result.seconds / 60:.1f} min")
     del data
 
+    # -- DT + learned residual: the training heads' transferred poses are its base --------
+    base = [cached_transfer(dataset, head, args.cache, args.seed) for head in dataset.train]
+    residual_options = dataclasses.replace(
+        options,
+        **RESIDUAL_OPTIONS,
+        steps=20 if args.quick else args.residual_steps,
+        warmup_steps=5 if args.quick else min(200, args.residual_steps // 10),
+        max_minutes=None,
+    )
+    data = training_set(dataset.train, poses, k=options.k, progress=progress, base=base)
+    path = args.out / f"checkpoint_{RESIDUAL}.eqx"
+    result = train(data, poses, residual_options, checkpoint=path, progress=progress)
+    models[RESIDUAL], _, state = load_model(path)
+    trained[RESIDUAL] = {
+        "steps": result.step,
+        "minutes": result.seconds / 60,
+        "parameters": parameter_count(models[RESIDUAL]),
+        "final_train_error_mm": state["history"][-1]["error_mm"],
+        "history": state["history"],
+        "options": residual_options.to_dict(),
+    }
+    print(f"{RESIDUAL}: {result.step} steps in {result.seconds / 60:.1f} min")
+    del data, base
+
     # -- evaluation on held-out heads ------------------------------------------------------------
     part_names = dataset.head.part_names
-    test: dict = {name: {} for name in (*MODELS, "deformation_transfer")}
-    pen: dict = {name: [] for name in (*MODELS, "ground_truth")}
-    examples = {}
+    methods = (*BASELINES, *models)
+    test: dict = {name: {} for name in methods if name != "no_motion"}
+    pen: dict = {name: [] for name in (*models, "ground_truth")}
+    examples, heldout_predictions, heldout_truth = {}, {name: [] for name in methods}, []
     for split in SPLITS:
         truth_all, unit_scale = [], []
         predicted_all = {name: [] for name in test}
@@ -124,13 +182,21 @@ def main(argv=None):
             unit, operators, _, scale = head_inputs(head.vertices, head.faces, k=options.k)
             truth_all.append(head.displacements)
             unit_scale.append(scale)
+            correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
+            transferred = transfer_poses(dataset, head, correspondence)
+            predicted_all["deformation_transfer"].append(transferred)
+            predicted_all["copy_deltas"].append(copy_poses(dataset, head, correspondence))
             for name, model in models.items():
                 generated = generate_rig(
-                    model, poses, head.vertices, head.faces, operators=operators
+                    model,
+                    poses,
+                    head.vertices,
+                    head.faces,
+                    operators=operators,
+                    base=transferred if model.residual else None,
                 )
                 predicted_all[name].append(generated.displacements)
                 pen[name].append(penetration(head, generated.displacements, part_names))
-            predicted_all["deformation_transfer"].append(transfer_poses(dataset, head))
             pen["ground_truth"].append(penetration(head, head.displacements, part_names))
             examples.setdefault(split, (head, {n: p[-1] for n, p in predicted_all.items()}))
             print(f"evaluated {head.name}")
@@ -147,6 +213,21 @@ def main(argv=None):
                 "q95_unit_sphere_x1000": unit["q95_mm"],
                 "heads": len(predictions),
             }
+        if split == HELDOUT_SPLIT:
+            heldout_truth = truth_all
+            heldout_predictions = {"no_motion": [np.zeros_like(t) for t in truth_all]}
+            heldout_predictions.update(predicted_all)
+    heldout = {
+        name: class_errors(p, heldout_truth, poses) for name, p in heldout_predictions.items()
+    }
+    worst = {
+        name: worst_poses(p, heldout_truth, poses, 5) for name, p in heldout_predictions.items()
+    }
+
+    # -- MakeHuman hm08 against its person-made targets (evaluation only) -----------------
+    makehuman, makehuman_info, makehuman_example = evaluate_makehuman(
+        dataset, models, args.data_dir
+    )
 
     # -- rig generation time, ~1,750 vertices -------------------------------------------------
     model = models["raf"]
@@ -194,6 +275,16 @@ def main(argv=None):
             },
             "options": options.to_dict(),
         },
+        "heldout": heldout,
+        "heldout_protocol": {
+            "split": HELDOUT_SPLIT,
+            "heads": len(heldout_truth),
+            "static_mm": STATIC_MM,
+            "static": "a (pose, vertex) pair whose ground-truth displacement is < static_mm",
+        },
+        "worst_poses": worst,
+        "makehuman": makehuman,
+        "makehuman_protocol": makehuman_info,
         "test": test,
         "penetration": {name: float(np.mean(v)) for name, v in pen.items()},
         "rig_seconds": rig_seconds,
@@ -208,7 +299,98 @@ def main(argv=None):
     write_results(args.out, results)
     plot_history(trained, args.out / "training_loss.png")
     for split, (head, predictions) in examples.items():
-        plot_poses(head, predictions, poses, args.out / f"poses_{split}.png")
+        skin = head.parts <= 1
+        plot_poses(
+            head.vertices,
+            head.faces[skin[head.faces].all(axis=1)],
+            head.displacements,
+            predictions,
+            poses.labels,
+            args.out / f"poses_{split}.png",
+        )
+    mh, truth, predictions, labels = makehuman_example
+    plot_poses(
+        mh.neutral,
+        mh.faces[mh.skin[mh.faces].all(axis=1)],
+        truth,
+        predictions,
+        labels,
+        args.out / "makehuman.png",
+    )
+
+
+def cached_transfer(dataset, head, cache: Path | None, seed: int) -> np.ndarray:
+    """``transfer_poses`` of one training head, kept in ``cache`` when given."""
+    path = None
+    if cache is not None:
+        cache.mkdir(parents=True, exist_ok=True)
+        path = cache / f"dt_seed{seed}_{head.name.replace('/', '_')}.npy"
+        if path.exists():
+            stored = np.load(path, allow_pickle=False)
+            if stored.shape == head.displacements.shape:
+                return stored
+    transferred = transfer_poses(dataset, head).astype(np.float32)
+    if path is not None:
+        np.save(path, transferred, allow_pickle=False)
+    return transferred
+
+
+def evaluate_makehuman(dataset, models: dict, data_dir) -> tuple[dict, dict, tuple]:
+    """Every method on the MakeHuman head over the shapes it shares with ICT."""
+    mh = load_makehuman(data_dir)
+    poses = dataset.poses
+    start = time.perf_counter()
+    landmarks, fit = fit_head_landmarks(dataset, mh.neutral, mh.faces, region=mh.skin)
+    correspondence = head_correspondence(dataset, mh.neutral, mh.faces, landmarks)
+    seconds_correspondence = time.perf_counter() - start
+    start = time.perf_counter()
+    transferred = transfer_poses(dataset, mh, correspondence)
+    seconds_transfer = time.perf_counter() - start
+    predictions = {
+        "no_motion": np.zeros_like(transferred),
+        "copy_deltas": copy_poses(dataset, mh, correspondence),
+        "deformation_transfer": transferred,
+    }
+    for name, model in models.items():
+        predictions[name] = generate_rig(
+            model, poses, mh.neutral, mh.faces, base=transferred if model.residual else None
+        ).displacements
+    target_index, matrix = shared_shape_matrix(poses.basis_names, mh.names)
+    truth = mh.deltas[target_index]
+    singles = {
+        name: np.einsum("sk,kvd->svd", matrix, p[: poses.n_basis])
+        for name, p in predictions.items()
+    }
+    results = {name: sculpted_target_errors(p, truth, mh.skin) for name, p in singles.items()}
+    # which ICT part each MakeHuman component was matched to (majority of its vertices)
+    source_face = correspondence.vertex_map.triangle
+    source_part = np.searchsorted(
+        dataset.head.part_vertex_range[:, 1], dataset.head.faces[source_face, 0], side="right"
+    )
+    matched = {}
+    for label in np.unique(mh.component_labels):
+        parts = source_part[mh.component_labels == label]
+        matched[f"component_{int(label)} ({int(np.sum(mh.component_labels == label))} v)"] = str(
+            dataset.head.part_names[np.bincount(parts).argmax()]
+        )
+    info = {
+        "vertices": int(mh.neutral.shape[0]),
+        "shared_shapes": len(target_index),
+        "units": "decimetres x 10 -> cm",
+        "alignment": "trimmed-ICP similarity of the ICT face part (90 % of pairs kept; start: "
+        "identity rotation, nose tips together), ICT's 68 landmarks snapped to the skin",
+        "fit_scale": fit.scale,
+        "fit_trimmed_rms_cm": fit.rms,
+        "fit_iterations": fit.iterations,
+        "matched_parts": matched,
+        "skin": "largest component",
+        "active_mm": ACTIVE_MM,
+        "seconds_landmarks_and_correspondence": seconds_correspondence,
+        "seconds_deformation_transfer": seconds_transfer,
+    }
+    labels = [mh.names[i] for i in target_index]
+    example = (mh, truth, {k: v for k, v in singles.items() if k != "no_motion"}, labels)
+    return results, info, example
 
 
 def rig_timing(model, poses, head, repeats: int = 9) -> dict:
@@ -261,7 +443,8 @@ def write_results(out: Path, results: dict) -> None:
 
 
 def table(r: dict) -> str:
-    rows = [
+    rows = heldout_table(r) if "heldout" in r else []
+    rows += [
         "## Table 1 analog: held-out identities, vertex error in mm",
         "",
         "ICT cm -> mm; in brackets the same on heads normalised to the unit sphere, x 1000.",
@@ -314,6 +497,54 @@ def table(r: dict) -> str:
     return "\n".join(rows) + "\n"
 
 
+def heldout_table(r: dict) -> list[str]:
+    p = r["heldout_protocol"]
+    rows = [
+        f"## Held-out ICT identities ({p['heads']} heads, {p['split']}): vertex error in mm",
+        "",
+        f"Static: a (pose, vertex) pair whose ground-truth displacement is < {p['static_mm']} "
+        "mm; moving: the others.",
+        "",
+        "| method | single MAE | single q95 | single static | single moving | "
+        "combinations MAE | comb. q95 | comb. static | comb. moving |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, subsets in r["heldout"].items():
+        cells = [
+            f"{subsets[s][k]:.3f}"
+            for s in ("single", "combinations")
+            for k in ("mae_mm", "q95_mm", "static_mae_mm", "moving_mae_mm")
+        ]
+        rows.append(f"| {name} | " + " | ".join(cells) + " |")
+    rows += ["", "Worst five poses (MAE, mm):", "", "| method | worst poses |", "|---|---|"]
+    for name, worst in r["worst_poses"].items():
+        rows.append(
+            f"| {name} | " + ", ".join(f"{w['pose']} {w['mae_mm']:.2f}" for w in worst) + " |"
+        )
+    m = r["makehuman_protocol"]
+    rows += [
+        "",
+        f"## MakeHuman hm08 ({m['vertices']} vertices) against its person-made ARKit targets "
+        f"({m['shared_shapes']} shapes shared with ICT), mm",
+        "",
+        f"Active: (shape, vertex) pairs the sculptor moved by more than {m['active_mm']} mm. "
+        f"Alignment: {m['alignment']} (scale {m['fit_scale']:.3f}, trimmed RMS "
+        f"{m['fit_trimmed_rms_cm'] * 10:.2f} mm). Evaluation only: nothing trained or tuned on "
+        "it.",
+        "",
+        "| method | MAE skin | q95 skin | MAE active | amplitude ratio (median) |",
+        "|---|---|---|---|---|",
+    ]
+    for name, e in r["makehuman"].items():
+        rows.append(
+            f"| {name} | {e['skin_mae_mm']:.3f} | {e['skin_q95_mm']:.2f} | "
+            f"{e['active_mae_mm']:.2f} | {e['amplitude_ratio_median']:.2f} |"
+        )
+    matched = ", ".join(f"{k} -> {v}" for k, v in m["matched_parts"].items())
+    rows += ["", f"Part matching (MakeHuman component -> ICT part): {matched}.", ""]
+    return rows
+
+
 def plot_history(trained: dict, path: Path) -> None:
     fig, ax = plt.subplots(figsize=(6, 3.5))
     for name, t in trained.items():
@@ -326,29 +557,27 @@ def plot_history(trained: dict, path: Path) -> None:
     save_figure(fig, path)
 
 
-def plot_poses(head, predictions: dict, poses, path: Path, n_poses: int = 4) -> None:
+def plot_poses(vertices, faces, truth, predictions: dict, labels, path: Path, n_poses=4):
     """Ground truth and each method's prediction for the poses that move most, coloured by
-    error (0-5 mm; ground truth coloured by displacement)."""
-    size = np.linalg.norm(head.displacements, axis=-1).mean(axis=1)
+    error (0-5 mm; ground truth coloured by displacement), on ``faces`` (e.g. the skin)."""
+    size = np.linalg.norm(truth, axis=-1).mean(axis=1)
     chosen = np.argsort(-size)[:n_poses]
     columns = ["ground_truth", *predictions]
     fig, axes = plt.subplots(n_poses, len(columns), figsize=(3 * len(columns), 3.2 * n_poses))
-    skin = head.parts <= 1
-    faces = head.faces[skin[head.faces].all(axis=1)]
     for row, p in enumerate(chosen):
         for col, name in enumerate(columns):
-            displaced = head.displacements[p] if name == "ground_truth" else predictions[name][p]
+            displaced = truth[p] if name == "ground_truth" else predictions[name][p]
             if name == "ground_truth":
-                values = np.linalg.norm(head.displacements[p], axis=-1) * CM_TO_MM
+                values = np.linalg.norm(truth[p], axis=-1) * CM_TO_MM
             else:
-                values = np.linalg.norm(displaced - head.displacements[p], axis=-1) * CM_TO_MM
+                values = np.linalg.norm(displaced - truth[p], axis=-1) * CM_TO_MM
             mappable = plot_vertex_scalar(
                 axes[row, col],
-                head.vertices + displaced,
+                vertices + displaced,
                 faces,
                 values,
                 vmax=5.0,
-                title=f"{name}\n{poses.labels[p]}" if row == 0 or col == 0 else None,
+                title=f"{name}\n{labels[p]}" if row == 0 or col == 0 else None,
             )
     fig.colorbar(
         mappable, ax=axes, shrink=0.5, label="mm (ground truth: displacement; others: error)"

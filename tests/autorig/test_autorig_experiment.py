@@ -22,6 +22,31 @@ def test_quick_experiment_writes_the_issue_keys(tmp_path):
         for split in ("same_topology", "unseen_topology"):
             stats = results["test"][method][split]
             assert 0 < stats["mae_mm"] < stats["q95_mm"]
+    # issue 19's keys: held-out errors by pose class and vertex class, MakeHuman
+    methods = {
+        "no_motion",
+        "copy_deltas",
+        "deformation_transfer",
+        "raf",
+        "raf_no_global_encoder",
+        "raf_dt_residual",
+    }
+    assert set(results["heldout"]) == methods == set(results["makehuman"])
+    for method, subsets in results["heldout"].items():
+        assert set(subsets) == {"single", "combinations"}
+        for s in subsets.values():
+            assert {"mae_mm", "q95_mm", "static_mae_mm", "moving_mae_mm"} <= set(s)
+            f = s["static_fraction"]
+            assert abs(f * s["static_mae_mm"] + (1 - f) * s["moving_mae_mm"] - s["mae_mm"]) < 1e-6
+        assert len(results["worst_poses"][method]) == 5
+    assert results["heldout"]["no_motion"]["single"]["static_mae_mm"] < 0.01
+    for e in results["makehuman"].values():
+        assert set(e) == {"skin_mae_mm", "skin_q95_mm", "active_mae_mm", "amplitude_ratio_median"}
+    assert results["makehuman"]["no_motion"]["amplitude_ratio_median"] == 0
+    assert results["makehuman_protocol"]["shared_shapes"] == 51
+    # the residual model starts at deformation transfer and trains 20 steps in quick mode
+    dt, residual = results["heldout"]["deformation_transfer"], results["heldout"]["raf_dt_residual"]
+    assert abs(residual["single"]["mae_mm"] / dt["single"]["mae_mm"] - 1) < 0.5
     assert set(results["penetration"]) >= {"raf", "raf_no_global_encoder"}
     assert all(0 <= v <= 1 for v in results["penetration"].values())
     assert results["rig_seconds"]["cold"] > results["rig_seconds"]["warm"] > 0
@@ -46,5 +71,6 @@ def test_quick_experiment_writes_the_issue_keys(tmp_path):
         "training_loss.png",
         "poses_unseen_topology.png",
         "rig.glb",
+        "makehuman.png",
     ):
         assert (tmp_path / name).exists()

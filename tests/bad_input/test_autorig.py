@@ -19,7 +19,7 @@ from canrig_jax.autorig import (
     quartic_pose_set,
 )
 from canrig_jax.data import load_mediapipe_face
-from canrig_jax.mesh import mesh_operators
+from canrig_jax.mesh import fit_landmarks, mesh_operators
 from canrig_jax.rig import BlendshapeRig, Corrective
 
 from .conftest import handled, raises, run_case
@@ -88,6 +88,27 @@ GENERATE_RIG = [
         lambda c: _generate(c, memory_budget=1000),
         ValueError,
         "memory_budget",
+    ),
+    raises(
+        "base-for-a-plain-model",
+        lambda c: _generate(c, base=np.zeros((c.poses.n_poses, c.face.neutral.shape[0], 3))),
+        ValueError,
+        "base",
+    ),
+    raises("unknown-loss", lambda c: TrainOptions(loss="l3"), ValueError, "loss"),
+    raises(
+        "negative-static-weight",
+        lambda c: TrainOptions(static_weight=-1.0),
+        ValueError,
+        "static_weight",
+    ),
+    raises(
+        "head-in-metres",
+        lambda c: fit_landmarks(
+            c.face.neutral, np.arange(10), np.ones(468, bool), c.face.neutral / 100, c.face.faces
+        ),
+        ValueError,
+        "target_vertices",
     ),
     raises(
         "operators-of-another-mesh",

@@ -4,6 +4,9 @@ from ._data import (
     AutorigDataset,
     PoseSet,
     RiggedHead,
+    copy_poses,
+    fit_head_landmarks,
+    head_correspondence,
     head_rig,
     ict_autorig_dataset,
     make_head,
@@ -18,7 +21,18 @@ from ._diffusion import (
     spectral_diffusion_and_gradient,
 )
 from ._diffusion_net import DiffusionNet, DiffusionNetBlock, SpatialGradientFeatures
+from ._evaluation import (
+    ACTIVE_MM,
+    STATIC_MM,
+    class_errors,
+    pose_classes,
+    sculpted_target_errors,
+    shared_shape_matrix,
+    static_mask,
+    worst_poses,
+)
 from ._features import heat_kernel_signature, hks_times, mass_weighted_mean
+from ._makehuman import MakeHumanHead, load_makehuman
 from ._metrics import error_stats, outside_fraction, penetration, winding_numbers
 from ._model import ConditionalBlock, RigAnyFace, normalise
 from ._rig import (
@@ -30,16 +44,33 @@ from ._rig import (
     rig_from_poses,
 )
 from ._train import (
+    STATIC_CM,
     TrainOptions,
     TrainResult,
     head_inputs,
     load_model,
     make_model,
+    static_vertex_error,
     train,
     training_set,
 )
 
 __all__ = [
+    "ACTIVE_MM",
+    "MakeHumanHead",
+    "load_makehuman",
+    "STATIC_CM",
+    "STATIC_MM",
+    "class_errors",
+    "copy_poses",
+    "fit_head_landmarks",
+    "head_correspondence",
+    "pose_classes",
+    "sculpted_target_errors",
+    "shared_shape_matrix",
+    "static_mask",
+    "static_vertex_error",
+    "worst_poses",
     "DEFAULT_POSE_CHUNK",
     "head_inputs",
     "head_rig",

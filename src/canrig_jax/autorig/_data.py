@@ -24,7 +24,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..data import ICTFaceModel, ict_identity, load_ict
-from ..mesh import Remeshed, closest_point_correspondence, decimate, subdivide
+from ..mesh import (
+    Remeshed,
+    closest_point_correspondence,
+    decimate,
+    similarity_transform,
+    subdivide,
+)
 from ..rig import BlendshapeRig, deformation_transfer, evaluate_batch
 
 
@@ -318,19 +324,66 @@ def ict_autorig_dataset(
     )
 
 
-def transfer_poses(dataset: AutorigDataset, head: RiggedHead) -> np.ndarray:
+def fit_head_landmarks(
+    dataset: AutorigDataset, vertices, faces, *, region=None
+) -> tuple[np.ndarray, object]:
+    """The ICT Multi-PIE landmarks placed on a new head with no hand-picked vertices: the
+    ICT face part fitted to the head by a trimmed-ICP similarity
+    (``canrig_jax.mesh.fit_landmarks``; the head in centimetres, y up, facing +z), each
+    landmark snapped to the nearest head vertex (of ``region``, e.g. the skin, when given).
+
+    Returns ((68,) vertex indices, the ``SimilarityFit``)."""
+    from ..mesh import fit_landmarks
+
+    head = dataset.head
+    face = vertex_parts(head) == list(head.part_names).index("Face")
+    return fit_landmarks(
+        head.neutral, head.landmarks, face, vertices, faces, target_region=region
+    )
+
+
+def head_correspondence(dataset: AutorigDataset, vertices, faces, landmarks):
+    """The correspondence of the generic ICT head (``dataset.head``) with a new head
+    (``closest_point_correspondence``: landmark similarity, thin-plate warp, component
+    matching, closest points). ``landmarks``: (68,) vertices of the ICT Multi-PIE landmarks
+    on the new head (``canrig_jax.mesh.fit_landmarks`` finds them)."""
+    source = dataset.head
+    return closest_point_correspondence(
+        source.neutral, source.faces, vertices, faces, source.landmarks, landmarks
+    )
+
+
+def transfer_poses(dataset: AutorigDataset, head, correspondence=None) -> np.ndarray:
     """The deformation-transfer baseline: every ground-truth pose of the generic ICT head
     carried onto ``head`` (Sumner & Popović; landmark + closest-point correspondence).
+
+    Args:
+        head: a ``RiggedHead``, or any head with ``vertices``, ``faces`` and ``landmarks``.
+        correspondence: a precomputed ``head_correspondence`` (else computed here).
 
     Returns (P, V, 3) displacements on ``head`` (centimetres)."""
     source = dataset.head
     source_rig = BlendshapeRig(
         source.neutral, dataset.head_displacements, (), dataset.poses.labels, source.faces
     )
-    correspondence = closest_point_correspondence(
-        source.neutral, source.faces, head.vertices, head.faces, source.landmarks, head.landmarks
-    )
+    if correspondence is None:
+        correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # "correctives are not transferred": there are none
         transferred = deformation_transfer(source_rig, head.vertices, correspondence)
     return np.asarray(transferred.deltas)
+
+
+def copy_poses(dataset: AutorigDataset, head, correspondence=None) -> np.ndarray:
+    """The copy baseline: every ground-truth pose of the generic ICT head sampled at the
+    corresponding surface point of each ``head`` vertex (no deformation-gradient solve),
+    rotated into the head's orientation (the similarity of the carried ICT neutral onto the
+    head; no scaling). (P, V, 3) displacements, centimetres."""
+    if correspondence is None:
+        correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
+    carried = correspondence.vertex_map.carry(dataset.head_displacements.astype(np.float64))
+    _, rotation, _ = similarity_transform(
+        correspondence.vertex_map.carry(dataset.head.neutral.astype(np.float64)),
+        np.asarray(head.vertices, np.float64),
+    )
+    return (carried @ rotation.T).astype(np.float32)

@@ -11,6 +11,11 @@ Given a neutral head normalised to the unit sphere (``normalise``) and its ``Mes
   vertices, and refined by a small MLP: y + W_2 relu(W_y y + W_c c + b);
 * a linear out to a per-vertex displacement d_i (unit-sphere units, times ``output_scale``).
 
+With ``residual=True`` (beyond the paper: "DT + learned residual") the model is given a base
+displacement of every pose (deformation transfer from the ICT head, ``transfer_poses``),
+feeds it to the first fusion as a per-vertex, per-pose feature, and returns base + correction.
+The output layer starts at zero, so the untrained model returns the base exactly.
+
 All poses of a head go through one call as (V, P, C) features, so diffusion and the spatial
 gradients act on all poses in one matrix product (optionally over chunks of ``pose_chunk``
 poses, which keeps the activations in a CPU's cache); ``generate_rig`` turns the predictions
@@ -97,6 +102,8 @@ class RigAnyFace(eqx.Module):
         method: diffusion discretisation, "spectral" (needs eigenpairs) or "implicit".
         output_scale: the network's raw output is multiplied by this (unit-sphere units),
             so its last layer works at O(1) values.
+        residual: predict a correction on top of a given base displacement (call with
+            ``base=``); the correction is exactly zero at initialisation.
         key: PRNG key (keyword-only).
     """
 
@@ -105,9 +112,11 @@ class RigAnyFace(eqx.Module):
     shared: tuple[DiffusionNetBlock, ...]
     conditional: tuple[ConditionalBlock, ...]
     last: eqx.nn.Linear
+    base_in: eqx.nn.Linear | None
     n_pose_inputs: int = eqx.field(static=True)
     global_size: int = eqx.field(static=True)
     output_scale: float = eqx.field(static=True)
+    residual: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -120,6 +129,7 @@ class RigAnyFace(eqx.Module):
         global_width: int = 32,
         method: str = "spectral",
         output_scale: float = 0.01,
+        residual: bool = False,
         key: PRNGKeyArray,
     ):
         for name, value in (("n_pose_inputs", n_pose_inputs), ("width", width)):
@@ -153,6 +163,17 @@ class RigAnyFace(eqx.Module):
             for k in jax.random.split(k_cond, n_conditional)
         )
         self.last = eqx.nn.Linear(width, 3, key=k_last)
+        self.base_in = None
+        if residual:
+            k_last, k_base = jax.random.split(k_last)
+            self.last = eqx.nn.Linear(width, 3, key=k_last)
+            self.last = eqx.tree_at(
+                lambda m: (m.weight, m.bias),
+                self.last,
+                (jnp.zeros_like(self.last.weight), jnp.zeros_like(self.last.bias)),
+            )
+            self.base_in = eqx.nn.Linear(3, width, use_bias=False, key=k_base)
+        self.residual = bool(residual)
         self.n_pose_inputs = int(n_pose_inputs)
         self.global_size = int(global_size)
         self.output_scale = float(output_scale)
@@ -171,9 +192,13 @@ class RigAnyFace(eqx.Module):
         vertices: Float[Array, "V 3"],
         operators: MeshOperators,
         *,
+        base: Float[Array, "P V 3"] | None = None,
         pose_chunk: int | None = None,
     ) -> Float[Array, "P V 3"]:
         """Displacements (unit-sphere units) of every vertex for every pose vector.
+
+        ``base``: (P, V, 3) base displacements (unit-sphere units), required by a residual
+        model (its output is base + correction) and refused by a plain one.
 
         ``pose_chunk``: poses per pass through the conditional blocks (``lax.map`` over
         chunks; ``None``: all at once). The same function; on a CPU chunks of ~16 poses keep
@@ -195,6 +220,16 @@ class RigAnyFace(eqx.Module):
                 f"vertices: expected shape ({n_vertices}, 3) to match the operators, "
                 f"got {jnp.shape(vertices)}"
             )
+        if self.residual != (base is not None):
+            raise ValueError(
+                "base: a residual model needs the base displacements (P, V, 3), a plain model "
+                f"takes none (residual={self.residual}, base given: {base is not None})"
+            )
+        if base is not None and jnp.shape(base) != (jnp.shape(poses)[0], n_vertices, 3):
+            raise ValueError(
+                f"base: expected shape ({jnp.shape(poses)[0]}, {n_vertices}, 3), "
+                f"got {jnp.shape(base)}"
+            )
         mask = operators.vertex_mask[:, None]
         code = self.global_code(vertices, operators)
         x = per_vertex(self.first, input_features(vertices, operators)) * mask
@@ -207,18 +242,34 @@ class RigAnyFace(eqx.Module):
         first, *rest = self.conditional
         y = first.block(x, operators)  # shared by all poses until the first fusion
 
-        def displacements(chunk):  # (p, D) conditions -> (p, V, 3)
+        if base is None:
+            base = jnp.zeros((n_poses, 0, 3), x.dtype)  # a placeholder the plain model ignores
+
+        def displacements(args):  # (p, D) conditions, (p, V, 3) base -> (p, V, 3)
+            chunk, chunk_base = args
             z = first.fuse(y, chunk, operators)
+            if self.base_in is not None:
+                scaled = jnp.swapaxes(chunk_base, 0, 1) / self.output_scale  # (V, p, 3)
+                z = z + per_vertex(self.base_in, scaled) * mask[:, None]
             for block in rest:
                 z = block(z, chunk, operators)
             out = per_vertex(self.last, z) * mask[:, None] * self.output_scale
-            return jnp.swapaxes(out, 0, 1)
+            out = jnp.swapaxes(out, 0, 1)
+            return out + chunk_base if self.base_in is not None else out
 
         if pose_chunk is None or n_poses <= pose_chunk:
-            return displacements(conditions)
+            return displacements((conditions, base))
         n_chunks = -(-n_poses // pose_chunk)
-        padded = jnp.pad(conditions, ((0, n_chunks * pose_chunk - n_poses), (0, 0)))
-        out = jax.lax.map(displacements, padded.reshape(n_chunks, pose_chunk, -1))
+        pad = n_chunks * pose_chunk - n_poses
+        padded = jnp.pad(conditions, ((0, pad), (0, 0)))
+        padded_base = jnp.pad(base, ((0, pad), (0, 0), (0, 0)))
+        out = jax.lax.map(
+            displacements,
+            (
+                padded.reshape(n_chunks, pose_chunk, -1),
+                padded_base.reshape(n_chunks, pose_chunk, *base.shape[1:]),
+            ),
+        )
         return out.reshape(n_chunks * pose_chunk, n_vertices, 3)[:n_poses]
 
 

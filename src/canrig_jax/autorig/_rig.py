@@ -40,10 +40,11 @@ DEFAULT_POSE_CHUNK = 16
 
 
 @eqx.filter_jit
-def predict_displacements(model, poses, vertices, operators, pose_chunk=None):
+def predict_displacements(model, poses, vertices, operators, pose_chunk=None, base=None):
     """The jitted forward pass ``model(poses, vertices, operators)``: (P, V, 3) displacements
-    of every pose (no validation; ``generate_rig`` is the checked entry point)."""
-    return model(poses, vertices, operators, pose_chunk=pose_chunk)
+    of every pose (no validation; ``generate_rig`` is the checked entry point). ``base``:
+    a residual model's base displacements (unit-sphere units)."""
+    return model(poses, vertices, operators, base=base, pose_chunk=pose_chunk)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,6 +119,7 @@ def generate_rig(
     memory_budget: int = DEFAULT_MEMORY_BUDGET,
     bucket: int = 256,
     pose_chunk: int | None = DEFAULT_POSE_CHUNK,
+    base=None,
 ) -> GeneratedRig:
     """Build the rig of a neutral head (any triangulation, any number of parts).
 
@@ -133,6 +135,8 @@ def generate_rig(
             similar size share one compiled network (padding does not change the result).
         pose_chunk: poses per pass through the network's conditional blocks (``None``: all
             at once); the result does not depend on it, the speed and memory do.
+        base: only for a residual model ("DT + learned residual"): (P, V, 3) base
+            displacements of every pose in the head's units (``transfer_poses``).
 
     Raises ValueError for a head without faces, non-finite or ill-shaped input, a pose set
     that does not match the model, or a head too large for ``memory_budget``.
@@ -152,6 +156,20 @@ def generate_rig(
         )
     if pose_chunk is not None and pose_chunk < 1:
         raise ValueError(f"pose_chunk: expected a positive number of poses, got {pose_chunk}")
+    if model.residual:
+        if base is None:
+            raise ValueError(
+                "base: this model predicts a correction on top of deformation transfer; pass "
+                "the head's transferred poses (P, V, 3) in its units (transfer_poses)"
+            )
+        base = np.asarray(base, np.float64)
+        if base.shape != (poses.n_poses, vertices.shape[0], 3) or not np.all(np.isfinite(base)):
+            raise ValueError(
+                f"base: expected finite displacements of shape "
+                f"({poses.n_poses}, {vertices.shape[0]}, 3), got {base.shape}"
+            )
+    elif base is not None:
+        raise ValueError("base: only a residual model takes base displacements")
     per_pass = poses.n_poses if pose_chunk is None else min(pose_chunk, poses.n_poses)
     needed = activation_bytes(model, vertices.shape[0], per_pass, k)
     if needed > memory_budget:
@@ -172,8 +190,18 @@ def generate_rig(
     padded = pad_to_bucket(operators, bucket)
     unit_padded = np.zeros((padded.n_vertices, 3), np.float32)
     unit_padded[: unit.shape[0]] = unit
+    base_padded = None
+    if base is not None:
+        base_padded = np.zeros((poses.n_poses, padded.n_vertices, 3), np.float32)
+        base_padded[:, : unit.shape[0]] = base / scale
+        base_padded = jnp.asarray(base_padded)
     predicted = predict_displacements(
-        model, jnp.asarray(poses.vectors()), jnp.asarray(unit_padded), padded, pose_chunk
+        model,
+        jnp.asarray(poses.vectors()),
+        jnp.asarray(unit_padded),
+        padded,
+        pose_chunk,
+        base_padded,
     )
     predicted = np.asarray(jax.block_until_ready(predicted), np.float64)[:, : unit.shape[0]]
     predicted = predicted * scale

@@ -1,8 +1,14 @@
 """Training RigAnyFace with 3D supervision (the paper's stage 2).
 
-Loss on heads normalised to the unit sphere: the mean squared vertex error over the poses of
-a batch plus ``landmark_weight`` times the same on the 68 landmark vertices, both divided by
-the training set's mean squared displacement (so the loss starts near 1 whatever the units).
+Loss on heads normalised to the unit sphere, ``loss="squared"`` (the first recipe): the mean
+squared vertex error over the poses of a batch plus ``landmark_weight`` times the same on the
+68 landmark vertices, both divided by the training set's mean squared displacement (so the
+loss starts near 1 whatever the units). ``loss="euclidean"``: the same with the per-vertex
+Euclidean distance (divided by the root of that mean square), plus ``static_weight`` times
+``static_vertex_error``, the mean length of the predicted motion of vertices whose ground
+truth does not move (below ``STATIC_CM``) — the term that keeps eyeballs and the back of the
+head still. ``residual=True`` trains the "DT + learned residual" model (``RigAnyFace``): the
+training set then carries each head's deformation-transfer poses as the base.
 Adam with linear warm-up and cosine decay (optax). Each step draws ``heads_per_step`` heads
 and ``poses_per_step`` of their poses from ``numpy.random.default_rng([seed, step])``, so a
 run resumed from its checkpoint (one file, written atomically) draws the same batches and
@@ -34,6 +40,9 @@ from ._data import PoseSet, RiggedHead
 from ._model import RigAnyFace, normalise
 
 CHECKPOINT_FORMAT = "riganyface-checkpoint-1"
+LOSSES = ("squared", "euclidean")
+STATIC_CM = 0.001
+"""A vertex is static in a pose when its ground-truth displacement is below 0.01 mm."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,8 +64,15 @@ class TrainOptions:
     seed: int = 0
     checkpoint_every: int = 200
     log_every: int = 20
+    loss: str = "squared"
+    static_weight: float = 0.0
+    residual: bool = False
 
     def __post_init__(self):
+        if self.loss not in LOSSES:
+            raise ValueError(f"loss: expected one of {LOSSES}, got {self.loss!r}")
+        if not self.static_weight >= 0:
+            raise ValueError(f"static_weight: expected >= 0, got {self.static_weight}")
         if not self.learning_rate > 0:
             raise ValueError(f"learning_rate: expected > 0, got {self.learning_rate}")
         if self.steps < 1 or self.warmup_steps < 0 or self.warmup_steps >= self.steps:
@@ -81,6 +97,7 @@ def make_model(options: TrainOptions, n_pose_inputs: int, output_scale: float) -
         global_width=options.global_width,
         method=options.method,
         output_scale=output_scale,
+        residual=options.residual,
         key=jax.random.PRNGKey(options.seed),
     )
 
@@ -105,6 +122,8 @@ class TrainingSet(eqx.Module):
         vertices: (N, V, 3); displacements: (N, P, V, 3); operators: stacked (N, ...).
         landmarks: (N, L) landmark vertices; poses: (P, A) pose vectors.
         scale: (N,) each head's normalisation scale (its units per unit-sphere unit).
+        base: (N, P, V, 3) base displacements of a residual model (deformation transfer),
+            or None.
     """
 
     vertices: Float[Array, "N V 3"]
@@ -113,6 +132,7 @@ class TrainingSet(eqx.Module):
     landmarks: Int[Array, "N L"]
     poses: Float[Array, "P A"]
     scale: Float[Array, " N"]
+    base: Float[Array, "N P V 3"] | None = None
 
     @property
     def n_heads(self) -> int:
@@ -128,18 +148,35 @@ def head_inputs(
 
 
 def training_set(
-    heads: list[RiggedHead], poses: PoseSet, *, k: int, cache=None, progress: bool = True
+    heads: list[RiggedHead],
+    poses: PoseSet,
+    *,
+    k: int,
+    cache=None,
+    progress: bool = True,
+    base: list[np.ndarray] | None = None,
 ) -> TrainingSet:
-    """Normalise, compute (cached) operators and stack ``heads`` for training."""
+    """Normalise, compute (cached) operators and stack ``heads`` for training.
+
+    ``base``: for a residual model, each head's (P, V, 3) base displacements in the head's
+    units (``transfer_poses``)."""
     if not heads:
         raise ValueError("heads: expected at least one head")
+    if base is not None:
+        if len(base) != len(heads):
+            raise ValueError(f"base: {len(base)} arrays for {len(heads)} heads")
+        for head, b in zip(heads, base, strict=True):
+            if np.shape(b) != head.displacements.shape:
+                raise ValueError(
+                    f"base: {head.name} needs shape {head.displacements.shape}, got {np.shape(b)}"
+                )
     iterator = heads
     if progress:
         from tqdm.auto import tqdm
 
         iterator = tqdm(heads, desc="operators", dynamic_ncols=True)
-    units, ops, displacements, scales = [], [], [], []
-    for head in iterator:
+    units, ops, displacements, scales, bases = [], [], [], [], []
+    for i, head in enumerate(iterator):
         if head.displacements.shape[0] != poses.n_poses:
             raise ValueError(
                 f"heads: {head.name} has {head.displacements.shape[0]} poses, the pose set "
@@ -150,6 +187,8 @@ def training_set(
         ops.append(operators)
         displacements.append(np.moveaxis(head.displacements / scale, 0, 1))  # (V, P, 3)
         scales.append(scale)
+        if base is not None:
+            bases.append(np.moveaxis(np.asarray(base[i]) / scale, 0, 1))
     n_vertices = max(u.shape[0] for u in units)
     return TrainingSet(
         vertices=pad_vertices(units, n_vertices),
@@ -158,6 +197,9 @@ def training_set(
         landmarks=jnp.asarray(np.stack([h.landmarks for h in heads]), jnp.int32),
         poses=jnp.asarray(poses.vectors()),
         scale=jnp.asarray(scales, jnp.float32),
+        base=None
+        if base is None
+        else jnp.moveaxis(pad_vertices(bases, n_vertices), 2, 1).astype(jnp.float32),
     )
 
 
@@ -168,28 +210,73 @@ def mean_square_displacement(data: TrainingSet) -> float:
     return float((squared * mask[:, None]).sum() / (mask.sum() * squared.shape[1]))
 
 
-def batch_loss(model: RigAnyFace, data: TrainingSet, heads, poses, landmark_weight, reference):
+def static_vertex_error(
+    predicted: Float[Array, "P V 3"],
+    truth: Float[Array, "P V 3"],
+    mask: Float[Array, " V"],
+    threshold: float | Float[Array, ""],
+) -> Float[Array, ""]:
+    """Mean length of the predicted motion at the (pose, vertex) pairs whose ground truth
+    moves less than ``threshold`` (same units), over real vertices (``mask``); 0 when there
+    are none. Zero exactly when every static vertex is predicted still."""
+    still = (jnp.linalg.norm(truth, axis=-1) < threshold) * mask[None]
+    squared = jnp.sum(predicted**2, axis=-1)
+    positive = squared > 0
+    length = jnp.where(positive, jnp.sqrt(jnp.where(positive, squared, 1.0)), 0.0)
+    return jnp.sum(length * still) / jnp.maximum(jnp.sum(still), 1.0)
+
+
+def batch_loss(
+    model: RigAnyFace,
+    data: TrainingSet,
+    heads,
+    poses,
+    landmark_weight,
+    reference,
+    loss_kind: str = "squared",
+    static_weight=0.0,
+):
     """Loss and mean vertex error (unit-sphere units) of ``heads`` (B,) x ``poses`` (B, Q)."""
 
     def one(h, pose_ids):
         ops = jax.tree.map(lambda x: x[h], data.operators)
-        predicted = model(data.poses[pose_ids], data.vertices[h], ops)  # (Q, V, 3)
-        error = predicted - data.displacements[h][pose_ids]
+        base = None if data.base is None else data.base[h][pose_ids]
+        predicted = model(data.poses[pose_ids], data.vertices[h], ops, base=base)  # (Q, V, 3)
+        truth = data.displacements[h][pose_ids]
+        error = predicted - truth
         squared = jnp.sum(error**2, axis=-1)  # (Q, V)
         mask = ops.vertex_mask
-        vertex_term = jnp.sum(squared * mask) / (jnp.sum(mask) * squared.shape[0])
-        landmark_term = jnp.mean(squared[:, data.landmarks[h]])
-        distance = jnp.sum(jnp.sqrt(squared + 1e-20) * mask) / (jnp.sum(mask) * squared.shape[0])
-        return vertex_term + landmark_weight * landmark_term, distance
+        distances = jnp.sqrt(squared + 1e-20)
+        distance = jnp.sum(distances * mask) / (jnp.sum(mask) * squared.shape[0])
+        if loss_kind == "squared":
+            vertex_term = jnp.sum(squared * mask) / (jnp.sum(mask) * squared.shape[0])
+            landmark_term = jnp.mean(squared[:, data.landmarks[h]])
+            return (vertex_term + landmark_weight * landmark_term) / reference, distance
+        root = jnp.sqrt(reference)
+        landmark_term = jnp.mean(distances[:, data.landmarks[h]])
+        static = static_vertex_error(predicted, truth, mask, STATIC_CM / data.scale[h])
+        total = distance + landmark_weight * landmark_term + static_weight * static
+        return total / root, distance
 
     loss, distance = jax.vmap(one)(heads, poses)
-    return jnp.mean(loss) / reference, jnp.mean(distance)
+    return jnp.mean(loss), jnp.mean(distance)
 
 
 @eqx.filter_jit
-def train_step(model, opt_state, data, heads, poses, optim, landmark_weight, reference):
+def train_step(
+    model,
+    opt_state,
+    data,
+    heads,
+    poses,
+    optim,
+    landmark_weight,
+    reference,
+    loss_kind="squared",
+    static_weight=0.0,
+):
     (loss, distance), grads = eqx.filter_value_and_grad(batch_loss, has_aux=True)(
-        model, data, heads, poses, landmark_weight, reference
+        model, data, heads, poses, landmark_weight, reference, loss_kind, static_weight
     )
     updates, opt_state = optim.update(grads, opt_state, eqx.filter(model, eqx.is_array))
     return eqx.apply_updates(model, updates), opt_state, loss, distance
@@ -229,6 +316,12 @@ def train(
     after that many steps (a simulated interruption, for tests)."""
     if data.poses.shape[0] != poses.n_poses:
         raise ValueError(f"data: {data.poses.shape[0]} poses, the pose set {poses.n_poses}")
+    if options.residual != (data.base is not None):
+        raise ValueError(
+            "data: a residual model trains on a training set with base displacements "
+            f"(training_set(..., base=...)); residual={options.residual}, "
+            f"base given: {data.base is not None}"
+        )
     if options.poses_per_step > poses.n_poses:
         raise ValueError(
             f"poses_per_step: {options.poses_per_step} exceeds the {poses.n_poses} poses"
@@ -266,6 +359,7 @@ def train(
             save_checkpoint(checkpoint, (model, opt_state), state, CHECKPOINT_FORMAT)
 
     landmark_weight = jnp.asarray(options.landmark_weight, jnp.float32)
+    static_weight = jnp.asarray(options.static_weight, jnp.float32)
     reference_j = jnp.asarray(reference, jnp.float32)
     mm_per_unit = float(np.mean(np.asarray(data.scale))) * CM_TO_MM
 
@@ -280,7 +374,16 @@ def train(
             ]
         )
         model, opt_state, loss, distance = train_step(
-            model, opt_state, data, heads, pose_ids, optim, landmark_weight, reference_j
+            model,
+            opt_state,
+            data,
+            heads,
+            pose_ids,
+            optim,
+            landmark_weight,
+            reference_j,
+            options.loss,
+            static_weight,
         )
         return {"loss": loss, "error_unit": distance, "error_mm": distance * mm_per_unit}
 

@@ -4,6 +4,7 @@ The layer above ``data``: it knows arrays (vertices, faces, per-vertex data) and
 rigs; ``canrig_jax.rig`` builds rigs from it."""
 
 from .._cache import mesh_fingerprint
+from ._align import SimilarityFit, fit_landmarks, similarity_icp
 from ._checks import check_mesh, check_vertices
 from ._deformation_gradient import (
     DeformationGradientBlend,
@@ -61,6 +62,8 @@ __all__ = [
     "triangle_edges",
     "vertex_adjacency",
 ]
+
+__all__ += ["SimilarityFit", "fit_landmarks", "similarity_icp"]
 
 __all__ += [
     "MeshGeometry",

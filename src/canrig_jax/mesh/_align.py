@@ -1,0 +1,159 @@
+"""Rigid alignment of a template surface to a new head: a similarity fit by trimmed ICP.
+
+``similarity_icp`` moves template points (e.g. the ICT face) onto a target mesh by
+alternating closest points on the target surface with Umeyama's least-squares similarity,
+keeping only the ``trim`` fraction of pairs with the smallest distances at each iteration
+(trimmed ICP, Chetverikov et al. 2002), so the parts of the target the template does not
+cover (scalp, neck, shoulders) do not pull it. ``fit_landmarks`` uses it to place a
+template's landmarks on a new head with no hand-picked vertices: the landmarks of the
+aligned template, each snapped to the nearest target vertex.
+
+The start is the identity rotation (both heads are assumed y up, facing +z, in the same
+units) with the frontmost points (largest z: the nose tip) put together; ``fit_landmarks``
+reports the fit's trimmed RMS distance and refuses a fit that does not converge onto the
+surface.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ._checks import check_mesh
+from ._remesh import closest_surface_points
+from ._transfer import similarity_transform
+
+
+@dataclasses.dataclass(frozen=True)
+class SimilarityFit:
+    """target ~ scale * rotation @ source + translation.
+
+    Attributes:
+        scale, rotation (3, 3), translation (3,): the similarity.
+        rms: root mean square distance of the kept (trimmed) pairs after the last iteration,
+            in the target's units.
+        iterations: iterations run.
+    """
+
+    scale: float
+    rotation: np.ndarray
+    translation: np.ndarray
+    rms: float
+    iterations: int
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        return self.scale * np.asarray(points, np.float64) @ self.rotation.T + self.translation
+
+
+def similarity_icp(
+    source_points: np.ndarray,
+    target_vertices: np.ndarray,
+    target_faces: np.ndarray,
+    *,
+    trim: float = 0.9,
+    iterations: int = 100,
+    tolerance: float = 1e-6,
+    with_scale: bool = True,
+) -> SimilarityFit:
+    """Trimmed ICP of ``source_points`` (N, 3) onto the target surface.
+
+    Args:
+        trim: fraction of closest-point pairs kept at each iteration (0 < trim <= 1).
+        iterations: at most this many alternations.
+        tolerance: stop when the kept RMS changes by less than this fraction.
+        with_scale: fit a similarity (True) or a rigid motion (scale 1).
+    """
+    points = np.asarray(source_points, np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] < 3:
+        raise ValueError(f"source_points: expected shape (N >= 3, 3), got {points.shape}")
+    if not np.all(np.isfinite(points)):
+        raise ValueError("source_points: contains non-finite values")
+    if not 0 < trim <= 1:
+        raise ValueError(f"trim: expected a fraction in (0, 1], got {trim}")
+    tv, tf = check_mesh(target_vertices, target_faces)
+    scale, rotation = 1.0, np.eye(3)
+    translation = tv[np.argmax(tv[:, 2])] - points[np.argmax(points[:, 2])]
+    keep = max(3, int(round(trim * points.shape[0])))
+    rms, previous, done = np.inf, np.inf, 0
+    for done in range(1, iterations + 1):  # noqa: B007 (reported after the loop)
+        moved = scale * points @ rotation.T + translation
+        found = closest_surface_points(moved, tv, tf)
+        closest = np.einsum("nk,nkd->nd", found.barycentric, tv[tf[found.triangle]])
+        kept = np.argsort(found.distance)[:keep]
+        rms = float(np.sqrt(np.mean(found.distance[kept] ** 2)))
+        s, rotation, translation = similarity_transform(points[kept], closest[kept])
+        scale = s if with_scale else 1.0
+        if not with_scale:
+            translation = closest[kept].mean(0) - rotation @ points[kept].mean(0)
+        if abs(previous - rms) <= tolerance * max(rms, 1e-30):
+            break
+        previous = rms
+    return SimilarityFit(float(scale), rotation, np.asarray(translation), rms, done)
+
+
+def fit_landmarks(
+    source_vertices: np.ndarray,
+    source_landmarks: np.ndarray,
+    source_region: np.ndarray,
+    target_vertices: np.ndarray,
+    target_faces: np.ndarray,
+    *,
+    target_region: np.ndarray | None = None,
+    trim: float = 0.9,
+    max_rms: float | None = None,
+    max_scale_ratio: float = 2.0,
+) -> tuple[np.ndarray, SimilarityFit]:
+    """A template's landmarks placed on a new head: trimmed-ICP similarity of the template's
+    ``source_region`` vertices onto the target, then each transformed landmark snapped to the
+    nearest target vertex (of ``target_region`` when given).
+
+    Args:
+        source_vertices: (Vs, 3) template vertices; source_landmarks: (L,) vertex indices.
+        source_region: (Vs,) bool, the template vertices fitted (e.g. the ICT face part).
+        target_vertices, target_faces: the new head (same units and orientation).
+        target_region: (V,) bool, the target vertices landmarks may land on (e.g. its skin).
+        max_rms: refuse (ValueError naming ``target_vertices``) a fit whose trimmed RMS
+            distance exceeds this (target units); default 5 % of the template region's size.
+        max_scale_ratio: refuse a fit whose scale is outside [1 / ratio, ratio]: the head is
+            then in other units than the template (e.g. metres or decimetres for cm).
+
+    Returns:
+        ((L,) target vertex indices, the ``SimilarityFit``).
+    """
+    sv = np.asarray(source_vertices, np.float64)
+    landmarks = np.asarray(source_landmarks, np.int64)
+    region = np.asarray(source_region, bool)
+    if region.shape != (sv.shape[0],) or region.sum() < 3:
+        raise ValueError(
+            f"source_region: expected a (Vs,) mask of >= 3 vertices, got shape {region.shape}"
+        )
+    if landmarks.ndim != 1 or landmarks.min() < 0 or landmarks.max() >= sv.shape[0]:
+        raise ValueError(f"source_landmarks: expected vertex indices in [0, {sv.shape[0]})")
+    tv, tf = check_mesh(target_vertices, target_faces)
+    points = sv[region]
+    if points.shape[0] > 4000:  # a regular subsample keeps the fit fast
+        points = points[:: int(np.ceil(points.shape[0] / 4000))]
+    fit = similarity_icp(points, tv, tf, trim=trim)
+    size = float(np.linalg.norm(points.max(0) - points.min(0)))
+    limit = 0.05 * size if max_rms is None else float(max_rms)
+    if not np.isfinite(fit.rms) or fit.rms > limit:
+        raise ValueError(
+            f"target_vertices: the template did not fit the head (trimmed RMS {fit.rms:.3g} > "
+            f"{limit:.3g}); check its units (same as the template) and orientation (y up, "
+            "facing +z)"
+        )
+    if not 1.0 / max_scale_ratio <= fit.scale <= max_scale_ratio:
+        raise ValueError(
+            f"target_vertices: the head is {fit.scale:.3g} times the template's size; it is "
+            "probably in other units (the template's, e.g. centimetres, expected)"
+        )
+    candidates = np.arange(tv.shape[0])
+    if target_region is not None:
+        mask = np.asarray(target_region, bool)
+        if mask.shape != (tv.shape[0],) or not mask.any():
+            raise ValueError(f"target_region: expected a non-empty (V,) mask, got {mask.shape}")
+        candidates = np.flatnonzero(mask)
+    nearest = cKDTree(tv[candidates]).query(fit.apply(sv[landmarks]))[1]
+    return candidates[nearest].astype(np.int64), fit
