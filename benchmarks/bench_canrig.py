@@ -13,9 +13,9 @@ calls, all rows in one process:
 - **dense, cached queries**: ``deform`` with the dense layout.
 - **reference: dense, uncached queries**: the same network with the queries of all 9,409
   vertices recomputed inside every call (the naive prototype).
-- **pose A to B, direct / fitted** (``workflows.pose_a_to_b``), 200 random-vertex handles,
-  2 cm: one call each (fitted: Levenberg-Marquardt with the Jacobian of the start, the
-  default, and with the exact Jacobian every step).
+- **pose A to B, direct / fitted** (``canrig.pose_a_to_b``), 200 random-vertex handles,
+  2 cm: one call each (fitted: whitened Gauss-Newton with the Jacobian of the start, the
+  default; Levenberg-Marquardt; and the exact Jacobian every step).
 - **dialogue replacement**: 22 frames batched with ``jax.vmap`` (direct), 40 mouth handles,
   radius 1 cm, per frame.
 - **handle placement**: the Dijkstra runs from 200 handles (once per placement, not per edit).
@@ -137,6 +137,10 @@ def main(argv=None):
     workflow_rows = [
         ("pose A to B, direct", direct_ms),
         ("pose A to B, fitted (Jacobian of the start)", _time(lambda: a_to_b(True), few)),
+        (
+            "pose A to B, fitted, Levenberg-Marquardt (4 steps)",
+            _time(lambda: a_to_b(True, FitOptions(damped=True, max_steps=4)), few),
+        ),
         (
             "pose A to B, fitted (exact Jacobian every step)",
             _time(lambda: a_to_b(True, FitOptions(exact_jacobian=True)), few),
