@@ -258,3 +258,45 @@ def test_residual_training_improves_on_its_base_and_resumes(small_head, tiny_pos
         np.testing.assert_array_equal(x, y)
     with pytest.raises(ValueError, match="data"):
         train(training_set([head], tiny_poses, k=32, progress=False), tiny_poses, options)
+
+
+def test_part_matching_on_makehuman_is_plausible_and_reported(ict_head, data_dir):
+    """MakeHuman's eye proxies go to ICT's eyeballs of the same side, its teeth and tongue
+    proxies to no eye part (the old area-first rule sent the teeth to the left eyeball)."""
+    from canrig_jax.mesh import closest_point_correspondence, connected_components
+
+    mh = load_makehuman(data_dir)
+    face = np.zeros(ict_head.n_vertices, bool)
+    face[:9409] = True
+    landmarks, _ = fit_landmarks(
+        ict_head.neutral, ict_head.landmarks, face, mh.neutral, mh.faces, target_region=mh.skin
+    )
+    correspondence = closest_point_correspondence(
+        ict_head.neutral, ict_head.faces, mh.neutral, mh.faces, ict_head.landmarks, landmarks
+    )
+    match = correspondence.component_match
+    source_labels = connected_components(ict_head.faces, ict_head.n_vertices)
+    part_of = {}
+    for i, (lo, hi) in enumerate(ict_head.part_vertex_range):
+        for c in np.unique(source_labels[lo:hi]):
+            part_of.setdefault(int(c), str(ict_head.part_names[i]))
+    target_labels = mh.component_labels
+    for label in np.unique(target_labels):
+        matched = part_of[int(match[label])]
+        x = mh.neutral[target_labels == label, 0].mean()
+        if label == np.argmax(np.bincount(target_labels)):
+            assert matched == "Face"
+        elif np.sum(target_labels == label) == 72:  # the eye proxies
+            assert matched == ("Eyeball left" if x > 0 else "Eyeball right")
+        else:  # teeth and tongue proxies
+            assert "Eye" not in matched, (label, matched)
+    # a part far from anything on the source is refused, naming the argument
+    far = np.array([[0.0, 70.0, -200.0], [1.0, 70.0, -200.0], [0.0, 71.0, -200.0]], np.float32)
+    vertices = np.concatenate([mh.neutral, far])
+    faces = np.concatenate(
+        [mh.faces, [[len(mh.neutral), len(mh.neutral) + 1, len(mh.neutral) + 2]]]
+    )
+    with pytest.raises(ValueError, match="target_vertices"):
+        closest_point_correspondence(
+            ict_head.neutral, ict_head.faces, vertices, faces, ict_head.landmarks, landmarks
+        )

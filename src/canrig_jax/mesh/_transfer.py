@@ -21,9 +21,10 @@ triangle plus a surface map of the target vertices on the source. On identical t
 the identity (``identity_correspondence``); otherwise ``closest_point_correspondence`` aligns
 the source to the target by a similarity transform on landmarks (Umeyama), warps it with a
 thin-plate spline through the same landmarks (a non-rigid alignment), matches connected
-components (similar area, smallest mean distance) and takes closest points component by
-component; each target triangle is driven by the source triangles under four points inside
-it (centroid and towards each corner), their gradients averaged with source-area weights.
+components (nearest by mean distance, preferring similar area; implausibly far matches are
+refused) and takes closest points component by component; each target triangle is driven by
+the source triangles under four points inside it (centroid and towards each corner), their
+gradients averaged with source-area weights.
 """
 
 from __future__ import annotations
@@ -57,12 +58,15 @@ class TriangleCorrespondence:
         vertex_map: ``SurfaceMap`` of the target vertices on the source mesh.
         target_faces: (T, 3) the target triangles.
         method: "identity" or "closest_point".
+        component_match: for "closest_point" with component matching, the source connected
+            component matched to each target connected component (None otherwise).
     """
 
     source_triangle: np.ndarray
     vertex_map: SurfaceMap
     target_faces: np.ndarray
     method: str
+    component_match: np.ndarray | None = None
 
     @property
     def n_target_vertices(self) -> int:
@@ -115,26 +119,38 @@ def _component_areas(vertices, faces, labels) -> np.ndarray:
     return np.bincount(labels[faces[:, 0]], 0.5 * np.linalg.norm(cross, axis=1), labels.max() + 1)
 
 
+IMPLAUSIBLE_DISTANCE = 1.0
+"""A component match is refused when the target component's vertices lie farther from the
+matched source component, on average, than this fraction of the target component's size."""
+
+
 def _match_components(source, source_faces, source_labels, target, target_faces, target_labels):
-    """Source component for each target component: among source components of similar
-    area (ratio within 1/2..2; all when none), the one its vertices are nearest to on
-    average. Area keeps teeth off the lips they sit behind; distance picks left or right."""
+    """Source component for each target component: the nearest (smallest mean distance of the
+    target component's vertices), unless a source component of similar area (ratio within
+    1/2..2) is at most twice as far, which is then taken (area keeps teeth off the lips they
+    sit behind; distance picks left or right). A match farther than ``IMPLAUSIBLE_DISTANCE``
+    of the target component's size is refused (ValueError naming ``target_vertices``)."""
     source_area = _component_areas(source, source_faces, source_labels)
     target_area = _component_areas(target, target_faces, target_labels)
-    trees: dict[int, cKDTree] = {}
+    trees = {c: cKDTree(source[source_labels == c]) for c in np.unique(source_labels)}
+    labels = np.array(sorted(trees))
     match = np.zeros(target_labels.max() + 1, np.int64)
     for label in np.unique(target_labels):
         points = target[target_labels == label]
-        ratio = target_area[label] / np.maximum(source_area, 1e-30)
-        candidates = np.flatnonzero((ratio > 0.5) & (ratio < 2.0))
-        if candidates.size == 0:
-            candidates = np.unique(source_labels)
-        cost = []
-        for c in candidates:
-            if c not in trees:
-                trees[c] = cKDTree(source[source_labels == c])
-            cost.append(trees[c].query(points)[0].mean())
-        match[label] = candidates[int(np.argmin(cost))]
+        cost = np.array([trees[c].query(points)[0].mean() for c in labels])
+        ratio = target_area[label] / np.maximum(source_area[labels], 1e-30)
+        similar = (ratio > 0.5) & (ratio < 2.0) & (cost <= 2.0 * cost.min())
+        chosen = np.flatnonzero(similar)[np.argmin(cost[similar])] if similar.any() else None
+        chosen = int(np.argmin(cost)) if chosen is None else int(chosen)
+        size = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+        if cost[chosen] > IMPLAUSIBLE_DISTANCE * max(size, 1e-12):
+            raise ValueError(
+                f"target_vertices: component {int(label)} ({points.shape[0]} vertices, size "
+                f"{size:.3g}) is {cost[chosen]:.3g} from the nearest source part on average; "
+                "no plausible match (is the head aligned, in the source's units and "
+                "orientation, with correct landmarks?)"
+            )
+        match[label] = labels[chosen]
     return match
 
 
@@ -181,8 +197,10 @@ def closest_point_correspondence(
             (e.g. ICT's Multi-PIE 68) on each mesh.
         nonrigid: after the similarity alignment, warp the source by a thin-plate spline that
             takes its landmarks onto the target's.
-        match_components: restrict each target component to one source component of similar
-            area that its vertices are nearest to (keeps teeth on teeth, eyes on eyes).
+        match_components: restrict each target component to one source component, the
+            nearest (preferring one of similar area when it is nearly as near: keeps teeth on
+            teeth, eyes on eyes); the match is in ``component_match``, and a target component
+            with no source part near it raises ValueError naming ``target_vertices``.
         refine_iterations: after the spline warp, times each source vertex is moved towards
             its closest point on the matched target components, the displacement smoothed
             over the source mesh (20 steps of neighbour averaging); a simple non-rigid ICP.
@@ -236,7 +254,13 @@ def closest_point_correspondence(
             closest_surface_points(points, aligned, sf[chosen]).triangle
         ].reshape(-1, len(_SAMPLES))
     vertex_map = SurfaceMap(triangle, barycentric, sf, len(sv), distance)
-    return TriangleCorrespondence(source_triangle, vertex_map, tf, "closest_point")
+    return TriangleCorrespondence(
+        source_triangle,
+        vertex_map,
+        tf,
+        "closest_point",
+        match if match_components else None,
+    )
 
 
 def _difference_operator(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
