@@ -32,7 +32,15 @@ def _id(method) -> str:
     return type(method).__name__ + ("-random" if getattr(method, "order", "") == "random" else "")
 
 
-CASES = [pytest.param(m, id=_id(m)) for m in METHOD_CASES]
+CASES = [
+    pytest.param(
+        m,
+        id=_id(m),
+        # L-BFGS-B's compile alone is ~30 s: its contract runs in -m slow
+        marks=[pytest.mark.slow] if isinstance(m, inverse.JaxoptLBFGSB) else [],
+    )
+    for m in METHOD_CASES
+]
 FAST_ON_LINEAR = (inverse.QuarticCD, inverse.LMMM, inverse.Cetinaslan)
 """Methods run on the linear rig by default (LMMM used to return NaN there); the others on
 the linear rig are in ``-m slow`` (the default run is shared by the whole suite)."""

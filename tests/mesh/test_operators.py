@@ -168,6 +168,7 @@ def test_one_zero_eigenvalue_per_component_on_the_ict_head(decimated_head):
     assert values[56] * geometry.total_area > 1e3 * ops_module.ZERO_EIGENVALUE_TOL
 
 
+@pytest.mark.slow  # 25-40 s: a dense eigensolve of the whole decimated head
 def test_per_component_eigenpairs_match_one_dense_solve_of_the_whole_head(decimated_head):
     """Solving each of the 56 parts on its own and keeping the k smallest of the union gives
     the spectrum of the whole (block-diagonal) problem, and the same diffusion projector."""
