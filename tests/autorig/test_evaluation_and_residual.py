@@ -223,6 +223,12 @@ def test_fitted_landmarks_recover_a_known_similarity(ict_head):
     # the same head in metres is refused, naming the argument
     with pytest.raises(ValueError, match="target_vertices"):
         fit_landmarks(ict_head.neutral, ict_head.landmarks, face, target / 100, remeshed.faces)
+    # and the same head stored z up (a quarter turn about x) does not fit: refused
+    z_up = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
+    with pytest.raises(ValueError, match="target_vertices"):
+        fit_landmarks(
+            ict_head.neutral, ict_head.landmarks, face, remeshed.vertices @ z_up.T, remeshed.faces
+        )
 
 
 @pytest.mark.slow

@@ -337,9 +337,7 @@ def fit_head_landmarks(
 
     head = dataset.head
     face = vertex_parts(head) == list(head.part_names).index("Face")
-    return fit_landmarks(
-        head.neutral, head.landmarks, face, vertices, faces, target_region=region
-    )
+    return fit_landmarks(head.neutral, head.landmarks, face, vertices, faces, target_region=region)
 
 
 def head_correspondence(dataset: AutorigDataset, vertices, faces, landmarks):
