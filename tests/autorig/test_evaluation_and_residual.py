@@ -250,12 +250,14 @@ def test_residual_training_improves_on_its_base_and_resumes(small_head, tiny_pos
     base = 0.7 * truth + 0.01
     data = training_set([head], tiny_poses, k=32, progress=False, base=[base])
     options = TrainOptions(
-        width=8, global_size=4, global_width=8, k=32, steps=40, warmup_steps=2,
-        learning_rate=3e-3, poses_per_step=4, heads_per_step=1, checkpoint_every=10,
+        width=8, global_size=4, global_width=8, k=32, steps=60, warmup_steps=2,
+        learning_rate=1e-2, poses_per_step=4, heads_per_step=1, checkpoint_every=10,
         log_every=1, residual=True, loss="euclidean", static_weight=1.0,
     )  # fmt: skip
     full = train(data, tiny_poses, options, checkpoint=tmp_path / "a.eqx", progress=False)
-    assert full.history[-1]["error_mm"] < 0.8 * full.history[0]["error_mm"]
+    first = full.history[0]["error_mm"]  # the base's error: the correction starts at zero
+    last = np.mean([h["error_mm"] for h in full.history[-5:]])
+    assert last < 0.8 * first, (first, last)
     train(data, tiny_poses, options, checkpoint=tmp_path / "b.eqx", progress=False, stop_after=7)
     train(data, tiny_poses, options, checkpoint=tmp_path / "b.eqx", progress=False)
     a, _, _ = load_model(tmp_path / "a.eqx")
