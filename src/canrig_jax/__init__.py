@@ -39,6 +39,7 @@ from ._provenance import (
     with_provenance,
 )
 from ._sharding import BATCH_AXIS, data_parallel_step, device_mesh, replicate, shard_batch
+from ._threads import blocking_single_threaded_blas, single_threaded_blas
 
 __version__ = "0.1.0"
 
@@ -79,5 +80,7 @@ __all__ = [
     "save_npz",
     "save_text",
     "seal_checkpoint",
+    "single_threaded_blas",
+    "blocking_single_threaded_blas",
     "with_provenance",
 ]

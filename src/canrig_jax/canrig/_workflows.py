@@ -41,6 +41,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float, Int
 from scipy.sparse.csgraph import dijkstra
 
+from .._threads import blocking_single_threaded_blas
 from ._layout import DENSE, Layout
 from ._model import AbstractCANRig
 from ._rig import (
@@ -246,7 +247,9 @@ def fit_displacements(
     """The handle displacements whose shape best matches ``target``: minimises
     sum_v region_v ||deform(edit with d)_v - target_v||^2 + penalty ||d||^2 over d with
     ``optimistix.least_squares`` (Levenberg-Marquardt, ``lineax.LSMR`` steps), started from
-    ``edit.displacements``. Pure and jit/vmap-able; validate with ``NeuralRig.edit``."""
+    ``edit.displacements``. Pure and jit/vmap-able; validate with ``NeuralRig.edit``.
+    Its Cholesky runs in SciPy's OpenBLAS: call it inside ``canrig_jax.single_threaded_blas()``
+    (as ``pose_a_to_b`` does) or it may be several times slower next to XLA's threads."""
     weight = jnp.sqrt(region)[:, None]
     root_penalty = jnp.sqrt(jnp.asarray(options.penalty, target.dtype))
     start = edit.displacements
@@ -258,8 +261,15 @@ def fit_displacements(
     direct_shape, blocks = displacement_jacobian(model, queries, canonical, edit, layout)
     normal = normal_matrix(blocks, region, n_handles, layout)
     eps = 1e-3 * jnp.mean(jnp.diagonal(normal)) + 1e-12
+    # factor D^-1/2 (N + lambda I) D^-1/2 = L_C L_C^T, D its diagonal, with couplings below
+    # 1e-12 flushed to 0 (only the preconditioner changes, negligibly): unscaled, the
+    # float32 factorisation ran into subnormal numbers on a real checkpoint and took 0.5 s
+    # instead of 7 ms. Then L = D^1/2 L_C.
+    root = jnp.sqrt(jnp.diagonal(normal) + options.penalty + eps)
     identity = jnp.eye(3 * n_handles, dtype=normal.dtype)
-    cholesky = jnp.linalg.cholesky(normal + (options.penalty + eps) * identity)
+    scaled = (normal + (options.penalty + eps) * identity) / (root[:, None] * root[None, :])
+    scaled = jnp.where(jnp.abs(scaled) < 1e-12, 0.0, scaled)
+    cholesky = root[:, None] * jnp.linalg.cholesky(scaled)
     frozen = None if options.exact_jacobian else blocks
     shape_of = _differentiable_shape(model, queries, canonical, edit, layout, frozen)
 
@@ -371,8 +381,17 @@ def pose_a_to_b(
     multiple = FIT_WIDTH_MULTIPLE if fit else None
     layout = DENSE if dense else rig.layout(handles, radius, falloff, multiple=multiple)
     if fit:
-        return fit_displacements(
-            rig.model, rig.queries, rig.canonical, edit, target, region, layout, options
+        # one BLAS thread while the fit's Cholesky runs (see canrig_jax._threads)
+        return blocking_single_threaded_blas(
+            fit_displacements,
+            rig.model,
+            rig.queries,
+            rig.canonical,
+            edit,
+            target,
+            region,
+            layout,
+            options,
         )
     return _direct_solution(rig, edit, target, region, layout)
 
@@ -578,7 +597,8 @@ def dialogue_replacement(
     edit = rig.edit(handles, displacements[0], radius, falloff, base=source[0], beta=beta)
     layout = rig.layout(handles, radius, falloff)
     if fit:
-        solutions = _fit_frames(
+        solutions = blocking_single_threaded_blas(
+            _fit_frames,
             rig.model,
             rig.queries,
             rig.canonical,
