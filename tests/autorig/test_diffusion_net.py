@@ -67,6 +67,7 @@ def test_spectral_diffusion_with_the_full_basis_equals_expm(mediapipe_geometry):
     assert np.abs(out - expected).max() < 1e-4 * np.abs(expected).max()
 
 
+@pytest.mark.slow  # 12-21 s; the default run stays under 10 min on 2 cores
 def test_implicit_diffusion_equals_a_sparse_solve(mediapipe_geometry):
     g = mediapipe_geometry
     u = _smooth_field(g.vertices)
@@ -154,6 +155,7 @@ def test_outputs_are_invariant_to_a_rigid_rotation(data_dir, method):
     assert np.abs(outputs[0] - outputs[1]).max() < 1e-3 * scale
 
 
+@pytest.mark.slow  # 12-21 s; the default run stays under 10 min on 2 cores
 def test_batching_by_padding_equals_one_mesh_at_a_time(data_dir, ict_face):
     mediapipe = load_mediapipe_face(data_dir)
     coarse = decimate(ict_face.neutral, ict_face.faces, 700)

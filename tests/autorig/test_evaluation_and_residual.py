@@ -199,6 +199,7 @@ def test_shared_shapes_sum_ict_split_halves(ict_head, data_dir):
     assert none["amplitude_ratio_median"] == 0 and none["active_mae_mm"] > 0.5
 
 
+@pytest.mark.slow  # 12-21 s; the default run stays under 10 min on 2 cores
 def test_fitted_landmarks_recover_a_known_similarity(ict_head):
     """The ICT face fitted to a scaled, rotated, shifted and remeshed copy of the ICT head:
     the similarity is recovered and the landmarks land where the true ones are."""
@@ -268,6 +269,7 @@ def test_residual_training_improves_on_its_base_and_resumes(small_head, tiny_pos
         train(training_set([head], tiny_poses, k=32, progress=False), tiny_poses, options)
 
 
+@pytest.mark.slow  # 12-21 s; the default run stays under 10 min on 2 cores
 def test_part_matching_on_makehuman_is_plausible_and_reported(ict_head, data_dir):
     """MakeHuman's eye proxies go to ICT's eyeballs of the same side, its teeth and tongue
     proxies to no eye part (the old area-first rule sent the teeth to the left eyeball)."""

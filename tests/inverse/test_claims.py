@@ -81,6 +81,7 @@ def test_tradeoff_claim_sparser_and_more_accurate_than_joshi_and_cetinaslan(take
     assert roughness(weights["quartic_cd"]) < roughness(weights["joshi"])
 
 
+@pytest.mark.slow  # 12-21 s; the default run stays under 10 min on 2 cores
 def test_random_order_gives_rough_weight_curves(take):
     """Table 8: a random coordinate order, drawn afresh for every frame, makes the weight
     curves of a take rougher than the fixed decreasing order (one permutation for the whole
