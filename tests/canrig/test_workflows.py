@@ -72,7 +72,8 @@ def few_handles(rig):
     "variant",
     # most of the cost is compiling the dense pass and jax.jacfwd: the second model's check
     # runs in -m slow
-    ["shape_preserving", pytest.param("canrig", marks=pytest.mark.slow)],
+    # (the default run checks the blocks through J^T W J: test_normal_matrix_equals_autodiff)
+    [pytest.param(v, marks=pytest.mark.slow) for v in ("shape_preserving", "canrig")],
 )
 def test_jacobian_equals_autodiff(variant, ict_face, poses):
     """The structured 3 x 3 blocks equal jax.jacfwd of the forward pass, dense and blocked."""
@@ -158,6 +159,7 @@ def test_model_steps_take_any_leading_shape(rig, few_handles, poses):
         )
 
 
+@pytest.mark.slow  # 15-24 s; never-worse is also checked by the region and layer tests
 def test_fit_is_never_worse_and_minimises(rig, poses):
     """Fitted A to B: error <= direct and <= the base (exactly), no NaN, the reported error
     the measured one; and the gradient of the objective (plain autodiff of the forward
