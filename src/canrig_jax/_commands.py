@@ -141,7 +141,7 @@ def _autorig(args) -> None:
 
 # ---------------------------------------------------------------------------------- animate
 def _animate(args) -> None:
-    from . import save_npz
+    from ._io import save_npz
     from .data import read_livelink_csv
     from .rig import evaluate_batch, export_animated_gltf, validate_gltf
 

@@ -22,8 +22,10 @@ import numpy as np
 import optax
 from jaxtyping import Array, Float
 
-from .. import _checkpoint as checkpoint_io
+from .._checkpoint import load_checkpoint as _load_file
+from .._checkpoint import read_checkpoint_state as _read_state_file
 from .._checkpoint import run_training
+from .._checkpoint import save_checkpoint as _save_file
 from .._metrics import CM_TO_MM
 from ._data import ExampleOptions, Examples, TrainingSet, sample_examples
 from ._masks import influence_mask
@@ -209,18 +211,16 @@ def train_step(model, opt_state, data, ex, optimiser, beta, sp_weight, loss="squ
 def save_checkpoint(path, model, opt_state, state: dict) -> Path:
     """One file, written atomically (``canrig_jax.checkpoint``): a JSON header line
     (``state``), then the leaves of (model, opt_state)."""
-    return checkpoint_io.save_checkpoint(path, (model, opt_state), state, CHECKPOINT_FORMAT)
+    return _save_file(path, (model, opt_state), state, CHECKPOINT_FORMAT)
 
 
 def read_checkpoint_state(path) -> dict:
-    return checkpoint_io.read_checkpoint_state(path, CHECKPOINT_FORMAT)
+    return _read_state_file(path, CHECKPOINT_FORMAT)
 
 
 def load_checkpoint(path, like_model, like_opt_state):
     """(model, opt_state, state) from ``save_checkpoint``; ``like_*`` give the structure."""
-    (model, opt_state), state = checkpoint_io.load_checkpoint(
-        path, (like_model, like_opt_state), CHECKPOINT_FORMAT
-    )
+    (model, opt_state), state = _load_file(path, (like_model, like_opt_state), CHECKPOINT_FORMAT)
     return model, opt_state, state
 
 
