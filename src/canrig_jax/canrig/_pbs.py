@@ -35,6 +35,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from .._checks import check_finite, check_real
 from ..mesh import check_mesh, edge_graph, farthest_point_vertices, vertex_adjacency
+from ._rig import check_points
 
 
 class PatchLayout(eqx.Module):
@@ -142,9 +143,9 @@ def patch_layout(
     local = np.full(n, -1, np.int64)
     local[index] = np.arange(n_active)
     sub_faces = local[faces[keep]]
-    graph = edge_graph(vertices[index], sub_faces) if len(sub_faces) else None
-    if graph is None:
+    if not len(sub_faces):
         raise ValueError("active: the selected vertices span no triangle")
+    graph = edge_graph(vertices[index], sub_faces)
     seeds_local = farthest_point_vertices(vertices[index], n_patches, graph=graph)
     distance, _, sources = dijkstra(
         graph, directed=False, indices=seeds_local, min_only=True, return_predecessors=True
@@ -239,15 +240,12 @@ def check_basis(basis: Float[ArrayLike, "B N 3"], n_vertices: int) -> Array:
     return jnp.asarray(basis)
 
 
-def _check_points(name: str, x, n_vertices: int, batch: bool = False):
-    check_real(name, x)
+def _check_points(name: str, x, n_vertices: int, batch: bool = False) -> None:
+    """``check_points`` for (V, 3), or with ``batch`` any leading axes (..., V, 3)."""
     shape = np.shape(x)
-    expected = (n_vertices, 3)
-    if tuple(shape[-2:]) != expected or (len(shape) != 2 and not batch):
-        raise ValueError(
-            f"{name}: expected shape {('(..., ' if batch else '(')}{n_vertices}, 3), got {shape}"
-        )
-    check_finite(name, x)
+    if batch and len(shape) > 2:
+        x = np.reshape(x, (-1, *shape[-2:]))
+    check_points(name, x, n_vertices, frames=batch and len(shape) > 2)
 
 
 def pbs_shape(
