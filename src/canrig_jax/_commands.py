@@ -7,6 +7,8 @@ Subcommands (``canrig SUBCOMMAND --help`` for each):
 - ``canrig invert RIG MESHES -o take.csv``: the inverse rig of a mesh sequence (a folder of
   OBJ files or an ``.npz``) written as a Live Link Face CSV.
 - ``canrig correct RIG EDITS -o rig.glb``: WPSE from sculpted frames, baked into the glTF.
+- ``canrig view FILE.glb [--port N]``: a local web viewer (127.0.0.1 only) for a rig or take;
+  ``--screenshot OUT.png --time T`` renders one frame in headless Chromium instead.
 
 Errors in the inputs are reported as one line naming the file (exit status 2); nothing
 partial is written (every output is written atomically, after the work is done).
@@ -334,6 +336,70 @@ def _correct(args) -> None:
     progress(f"wrote {out}")
 
 
+# ------------------------------------------------------------------------------------- view
+def _morph_option(text: str) -> tuple[str, float]:
+    name, sep, value = text.rpartition("=")
+    try:
+        if not sep or not name:
+            raise ValueError
+        return name, float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected NAME=WEIGHT, got {text!r}") from None
+
+
+def _size_option(text: str) -> tuple[int, int]:
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, got {text!r}") from None
+    if not (64 <= width <= 4096 and 64 <= height <= 4096):
+        raise argparse.ArgumentTypeError(f"expected 64-4096 pixels a side, got {text!r}")
+    return width, height
+
+
+def _view(args) -> None:
+    import signal
+    import threading
+
+    from . import viewer
+
+    progress = _Progress(args.quiet)
+    if args.screenshot:
+        shot = viewer.screenshot_glb(
+            _input(args.file, "FILE"),
+            args.screenshot,
+            time=args.time,
+            morphs=dict(args.morph),
+            wireframe=args.wireframe,
+            size=args.size,
+        )
+        for level, text in shot.console:
+            if level in ("error", "warning"):
+                progress(f"page {level}: {text}")
+        print(f"wrote {shot.path}: {Path(args.file).name} at {shot.time:.3f} s")
+        if shot.errors:
+            raise CommandError(f"FILE {args.file}: the page reported {len(shot.errors)} errors")
+        return
+    server = viewer.ViewerServer(_input(args.file, "FILE"), port=args.port)
+    stop = threading.Event()
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    server.start()
+    try:
+        print(server.summary.describe())
+        print(f"serving on {server.url} (127.0.0.1 only); Ctrl-C stops", flush=True)
+        if args.open:
+            import webbrowser
+
+            webbrowser.open(server.url)
+        while not stop.wait(0.2):
+            pass
+    finally:
+        server.stop()
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    print("stopped", flush=True)
+
+
 # ------------------------------------------------------------------------------------ main
 def build_parser() -> argparse.ArgumentParser:
     from .inverse import ORDERS, QuarticCD
@@ -445,6 +511,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sigma", type=float, help="RBF width (default: leave-one-out fit)")
     p.add_argument("--take", help="bake the corrected rig over this .csv take (animated)")
     p.set_defaults(run=_correct)
+
+    about = "See a rig or a take: a local web viewer (127.0.0.1 only) for a .glb file."
+    p = sub.add_parser("view", help=about, description=about)
+    p.add_argument("file", metavar="FILE", help="the .glb (canrig autorig, animate or correct)")
+    p.add_argument(
+        "--port", type=int, default=8000, help="port on 127.0.0.1 (default: %(default)s; 0: any)"
+    )
+    p.add_argument("--open", action="store_true", help="open the page in the default browser")
+    shot = p.add_argument_group("headless screenshot (needs Chromium)")
+    shot.add_argument("--screenshot", metavar="OUT.png", help="render one frame and exit")
+    shot.add_argument("--time", type=float, default=0.0, help="seconds into the take (default 0)")
+    shot.add_argument(
+        "--morph",
+        type=_morph_option,
+        action="append",
+        default=[],
+        metavar="NAME=WEIGHT",
+        help="hold a morph target at a weight (repeatable)",
+    )
+    shot.add_argument("--wireframe", action="store_true", help="draw the wireframe")
+    shot.add_argument(
+        "--size", type=_size_option, default=(960, 720), help="WIDTHxHEIGHT (default 960x720)"
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress messages")
+    p.set_defaults(run=_view)
     return parser
 
 
