@@ -18,7 +18,7 @@ import numpy as np
 
 from .._checks import check_finite, check_real
 from ._blendshape import BlendshapeRig, combination_coefficients
-from ._gltf import _FLOAT, _check_rig, _rig_document, _write_glb
+from ._gltf import _ARRAY_BUFFER, _FLOAT, _check_rig, _rig_document, _write_glb
 
 
 def morph_target_weights(rig: BlendshapeRig, weights: np.ndarray) -> np.ndarray:
@@ -66,6 +66,7 @@ def export_animated_gltf(
     times: np.ndarray | None = None,
     head_rotation: np.ndarray | None = None,
     name: str = "take",
+    vertex_colors: np.ndarray | None = None,
 ) -> Path:
     """Write ``rig`` with an animation of ``weights`` as a binary glTF 2.0 file, atomically.
 
@@ -80,6 +81,8 @@ def export_animated_gltf(
         head_rotation: optional (T, 3) yaw, pitch, roll in radians (see
             ``head_rotation_quaternions``), animating a parent node ``head``.
         name: the animation's name.
+        vertex_colors: optional (V, 3) linear RGB in [0, 1] per vertex, written as the mesh's
+            ``COLOR_0`` (e.g. an error map; ``canrig view`` shows it).
 
     Returns the path. The mesh's ``extras`` are those of ``export_gltf``; the animation's
     ``extras.fps`` records ``fps``.
@@ -110,7 +113,21 @@ def export_animated_gltf(
                 f"got shape {head_rotation.shape}"
             )
 
+    if vertex_colors is not None:
+        vertex_colors = np.asarray(vertex_colors)
+        if vertex_colors.shape != (rig.n_vertices, 3):
+            raise ValueError(
+                f"vertex_colors: expected shape ({rig.n_vertices}, 3), got {vertex_colors.shape}"
+            )
+        check_real("vertex_colors", vertex_colors)
+        check_finite("vertex_colors", vertex_colors)
+        if vertex_colors.min() < 0 or vertex_colors.max() > 1:
+            raise ValueError("vertex_colors: expected values in [0, 1]")
+
     document, buffer, _ = _rig_document(rig)
+    if vertex_colors is not None:
+        colors = buffer.add(vertex_colors.astype(np.float32), _FLOAT, "VEC3", _ARRAY_BUFFER)
+        document["meshes"][0]["primitives"][0]["attributes"]["COLOR_0"] = colors
     morph = morph_target_weights(rig, weights)
     key_times = buffer.add(times.astype(np.float32), _FLOAT, "SCALAR", bounds=True)
     morph_values = buffer.add(morph.reshape(-1), _FLOAT, "SCALAR")

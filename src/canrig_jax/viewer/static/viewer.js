@@ -25,7 +25,7 @@ controls.addEventListener('change', () => render());
 
 const state = {
   mixer: null, action: null, duration: 0, time: 0, playing: false,
-  meshes: [], names: [], overrides: new Map(), sliders: new Map(), hasColors: false,
+  meshes: [], names: [], overrides: new Map(), held: [], sliders: new Map(), hasColors: false,
 };
 
 function resize() {
@@ -37,12 +37,18 @@ function resize() {
   camera.updateProjectionMatrix();
 }
 
+// three's mixer writes a weight only when its own value changes, so a held (overridden)
+// weight keeps the value it replaced in `state.held` and gets it back before the mixer runs.
 function applyPose() {
+  for (const [mesh, i, value] of state.held) mesh.morphTargetInfluences[i] = value;
+  state.held = [];
   if (state.mixer) state.mixer.setTime(state.time);
   for (const mesh of state.meshes) {
     const dict = mesh.morphTargetDictionary || {};
     for (const [name, value] of state.overrides) {
-      if (name in dict) mesh.morphTargetInfluences[dict[name]] = value;
+      if (!(name in dict)) continue;
+      state.held.push([mesh, dict[name], mesh.morphTargetInfluences[dict[name]]]);
+      mesh.morphTargetInfluences[dict[name]] = value;
     }
   }
 }
