@@ -15,8 +15,8 @@ renderer.setPixelRatio(1);
 view.appendChild(renderer.domElement);
 const scene = new Scene();
 scene.background = new Color(BACKGROUND);
-scene.add(new HemisphereLight(0xffffff, 0x445566, 1.6));
-const key = new DirectionalLight(0xffffff, 2.0);
+scene.add(new HemisphereLight(0xffffff, 0x334455, 0.8));
+const key = new DirectionalLight(0xffffff, 1.5);
 key.position.set(0.4, 0.6, 1.0);
 scene.add(key);
 const camera = new PerspectiveCamera(30, 1, 0.1, 1e4);
@@ -159,8 +159,13 @@ const ready = new GLTFLoader().loadAsync('model.glb').then((gltf) => {
   const root = gltf.scene;
   scene.add(root);
   root.traverse((o) => { if (o.isMesh) state.meshes.push(o); });
+  const ownMaterials = (gltf.parser.json.materials || []).length > 0;
   for (const mesh of state.meshes) {  // open heads: the inside shows through the holes
-    for (const m of [].concat(mesh.material)) m.side = DoubleSide;
+    for (const m of [].concat(mesh.material)) {
+      m.side = DoubleSide;
+      // glTF's default material is fully metallic: black without an environment map
+      if (!ownMaterials) Object.assign(m, { metalness: 0, roughness: 0.75 });
+    }
   }
   state.root = root;
   const names = new Set();
