@@ -39,6 +39,7 @@ from canrig_jax.viewer import (
     HeadlessChromium,
     ViewerPage,
     ViewerServer,
+    error_colors,
     find_chromium,
     inspect_glb,
 )
@@ -162,8 +163,14 @@ def test_vertex_colors_are_shown(take, browser, tmp_path):
     paints the mouth red, and the colour toggle turns it back to grey."""
     _, rig, _, _ = take
     motion = np.linalg.norm(np.asarray(rig.deltas)[rig.names.index("jawOpen")], axis=-1)
-    error = motion / motion.max()
-    colors = np.stack([np.ones_like(error), 1 - error, 1 - error], axis=-1)
+    colors = error_colors(motion, vmax=float(motion.max()))
+    np.testing.assert_allclose(colors[np.argmax(motion)], (1, 0, 0))
+    np.testing.assert_allclose(colors[np.argmin(motion)], (1, 1, 1), atol=1e-3)
+    for bad, name in ((-motion, "error"), (motion[:, None], "error"), (np.nan * motion, "error")):
+        with pytest.raises(ValueError, match=name):
+            error_colors(bad, 1.0)
+    with pytest.raises(ValueError, match="vmax"):
+        error_colors(motion, 0.0)
     weights = np.zeros((1, rig.n_blendshapes), np.float32)
     path = export_animated_gltf(rig, weights, tmp_path / "error.glb", vertex_colors=colors)
     assert inspect_glb(path).has_colors

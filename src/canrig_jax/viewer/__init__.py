@@ -4,7 +4,8 @@
 plays the glb's animation on a timeline, lists its morph targets with sliders and shows
 wireframe and the per-vertex colour channel (``COLOR_0``, e.g. an error map) when present.
 ``screenshot_glb`` renders one frame in headless Chromium (the system's, driven through the
-DevTools protocol by ``HeadlessChromium``); ``ViewerPage`` poses the page for tests.
+DevTools protocol by ``HeadlessChromium``); ``ViewerPage`` poses the page for tests;
+``error_colors`` turns per-vertex errors into a white-to-red ``COLOR_0`` map.
 
 three.js is vendored in ``static/three.min.js`` (MIT, ``static/three.LICENSE``): npm ``three``
 0.187.0 with its GLTFLoader and OrbitControls bundled into one ES module, rebuilt by::
@@ -25,6 +26,7 @@ from ._browser import (
     HeadlessChromium,
     find_chromium,
 )
+from ._colors import error_colors
 from ._glb import GlbSummary, inspect_glb
 from ._page import Screenshot, ViewerPage, screenshot_glb
 from ._server import HOST, STATIC_DIR, ViewerServer
@@ -40,6 +42,7 @@ __all__ = [
     "Screenshot",
     "ViewerPage",
     "ViewerServer",
+    "error_colors",
     "find_chromium",
     "inspect_glb",
     "screenshot_glb",
