@@ -96,6 +96,7 @@ class HeadlessChromium:
             "--ignore-gpu-blocklist",
             f"--window-size={width},{height}",
             "--hide-scrollbars",
+            "--disable-dev-shm-usage",  # containers often have a tiny /dev/shm
             "--no-first-run",
             "--no-default-browser-check",
             "--disable-extensions",
