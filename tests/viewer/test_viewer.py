@@ -297,7 +297,7 @@ def _glb(document: dict) -> bytes:
     )
 
 
-def test_bad_input_names_the_file_or_port(take, tmp_path, capsys):
+def test_bad_input_names_the_file_or_port(take, tmp_path, capsys, monkeypatch):
     (tmp_path / "notes.glb").write_text("not a glb at all")
     (tmp_path / "empty.glb").write_bytes(_glb({"asset": {"version": "2.0"}, "nodes": [{}]}))
     (tmp_path / "v1.glb").write_bytes(_glb({"asset": {"version": "1.0"}}).replace(b"\2", b"\1", 1))
@@ -321,6 +321,11 @@ def test_bad_input_names_the_file_or_port(take, tmp_path, capsys):
         ViewerServer(tmp_path / "empty.glb")
     status = run_command(["view", str(take[0]), "--screenshot", str(tmp_path / "no" / "x.png")])
     assert status == 2 and "does not exist" in capsys.readouterr().err
+    monkeypatch.setenv("CANRIG_CHROMIUM", str(tmp_path / "no-such-browser"))
+    status = run_command(["view", str(take[0]), "--screenshot", str(tmp_path / "x.png")])
+    err = capsys.readouterr().err
+    assert status == 2 and "no headless Chromium" in err and "chromium-headless-shell" in err
+    assert not (tmp_path / "x.png").exists()
 
 
 @pytest.mark.slow
