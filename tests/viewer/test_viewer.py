@@ -158,6 +158,23 @@ def test_morph_slider_changes_the_picture(take, page):
     assert page.browser.errors == []
 
 
+def test_play_runs_the_take_and_the_slider_scrubs_it(page):
+    page.set_time(0.0)
+    page.browser.evaluate("document.getElementById('play').click()")
+    page.browser.evaluate("new Promise((r) => setTimeout(r, 400))")
+    page.browser.evaluate("document.getElementById('play').click()")
+    played = page.browser.evaluate("window.canrig.time()")
+    assert 0.1 < played < page.info["duration"]  # ran for about 0.4 s, then paused
+    assert page.browser.evaluate("document.getElementById('play').textContent") == "play"
+    page.browser.evaluate(
+        "(() => { const s = document.getElementById('time'); s.value = 2.5;"
+        " s.dispatchEvent(new Event('input')); })()"
+    )
+    assert page.browser.evaluate("window.canrig.time()") == pytest.approx(2.5)
+    assert page.browser.evaluate("document.getElementById('clock').textContent") == "2.500 s"
+    assert page.browser.errors == []
+
+
 def test_vertex_colors_are_shown(take, browser, tmp_path):
     """A glb with COLOR_0 (an error map: red where jawOpen moves, white elsewhere): the page
     paints the mouth red, and the colour toggle turns it back to grey."""

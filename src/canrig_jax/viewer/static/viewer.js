@@ -200,11 +200,13 @@ const ready = new GLTFLoader().loadAsync('model.glb').then((gltf) => {
   };
 }).catch((error) => { fail('could not load model.glb: ' + error); throw error; });
 
-$('time').addEventListener('input', (e) => { state.playing = false; setTime(e.target.value); });
-$('play').addEventListener('click', () => {
-  state.playing = !state.playing;
+function play(on) {
+  state.playing = !!on && state.duration > 0;
   $('play').textContent = state.playing ? 'pause' : 'play';
-});
+}
+
+$('time').addEventListener('input', (e) => { play(false); setTime(e.target.value); });
+$('play').addEventListener('click', () => play(!state.playing));
 $('wireframe').addEventListener('change', (e) => setWireframe(e.target.checked));
 $('colors').addEventListener('change', (e) => setColors(e.target.checked));
 $('reset').addEventListener('click', () => {
@@ -219,7 +221,8 @@ function toPixels(world) {  // a world point -> [x, y] pixels in the canvas (top
 }
 
 window.canrig = { ready, setTime, setMorph, setWireframe, setColors,
-  pause() { state.playing = false; $('play').textContent = 'play'; },
+  pause() { play(false); },
+  time() { return state.time; },
   // [[x, y], ...] pixels of points given in the first mesh's own coordinates, as now posed
   project(points) {
     const mesh = state.meshes[0];
