@@ -98,6 +98,30 @@ NEURAL_RIG = [
         "width",
     ),
     raises(
+        "layout-parts-not-summing-to-1",
+        lambda c: c.rig.layout(c.handles, 4.0, 3.0, parts=(0.5, 0.6)),
+        ValueError,
+        "parts",
+    ),
+    raises(
+        "layout-parts-negative",
+        lambda c: c.rig.layout(c.handles, 4.0, 3.0, parts=(1.5, -0.5)),
+        ValueError,
+        "parts",
+    ),
+    raises(
+        "layout-parts-with-width",
+        lambda c: c.rig.layout(c.handles, 4.0, 3.0, width=8, parts=(0.5, 0.5)),
+        ValueError,
+        "width",
+    ),
+    raises(
+        "layout-multiple-zero",
+        lambda c: c.rig.layout(c.handles, 4.0, 3.0, multiple=0),
+        ValueError,
+        "multiple",
+    ),
+    raises(
         "handles-of-another-rig",
         lambda c: c.rig.edit(dataclasses.replace(c.handles, block_distance=c.d), c.d, 1.0, 3.0),
         ValueError,

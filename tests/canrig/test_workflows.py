@@ -16,6 +16,7 @@ from canrig_jax.canrig import (
     CANRig,
     FitOptions,
     NeuralRig,
+    PartsLayout,
     ShapePreservingCANRig,
     apply_jacobian,
     clip_edit,
@@ -199,12 +200,50 @@ def test_fit_is_never_worse_and_minimises(rig, poses):
 
 
 def test_fit_in_a_region_only_lowers_the_region_error(rig, poses, ict_face):
+    """The reported error is the region's measured one, never above direct, and the shape is
+    the forward pass of the returned displacements (taken from the solver's state, not
+    recomputed)."""
     handles = rig.handles(np.random.default_rng(3).choice(rig.n_vertices, 40, replace=False))
     region = expression_region(ict_face)
     fitted = pose_a_to_b(rig, handles, poses[2], poses[3], 2.0, FALLOFF, fit=True, region=region)
     err = np.linalg.norm(np.asarray(fitted.shape) - poses[3], axis=1)
     assert float(fitted.error) == pytest.approx(err[region].mean(), rel=1e-5)
-    assert float(fitted.error) <= float(fitted.direct_error)
+    assert float(fitted.error) < float(fitted.direct_error)  # the fitted candidate won
+    assert int(fitted.chosen) == 0
+    edit = rig.edit(handles, fitted.displacements, 2.0, FALLOFF, base=poses[2])
+    np.testing.assert_allclose(np.asarray(fitted.shape), np.asarray(rig.deform(edit)), atol=2e-5)
+
+
+def test_parts_layout_is_exact_and_tight(rig, poses):
+    """A ``PartsLayout`` covers every vertex exactly once, each part's width holds the most
+    handles reaching its blocks, and the forward pass and J^T W J equal the one-width
+    layout's."""
+    rng = np.random.default_rng(10)
+    handles = rig.handles(rng.choice(rig.n_vertices, 60, replace=False))
+    parts = rig.layout(handles, 2.0, FALLOFF, multiple=8, parts=(0.5, 0.3, 0.2))
+    one = rig.layout(handles, 2.0, FALLOFF, multiple=8)
+    assert isinstance(parts, PartsLayout) and len(parts.parts) == 3
+    covered = np.zeros(rig.n_vertices, int)
+    reach = influence_reach(np.full(60, 2.0), np.full(60, FALLOFF), rig.model.clamp)
+    within = np.asarray(handles.block_distance) <= reach
+    for part in parts.parts:
+        vertices = np.asarray(part.blocks).ravel()
+        covered += np.bincount(vertices[vertices < rig.n_vertices], minlength=rig.n_vertices)
+        block_rows = [np.flatnonzero((rig.blocks == row).all(axis=1))[0] for row in part.blocks]
+        assert part.width >= within[block_rows].sum(axis=1).max()
+        assert part.width % 8 == 0 or part.width == 60
+    assert np.all(covered == 1)
+    assert list(parts.width) == sorted(parts.width) and parts.width[0] < one.width
+    edit = rig.edit(handles, rng.normal(0, 0.3, (60, 3)).astype(np.float32), 2.0, FALLOFF)
+    edit = edit.with_base(jnp.asarray(poses[1]))
+    weight = jnp.asarray(rng.uniform(0, 1, rig.n_vertices), jnp.float32)
+    results = {}
+    for name, layout in (("parts", parts), ("one", one)):
+        shape, blocks = displacement_jacobian(rig.model, rig.queries, rig.canonical, edit, layout)
+        results[name] = (np.asarray(shape), np.asarray(normal_matrix(blocks, weight, 60, layout)))
+    np.testing.assert_allclose(results["parts"][0], results["one"][0], atol=5e-6)
+    scale = np.abs(results["one"][1]).max()
+    np.testing.assert_allclose(results["parts"][1], results["one"][1], atol=1e-5 * scale)
 
 
 def test_fitted_layers_never_increase_exactly(rig, poses):

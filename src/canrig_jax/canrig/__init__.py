@@ -26,6 +26,7 @@ from ._layout import (
     BlockLayout,
     DenseLayout,
     Layout,
+    PartsLayout,
     block_layout,
     influence_reach,
     vertex_blocks,
@@ -68,6 +69,7 @@ from ._train import (
     vertex_penalty,
 )
 from ._workflows import (
+    FIT_PARTS,
     FIT_WIDTH_MULTIPLE,
     ClipEdit,
     FitOptions,
@@ -99,6 +101,7 @@ __all__ = [
     "pbs_shape",
     "ClipEdit",
     "FitOptions",
+    "FIT_PARTS",
     "FIT_WIDTH_MULTIPLE",
     "FitSolution",
     "LayerResult",
@@ -132,6 +135,7 @@ __all__ = [
     "AbstractCANRig",
     "Architecture",
     "BlockLayout",
+    "PartsLayout",
     "DenseLayout",
     "HandleEdit",
     "Layout",

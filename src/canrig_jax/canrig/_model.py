@@ -245,11 +245,16 @@ class AbstractCANRig(eqx.Module):
         values = layout.handles(self.encode_values(displacements, handle_base), axis=-2)
         if local_queries is None:
             local_queries = layout.vertices(queries, axis=-2)
-        attention = self.attention(local_queries, keys, mask, beta)
-        attended = layout.scatter(self.merge_heads(jnp.matmul(attention, values)))
+        # local arrays, one per part of a ``PartsLayout`` (jax.tree.map over the parts)
+        attention = jax.tree.map(
+            lambda q, k, m: self.attention(q, k, m, beta), local_queries, keys, mask
+        )
+        attended = layout.scatter(
+            jax.tree.map(lambda a, v: self.merge_heads(jnp.matmul(a, v)), attention, values)
+        )
         shape = base + self.decode(attended, base, queries)
         if self.interpolation_prior:
-            moved = self.interpolate(mask, layout.handles(displacements, axis=-2))
+            moved = jax.tree.map(self.interpolate, mask, layout.handles(displacements, axis=-2))
             shape = shape + layout.scatter(moved)
         return Trace(shape=shape, attended=attended, attention=attention)
 
@@ -287,7 +292,7 @@ class AbstractCANRig(eqx.Module):
 class Trace(eqx.Module):
     """One forward pass with its intermediates: the shape (N, 3), the attended vectors
     (N, latent) in vertex order, and the attention weights (heads, ...) in the layout's local
-    form (they do not depend on the displacements)."""
+    form (a tuple of them for a ``PartsLayout``; they do not depend on the displacements)."""
 
     shape: Float[Array, "N 3"]
     attended: Float[Array, "N latent"]

@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
@@ -82,11 +83,11 @@ class HandleEdit(eqx.Module):
 
 def edit_mask(edit: HandleEdit, clamp: float, layout: Layout = DENSE) -> Float[Array, "..."]:
     """The clamped influence masks of ``edit`` in the layout's local form."""
-    return influence_mask(
+    return jax.tree.map(
+        lambda d, r, f: influence_mask(d, r, f, clamp),
         layout.distance(edit.distance),
         layout.per_handle(edit.radius),
         layout.per_handle(edit.falloff),
-        clamp,
     )
 
 
@@ -270,15 +271,22 @@ class NeuralRig:
         *,
         width: int | None = None,
         multiple: int | None = None,
+        parts: tuple[float, ...] | None = None,
     ) -> Layout:
         """The block-sparse layout of these handles at this radius and falloff (host-side:
         which handles reach which vertex block). One layout serves any displacements and base
-        shapes, e.g. every frame of a clip. ``width``/``multiple``: see ``block_layout``."""
+        shapes, e.g. every frame of a clip. ``width``/``multiple``/``parts``: see
+        ``block_layout``."""
         h = self._check_handles(handles)
         radius, falloff = check_handle_parameters(radius, falloff, h)
         reach = influence_reach(radius, falloff, self.model.clamp)
         return block_layout(
-            *self._device_blocks, handles.block_distance, reach, width=width, multiple=multiple
+            *self._device_blocks,
+            handles.block_distance,
+            reach,
+            width=width,
+            multiple=multiple,
+            parts=parts,
         )
 
     def deform(self, edit: HandleEdit, layout: Layout = DENSE) -> Float[Array, "V 3"]:

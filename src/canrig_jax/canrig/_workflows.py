@@ -86,7 +86,8 @@ def displacement_jacobian(
 ) -> tuple[Float[Array, "V 3"], Float[Array, "... 3 3"]]:
     """The shape of ``edit`` and the exact Jacobian of ``deform`` with respect to
     ``edit.displacements``, as 3 x 3 blocks in the layout's local form: (V, 3, H, 3) for the
-    dense layout, (B, S, 3, W, 3) for a block layout (block b, slot s, its w-th handle):
+    dense layout, (B, S, 3, W, 3) for a block layout (block b, slot s, its w-th handle), a
+    tuple of those for a ``PartsLayout``:
     blocks[..., s, i, w, j] = d shape[s, i] / d displacements[w, j].
 
     Only the values depend on d, so the block of vertex v and handle h is
@@ -95,20 +96,31 @@ def displacement_jacobian(
     trace = trace_edit(model, queries, canonical, edit, layout)
     value_jac = _value_jacobian(model, edit.displacements, edit.base[edit.index])  # (H,k,e,3)
     decode_jac = _decode_jacobian(model, trace.attended, edit.base, queries)  # (V, 3, k, e)
-    local_decode = layout.vertices(decode_jac, axis=0)  # (.., S, 3, k, e)
-    local_value = layout.handles(value_jac, axis=0)  # (.., W, k, e, 3)
-    # one head at a time: (S*3 x e) @ (e x W*3) products weighted by A^k and accumulated
-    # (4x faster on CPU than materialising every head's products before the sum)
-    blocks = 0.0
-    for head in range(model.n_heads):
-        products = jnp.einsum(
-            "...sie,...wej->...siwj", local_decode[..., head, :], local_value[..., head, :, :]
-        )
-        blocks = blocks + trace.attention[..., head, :, None, :, None] * products
-    if model.interpolation_prior:
-        mask = edit_mask(edit, model.clamp, layout)  # the trace's (XLA computes it once)
-        prior = model.interpolation_weights(mask)  # (.., S, W)
-        blocks = blocks + prior[..., :, None, :, None] * jnp.eye(3, dtype=blocks.dtype)[:, None]
+    mask = edit_mask(edit, model.clamp, layout)  # the trace's (XLA computes it once)
+
+    def local_blocks(decode, value, attention, mask):
+        # decode (.., S, 3, k, e), value (.., W, k, e, 3), attention (.., k, S, W); one head
+        # at a time: (S*3 x e) @ (e x W*3) products weighted by A^k and accumulated (4x
+        # faster on CPU than materialising every head's products before the sum)
+        blocks = 0.0
+        for head in range(model.n_heads):
+            products = jnp.einsum(
+                "...sie,...wej->...siwj", decode[..., head, :], value[..., head, :, :]
+            )
+            blocks = blocks + attention[..., head, :, None, :, None] * products
+        if model.interpolation_prior:
+            prior = model.interpolation_weights(mask)  # (.., S, W)
+            eye = jnp.eye(3, dtype=blocks.dtype)[:, None]
+            blocks = blocks + prior[..., :, None, :, None] * eye
+        return blocks
+
+    blocks = jax.tree.map(
+        local_blocks,
+        layout.vertices(decode_jac, axis=0),
+        layout.handles(value_jac, axis=0),
+        trace.attention,
+        mask,
+    )
     return trace.shape, blocks
 
 
@@ -116,10 +128,13 @@ def apply_jacobian(
     blocks: Float[Array, "... 3 3"], tangent: Float[Array, "H 3"], layout: Layout = DENSE
 ) -> Float[Array, "V 3"]:
     """J t for the blocks of ``displacement_jacobian`` (linear in t; JAX transposes it)."""
-    local = layout.handles(tangent, axis=0)
-    local = local.reshape(*local.shape[:-2], -1, 1)  # (.., W*3, 1)
-    flat = blocks.reshape(*blocks.shape[:-4], blocks.shape[-4] * 3, -1)  # (.., S*3, W*3)
-    return layout.scatter(jnp.matmul(flat, local).reshape(*blocks.shape[:-4], -1, 3))
+
+    def local_product(blocks, local):
+        local = local.reshape(*local.shape[:-2], -1, 1)  # (.., W*3, 1)
+        flat = blocks.reshape(*blocks.shape[:-4], blocks.shape[-4] * 3, -1)  # (.., S*3, W*3)
+        return jnp.matmul(flat, local).reshape(*blocks.shape[:-4], -1, 3)
+
+    return layout.scatter(jax.tree.map(local_product, blocks, layout.handles(tangent, axis=0)))
 
 
 def _differentiable_shape(
@@ -157,8 +172,12 @@ def normal_matrix(
     """J^T W J for the blocks of ``displacement_jacobian`` (W = diag(``vertex_weight``)),
     (3H, 3H) in handle-major order: per block one batched (W*3 x S*3) @ (S*3 x W*3) product,
     summed over the blocks listing each pair of handles (``Layout.sum_handle_pairs``)."""
-    local_weight = layout.vertices(vertex_weight, axis=0)[..., :, None, None, None]
-    local = jnp.einsum("...siwj,...sixl->...wxjl", blocks * local_weight, blocks)
+
+    def local_normal(blocks, weight):
+        weighted = blocks * weight[..., :, None, None, None]
+        return jnp.einsum("...siwj,...sixl->...wxjl", weighted, blocks)
+
+    local = jax.tree.map(local_normal, blocks, layout.vertices(vertex_weight, axis=0))
     pairs = layout.sum_handle_pairs(local, n_handles)  # (H, H, 3, 3)
     return jnp.swapaxes(pairs, 1, 2).reshape(3 * n_handles, 3 * n_handles)
 
@@ -280,19 +299,39 @@ def fit_displacements(
     def residual(z, args):
         del args
         displacements = unwhiten(z)
-        return (shape_of(displacements) - target) * weight, root_penalty * displacements
+        shape = shape_of(displacements)
+        # the shape rides along as aux: optimistix returns the accepted point's, so the
+        # fitted shape costs no extra forward pass
+        return ((shape - target) * weight, root_penalty * displacements), shape
 
     # a fixed number of LSMR iterations per step (truncated: tolerances 0)
     linear_solver = lx.LSMR(rtol=0.0, atol=0.0, max_steps=options.lsmr_steps)
     solver_class = optx.LevenbergMarquardt if options.damped else optx.GaussNewton
     solver = solver_class(rtol=options.rtol, atol=options.atol, linear_solver=linear_solver)
-    z0 = (cholesky.T @ start.reshape(-1)).reshape(n_handles, 3)
-    solution = optx.least_squares(residual, solver, z0, max_steps=options.max_steps, throw=False)
+    first, max_steps = start, options.max_steps
+    if not options.damped and options.exact_jacobian is False and max_steps >= 2:
+        # optimistix's first step only evaluates the start, whose shape the trace already
+        # gave: take that Gauss-Newton step here, d1 = d0 - (L L^T)^-1 (J^T W r0 + penalty d0)
+        weighted = (direct_shape - target) * region[:, None]
+        gradient = (
+            jax.linear_transpose(lambda t: apply_jacobian(blocks, t, layout), start)(weighted)[0]
+            + options.penalty * start
+        )
+        step = jax.scipy.linalg.cho_solve((cholesky, True), gradient.reshape(-1))
+        first, max_steps = start - step.reshape(n_handles, 3), max_steps - 1
+    z0 = (cholesky.T @ first.reshape(-1)).reshape(n_handles, 3)
+    solution = optx.least_squares(
+        residual, solver, z0, has_aux=True, max_steps=max_steps, throw=False
+    )
     value = unwhiten(solution.value)
-    fitted = jnp.where(jnp.all(jnp.isfinite(value)), value, start)
-    # the candidates' shapes: the direct one is the Jacobian's trace, and zero displacements
-    # reproduce the base exactly (zero-preserving MLPs), so only the fitted one is computed
-    fitted_shape = deform(model, queries, canonical, edit.with_displacements(fitted), layout)
+    # the shape at ``solution.value``: the Gauss-Newton state's aux (``solution.aux`` is the
+    # previous accepted point's; tested against ``deform``)
+    accepted_shape = solution.state.aux
+    finite = jnp.all(jnp.isfinite(value)) & jnp.all(jnp.isfinite(accepted_shape))
+    fitted = jnp.where(finite, value, start)
+    # the candidates' shapes: the fitted one from the solver, the direct one the Jacobian's
+    # trace, and zero displacements reproduce the base exactly (zero-preserving MLPs)
+    fitted_shape = jnp.where(finite, accepted_shape, direct_shape)
     candidates = jnp.stack([fitted, start, jnp.zeros_like(start)])
     shapes = jnp.stack([fitted_shape, direct_shape, edit.base])
     errors = jax.vmap(region_error, (0, None, None))(shapes, target, region)
@@ -306,7 +345,7 @@ def fit_displacements(
         base_error=errors[2],
         chosen=chosen,
         result=solution.result,
-        steps=solution.stats["num_steps"],
+        steps=solution.stats["num_steps"] + (options.max_steps - max_steps),
     )
 
 
@@ -346,6 +385,12 @@ FIT_WIDTH_MULTIPLE = 8
 """Block layouts of fitted edits round their width up to a multiple of this (not to a power
 of two): a tighter layout for the Jacobian at the price of a few more compiled shapes."""
 
+FIT_PARTS = (0.6, 0.3, 0.1)
+"""Fitted edits split the blocks, sorted by how many handles reach them, into parts of these
+fractions, each with its own width (``PartsLayout``): the Jacobian's cost grows with the
+width and its normal matrix's with its square, and one width pads every block to the most
+crowded one."""
+
 
 def pose_a_to_b(
     rig: NeuralRig,
@@ -377,9 +422,13 @@ def pose_a_to_b(
         beta=beta,
     )
     # the fit's Jacobian and normal matrix grow with the layout's width (linearly and
-    # quadratically): a multiple of 8 instead of the next power of two
-    multiple = FIT_WIDTH_MULTIPLE if fit else None
-    layout = DENSE if dense else rig.layout(handles, radius, falloff, multiple=multiple)
+    # quadratically): parts of their own widths, multiples of 8, not one power of two
+    if dense:
+        layout = DENSE
+    elif fit:
+        layout = rig.layout(handles, radius, falloff, multiple=FIT_WIDTH_MULTIPLE, parts=FIT_PARTS)
+    else:
+        layout = rig.layout(handles, radius, falloff)
     if fit:
         # one BLAS thread while the fit's Cholesky runs (see canrig_jax._threads)
         return blocking_single_threaded_blas(
@@ -595,8 +644,8 @@ def dialogue_replacement(
     index = np.asarray(handles.index)
     displacements = target[:, index] - source[:, index]
     edit = rig.edit(handles, displacements[0], radius, falloff, base=source[0], beta=beta)
-    layout = rig.layout(handles, radius, falloff)
     if fit:
+        layout = rig.layout(handles, radius, falloff, multiple=FIT_WIDTH_MULTIPLE, parts=FIT_PARTS)
         solutions = blocking_single_threaded_blas(
             _fit_frames,
             rig.model,
@@ -610,6 +659,7 @@ def dialogue_replacement(
             options,
         )
         return np.asarray(solutions.shape)
+    layout = rig.layout(handles, radius, falloff)
     out = _edit_frames(
         rig.model,
         rig.queries,
