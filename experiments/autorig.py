@@ -93,6 +93,12 @@ def main(argv=None):
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-progress", action="store_true")
     parser.add_argument(
+        "--devices",
+        type=int,
+        default=None,
+        help="data-parallel training over N devices (default: all; see canrig_jax.data_parallel)",
+    )
+    parser.add_argument(
         "--timing-only",
         action="store_true",
         help="re-measure only rig_seconds of --out/results.json with its RAF checkpoint",
@@ -133,7 +139,9 @@ def main(argv=None):
     for name, overrides in MODELS.items():
         model_options = dataclasses.replace(options, **overrides)
         path = args.out / f"checkpoint_{name}.eqx"
-        result = train(data, poses, model_options, checkpoint=path, progress=progress)
+        result = train(
+            data, poses, model_options, checkpoint=path, progress=progress, devices=args.devices
+        )
         models[name], _, state = load_model(path)
         trained[name] = {
             "steps": result.step,
@@ -156,7 +164,9 @@ def main(argv=None):
     )
     data = training_set(dataset.train, poses, k=options.k, progress=progress, base=base)
     path = args.out / f"checkpoint_{RESIDUAL}.eqx"
-    result = train(data, poses, residual_options, checkpoint=path, progress=progress)
+    result = train(
+        data, poses, residual_options, checkpoint=path, progress=progress, devices=args.devices
+    )
     models[RESIDUAL], _, state = load_model(path)
     trained[RESIDUAL] = {
         "steps": result.step,

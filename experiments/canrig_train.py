@@ -71,6 +71,12 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--data-dir", default=None, help="data folder (else $CANRIG_DATA)")
     p.add_argument("--quick", action="store_true", help="tiny data, 30 steps")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument(
+        "--devices",
+        type=int,
+        default=None,
+        help="data-parallel training over N devices (default: all; see canrig_jax.data_parallel)",
+    )
     for cls in (TrainOptions, DataOptions):
         add_dataclass_options(
             p,
@@ -111,6 +117,7 @@ def main(argv=None):
         checkpoint=args.out / "checkpoint.eqx",
         progress=not args.no_progress,
         data_options={**data_options.to_dict(), "seed": options.seed},
+        devices=args.devices,
     )
     summary = {
         "variant": options.variant,

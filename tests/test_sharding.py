@@ -85,3 +85,66 @@ def test_bad_batch_and_device_count():
         device_mesh(0)
     with pytest.raises(ValueError, match="batch: a leaf of shape"):
         shard_batch({"x": np.float32(1.0)}, mesh)
+
+
+# The two trainers on real data, 1 and 2 devices from the same start: CANRig on a tiny
+# ict-quartic training set (the capture's first frames), RigAnyFace on one decimated ICT
+# identity. Their loss histories must agree to float tolerance.
+TRAINERS = r"""
+import dataclasses, json, warnings
+import jax, numpy as np
+from canrig_jax import canrig, autorig
+from canrig_jax.data import load_ict, load_livelinkface
+from canrig_jax.rig import ict_quartic_rig
+
+rig, _ = ict_quartic_rig(progress=False)
+with warnings.catch_warnings():
+    warnings.filterwarnings("ignore", category=UserWarning)
+    capture = load_livelinkface().weights_for(rig.names, missing="zero")
+capture_train, _ = canrig.split_capture(capture[:12])
+data = canrig.build_training_set(rig, capture_train, n_random=6, n_pool=40, seed=0)
+examples = canrig.ExampleOptions(batch=4, n_vertices=48, n_handles=(3, 12), handle_bucket=12)
+options = canrig.TrainOptions(steps=3, log_every=1, examples=examples)
+out = {"canrig": {}, "riganyface": {}}
+for n in (1, 2):
+    result = canrig.train(data, options, progress=False, devices=n)
+    out["canrig"][str(n)] = [h["loss"] for h in result.history]
+
+poses = autorig.quartic_pose_set(rig)
+ict_head = load_ict(parts=None)
+displacements = autorig.pose_displacements(autorig.head_rig(rig, ict_head), poses)
+head = autorig.make_head(
+    ict_head, displacements, np.random.default_rng(3).standard_normal(100), "decimate_600",
+    name="decimate_600",
+)
+head_data = autorig.training_set([head], poses, k=32, progress=False)
+raf = autorig.TrainOptions(
+    width=8, global_size=4, global_width=8, k=32, steps=3, warmup_steps=1,
+    poses_per_step=4, heads_per_step=2, log_every=1,
+)
+for n in (1, 2):
+    result = autorig.train(head_data, poses, raf, progress=False, devices=n)
+    out["riganyface"][str(n)] = [h["loss"] for h in result.history]
+try:
+    odd = dataclasses.replace(options, examples=dataclasses.replace(examples, batch=3))
+    canrig.train(data, odd, progress=False, devices=2)
+except ValueError as error:
+    out["error"] = str(error)
+print(json.dumps(out))
+"""
+
+
+@pytest.mark.slow  # ~1-2 min: builds both training sets in a subprocess with 2 host devices
+def test_trainers_on_two_devices_match_one():
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    env["JAX_PLATFORMS"] = "cpu"
+    result = subprocess.run(
+        [sys.executable, "-c", TRAINERS], capture_output=True, text=True, env=env, timeout=900
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    out = json.loads(result.stdout.strip().splitlines()[-1])
+    for trainer in ("canrig", "riganyface"):
+        one, two = out[trainer]["1"], out[trainer]["2"]
+        assert len(one) == len(two) == 3
+        np.testing.assert_allclose(two, one, rtol=1e-4)
+    assert "devices" in out["error"] and "examples.batch = 3" in out["error"]

@@ -38,13 +38,23 @@ from ._provenance import (
     provenance,
     with_provenance,
 )
-from ._sharding import BATCH_AXIS, data_parallel_step, device_mesh, replicate, shard_batch
+from ._sharding import (
+    BATCH_AXIS,
+    DataParallel,
+    data_parallel,
+    data_parallel_step,
+    device_mesh,
+    replicate,
+    shard_batch,
+)
 from ._threads import blocking_single_threaded_blas, single_threaded_blas
 
 __version__ = "0.1.0"
 
 __all__ = [
     "BATCH_AXIS",
+    "DataParallel",
+    "data_parallel",
     "data_parallel_step",
     "device_mesh",
     "replicate",

@@ -18,6 +18,7 @@ gives N host devices for testing.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 
 import equinox as eqx
@@ -72,6 +73,39 @@ def replicate(tree, mesh: Mesh):
     return jax.tree_util.tree_map(
         lambda leaf: jax.device_put(leaf, sharding) if eqx.is_array(leaf) else leaf, tree
     )
+
+
+@dataclasses.dataclass(frozen=True)
+class DataParallel:
+    """Where a trainer puts its arrays: on one device, as they are (``mesh`` None: the
+    single-device run is untouched, bit for bit); on several, parameters, optimiser state and
+    training data replicated and each step's batch split along its leading axis."""
+
+    mesh: Mesh | None
+
+    def replicate(self, tree):
+        return tree if self.mesh is None else replicate(tree, self.mesh)
+
+    def shard(self, tree):
+        return tree if self.mesh is None else shard_batch(tree, self.mesh)
+
+    @property
+    def n_devices(self) -> int:
+        return 1 if self.mesh is None else int(self.mesh.devices.size)
+
+
+def data_parallel(devices: int | None, batch: int, batch_name: str = "batch") -> DataParallel:
+    """The placement for a trainer whose steps draw ``batch`` examples (named ``batch_name``
+    in the error) over ``devices`` devices (None: all); ValueError naming ``devices`` when it
+    is not a positive count of available devices or does not divide the batch."""
+    mesh = device_mesh(devices)
+    n = int(mesh.devices.size)
+    if batch % n:
+        raise ValueError(
+            f"devices: {batch_name} = {batch} examples per step cannot be split over {n} "
+            f"devices (choose devices dividing {batch})"
+        )
+    return DataParallel(mesh if n > 1 else None)
 
 
 def data_parallel_step(loss_fn: Callable, optimiser) -> Callable:

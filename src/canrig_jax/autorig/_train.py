@@ -35,6 +35,7 @@ from .._checkpoint import (
     save_checkpoint,
 )
 from .._metrics import CM_TO_MM
+from .._sharding import data_parallel
 from ..mesh import MeshOperators, mesh_operators, pad_vertices, stack_operators
 from ._data import PoseSet, RiggedHead
 from ._model import RigAnyFace, normalise
@@ -309,11 +310,14 @@ def train(
     checkpoint: str | os.PathLike | None = None,
     progress: bool = True,
     stop_after: int | None = None,
+    devices: int | None = None,
 ) -> TrainResult:
     """Train (or resume from ``checkpoint`` when it exists) for ``options.steps`` steps or
     ``options.max_minutes`` of accumulated training time, whichever comes first. A checkpoint
     resumes only with the same options except ``max_minutes``. ``stop_after`` ends this call
-    after that many steps (a simulated interruption, for tests)."""
+    after that many steps (a simulated interruption, for tests). ``devices`` (default: all):
+    data-parallel over that many devices (``canrig_jax.data_parallel``), each step's heads
+    split over them, parameters and training set replicated."""
     if data.poses.shape[0] != poses.n_poses:
         raise ValueError(f"data: {data.poses.shape[0]} poses, the pose set {poses.n_poses}")
     if options.residual != (data.base is not None):
@@ -326,6 +330,7 @@ def train(
         raise ValueError(
             f"poses_per_step: {options.poses_per_step} exceeds the {poses.n_poses} poses"
         )
+    placement = data_parallel(devices, options.heads_per_step, "heads_per_step")
     reference = mean_square_displacement(data)
     output_scale = float(np.sqrt(reference))
     model = make_model(options, poses.n_basis, output_scale)
@@ -362,6 +367,7 @@ def train(
     static_weight = jnp.asarray(options.static_weight, jnp.float32)
     reference_j = jnp.asarray(reference, jnp.float32)
     mm_per_unit = float(np.mean(np.asarray(data.scale))) * CM_TO_MM
+    data, model, opt_state = placement.replicate((data, model, opt_state))
 
     def one_step(step):
         nonlocal model, opt_state
@@ -373,6 +379,7 @@ def train(
                 for _ in range(options.heads_per_step)
             ]
         )
+        heads, pose_ids = placement.shard((heads, pose_ids))
         model, opt_state, loss, distance = train_step(
             model,
             opt_state,

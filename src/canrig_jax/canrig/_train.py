@@ -27,6 +27,7 @@ from .._checkpoint import read_checkpoint_state as _read_state_file
 from .._checkpoint import run_training
 from .._checkpoint import save_checkpoint as _save_file
 from .._metrics import CM_TO_MM
+from .._sharding import data_parallel
 from ._data import ExampleOptions, Examples, TrainingSet, sample_examples
 from ._masks import influence_mask
 from ._model import CANRig, ShapePreservingCANRig
@@ -255,6 +256,7 @@ def train(
     progress: bool = True,
     stop_after: int | None = None,
     data_options: dict | None = None,
+    devices: int | None = None,
 ) -> TrainResult:
     """Train (or resume from ``checkpoint`` if it exists) until ``options.steps`` steps or
     ``options.max_minutes`` of accumulated training time. A checkpoint resumes only with the
@@ -263,9 +265,15 @@ def train(
 
     ``data_options`` (JSON-able, e.g. ``DataOptions.to_dict()`` and the data seed) describe how
     ``data`` was built; they are stored in the checkpoint, and a resume with other data options
-    is refused (a checkpoint written before they were stored resumes with any)."""
+    is refused (a checkpoint written before they were stored resumes with any).
+
+    ``devices`` (default: all): data-parallel over that many devices (``canrig_jax.
+    data_parallel``), each step's examples split over them, parameters replicated; the
+    trajectory equals the single-device one to float tolerance, and a checkpoint resumes on
+    any device count."""
     if not isinstance(options, TrainOptions):
         raise TypeError(f"options: expected TrainOptions, got {type(options).__name__}")
+    placement = data_parallel(devices, options.examples.batch, "examples.batch")
     if data_options is not None:
         data_options = json.loads(json.dumps(data_options))  # as the checkpoint stores them
     model = make_model(options, data.neutral, displacement_scale)
@@ -312,6 +320,7 @@ def train(
     )
     handle_sets = None if data.handle_sets is None else np.asarray(data.handle_sets)
     beta = jnp.asarray(options.beta, jnp.float32)
+    data, model, opt_state = placement.replicate((data, model, opt_state))
 
     def one_step(step):
         nonlocal model, opt_state
@@ -326,7 +335,14 @@ def train(
             n_capture=data.n_capture,
         )
         model, opt_state, loss, aux = train_step(
-            model, opt_state, data, ex, optimiser, beta, options.sp_weight, options.loss
+            model,
+            opt_state,
+            data,
+            placement.shard(ex),
+            optimiser,
+            beta,
+            options.sp_weight,
+            options.loss,
         )
         return {"loss": loss, "error_mm": aux["error_mm"]}
 
