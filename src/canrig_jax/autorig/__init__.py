@@ -33,8 +33,16 @@ from ._evaluation import (
 )
 from ._features import heat_kernel_signature, hks_times, mass_weighted_mean
 from ._makehuman import MakeHumanHead, load_makehuman
-from ._metrics import error_stats, outside_fraction, penetration, winding_numbers
+from ._metrics import (
+    error_stats,
+    inner_outside,
+    outside_fraction,
+    penetration,
+    penetration_free_set,
+    winding_numbers,
+)
 from ._model import ConditionalBlock, RigAnyFace, normalise
+from ._orientation import HeadOrientation, head_orientation
 from ._rig import (
     DEFAULT_POSE_CHUNK,
     GeneratedRig,
@@ -101,6 +109,10 @@ __all__ = [
     "normalise",
     "outside_fraction",
     "penetration",
+    "penetration_free_set",
+    "inner_outside",
+    "HeadOrientation",
+    "head_orientation",
     "pose_displacements",
     "quartic_pose_set",
     "rig_from_poses",

@@ -1,0 +1,217 @@
+"""Which way a head faces, from its shape alone (no template, no landmarks).
+
+RigAnyFace was trained on ICT heads: +y up, +z forward (facing the viewer), +x the head's
+left. ``head_orientation`` finds a head's axes among the 24 axis-aligned rotations from
+three cues of a human head that do not depend on where it was cropped:
+
+* **left-right**: the axis across which the head is mirror-symmetric (mean distance from
+  each mirrored vertex to the nearest vertex, per axis; the smallest wins);
+* **forward**: of the four signed directions across the other two axes, the one whose
+  extreme is the sharpest point — the nose tip (the vertices within ``5 %`` of the size of
+  the extreme spread the least around it; the crown, the back of the head and a neck or
+  shoulder cut are broad);
+* **up**: along the remaining axis, the side of the nose tip on which the paired parts off
+  the mid-plane sit (eyeballs, lashes: above), and the side away from the skin's longest
+  open boundary (a neck or shoulder cut: below); the cues that are clear must agree.
+
+Each cue reports a margin; a head whose cues are weak (a sphere, a flat patch, a head
+turned by other than a multiple of 90 degrees) is "undetermined", which ``generate_rig``
+lets through: it refuses or fixes only what the cues show clearly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..mesh import check_mesh, connected_components
+
+AXES = ("x", "y", "z")
+CONVENTION = "+y up, +z forward (ICT)"
+SYMMETRY_MARGIN = 1.5
+"""The symmetry axis must be this many times more symmetric than the next one."""
+SHARPNESS_MARGIN = 1.3
+"""The nose tip must spread this many times less than the next sharpest extreme."""
+UP_MARGINS = {"side_parts": 0.03, "boundary": 0.3}
+"""An up cue counts when the side parts sit this far (fraction of the head's radius) above
+or below the nose tip (ICT heads: 0.07-0.09), or the longest boundary's centre this far
+(fraction of the half height) below or above the centre (ICT heads with a neck or cut at
+the chin: 0.78-0.96; a face-only mask: 0.06, undetermined)."""
+
+
+def _signed(axis: int, sign: float) -> str:
+    return f"{'+' if sign > 0 else '-'}{AXES[axis]}"
+
+
+@dataclasses.dataclass(frozen=True)
+class HeadOrientation:
+    """A head's axes as found by ``head_orientation``.
+
+    Attributes:
+        rotation: (3, 3) proper rotation taking the head into the model's convention
+            (``vertices @ rotation.T``: +y up, +z forward), or None when undetermined.
+        up, forward: the head's up and forward directions as signed axis names ("+y",
+            "-z", ...) or None where a cue was inconclusive; lateral: its left-right axis.
+        margins: the cues' values (symmetry ratio, sharpness ratio, up votes).
+    """
+
+    rotation: np.ndarray | None
+    up: str | None
+    forward: str | None
+    lateral: str | None
+    margins: dict
+
+    @property
+    def determined(self) -> bool:
+        return self.rotation is not None
+
+    @property
+    def conventional(self) -> bool:
+        """True when the head already faces +z with +y up."""
+        return self.determined and np.allclose(self.rotation, np.eye(3))
+
+    @property
+    def contradicts(self) -> bool:
+        """True when a clear cue says the head is not in the convention (even if another
+        cue is inconclusive)."""
+        return (
+            (self.lateral is not None and self.lateral != "x")
+            or (self.forward is not None and self.forward != "+z")
+            or (self.up is not None and self.up != "+y")
+        )
+
+    def describe(self) -> str:
+        parts = [
+            f"up {self.up or 'undetermined'}",
+            f"facing {self.forward or 'undetermined'}",
+            f"left-right axis {self.lateral or 'undetermined'}",
+        ]
+        return ", ".join(parts)
+
+
+def head_orientation(vertices, faces, *, max_points: int = 4000) -> HeadOrientation:
+    """The up, forward and left-right axes of a head (see the module docstring).
+
+    Args:
+        vertices: (V, 3) head in any units; faces: (F, 3) triangles.
+        max_points: the symmetry cue uses a regular subsample of at most this many vertices.
+
+    Returns a ``HeadOrientation`` (axis-aligned only: a head turned by another angle comes
+    back undetermined or with its nearest axis-aligned orientation).
+    """
+    vertices, faces = check_mesh(vertices, faces)
+    v = np.asarray(vertices, np.float64)
+    # the largest component carries the cues (the skin; eyes and teeth are inside it)
+    labels = connected_components(faces, v.shape[0])
+    main = labels == np.bincount(labels).argmax()
+    skin = v[main]
+    centre = 0.5 * (skin.min(0) + skin.max(0))
+    p = skin - centre
+    radius = float(np.linalg.norm(p, axis=1).max())
+    margins: dict = {}
+    if not radius > 0 or skin.shape[0] < 8:
+        return HeadOrientation(None, None, None, None, margins)
+    p = p / radius
+
+    # -- left-right: mirror symmetry ---------------------------------------------------
+    sample = p[:: max(1, int(np.ceil(p.shape[0] / max_points)))]
+    tree = cKDTree(sample)
+    asymmetry = []
+    for a in range(3):
+        mirrored = sample.copy()
+        # mirror about the plane through the mean along a (bounding-box centres are pulled
+        # by one-sided features such as the nose on the forward axis; the mean is not)
+        mirrored[:, a] = 2 * sample[:, a].mean() - mirrored[:, a]
+        asymmetry.append(float(tree.query(mirrored)[0].mean()))
+    order = np.argsort(asymmetry)
+    lateral_axis = int(order[0])
+    ratio = asymmetry[order[1]] / max(asymmetry[order[0]], 1e-12)
+    margins["symmetry"] = float(ratio)
+    margins["asymmetry"] = dict(zip(AXES, asymmetry, strict=True))
+    if ratio < SYMMETRY_MARGIN:
+        return HeadOrientation(None, None, None, None, margins)
+    lateral = AXES[lateral_axis]
+
+    # -- forward: the sharpest extreme (the nose tip) -------------------------------------
+    others = [a for a in range(3) if a != lateral_axis]
+    spreads = {}
+    for a in others:
+        for sign in (1.0, -1.0):
+            height = sign * p[:, a]
+            near = height >= height.max() - 0.05
+            tip = p[np.argmax(height)]
+            spreads[(a, sign)] = float(np.sqrt(np.mean(np.sum((p[near] - tip) ** 2, axis=1))))
+    ranked = sorted(spreads, key=spreads.get)
+    sharpness = spreads[ranked[1]] / max(spreads[ranked[0]], 1e-12)
+    margins["sharpness"] = float(sharpness)
+    margins["spreads"] = {_signed(a, s): value for (a, s), value in spreads.items()}
+    if sharpness < SHARPNESS_MARGIN:
+        return HeadOrientation(None, None, None, lateral, margins)
+    forward_axis, forward_sign = ranked[0]
+    forward = _signed(forward_axis, forward_sign)
+
+    # -- up: the eyes above the nose, the neck cut below -------------------------------
+    up_axis = next(a for a in others if a != forward_axis)
+    nose = p[np.argmax(forward_sign * p[:, forward_axis])]
+    votes = {}
+    # paired side parts (eyeballs, lashes, lacrimal fluid: off the mid-plane) sit above the
+    # nose tip; parts on the mid-plane (teeth, tongue) are left out
+    inner = (v[~main] - centre) / radius
+    inner_labels = labels[~main]
+    if inner.shape[0]:
+        counts = np.bincount(inner_labels)
+        ids = np.flatnonzero(counts)
+        centroids = np.stack([inner[inner_labels == i].mean(0) for i in ids])
+        side = np.abs(centroids[:, lateral_axis] - p[:, lateral_axis].mean()) > 0.1
+        if side.any():
+            weights = counts[ids][side]
+            rise = np.average(centroids[side, up_axis] - nose[up_axis], weights=weights)
+            votes["side_parts"] = float(rise)
+    # the longest open boundary of the skin (a neck or shoulder cut) lies at the bottom
+    cut = _longest_boundary(p, faces[main[faces].all(axis=1)], np.cumsum(main) - 1)
+    if cut is not None:
+        half = 0.5 * (p[:, up_axis].max() - p[:, up_axis].min())
+        votes["boundary"] = float(
+            -(cut[up_axis] - 0.5 * (p[:, up_axis].max() + p[:, up_axis].min())) / half
+        )
+    margins["up_votes"] = votes
+    signs = {np.sign(value) for name, value in votes.items() if abs(value) >= UP_MARGINS[name]}
+    offset = float(next(iter(signs))) if len(signs) == 1 else 0.0
+    margins["up_sign"] = offset
+    if offset == 0.0:
+        return HeadOrientation(None, None, forward, lateral, margins)
+    up_sign = 1.0 if offset > 0 else -1.0
+    up = _signed(up_axis, up_sign)
+    rotation = np.zeros((3, 3))
+    rotation[1, up_axis] = up_sign
+    rotation[2, forward_axis] = forward_sign
+    rotation[0] = np.cross(rotation[1], rotation[2])  # right-handed: x = y cross z
+    return HeadOrientation(rotation, up, forward, lateral, margins)
+
+
+def _longest_boundary(points: np.ndarray, faces: np.ndarray, index: np.ndarray):
+    """Centre (3,) of the longest boundary loop (by length) of ``faces`` (original vertex
+    numbers, mapped by ``index`` into ``points``), or None for a closed surface."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components as components
+
+    if faces.shape[0] == 0:
+        return None
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), 1)
+    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    border = index[unique[counts == 1]]
+    if border.shape[0] < 3:
+        return None
+    n = points.shape[0]
+    graph = coo_matrix((np.ones(border.shape[0]), (border[:, 0], border[:, 1])), shape=(n, n))
+    _, loop = components(graph, directed=False)
+    length = np.linalg.norm(points[border[:, 0]] - points[border[:, 1]], axis=1)
+    loop_of_edge = loop[border[:, 0]]
+    total = np.bincount(loop_of_edge, weights=length)
+    best = np.argmax(total)
+    chosen = border[loop_of_edge == best]
+    midpoints = 0.5 * (points[chosen[:, 0]] + points[chosen[:, 1]])
+    weights = length[loop_of_edge == best]
+    return np.average(midpoints, axis=0, weights=weights)
