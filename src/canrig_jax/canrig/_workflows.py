@@ -192,13 +192,14 @@ class FitOptions:
     each step's linear system. ``damped=False`` takes Gauss-Newton steps (the default:
     measured on real poses it is as accurate as Levenberg-Marquardt and faster, but
     undamped steps with the start's Jacobian can overshoot after a few steps, so
-    ``max_steps`` stays small: optimistix's first step only evaluates the start, 3 steps
-    are 2 updates); ``damped=True`` takes Levenberg-Marquardt steps (a trust region that
-    only accepts steps lowering the true objective). ``rtol``/``atol`` stop the solve on a
-    small change of the whitened displacements; ``penalty`` weighs ||d||^2 (cm^2 per cm^2
-    of mesh error); ``exact_jacobian=True`` recomputes the Jacobian at every step (slower,
-    a little more accurate). Whatever the settings, the answer is never worse than the
-    direct displacements or zero displacements (``fit_displacements`` keeps the best)."""
+    ``max_steps`` stays small: a solve's first step only evaluates the start, 3 steps
+    are 2 updates, the first in closed form); ``damped=True`` takes Levenberg-Marquardt
+    steps (a trust region that only accepts steps lowering the true objective).
+    ``rtol``/``atol`` stop the solve on a small change of the whitened displacements;
+    ``penalty`` weighs ||d||^2 (cm^2 per cm^2 of mesh error); ``exact_jacobian=True``
+    recomputes the Jacobian at every step (slower, a little more accurate). Whatever the
+    settings, the answer is never worse than the direct displacements or zero
+    displacements (``fit_displacements`` keeps the best)."""
 
     max_steps: int = 3
     rtol: float = 1e-3
@@ -265,8 +266,11 @@ def fit_displacements(
 ) -> FitSolution:
     """The handle displacements whose shape best matches ``target``: minimises
     sum_v region_v ||deform(edit with d)_v - target_v||^2 + penalty ||d||^2 over d with
-    ``optimistix.least_squares`` (Levenberg-Marquardt, ``lineax.LSMR`` steps), started from
-    ``edit.displacements``. Pure and jit/vmap-able; validate with ``NeuralRig.edit``.
+    ``optimistix.least_squares`` (Gauss-Newton or Levenberg-Marquardt, ``lineax.LSMR``
+    steps, see ``FitOptions``), started from ``edit.displacements``; undamped with the
+    start's Jacobian, the first step is taken in closed form from the trace's residual. Use a
+    ``PartsLayout`` (``FIT_PARTS``) for speed. Pure and jit/vmap-able; validate with
+    ``NeuralRig.edit``.
     Its Cholesky runs in SciPy's OpenBLAS: call it inside ``canrig_jax.single_threaded_blas()``
     (as ``pose_a_to_b`` does) or it may be several times slower next to XLA's threads."""
     weight = jnp.sqrt(region)[:, None]
