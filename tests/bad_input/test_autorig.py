@@ -9,8 +9,10 @@ import numpy as np
 import pytest
 
 from canrig_jax.autorig import (
+    AutorigDataset,
     PoseSet,
     TrainOptions,
+    fit_head_landmarks,
     generate_rig,
     heat_kernel_signature,
     hks_times,
@@ -18,8 +20,8 @@ from canrig_jax.autorig import (
     pose_displacements,
     quartic_pose_set,
 )
-from canrig_jax.data import load_mediapipe_face
-from canrig_jax.mesh import fit_landmarks, mesh_operators
+from canrig_jax.data import load_ict, load_mediapipe_face
+from canrig_jax.mesh import decimate, fit_landmarks, mesh_operators
 from canrig_jax.rig import BlendshapeRig, Corrective
 
 from .conftest import handled, raises, run_case
@@ -39,7 +41,22 @@ def ctx(data_dir):
     model = make_model(options, poses.n_basis, 1.0)
     face = load_mediapipe_face(data_dir)
     operators = mesh_operators(face.neutral, face.faces, k=16, cache=False)
-    return types.SimpleNamespace(rig=rig, poses=poses, model=model, face=face, operators=operators)
+    ict = load_ict(data_dir, parts=None)
+    head = decimate(ict.neutral, ict.faces, 800)  # an ICT head: y up, facing +z, cm
+    dataset = AutorigDataset(None, ict, None, [], {})  # fit_head_landmarks uses the head only
+    return types.SimpleNamespace(
+        rig=rig,
+        poses=poses,
+        model=model,
+        face=face,
+        operators=operators,
+        head=head,
+        head_operators=mesh_operators(head.vertices, head.faces, k=8, cache=False),
+        dataset=dataset,
+    )
+
+
+BACKWARDS = np.diag([-1.0, 1.0, -1.0])  # 180 degrees about y: facing -z
 
 
 def _generate(c, **kw):
@@ -109,6 +126,50 @@ GENERATE_RIG = [
         ),
         ValueError,
         "target_vertices",
+    ),
+    raises(
+        "unknown-orientation",
+        lambda c: _generate(c, orientation="guess"),
+        ValueError,
+        "orientation",
+    ),
+    raises(
+        "head-facing-backwards",
+        lambda c: _generate(c, vertices=c.head.vertices @ BACKWARDS, faces=c.head.faces),
+        ValueError,
+        "vertices",
+    ),
+    raises(
+        "head-stored-z-up",
+        lambda c: _generate(
+            c, vertices=c.head.vertices[:, [0, 2, 1]] * [1, -1, 1], faces=c.head.faces
+        ),
+        ValueError,
+        "vertices",
+    ),
+    raises(
+        "fix-with-operators-of-the-stored-head",
+        lambda c: _generate(
+            c,
+            vertices=c.head.vertices @ BACKWARDS,
+            faces=c.head.faces,
+            orientation="fix",
+            operators=c.head_operators,
+        ),
+        ValueError,
+        "operators",
+    ),
+    raises(
+        "zero-placement-scale",
+        lambda c: _generate(c, placement=([0, 0, 0], 0.0)),
+        ValueError,
+        "placement",
+    ),
+    raises(
+        "nan-placement-centre",
+        lambda c: _generate(c, placement=([np.nan, 0, 0], 1.0)),
+        ValueError,
+        "placement",
     ),
     raises(
         "operators-of-another-mesh",
@@ -210,3 +271,38 @@ FEATURES = [
 @pytest.mark.parametrize("case", FEATURES)
 def test_features(case, ctx):
     run_case(case, ctx)
+
+
+HEADS = [
+    raises(
+        "no-face-on-the-head",
+        lambda c: fit_head_landmarks(c.dataset, *_sphere(12.0)),
+        ValueError,
+        "vertices",
+    ),
+    raises(
+        "head-facing-backwards",
+        lambda c: fit_head_landmarks(c.dataset, c.head.vertices @ BACKWARDS, c.head.faces),
+        ValueError,
+        "vertices",
+    ),
+]
+
+
+def _sphere(radius_cm: float):
+    from scipy.spatial import ConvexHull
+
+    points = np.random.default_rng(0).standard_normal((400, 3))
+    points *= radius_cm / np.linalg.norm(points, axis=1, keepdims=True)
+    return points, ConvexHull(points).simplices
+
+
+@pytest.mark.parametrize("case", HEADS)
+def test_head_landmarks(case, ctx):
+    run_case(case, ctx)
+
+
+def test_head_in_metres_is_warned_and_refused_naming_the_argument(ctx):
+    with pytest.warns(UserWarning, match="vertices: .*centimetres"):
+        with pytest.raises(ValueError, match="vertices"):
+            fit_head_landmarks(ctx.dataset, ctx.head.vertices / 100.0, ctx.head.faces)

@@ -333,11 +333,52 @@ def fit_head_landmarks(
     landmark snapped to the nearest head vertex (of ``region``, e.g. the skin, when given).
 
     Returns ((68,) vertex indices, the ``SimilarityFit``)."""
-    from ..mesh import fit_landmarks
+    from ..mesh import check_mesh, fit_landmarks
 
     head = dataset.head
+    vertices, faces = check_mesh(vertices, faces)
+    size = float(np.linalg.norm(np.ptp(vertices, axis=0)))
+    reference = float(np.linalg.norm(np.ptp(head.neutral, axis=0)))
+    if not 0.25 <= size / reference <= 4.0:
+        warnings.warn(
+            f"vertices: the head's bounding box is {size:.3g} across, the ICT head's "
+            f"{reference:.3g} cm (a human head with neck: ~35-70 cm); is it in centimetres? "
+            "(metres or decimetres given as centimetres look like this)",
+            UserWarning,
+            stacklevel=2,
+        )
     face = vertex_parts(head) == list(head.part_names).index("Face")
-    return fit_landmarks(head.neutral, head.landmarks, face, vertices, faces, target_region=region)
+    try:
+        return fit_landmarks(
+            head.neutral, head.landmarks, face, vertices, faces, target_region=region
+        )
+    except ValueError as error:  # name this function's argument, not fit_landmarks'
+        message = (
+            str(error).replace("target_vertices", "vertices").replace("target_region", "region")
+        )
+        raise ValueError(message + " (the ICT face part is fitted to it)") from error
+
+
+def face_placement(dataset: AutorigDataset, vertices, faces, *, fit=None):
+    """Centre and scale that place a head in the unit sphere as the model's training heads
+    were placed, derived from the face instead of the head's bounding box (which moves with
+    where the head was cropped: a neck, shoulders or none): the ICT face part is fitted to
+    the head by a trimmed-ICP similarity (``fit_head_landmarks``) and the generic ICT head's
+    bounding-box centre and radius (``normalise``, the training placement) are carried
+    through that similarity.
+
+    Args:
+        vertices, faces: the head (centimetres, y up, facing +z, as ``fit_head_landmarks``).
+        fit: a ``SimilarityFit`` already computed for this head (skips the fit).
+
+    Returns ``(centre (3,), scale)`` for ``generate_rig(..., placement=...)``.
+    """
+    from ._model import normalise
+
+    if fit is None:
+        _, fit = fit_head_landmarks(dataset, vertices, faces)
+    _, centre, radius = normalise(dataset.head.neutral)
+    return fit.apply(centre[None])[0], float(fit.scale * radius)
 
 
 def head_correspondence(dataset: AutorigDataset, vertices, faces, landmarks):
