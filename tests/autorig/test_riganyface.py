@@ -16,11 +16,13 @@ from canrig_jax.autorig import (
     generate_rig,
     head_inputs,
     head_rig,
+    inner_outside,
     load_model,
     make_head,
     outside_fraction,
     pad_to_bucket,
     penetration,
+    penetration_free_set,
     pose_displacements,
     quartic_pose_set,
     rig_from_poses,
@@ -286,6 +288,31 @@ def test_inner_parts_are_inside_the_skin_and_pushing_them_out_is_detected(heads,
             np.zeros(head.n_vertices, bool),
             np.ones(len(head.faces), bool),
         )
+
+
+def test_penetration_free_set_scores_the_truth_zero_and_catches_a_push(heads, ict_head):
+    head = heads[0]
+    names = ict_head.part_names
+    poses, vertices = penetration_free_set(head, names)
+    truth = inner_outside(head, head.displacements, names)
+    rest = inner_outside(head, np.zeros((1, head.n_vertices, 3)), names)[0]
+    # the selection: inner vertices inside at rest, poses whose truth pushes none of them out
+    np.testing.assert_array_equal(vertices, ~rest)
+    assert 0 < poses.size < head.displacements.shape[0] or poses.size == truth.shape[0]
+    assert not truth[poses][:, vertices].any()
+    assert truth[np.setdiff1d(np.arange(truth.shape[0]), poses)][:, vertices].any(axis=1).all()
+    # a prediction that pushes the teeth 5 cm forward on the selected poses is caught
+    teeth = head.parts == names.index("Teeth")
+    inner = np.isin(head.parts, [names.index(p) for p in INNER_PARTS])
+    pushed = head.displacements.copy()
+    pushed[:, teeth, 2] += 5.0
+    outside = inner_outside(head, pushed, names)[poses][:, vertices]
+    teeth_inner = teeth[inner][vertices]
+    assert outside[:, teeth_inner].mean() > 0.9 and outside[:, ~teeth_inner].mean() < 0.05
+    # the plain metric is the mean of inner_outside
+    assert penetration(head, head.displacements, names) == pytest.approx(truth.mean())
+    with pytest.raises(ValueError, match="threshold"):
+        penetration_free_set(head, names, threshold=1.5)
 
 
 # -- training -------------------------------------------------------------------------------------
