@@ -47,6 +47,8 @@ from canrig_jax.rig import (
 from canrig_jax.wpse import time_runtime
 
 BUDGETS = (10, 50)
+FEW_EDIT_BUDGETS = (5, 10, 20, 50)
+REUSE_LIBRARY_EDITS = 10
 MIN_EDIT_DISTANCE = 0.5  # weight units between edited frames ("spread out")
 SUPPORT_TOL_CM = 1e-4  # vertices whose edits all stay below 1 micrometre are not stored
 
@@ -150,6 +152,11 @@ def main(argv=None):
         errors["fsm"][key], maps["fsm"] = stats(np.asarray(batch(fsm, poses[held_out])))
         print(key, {m: round(errors[m][key]["mean_mm"], 4) for m in errors})
 
+    few_edits, new_width = _few_edits(rig, poses, desired, linear, edit_frames, held_out, sigma)
+    temporal = _temporal(
+        rig, poses, desired, linear, edit_frames, len(capture), new_width, args.out
+    )
+    reuse = _reuse(rig, poses, desired, linear, len(capture))
     locality = _locality(rig, models, poses, edit_frames, linear, blend, rng)
     overshoot = _overshoot(rig, models, blend, sigma, args.out)
     layering = _layering(rig, poses, edit_frames, linear, blend, sigma["wpse_p50"]["loo_sigma"])
@@ -169,6 +176,10 @@ def main(argv=None):
         "sigma": sigma,
         "sigma_sweep_held_out_mean_mm": sweep,
         "max_correction_at_rest_pose_mm": rest_correction,
+        "few_edits": few_edits,
+        "new_width": new_width,
+        "temporal": temporal,
+        "reuse": reuse,
         "protocol": {
             "frames": len(poses),
             "capture_frames": len(capture),
@@ -187,6 +198,171 @@ def main(argv=None):
     print(table)
     print(f"wrote {args.out}/results.json, table.md and PNG figures")
     return results
+
+
+def _held_out_stats(model, poses, linear, desired, frames):
+    run = jax.jit(jax.vmap(wpse.apply, (None, 0, 0)))
+    meshes = np.asarray(run(model, jnp.asarray(poses[frames]), jnp.asarray(linear[frames])))
+    err = per_vertex_distance(meshes, desired[frames]) * CM_TO_MM
+    return {"mean_mm": float(err.mean()), "p95_mm": float(np.percentile(err, 95))}
+
+
+def _few_edits(rig, poses, desired, linear, edit_frames, held_out, sigma):
+    """Issue 24: held-out error with 5-50 edits; today's LOO width against the
+    one-standard-error width (``wpse.fit_width``), chosen from the edits alone."""
+    err = per_vertex_distance(linear[held_out], desired[held_out]) * CM_TO_MM
+    linear_stats = {"mean_mm": float(err.mean()), "p95_mm": float(np.percentile(err, 95))}
+    out, widths = {}, {}
+    for budget in FEW_EDIT_BUDGETS:
+        chosen = edit_frames[:budget]
+        edits = desired[chosen] - linear[chosen]
+        row = {"linear": linear_stats}
+        for method, metric, rest, rule in (
+            ("pse", "euclidean", False, "loo"),
+            ("wpse", "weighted", False, "loo"),
+            ("wpse_new_width", "weighted", False, "one_se"),
+            ("wpse_new_width_rest_pose", "weighted", True, "one_se"),
+        ):
+            data = wpse.prepare_edits(
+                rig, poses[chosen], edits, metric=metric, support_tol=SUPPORT_TOL_CM, rest_pose=rest
+            )
+            if rule == "loo":
+                known = sigma.get(f"{method}_p{budget}")
+                width = known["loo_sigma"] if known else wpse.fit_sigma(data).sigma
+            else:
+                start = time.perf_counter()
+                fit = wpse.fit_width(data)
+                width = fit.sigma
+                widths[f"{method}_p{budget}"] = {
+                    "sigma": fit.sigma,
+                    "loo_min_sigma": fit.loo_min_sigma,
+                    "standard_error_mm": fit.standard_error * CM_TO_MM,
+                    "loo_mean_at_sigma_mm": float(
+                        fit.loo_mean[np.searchsorted(fit.grid, fit.sigma)] * CM_TO_MM
+                    ),
+                    "loo_mean_at_min_mm": float(fit.loo_mean.min() * CM_TO_MM),
+                    "no_correction_mm": float(np.linalg.norm(edits, axis=2).mean() * CM_TO_MM),
+                    "fit_seconds": time.perf_counter() - start,
+                }
+            model = wpse.fit_prepared(data, width)
+            row[method] = {
+                **_held_out_stats(model, poses, linear, desired, held_out),
+                "sigma": width,
+            }
+        out[str(budget)] = row
+        print("few edits", budget, {m: round(v["mean_mm"], 4) for m, v in row.items()})
+    return out, widths
+
+
+def _temporal(rig, poses, desired, linear, edit_frames, n_capture, widths, out_dir, around=40):
+    """Figure 6 analog: one edit at the worst held-out frame of the Live Link take (width:
+    the one-standard-error width of the 10-edit library), applied over the whole take."""
+    take = np.arange(n_capture)
+    candidates = np.setdiff1d(take, edit_frames)
+    error = np.linalg.norm(desired[candidates] - linear[candidates], axis=2).mean(axis=1)
+    frame = int(candidates[np.argmax(error)])
+    width = widths["wpse_new_width_p10"]["sigma"]
+    model = wpse.fit_pose_space_edit(
+        rig,
+        poses[frame][None],
+        (desired[frame] - linear[frame])[None],
+        sigma=width,
+        support_tol=SUPPORT_TOL_CM,
+    )
+    run = jax.jit(jax.vmap(wpse.apply, (None, 0, 0)))
+    corrected = np.asarray(run(model, jnp.asarray(poses[take]), jnp.asarray(linear[take])))
+    correction = (corrected - linear[take]) * CM_TO_MM
+    change = wpse.temporal_change(correction)
+    motion = wpse.temporal_change(desired[take] * CM_TO_MM)
+    size = np.linalg.norm(correction, axis=2).max(axis=1)
+    lo, hi = max(frame - around, 0), min(frame + around + 1, n_capture)
+    fig, ax = plt.subplots(figsize=(6.0, 3.4))
+    ax.plot(take[lo:hi], size[lo:hi], label="max correction (mm)", lw=1.8)
+    ax.plot(take[lo + 1 : hi], change["step"][lo : hi - 1], label="correction step (mm/frame)")
+    ax.plot(
+        take[lo + 1 : hi],
+        motion["step"][lo : hi - 1],
+        label="take's own step (mm/frame)",
+        color="grey",
+        ls="--",
+        lw=1,
+    )
+    ax.axvline(frame, color="red", lw=0.8, ls=":", label=f"edited frame {frame}")
+    ax.set_xlabel("Live Link frame")
+    ax.set_ylabel("mm")
+    ax.set_title(
+        f"One edit applied over the take (WPSE, sigma {width:.3f}; Seol et al. Fig. 6)", fontsize=9
+    )
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    save_figure(fig, out_dir / "temporal.png")
+    return {
+        "edited_frame": frame,
+        "sigma": width,
+        "max_step_mm": change["max_step"],
+        "max_acceleration_mm": change["max_acceleration"],
+        "take_max_step_mm": motion["max_step"],
+        "take_max_acceleration_mm": motion["max_acceleration"],
+        "max_correction_mm": float(size.max()),
+        "frames": int(n_capture),
+    }
+
+
+def _reuse(rig, poses, desired, linear, n_capture):
+    """Edit reuse (eq. 7): a library of edits at the worst spread-out frames of the first half
+    of the Live Link take corrects the second half through the mouth-region search. E / |ROI|
+    is the mean weighted pose distance over the region, so tau is set from the library's
+    width alone: tau = 2 sigma |ROI| (edits whose Gaussian still weighs about e^-2 over the
+    region); also reported at 1 and 3 sigma |ROI|."""
+    half = n_capture // 2
+    first, second = np.arange(half), np.arange(half, n_capture)
+    error = np.linalg.norm(desired[first] - linear[first], axis=2).mean(axis=1)
+    library = first[
+        wpse.select_edit_frames(error, poses[first], REUSE_LIBRARY_EDITS, MIN_EDIT_DISTANCE / 2)
+    ]
+    edits = desired[library] - linear[library]
+    alpha = wpse.blendshape_metric(rig.deltas)
+    mouth = [i for i, n in enumerate(rig.names) if n.startswith(("mouth", "jaw"))]
+    roi = np.flatnonzero(alpha[:, mouth].sum(axis=1) > 0.5)
+    data = wpse.prepare_edits(rig, poses[library], edits, support_tol=SUPPORT_TOL_CM)
+    width = wpse.fit_width(data).sigma
+    tau = 2.0 * width * roi.size
+    before = per_vertex_distance(linear[second], desired[second]) * CM_TO_MM
+    out = {
+        "library_frames": library.tolist(),
+        "query_frames": [int(second[0]), int(second[-1])],
+        "roi_vertices": int(roi.size),
+        "sigma": width,
+        "error_before_mm": float(before.mean()),
+        "error_before_roi_mm": float(before[:, roi].mean()),
+    }
+    for scale in (1.0, 0.5, 1.5):
+        found = wpse.reuse_edits(
+            rig,
+            poses[library],
+            edits,
+            poses[second],
+            roi,
+            tau=scale * tau,
+            sigma=width,
+            support_tol=SUPPORT_TOL_CM,
+        )
+        after = per_vertex_distance(linear[second] + found.corrections, desired[second])
+        after = after * CM_TO_MM
+        row = {
+            "tau": scale * tau,
+            "tau_per_roi_vertex": scale * tau / roi.size,
+            "error_after_mm": float(after.mean()),
+            "error_after_roi_mm": float(after[:, roi].mean()),
+            "frames_with_edits_found": int(sum(f.size > 0 for f in found.found)),
+            "mean_edits_found": float(np.mean([f.size for f in found.found])),
+        }
+        if scale == 1.0:
+            out.update(row)
+        else:
+            out[f"tau_x{scale:g}"] = row
+        print("reuse", scale, row)
+    return out
 
 
 def _locality(rig, models, poses, edit_frames, linear, blend, rng, draws=4):
@@ -549,6 +725,46 @@ def _table(results):
             f"{row['numpy_runtime_ms']:.2f} | {row['rig_evaluate_ms']:.2f} | "
             f"{row['load_average_1min']:.1f} |"
         )
+    few = results["few_edits"]
+    methods = list(next(iter(few.values())))
+    lines += [
+        "",
+        "Few edits (held-out mean / p95 mm; LOO width for pse and wpse, the one-standard-error "
+        "width for wpse_new_width):",
+        "",
+        "| method | " + " | ".join(f"P={p}" for p in few) + " |",
+        "|---|" + "---|" * len(few),
+    ]
+    for method in methods:
+        cells = ["{mean_mm:.3f} / {p95_mm:.3f}".format(**few[p][method]) for p in few]
+        lines.append(f"| {method} | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "| model | one-SE sigma | LOO-min sigma | SE (mm) | fit (s) |",
+        "|---|---|---|---|---|",
+    ]
+    for key, w in results["new_width"].items():
+        lines.append(
+            f"| {key} | {w['sigma']:.4f} | {w['loo_min_sigma']:.4f} | "
+            f"{w['standard_error_mm']:.3f} | {w['fit_seconds']:.1f} |"
+        )
+    tem, reu = results["temporal"], results["reuse"]
+    lines += [
+        "",
+        f"Temporal (one edit at Live Link frame {tem['edited_frame']}, sigma {tem['sigma']:.3f}): "
+        f"correction max step {tem['max_step_mm']:.3f} mm/frame, max acceleration "
+        f"{tem['max_acceleration_mm']:.3f} mm/frame^2; the take itself: step "
+        f"{tem['take_max_step_mm']:.3f}, acceleration {tem['take_max_acceleration_mm']:.3f}.",
+        "",
+        f"Reuse (library of {len(reu['library_frames'])} edits from the first half, mouth ROI, "
+        f"tau {reu['tau']:.1f}): second-half mean error {reu['error_before_mm']:.3f} -> "
+        f"{reu['error_after_mm']:.3f} mm (ROI {reu['error_before_roi_mm']:.3f} -> "
+        f"{reu['error_after_roi_mm']:.3f}; edits found at "
+        f"{reu['frames_with_edits_found']} of "
+        f"{reu['query_frames'][1] - reu['query_frames'][0] + 1} "
+        f"frames); tau x0.5: {reu['tau_x0.5']['error_after_mm']:.3f}, "
+        f"tau x1.5: {reu['tau_x1.5']['error_after_mm']:.3f} mm.",
+    ]
     over = results["overshoot"]["max_correction_mm"]
     lines += ["", f"Overshoot, pair {' + '.join(results['overshoot']['pair'])} (max mm):"]
     lines += [

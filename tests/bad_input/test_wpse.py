@@ -1,5 +1,6 @@
 """Bad inputs of pose space editing: fits (widths that no longer reproduce the edits), fix
-shapes with a broken sculpt, application to bad poses, layers."""
+shapes with a broken sculpt, application to bad poses, layers, the few-edits width rule,
+temporal change and edit reuse."""
 
 from __future__ import annotations
 
@@ -15,8 +16,12 @@ from canrig_jax.wpse import (
     apply,
     fit_layered,
     fit_pose_space_edit,
+    fit_width,
     fix_shape_rig,
+    prepare_edits,
+    reuse_edits,
     sigma_from_gui,
+    temporal_change,
 )
 
 from .conftest import handled, raises, run_case
@@ -231,3 +236,72 @@ APPLY = [
 @pytest.mark.parametrize("case", APPLY)
 def test_apply_and_layers(case, ctx):
     run_case(case, ctx)
+
+
+@pytest.fixture(scope="module")
+def width_ctx(ctx):
+    """ctx plus the prepared edits (world axes) that the width rule reads."""
+    data = prepare_edits(ctx.rig, ctx.poses, ctx.edits, local_frames=False)
+    two = prepare_edits(ctx.rig, ctx.poses[:2], ctx.edits[:2], local_frames=False)
+    return types.SimpleNamespace(**vars(ctx), data=data, two=two)
+
+
+FEW_EDITS = [
+    raises("two-edits", lambda c: fit_width(c.two), ValueError, "data"),
+    raises(
+        "negative-se-factor", lambda c: fit_width(c.data, se_factor=-1.0), ValueError, "se_factor"
+    ),
+    raises("nan-se-factor", lambda c: fit_width(c.data, se_factor=np.nan), ValueError, "se_factor"),
+    raises("zero-width-grid", lambda c: fit_width(c.data, grid=[0.0, 0.3]), ValueError, "grid"),
+    raises("no-vertices", lambda c: fit_width(c.data, max_vertices=0), ValueError, "max_vertices"),
+    raises("short-take", lambda c: temporal_change(np.zeros((2, 5, 3))), ValueError, "frames"),
+    raises("nan-take", lambda c: temporal_change(np.full((4, 5, 3), np.nan)), ValueError, "frames"),
+    raises(
+        "reuse-query-width",
+        lambda c: reuse_edits(c.rig, c.poses, c.edits, c.poses[:, :2], [0], tau=1.0, sigma=0.4),
+        ValueError,
+        "query_poses",
+    ),
+    raises(
+        "reuse-nan-query",
+        lambda c: reuse_edits(
+            c.rig, c.poses, c.edits, np.full_like(c.poses, np.nan), [0], tau=1.0, sigma=0.4
+        ),
+        ValueError,
+        "query_poses",
+    ),
+    raises(
+        "reuse-roi-range",
+        lambda c: reuse_edits(c.rig, c.poses, c.edits, c.poses, [49], tau=1.0, sigma=0.4),
+        ValueError,
+        "roi",
+    ),
+    raises(
+        "reuse-tau",
+        lambda c: reuse_edits(c.rig, c.poses, c.edits, c.poses, [0], tau=0.0, sigma=0.4),
+        ValueError,
+        "tau",
+    ),
+    raises(
+        "reuse-sigma",
+        lambda c: reuse_edits(c.rig, c.poses, c.edits, c.poses, [0], tau=1.0, sigma=-1.0),
+        ValueError,
+        "sigma",
+    ),
+    raises(
+        "reuse-library-shape",
+        lambda c: reuse_edits(c.rig, c.poses, c.edits[:, :-1], c.poses, [0], tau=1.0, sigma=0.4),
+        ValueError,
+        "edits",
+    ),
+    handled(
+        "one-se-width-at-most-the-loo-minimum",
+        lambda c: fit_width(c.data),
+        lambda fit, c: np.testing.assert_array_less(fit.sigma, fit.loo_min_sigma * (1 + 1e-9)),
+    ),
+]
+
+
+@pytest.mark.parametrize("case", FEW_EDITS)
+def test_few_edits(case, width_ctx):
+    run_case(case, width_ctx)

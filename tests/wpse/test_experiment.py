@@ -25,7 +25,15 @@ def test_quick_experiment_writes_the_issue_keys(tmp_path):
     for row in results["timing"]:
         assert set(row) >= {"vertices", "edits", "train_s", "runtime_ms", "numpy_runtime_ms"}
     assert results["sigma"]
-    for name in ("table.md", "error_maps.png", "overshoot.png", "search.png"):
+    for budget in ("5", "10", "20", "50"):
+        for method in ("linear", "pse", "wpse", "wpse_new_width"):
+            assert set(results["few_edits"][budget][method]) >= {"mean_mm", "p95_mm"}
+    assert set(results["temporal"]) >= {"max_step_mm", "max_acceleration_mm", "take_max_step_mm"}
+    assert set(results["reuse"]) >= {"error_before_mm", "error_after_mm", "tau"}
+    # issue 24: the one-standard-error width never leaves the rig worse than uncorrected
+    for row in results["few_edits"].values():
+        assert row["wpse_new_width"]["mean_mm"] < row["linear"]["mean_mm"]
+    for name in ("table.md", "error_maps.png", "overshoot.png", "search.png", "temporal.png"):
         assert (tmp_path / name).exists()
     # the claims that hold on real data (see the README for the ones that do not)
     errors = results["errors"]

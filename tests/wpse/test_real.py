@@ -15,6 +15,7 @@ from canrig_jax.wpse import (
     blendshape_metric,
     fit_prepared,
     fit_sigma,
+    fit_width,
     frame_matrices,
     local_frames,
     prepare_edits,
@@ -107,3 +108,18 @@ def test_locality_wpse_keeps_the_mouth_correction_pse_loses_it(ict_face, real_ed
             kept[method].append(retained_fraction(at_edit, at_probe, region))
     assert np.mean(kept["wpse"]) > 0.8, kept
     assert np.mean(kept["pse"]) < 0.5, kept
+
+
+@pytest.mark.parametrize("n_edits", [3, 5, 8])
+def test_one_se_width_never_worse_than_the_rig_with_few_edits(n_edits, ict_face, real_edits):
+    """Issue 24: with few real edits the width chosen by ``fit_width`` from the edits alone
+    leaves the held-out frames better than the uncorrected rig."""
+    data = prepare_edits(
+        ict_face, real_edits["poses"][:n_edits], real_edits["edits"][:n_edits], support_tol=1e-4
+    )
+    model = fit_prepared(data, fit_width(data).sigma)
+    run = jax.jit(jax.vmap(apply, (None, 0, 0)))
+    held_out = np.asarray(run(model, real_edits["test_poses"], real_edits["test_linear"]))
+    before = mean_error_mm(real_edits["test_linear"], real_edits["test_desired"])
+    after = mean_error_mm(held_out, real_edits["test_desired"])
+    assert after < before, (before, after)

@@ -3,7 +3,7 @@
 ```python
 from canrig_jax import wpse
 data = wpse.prepare_edits(rig, poses, edits)          # (P, K) poses, (P, V, 3) sculpted offsets
-fit = wpse.fit_sigma(data)                             # leave-one-out default width (optimistix)
+fit = wpse.fit_width(data)                             # one-standard-error LOO width (few edits)
 model = wpse.fit_prepared(data, fit.sigma)             # or wpse.fit_pose_space_edit(..., sigma=)
 mesh = wpse.apply(model, w, evaluate(rig, w))          # jit / vmap over frames
 ```
@@ -26,7 +26,7 @@ from ._metric import (
     pairwise_pose_distance_sq,
     pose_distance_sq,
 )
-from ._protocol import retained_fraction, select_edit_frames
+from ._protocol import retained_fraction, select_edit_frames, temporal_change
 from ._pse import (
     DUPLICATE_DISTANCE,
     EditData,
@@ -48,6 +48,7 @@ from ._reference import (
     reference_vertex_frames,
     time_runtime,
 )
+from ._reuse import ReuseResult, reuse_edits
 from ._search import SearchResult, region_energy, search_edits
 from ._sigma import (
     GUI_MIN,
@@ -60,6 +61,7 @@ from ._sigma import (
     loo_residuals,
     sigma_from_gui,
 )
+from ._width import WidthFit, default_width_grid, fit_width, loo_distance_per_edit
 
 __all__ = [
     "NumpyEditEvaluator",
@@ -75,8 +77,10 @@ __all__ = [
     "LayeredEdits",
     "LocalFrames",
     "PoseSpaceEdit",
+    "ReuseResult",
     "SearchResult",
     "SigmaFit",
+    "WidthFit",
     "apply",
     "apply_layered",
     "assign_layers",
@@ -91,6 +95,9 @@ __all__ = [
     "fit_pose_space_edit",
     "fit_prepared",
     "fit_sigma",
+    "fit_width",
+    "default_width_grid",
+    "loo_distance_per_edit",
     "fix_shape_rig",
     "frame_matrices",
     "gaussian_kernel",
@@ -104,8 +111,10 @@ __all__ = [
     "prepare_edits",
     "region_energy",
     "retained_fraction",
+    "reuse_edits",
     "search_edits",
     "select_edit_frames",
+    "temporal_change",
     "sigma_from_gui",
     "solve_coefficients",
     "to_local",
