@@ -445,6 +445,7 @@ def rig_timing(model, poses, head, repeats: int = 9) -> dict:
         "warm": float(np.median([w["total"] for w in warm])),
         "warm_operators": float(np.median([w["operators"] for w in warm])),
         "warm_network": float(np.median([w["network"] for w in warm])),
+        "warm_orientation": float(np.median([w.get("orientation", 0.0) for w in warm])),
         "warm_repeats": len(warm),
     }
 
@@ -722,6 +723,9 @@ def table(r: dict) -> str:
         f"| warm, a new head of similar size: operators + network (s) | {t['warm']:.2f} "
         f"({t['warm_operators']:.2f} + {t['warm_network']:.2f}) |",
     ]
+    if "warm_orientation" in t:
+        rows.append(f"| of which the orientation check (s) | {t['warm_orientation']:.3f} |")
+    rows += []
     rows += [f"| parameters {name} | {n:,} |" for name, n in r["parameters"].items()]
     rows += [
         f"| training {name}: steps / minutes / final batch error (mm) | {t['steps']} / "
