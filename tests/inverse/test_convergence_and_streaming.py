@@ -112,3 +112,24 @@ def test_converged_quartic_cd_reaches_an_independent_float64_lbfgsb_minimum(
         offset = (np.asarray(target) - np.asarray(problem.neutral)).ravel()
         value = float(inverse.objective(problem, best.astype(np.float32), offset, alpha))
         assert float(cd.objective) <= value * (1 + 2e-5), (float(cd.objective), value)
+
+
+def test_one_frame_branches_and_batched_branches_reach_the_same_minimum(ict_quartic_problem, noisy):
+    """One frame skips the updates that change nothing, the Newton rows of fixed weights and
+    the second Newton trial when no weight reaches a bound; under vmap every frame takes the
+    branch the whole batch needs (``_one_frame_or_batch``). Both are the same algorithm."""
+    from canrig_jax.inverse._coordinate_descent import _one_frame_or_batch
+
+    assert int(_one_frame_or_batch(jax.numpy.asarray(3), jax.numpy.asarray(7))) == 3
+    batched = jax.vmap(lambda x: _one_frame_or_batch(x, jax.numpy.asarray(7)))(np.arange(3))
+    np.testing.assert_array_equal(np.asarray(batched), [7, 7, 7])
+
+    method = inverse.QuarticCD(alpha=0.5)
+    take = inverse.solve_sequence(ict_quartic_problem, noisy, method)
+    stream = inverse.Stream(ict_quartic_problem, method)
+    for frame, target in enumerate(noisy):
+        single = stream(target)
+        np.testing.assert_allclose(float(single.objective), float(take.objective[frame]), rtol=2e-5)
+        np.testing.assert_allclose(
+            np.asarray(single.weights), np.asarray(take.weights[frame]), atol=5e-3
+        )

@@ -195,6 +195,10 @@ def solve_sequence(
     return run(problem, targets, _traced_floats(method), keys)
 
 
+# one compiled call instead of the eager threefry primitives (0.13 ms per frame)
+_fold_in = jax.jit(jax.random.fold_in)
+
+
 class Stream:
     """One-frame-at-a-time solving for live capture: ``prepare`` once, then one compiled call
     per frame (the same compiled function as ``solve``), warm-started from the previous
@@ -222,12 +226,13 @@ class Stream:
         self.warm_start = bool(warm_start)
         self.key = _key(key)
         self.frame = 0
-        self.previous: Array = jnp.zeros(self.problem.n_blendshapes, self.problem.columns.dtype)
+        self.zeros: Array = jnp.zeros(self.problem.n_blendshapes, self.problem.columns.dtype)
+        self.previous: Array = self.zeros
 
     def __call__(self, target: Float[ArrayLike, "V 3"]) -> Solution:
         _check_target(self.problem, "target", target, batched=False)
-        init = self.previous if self.warm_start else jnp.zeros_like(self.previous)
-        key = jax.random.fold_in(self.key, self.frame)
+        init = self.previous if self.warm_start else self.zeros
+        key = _fold_in(self.key, self.frame)
         solution = _solve_jit(self.problem, target, self.method, init, key)
         self.frame += 1
         if self.warm_start:
