@@ -148,3 +148,25 @@ def test_orientation_check_is_cheap(ict_heads):
         head_orientation(mesh.vertices, mesh.faces)
     # ~15 ms per call on the shared 2-core CPU; a loose bound against regressions
     assert (time.perf_counter() - start) / 3 < 0.25
+
+
+def test_a_head_with_weak_cues_is_let_through_not_refused(data_dir):
+    """Held-out identity 4 of the experiment (its lips stand out about as far as its nose):
+    the forward cue is too weak, so the check lets it through, whole and cut below the chin
+    (an earlier, looser margin refused the cut head as facing -z)."""
+    from scipy.spatial import cKDTree
+
+    head = load_ict(data_dir, parts=None)
+    rng = np.random.default_rng([0, 1])  # the experiment's held-out stream
+    coefficients = [rng.standard_normal(100) for _ in range(5)][-1]
+    neutral = ict_identity(coefficients, data_dir, model=head)
+    mesh = decimate(neutral, head.faces, 1300)
+    v, f = mesh.vertices, mesh.faces
+    chin = v[cKDTree(v).query(neutral[head.landmarks[8]])[1], 1]
+    keep = (v[f][:, :, 1] > chin - 1.0).all(axis=1)
+    kept = np.zeros(len(v), bool)
+    kept[f[keep]] = True
+    cut = (v[kept], (np.cumsum(kept) - 1)[f[keep]])
+    for vertices, faces in ((v, f), cut):
+        found = head_orientation(vertices, faces)
+        assert not found.contradicts and found.lateral == "x", found.describe()

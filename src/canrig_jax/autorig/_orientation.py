@@ -9,7 +9,8 @@ three cues of a human head that do not depend on where it was cropped:
 * **forward**: of the four signed directions across the other two axes, the one whose
   extreme is the sharpest point — the nose tip (the vertices within ``5 %`` of the size of
   the extreme spread the least around it; the crown, the back of the head and a neck or
-  shoulder cut are broad);
+  shoulder cut are broad); parts inside the skin (eyes, teeth), if any, must lie on that
+  side of the centre;
 * **up**: along the remaining axis, the side of the nose tip on which the paired parts off
   the mid-plane sit (eyeballs, lashes: above), and the side away from the skin's longest
   open boundary (a neck or shoulder cut: below); the cues that are clear must agree.
@@ -32,8 +33,13 @@ AXES = ("x", "y", "z")
 CONVENTION = "+y up, +z forward (ICT)"
 SYMMETRY_MARGIN = 1.5
 """The symmetry axis must be this many times more symmetric than the next one."""
-SHARPNESS_MARGIN = 1.3
-"""The nose tip must spread this many times less than the next sharpest extreme."""
+SHARPNESS_MARGIN = 1.6
+"""The nose tip must spread this many times less than the next sharpest extreme (ICT heads:
+2.0-3.8; a random ICT identity whose lips stand out as far as its nose: 1.2-1.4, left
+undetermined)."""
+INNER_FORWARD = 0.05
+"""Parts inside the skin (eyes, teeth), when there are any, must sit this far (fraction of
+the head's radius) on the forward side of the skin's centre (ICT heads: ~0.3)."""
 UP_MARGINS = {"side_parts": 0.03, "boundary": 0.3}
 """An up cue counts when the side parts sit this far (fraction of the head's radius) above
 or below the nose tip (ICT heads: 0.07-0.09), or the longest boundary's centre this far
@@ -150,6 +156,12 @@ def head_orientation(vertices, faces, *, max_points: int = 4000) -> HeadOrientat
     if sharpness < SHARPNESS_MARGIN:
         return HeadOrientation(None, None, None, lateral, margins)
     forward_axis, forward_sign = ranked[0]
+    inner = (v[~main] - centre) / radius
+    if inner.shape[0]:  # eyes and teeth sit behind the face, in front of the centre
+        ahead = float(forward_sign * inner[:, forward_axis].mean())
+        margins["inner_forward"] = ahead
+        if ahead < INNER_FORWARD:
+            return HeadOrientation(None, None, None, lateral, margins)
     forward = _signed(forward_axis, forward_sign)
 
     # -- up: the eyes above the nose, the neck cut below -------------------------------
@@ -158,7 +170,6 @@ def head_orientation(vertices, faces, *, max_points: int = 4000) -> HeadOrientat
     votes = {}
     # paired side parts (eyeballs, lashes, lacrimal fluid: off the mid-plane) sit above the
     # nose tip; parts on the mid-plane (teeth, tongue) are left out
-    inner = (v[~main] - centre) / radius
     inner_labels = labels[~main]
     if inner.shape[0]:
         counts = np.bincount(inner_labels)
