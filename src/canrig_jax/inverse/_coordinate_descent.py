@@ -31,7 +31,7 @@ One frame at a time (``solve``, ``Stream``), work that cannot change the result 
 an update that leaves its weight where it was (most often one held at 0 by the L1 term) does
 not read its m x P block of Q, the Newton step forms the rows of Q G for the free weights
 only, and it evaluates one trial instead of two when no free weight reaches a bound (on
-ict-quartic, one-frame CPU time per Newton step about -30 %, per pass -5 to -10 %, under
+ict-quartic, one-frame CPU time per Newton step -23 to -32 %, per pass -1 to -8 %, under
 load). Under vmap the frames would need different branches, which JAX turns into computing
 every branch and selecting (and XLA then loses the one matrix product over the frames):
 ``_one_frame_or_batch`` gives the batch the branch every frame needs instead, so a take
