@@ -17,6 +17,7 @@ figures (a_to_b_error.png, layers.png, clip_edit.png, dialogue.png).
 from __future__ import annotations
 
 import argparse
+import json
 import time
 import warnings
 from pathlib import Path
@@ -35,6 +36,7 @@ from canrig_jax.canrig import (
     evaluate_poses,
     expression_region,
     farthest_point_vertices,
+    global_blendshape_dialogue,
     held_out_poses,
     influence_mask,
     influence_reach,
@@ -42,12 +44,13 @@ from canrig_jax.canrig import (
     iterative_layers,
     load_model,
     max_acceleration,
+    pbs_basis,
     pose_a_to_b,
     split_capture,
 )
 from canrig_jax.data import load_livelinkface
 from canrig_jax.render import plot_vertex_scalar, save_figure
-from canrig_jax.rig import ict_quartic_rig
+from canrig_jax.rig import ict_quartic_rig, random_sparse_poses
 
 FALLOFF_PER_CM = EVAL_FALLOFF_PER_CM
 HANDLE_COUNTS = (20, 75, 200)
@@ -146,6 +149,12 @@ def main(argv=None):
     parser.add_argument("--fit-steps", type=int, default=FitOptions().max_steps)
     parser.add_argument("--lsmr-steps", type=int, default=FitOptions().lsmr_steps)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--dialogue-only",
+        action="store_true",
+        help="re-run only the dialogue replacement and its Table 6 baselines, updating "
+        "--out/results.json, table.md and dialogue.png (the rest is kept)",
+    )
     args = parser.parse_args(argv)
     if args.quick:
         args.pairs, args.fit_pairs, args.layer_pairs = 4, 2, 2
@@ -162,6 +171,8 @@ def main(argv=None):
     neutral = np.asarray(quartic.neutral, np.float32)
     model, state = load_model(args.checkpoint, neutral)
     rig = NeuralRig(model, neutral, np.asarray(quartic.faces))
+    if args.dialogue_only:
+        return _dialogue_only(args, argv, rig, quartic, capture, options)
     rng = np.random.default_rng(args.seed)
     pairs = _pairs(len(shapes), args.pairs, rng)
     n_fit = min(args.fit_pairs, args.pairs)
@@ -285,50 +296,15 @@ def main(argv=None):
     print(f"clip edit: {clip_numbers}")
 
     # ---------------------------------------------------------------- dialogue (Figure 12)
-    n_dialogue = 6 if args.quick else 45
-    source = evaluate_poses(quartic, capture[90 : 90 + n_dialogue])
-    target = evaluate_poses(quartic, capture[135 : 135 + n_dialogue])
-    reach = float(influence_reach(DIALOGUE_RADIUS_CM, FALLOFF_PER_CM, model.clamp))
-    interior = interior_vertices(rig, mouth, reach)
-    dialogue_index = interior[farthest_point_vertices(neutral[interior], DIALOGUE_HANDLES)]
-    dialogue_handles = rig.handles(dialogue_index)
-    dialogue = {}
-    outputs = {}
-    for kind in ("direct", "fitted"):
-        out = dialogue_replacement(
-            rig,
-            source,
-            target,
-            dialogue_handles,
-            DIALOGUE_RADIUS_CM,
-            FALLOFF_PER_CM,
-            fit=kind == "fitted",
-            region=mouth,
-            options=options,
-        )
-        outputs[kind] = out
-        dialogue[kind] = {
-            "mouth_difference_mm": float(_error_mm(out, target)[:, mouth].mean()),
-            "rest_of_face_change_mm": float(_error_mm(out, source)[:, ~mouth].max()),
-        }
-    zero = dialogue_replacement(
-        rig, source, source, dialogue_handles, DIALOGUE_RADIUS_CM, FALLOFF_PER_CM
+    dialogue_results, dialogue_run = dialogue_table(
+        rig, quartic, capture, mouth, options, 6 if args.quick else 45, args.seed
     )
-    dialogue_results = {
-        "rig_inversion_mm": float(_error_mm(zero, source).max()),
-        "mouth_difference_mm": dialogue["direct"]["mouth_difference_mm"],
-        "rest_of_face_change_mm": dialogue["direct"]["rest_of_face_change_mm"],
-        "fitted": dialogue["fitted"],
-        "source_mouth_difference_mm": float(_error_mm(source, target)[:, mouth].mean()),
-        "frames": {"source": [90, 89 + n_dialogue], "target": [135, 134 + n_dialogue]},
-        "mouth_mask_vertices": int(mouth.sum()),
-        "mouth_mask": f"expression_region(threshold={MOUTH_THRESHOLD_CM} cm): vertices some "
-        "jaw*/mouth* expression of the ict-quartic rig moves more than that and no eye*/brow* "
-        "expression does",
-        "handles": DIALOGUE_HANDLES,
-        "radius_cm": DIALOGUE_RADIUS_CM,
-    }
-    print(f"dialogue: {dialogue_results}")
+    source, target, dialogue_handles = (
+        dialogue_run["source"],
+        dialogue_run["target"],
+        dialogue_run["handles"],
+    )
+    outputs = dialogue_run["outputs"]
 
     # ---------------------------------------------------------------- timing
     a, b = shapes[pairs[0, 0]], shapes[pairs[0, 1]]
@@ -388,6 +364,110 @@ def main(argv=None):
     )
     print(table)
     print(f"wrote {args.out}/results.json, table.md and figures")
+    return results
+
+
+def dialogue_table(rig, quartic, capture, mouth, options, n_dialogue, seed):
+    """Dialogue replacement (Figure 12 / Table 6): CANRig direct and fitted in the mouth
+    mask, and the global-blendshape baseline (GBS) with the 19-shape basis and with ICT's 53
+    expressions: each source frame inverted by a fit at 200 handles over the face, then
+    refitted with the mouth handles at the target frame."""
+    neutral = np.asarray(quartic.neutral, np.float32)
+    source = evaluate_poses(quartic, capture[90 : 90 + n_dialogue])
+    target = evaluate_poses(quartic, capture[135 : 135 + n_dialogue])
+    reach = float(influence_reach(DIALOGUE_RADIUS_CM, FALLOFF_PER_CM, rig.model.clamp))
+    interior = interior_vertices(rig, mouth, reach)
+    dialogue_index = interior[farthest_point_vertices(neutral[interior], DIALOGUE_HANDLES)]
+    dialogue_handles = rig.handles(dialogue_index)
+    dialogue, outputs = {}, {}
+    for kind in ("direct", "fitted"):
+        out = dialogue_replacement(
+            rig,
+            source,
+            target,
+            dialogue_handles,
+            DIALOGUE_RADIUS_CM,
+            FALLOFF_PER_CM,
+            fit=kind == "fitted",
+            region=mouth,
+            options=options,
+        )
+        outputs[kind] = out
+        dialogue[kind] = {
+            "mouth_difference_mm": float(_error_mm(out, target)[:, mouth].mean()),
+            "rest_of_face_change_mm": float(_error_mm(out, source)[:, ~mouth].max()),
+        }
+    zero = dialogue_replacement(
+        rig, source, source, dialogue_handles, DIALOGUE_RADIUS_CM, FALLOFF_PER_CM
+    )
+    # GBS: the same 60 mouth handles, moved, plus 140 geodesic farthest points off the mouth
+    # (still), so that the inversion of each frame sees the whole face
+    off_mouth = np.flatnonzero(~mouth)
+    still = off_mouth[
+        farthest_point_vertices(neutral[off_mouth], 200 - DIALOGUE_HANDLES, graph=None)
+    ]
+    gbs_index = np.concatenate([dialogue_index, still])
+    moved = np.arange(len(gbs_index)) < DIALOGUE_HANDLES
+    training = random_sparse_poses(np.random.default_rng([seed, 2]), 200, quartic.names)
+    basis_19, _ = pbs_basis(neutral, evaluate_poses(quartic, training), 19)
+    baselines = {}
+    for name, basis in (("gbs_19", basis_19), ("gbs_ict_53", np.asarray(quartic.deltas))):
+        inverted, edited = global_blendshape_dialogue(
+            basis, neutral, source, target, gbs_index, moved
+        )
+        inverted, edited = np.asarray(inverted), np.asarray(edited)
+        baselines[name] = {
+            "rig_inversion_mm": float(_error_mm(inverted, source).mean()),
+            "mouth_difference_mm": float(_error_mm(edited, target)[:, mouth].mean()),
+            "rest_of_face_change_mm": float(_error_mm(edited, source)[:, ~mouth].mean()),
+            "rest_of_face_change_max_mm": float(_error_mm(edited, source)[:, ~mouth].max()),
+        }
+    results = {
+        "rig_inversion_mm": float(_error_mm(zero, source).max()),
+        "mouth_difference_mm": dialogue["direct"]["mouth_difference_mm"],
+        "rest_of_face_change_mm": dialogue["direct"]["rest_of_face_change_mm"],
+        "fitted": dialogue["fitted"],
+        "baselines": baselines,
+        "baseline_protocol": "GBS (CANRig Table 6): basis offsets fitted by ridge least squares "
+        "(1e-3 x the mean diagonal) at 200 handles: the 60 mouth handles (moved to the target "
+        "frame) and 140 geodesic farthest points off the mouth mask (kept at the source); "
+        "gbs_19: the neutral + 18 farthest-point shapes of 200 random sparse poses (not the "
+        "held-out ones); gbs_ict_53: the rig's 53 linear expressions. Means over frames and "
+        "vertices (rest of face: mean, and its max beside it); CANRig's inversion and rest of "
+        "face are maxima (0.0)",
+        "source_mouth_difference_mm": float(_error_mm(source, target)[:, mouth].mean()),
+        "frames": {"source": [90, 89 + n_dialogue], "target": [135, 134 + n_dialogue]},
+        "mouth_mask_vertices": int(mouth.sum()),
+        "mouth_mask": f"expression_region(threshold={MOUTH_THRESHOLD_CM} cm): vertices some "
+        "jaw*/mouth* expression of the ict-quartic rig moves more than that and no eye*/brow* "
+        "expression does",
+        "handles": DIALOGUE_HANDLES,
+        "radius_cm": DIALOGUE_RADIUS_CM,
+    }
+    print(f"dialogue: {results}")
+    run = {"source": source, "target": target, "handles": dialogue_handles, "outputs": outputs}
+    return results, run
+
+
+def _dialogue_only(args, argv, rig, quartic, capture, options):
+    results = json.loads((args.out / "results.json").read_text())
+    mouth = expression_region(quartic, threshold=MOUTH_THRESHOLD_CM)
+    n = 6 if args.quick else 45
+    results["dialogue"], run = dialogue_table(rig, quartic, capture, mouth, options, n, args.seed)
+    results["dialogue_provenance"] = provenance(experiment_command(__file__, argv))
+    save_json(args.out / "results.json", results)
+    table = _table(results)
+    save_text(args.out / "table.md", table)
+    _figure_dialogue(
+        rig,
+        run["source"],
+        run["target"],
+        run["outputs"]["direct"],
+        mouth,
+        run["handles"],
+        args.out / "dialogue.png",
+    )
+    print(table)
     return results
 
 
@@ -478,6 +558,26 @@ def _table(results):
         ),
     ]
     lines += ["| quantity | value |", "|---|---|"] + [f"| {k} | {v} |" for k, v in rows]
+    baselines = dialogue.get("baselines")
+    if baselines:
+        lines += [
+            "",
+            "Dialogue replacement as Table 6 (mm; CANRig's inversion and rest of face are "
+            "maxima, the baselines' means with the max in brackets)",
+            "",
+            "| method | rig inversion | mouth difference | rest of face change |",
+            "|---|---|---|---|",
+        ]
+        for kind, numbers in (("direct", dialogue), ("fitted", dialogue["fitted"])):
+            lines.append(
+                f"| CANRig, {kind} | {dialogue['rig_inversion_mm']:g} | "
+                f"{numbers['mouth_difference_mm']:.3f} | {numbers['rest_of_face_change_mm']:g} |"
+            )
+        for name, b in baselines.items():
+            lines.append(
+                f"| {name} | {b['rig_inversion_mm']:.3f} | {b['mouth_difference_mm']:.3f} | "
+                f"{b['rest_of_face_change_mm']:.3f} ({b['rest_of_face_change_max_mm']:.2f}) |"
+            )
     return "\n".join(lines) + "\n"
 
 

@@ -11,6 +11,7 @@ from canrig_jax.canrig import (
     PatchLayout,
     check_basis,
     fit_pbs,
+    global_blendshape_dialogue,
     global_blendshape_fit,
     patch_layout,
     pbs_basis,
@@ -128,6 +129,38 @@ def test_global_blendshapes_recover_a_basis_combination(face, basis):
     displacements = np.einsum("b,bnk->nk", x, basis)[index]
     ours = np.asarray(global_blendshape_fit(basis, index, displacements, ridge=1e-7))
     np.testing.assert_allclose(ours, x, atol=2e-3)
+
+
+def test_global_blendshape_dialogue(face, basis, shapes):
+    """GBS dialogue replacement on real ICT expressions: the inversion is the ridge fit of
+    each frame at every handle (an independent NumPy solve), the edit refits with the moved
+    handles at the target, and with no handle moved the edit is the inversion."""
+    neutral = face[0]
+    index = np.random.default_rng(4).choice(len(neutral), 80, replace=False)
+    moved = np.zeros(80, bool)
+    moved[:30] = True
+    source, target = shapes[30:34], shapes[34:38]
+    inverted, edited = global_blendshape_dialogue(basis, neutral, source, target, index, moved)
+    a = basis[:, index].reshape(len(basis), -1).astype(np.float64)  # (B, 3H)
+    gram = a @ a.T
+    matrix = gram + 1e-3 * np.mean(np.diagonal(gram)) * np.eye(len(basis))
+    for f in range(4):
+        for shape, at in (
+            (inverted, source[f][index]),
+            (edited, np.where(moved[:, None], target[f][index], source[f][index])),
+        ):
+            weights = np.linalg.solve(matrix, a @ (at - neutral[index]).ravel())
+            expected = neutral + np.einsum("b,bnc->nc", weights, basis)
+            np.testing.assert_allclose(np.asarray(shape[f]), expected, atol=2e-4)
+    assert np.abs(np.asarray(edited) - np.asarray(inverted)).max() > 1e-2  # the mouth moved
+    same, again = global_blendshape_dialogue(
+        basis, neutral, source, target, index, np.zeros(80, bool)
+    )
+    np.testing.assert_allclose(np.asarray(again), np.asarray(same), atol=1e-6)
+    with pytest.raises(ValueError, match="moved"):
+        global_blendshape_dialogue(basis, neutral, source, target, index, moved[:10])
+    with pytest.raises(ValueError, match="target"):
+        global_blendshape_dialogue(basis, neutral, source, target[:2], index, moved)
 
 
 @pytest.mark.parametrize(

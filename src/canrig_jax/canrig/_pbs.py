@@ -386,3 +386,39 @@ def _global_blendshape_fit(
     matrix = gram + ridge * scale * jnp.eye(gram.shape[0], dtype=gram.dtype)
     operator = lx.MatrixLinearOperator(matrix, lx.positive_semidefinite_tag)
     return lx.linear_solve(operator, at_handles @ displacements.reshape(-1), lx.Cholesky()).value
+
+
+def global_blendshape_dialogue(
+    basis: Float[ArrayLike, "B N 3"],
+    neutral: Float[ArrayLike, "N 3"],
+    source: Float[ArrayLike, "F N 3"],
+    target: Float[ArrayLike, "F N 3"],
+    handle_index: Int[ArrayLike, " H"],
+    moved: ArrayLike,
+    ridge: float = 1e-3,
+) -> tuple[Float[Array, "F N 3"], Float[Array, "F N 3"]]:
+    """Dialogue replacement with global blendshapes (the GBS row of CANRig's Table 6).
+
+    A global rig has no base shape, so each source frame is first inverted: the weights
+    fitted to its positions at every handle (``global_blendshape_fit``); then the ``moved``
+    handles (bool (H,), e.g. those on the mouth) take the target frame's positions, the
+    others keep the source's, and the weights are fitted again. Returns (inverted, edited),
+    both (F, N, 3) in the mesh's units: ``inverted`` against ``source`` is the rig-inversion
+    error, ``edited`` the replaced clip (its change outside the mouth is what a global basis
+    leaks)."""
+    neutral = check_points("neutral", neutral, np.shape(basis)[1])
+    source = check_points("source", source, len(neutral), frames=True)
+    target = check_points("target", target, len(neutral), frames=True)
+    if source.shape != target.shape:
+        raise ValueError(f"target: expected the source's shape {source.shape}, got {target.shape}")
+    index = np.asarray(handle_index)
+    moved = np.asarray(moved)
+    if moved.dtype != bool or moved.shape != index.shape:
+        raise ValueError(f"moved: expected a bool mask of shape {index.shape}, got {moved.dtype}")
+    rest = neutral[index]
+    edited_handles = np.where(moved[None, :, None], target[:, index], source[:, index])
+    weights = global_blendshape_fit(
+        basis, index, np.stack([source[:, index], edited_handles]) - rest, ridge
+    )  # (2, F, B)
+    shapes = neutral + jnp.einsum("kfb,bnc->kfnc", weights, jnp.asarray(basis))
+    return shapes[0], shapes[1]
