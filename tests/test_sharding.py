@@ -59,14 +59,19 @@ print(json.dumps(out))
 """
 
 
-def test_two_devices_match_one():
+def _on_two_host_devices(script: str, timeout: int) -> dict:
+    """Run ``script`` in a fresh process with 2 forced CPU devices; its last line's JSON."""
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
     env["JAX_PLATFORMS"] = "cpu"
     result = subprocess.run(
-        [sys.executable, "-c", SCRIPT], capture_output=True, text=True, env=env, timeout=600
+        [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=timeout
     )
     assert result.returncode == 0, result.stderr[-3000:]
-    out = json.loads(result.stdout.strip().splitlines()[-1])
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def test_two_devices_match_one():
+    out = _on_two_host_devices(SCRIPT, 600)
     assert out["device_count"] == 2
     one, two = out["1"], out["2"]
     assert one["batch_devices"] == 1 and two["batch_devices"] == 2
@@ -136,13 +141,7 @@ print(json.dumps(out))
 
 @pytest.mark.slow  # ~1-2 min: builds both training sets in a subprocess with 2 host devices
 def test_trainers_on_two_devices_match_one():
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
-    env["JAX_PLATFORMS"] = "cpu"
-    result = subprocess.run(
-        [sys.executable, "-c", TRAINERS], capture_output=True, text=True, env=env, timeout=900
-    )
-    assert result.returncode == 0, result.stderr[-3000:]
-    out = json.loads(result.stdout.strip().splitlines()[-1])
+    out = _on_two_host_devices(TRAINERS, 900)
     for trainer in ("canrig", "riganyface"):
         one, two = out[trainer]["1"], out[trainer]["2"]
         assert len(one) == len(two) == 3
