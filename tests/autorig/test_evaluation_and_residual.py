@@ -63,6 +63,7 @@ def residual_model(poses, key=0):
     )
 
 
+@pytest.mark.slow  # 12 s: builds operators and compiles generate_rig for the residual model
 def test_residual_model_at_initialisation_returns_the_base_exactly(small_head, tiny_poses):
     mesh, unit, operators, scale = small_head
     rng = np.random.default_rng(0)

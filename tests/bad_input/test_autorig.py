@@ -297,11 +297,13 @@ def _sphere(radius_cm: float):
     return points, ConvexHull(points).simplices
 
 
+@pytest.mark.slow  # each runs the landmark fit (~7 s) before its error
 @pytest.mark.parametrize("case", HEADS)
 def test_head_landmarks(case, ctx):
     run_case(case, ctx)
 
 
+@pytest.mark.slow  # runs the landmark fit (~7 s) before its error
 def test_head_in_metres_is_warned_and_refused_naming_the_argument(ctx):
     with pytest.warns(UserWarning, match="vertices: .*centimetres"):
         with pytest.raises(ValueError, match="vertices"):

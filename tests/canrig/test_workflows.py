@@ -100,7 +100,7 @@ def test_jacobian_equals_autodiff(variant, ict_face, poses):
 
 
 def test_normal_matrix_equals_autodiff(rig, poses):
-    """J^T W J assembled from the blocks (dense and block layouts, with a region weight)
+    """J^T W J assembled from the blocks (one-width and parts layouts, with a region weight)
     equals the one from jax.jacfwd of the forward pass."""
     handles = rig.handles(np.random.default_rng(6).choice(rig.n_vertices, 12, replace=False))
     displacements = np.random.default_rng(7).normal(0, 0.3, (12, 3)).astype(np.float32)
@@ -114,7 +114,10 @@ def test_normal_matrix_equals_autodiff(rig, poses):
     expected = np.einsum("vip,v,viq->pq", np.asarray(jac, np.float64), np.asarray(weight), jac)
     scale = np.abs(expected).max()
     assert scale > 0.1
-    for layout in (rig.layout(handles, 3.0, FALLOFF, multiple=8),):
+    for layout in (
+        rig.layout(handles, 3.0, FALLOFF, multiple=8),
+        rig.layout(handles, 3.0, FALLOFF, multiple=8, parts=(0.5, 0.5)),
+    ):
         _, blocks = displacement_jacobian(rig.model, rig.queries, rig.canonical, edit, layout)
         ours = np.asarray(normal_matrix(blocks, weight, 12, layout))
         np.testing.assert_allclose(ours, expected, atol=1e-4 * scale)
@@ -216,8 +219,8 @@ def test_fit_in_a_region_only_lowers_the_region_error(rig, poses, ict_face):
 
 def test_parts_layout_is_exact_and_tight(rig, poses):
     """A ``PartsLayout`` covers every vertex exactly once, each part's width holds the most
-    handles reaching its blocks, and the forward pass and J^T W J equal the one-width
-    layout's."""
+    handles reaching its blocks, and the forward pass equals the dense one (its J^T W J is
+    checked against autodiff in ``test_normal_matrix_equals_autodiff``)."""
     rng = np.random.default_rng(10)
     handles = rig.handles(rng.choice(rig.n_vertices, 60, replace=False))
     parts = rig.layout(handles, 2.0, FALLOFF, multiple=8, parts=(0.5, 0.3, 0.2))
@@ -236,16 +239,11 @@ def test_parts_layout_is_exact_and_tight(rig, poses):
     assert list(parts.width) == sorted(parts.width) and parts.width[0] < one.width
     edit = rig.edit(handles, rng.normal(0, 0.3, (60, 3)).astype(np.float32), 2.0, FALLOFF)
     edit = edit.with_base(jnp.asarray(poses[1]))
-    weight = jnp.asarray(rng.uniform(0, 1, rig.n_vertices), jnp.float32)
-    results = {}
-    for name, layout in (("parts", parts), ("one", one)):
-        shape, blocks = displacement_jacobian(rig.model, rig.queries, rig.canonical, edit, layout)
-        results[name] = (np.asarray(shape), np.asarray(normal_matrix(blocks, weight, 60, layout)))
-    np.testing.assert_allclose(results["parts"][0], results["one"][0], atol=5e-6)
-    scale = np.abs(results["one"][1]).max()
-    np.testing.assert_allclose(results["parts"][1], results["one"][1], atol=1e-5 * scale)
+    dense = np.asarray(rig.deform(edit, DENSE))
+    np.testing.assert_allclose(np.asarray(rig.deform(edit, parts)), dense, atol=5e-6)
 
 
+@pytest.mark.slow  # 31 s (three fits); the experiment checks every pair of its 30
 def test_fitted_layers_never_increase_exactly(rig, poses):
     rng = np.random.default_rng(4)
     schedule = [

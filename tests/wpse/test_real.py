@@ -110,7 +110,9 @@ def test_locality_wpse_keeps_the_mouth_correction_pse_loses_it(ict_face, real_ed
     assert np.mean(kept["pse"]) < 0.5, kept
 
 
-@pytest.mark.parametrize("n_edits", [3, 5, 8])
+@pytest.mark.parametrize(
+    "n_edits", [pytest.param(3, marks=pytest.mark.slow), 5, pytest.param(8, marks=pytest.mark.slow)]
+)
 def test_one_se_width_never_worse_than_the_rig_with_few_edits(n_edits, ict_face, real_edits):
     """Issue 24: with few real edits the width chosen by ``fit_width`` from the edits alone
     leaves the held-out frames better than the uncorrected rig."""
