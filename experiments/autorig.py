@@ -80,6 +80,19 @@ SPLITS = ("same_topology", "unseen_topology")
 HELDOUT_SPLIT = "unseen_topology"
 
 
+def _held_out_dataset(args, config):
+    """The standard run's held-out identities, for the evaluation-only paths: they come from
+    their own random stream, so one training identity is enough to rebuild them (and no
+    training head is used)."""
+    return ict_autorig_dataset(
+        args.data_dir,
+        n_train=1,
+        n_test=config["test_identities"],
+        seed=config["options"]["seed"],
+        progress=not args.no_progress,
+    )
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, required=True, help="output folder")
@@ -485,15 +498,7 @@ def refresh_penetration(args, argv=None) -> dict:
     results = json.loads(path.read_text())
     config = results["config"]
     models = {n: load_model(args.out / f"checkpoint_{n}.eqx")[0] for n in names}
-    # the held-out identities come from their own random stream: one training identity is
-    # enough to rebuild them (and no training head is used)
-    dataset = ict_autorig_dataset(
-        args.data_dir,
-        n_train=1,
-        n_test=config["test_identities"],
-        seed=config["options"]["seed"],
-        progress=not args.no_progress,
-    )
+    dataset = _held_out_dataset(args, config)
     poses, part_names = dataset.poses, dataset.head.part_names
     methods = ("no_motion", "deformation_transfer", *names)
     clean = {name: [] for name in (*methods, "ground_truth")}
@@ -584,13 +589,7 @@ def refresh_placement(args, argv=None) -> dict:
     results = json.loads(path.read_text())
     config = results["config"]
     model, poses, _ = load_model(checkpoint)
-    dataset = ict_autorig_dataset(
-        args.data_dir,
-        n_train=1,
-        n_test=config["test_identities"],
-        seed=config["options"]["seed"],
-        progress=not args.no_progress,
-    )
+    dataset = _held_out_dataset(args, config)
     errors: dict = {}
     scales: dict = {"whole": [], "cut": []}
     fit_seconds = []

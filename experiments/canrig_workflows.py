@@ -403,9 +403,7 @@ def dialogue_table(rig, quartic, capture, mouth, options, n_dialogue, seed):
     # GBS: the same 60 mouth handles, moved, plus 140 geodesic farthest points off the mouth
     # (still), so that the inversion of each frame sees the whole face
     off_mouth = np.flatnonzero(~mouth)
-    still = off_mouth[
-        farthest_point_vertices(neutral[off_mouth], 200 - DIALOGUE_HANDLES, graph=None)
-    ]
+    still = off_mouth[farthest_point_vertices(neutral[off_mouth], 200 - DIALOGUE_HANDLES)]
     gbs_index = np.concatenate([dialogue_index, still])
     moved = np.arange(len(gbs_index)) < DIALOGUE_HANDLES
     training = random_sparse_poses(np.random.default_rng([seed, 2]), 200, quartic.names)

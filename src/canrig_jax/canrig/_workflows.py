@@ -313,7 +313,7 @@ def fit_displacements(
     solver_class = optx.LevenbergMarquardt if options.damped else optx.GaussNewton
     solver = solver_class(rtol=options.rtol, atol=options.atol, linear_solver=linear_solver)
     first, max_steps = start, options.max_steps
-    if not options.damped and options.exact_jacobian is False and max_steps >= 2:
+    if not options.damped and not options.exact_jacobian and max_steps >= 2:
         # optimistix's first step only evaluates the start, whose shape the trace already
         # gave: take that Gauss-Newton step here, d1 = d0 - (L L^T)^-1 (J^T W r0 + penalty d0)
         weighted = (direct_shape - target) * region[:, None]
