@@ -5,7 +5,9 @@ plays the glb's animation on a timeline, lists its morph targets with sliders an
 wireframe and the per-vertex colour channel (``COLOR_0``, e.g. an error map) when present.
 ``screenshot_glb`` renders one frame in headless Chromium (the system's, driven through the
 DevTools protocol by ``HeadlessChromium``); ``ViewerPage`` poses the page for tests;
-``error_colors`` turns per-vertex errors into a white-to-red ``COLOR_0`` map.
+``error_colors`` turns per-vertex errors into a white-to-red ``COLOR_0`` map;
+``export_error_glb`` writes a take of meshes with their error over the frames as that map
+(an experiment's ``error.glb``), ``save_error_legend`` its colour scale.
 
 three.js is vendored in ``static/three.min.js`` (MIT, ``static/three.LICENSE``): npm ``three``
 0.187.0 with its GLTFLoader and OrbitControls bundled into one ES module, rebuilt by::
@@ -27,6 +29,7 @@ from ._browser import (
     find_chromium,
 )
 from ._colors import error_colors
+from ._error_take import ErrorGlb, export_error_glb, save_error_legend
 from ._glb import GlbSummary, inspect_glb
 from ._page import Screenshot, ViewerPage, screenshot_glb
 from ._server import HOST, STATIC_DIR, ViewerServer
@@ -37,13 +40,16 @@ __all__ = [
     "HOST",
     "STATIC_DIR",
     "BrowserError",
+    "ErrorGlb",
     "GlbSummary",
     "HeadlessChromium",
     "Screenshot",
     "ViewerPage",
     "ViewerServer",
     "error_colors",
+    "export_error_glb",
     "find_chromium",
     "inspect_glb",
+    "save_error_legend",
     "screenshot_glb",
 ]
