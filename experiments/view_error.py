@@ -53,6 +53,16 @@ from canrig_jax import (
     save_text,
     wpse,
 )
+from canrig_jax.canrig import (
+    NeuralRig,
+    dialogue_replacement,
+    evaluate_poses,
+    expression_region,
+    farthest_point_vertices,
+    influence_reach,
+    interior_vertices,
+    load_model,
+)
 from canrig_jax.data import load_livelinkface
 from canrig_jax.inverse import mm_per_unit, summarize
 from canrig_jax.mesh import DeformationGradientBlend
@@ -66,7 +76,6 @@ from canrig_jax.rig import (
 from canrig_jax.viewer import export_error_glb, find_chromium, save_error_legend, screenshot_glb
 
 RESULTS = Path(__file__).resolve().parent / "results"
-NOISE_VARIANCE_CM2 = 0.03  # experiments/inverse_rig.py's protocol
 WPSE_EDITS = 50
 WPSE_SECONDS_PER_POSE = 0.25  # held-out poses are not one take: keyed 0.25 s apart
 
@@ -87,6 +96,8 @@ def _capture(data_dir, names):
 
 def inverse_rig_take(args) -> dict:
     """Converged QuarticCD on the noisy Live Link take (ict-quartic rig)."""
+    from inverse_rig import NOISE_VARIANCE_CM2  # the experiment's protocol (a sibling script)
+
     standard = json.loads((RESULTS / "inverse_rig" / "results.json").read_text())
     alpha_cm2 = standard["cases"]["ict"]["quartic_cd_converged"]["alpha"]
     rig, _ = ict_quartic_rig(args.data_dir, progress=False)
@@ -185,23 +196,12 @@ def wpse_take(args) -> dict:
 
 def canrig_workflows_take(args) -> dict:
     """Dialogue replacement (direct) with the committed CANRig checkpoint."""
-    # the workflow experiment's own settings (a sibling script in experiments/)
+    # the workflow experiment's own settings (a sibling script)
     from canrig_workflows import (
         DIALOGUE_HANDLES,
         DIALOGUE_RADIUS_CM,
         FALLOFF_PER_CM,
         MOUTH_THRESHOLD_CM,
-    )
-
-    from canrig_jax.canrig import (
-        NeuralRig,
-        dialogue_replacement,
-        evaluate_poses,
-        expression_region,
-        farthest_point_vertices,
-        influence_reach,
-        interior_vertices,
-        load_model,
     )
 
     standard = json.loads((RESULTS / "canrig_workflows" / "results.json").read_text())
