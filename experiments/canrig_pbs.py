@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import time
+import warnings
 from pathlib import Path
 
 import jax
@@ -26,19 +27,29 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from canrig_jax import CM_TO_MM, experiment_command, provenance, save_json, save_text  # noqa: E402
+from canrig_jax.autorig import head_rig  # noqa: E402
 from canrig_jax.canrig import (  # noqa: E402
+    PBS_MODELS,
+    PBS_VARIANTS,
+    PBSTrainOptions,
+    build_pbs_training_set,
     fit_pbs,
     global_blendshape_fit,
     held_out_poses,
+    load_pbs_model,
+    parameter_count,
     patch_layout,
     pbs_basis,
+    pbs_reconstruct,
     pbs_shape,
+    seed_distances,
     split_capture,
+    train_pbs,
 )
 from canrig_jax.data import load_ict, load_livelinkface  # noqa: E402
 from canrig_jax.mesh import edge_graph, farthest_point_vertices  # noqa: E402
 from canrig_jax.render import plot_vertex_scalar, save_figure  # noqa: E402
-from canrig_jax.rig import evaluate_batch, ict_linear_rig, random_sparse_poses  # noqa: E402
+from canrig_jax.rig import evaluate_batch, ict_quartic_rig, random_sparse_poses  # noqa: E402
 
 SKIN = ("Face", "Head and Neck")
 
@@ -53,7 +64,12 @@ def _timed(fn, repeats=10):
     return float(np.median(times) * 1e3)
 
 
-def main(argv=None):
+MODELS_DIR = "models"
+EVAL_RADIUS_CM, EVAL_FALLOFF_PER_CM = 4.0, 1.0  # Table 5's masks (CANRig-PBS)
+POOL_SIZE = 4096  # candidate handle vertices on the skin for training
+
+
+def _parser():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--data-dir", type=Path, default=None)
@@ -63,13 +79,25 @@ def main(argv=None):
     parser.add_argument("--handles", type=int, default=265)
     parser.add_argument("--n-random", type=int, default=400)
     parser.add_argument("--quick", action="store_true", help="60 patches, 60 training poses")
-    args = parser.parse_args(argv)
-    if args.quick:
-        args.patches, args.n_random = 60, 60
-    command = experiment_command(__file__, argv)
+    parser.add_argument(
+        "--train",
+        choices=PBS_MODELS,
+        default=None,
+        help="train this model into OUT/models/NAME/checkpoint.eqx (resumable) and stop",
+    )
+    parser.add_argument("--minutes", type=float, default=15.0, help="training budget")
+    parser.add_argument("--steps", type=int, default=4000)
+    parser.add_argument("--decay-start", type=int, default=0)
+    parser.add_argument("--decay-steps", type=int, default=4000)
+    parser.add_argument("--no-progress", action="store_true")
+    return parser
 
+
+def _whole_head(args):
+    """The whole ICT head, its patch layout, training and held-out shapes, PBS basis."""
     model = load_ict(args.data_dir, parts=None)
-    rig = ict_linear_rig(args.data_dir, parts=None)
+    face_rig, _ = ict_quartic_rig(args.data_dir, progress=False)
+    rig = head_rig(face_rig, model)
     neutral = np.asarray(model.neutral, np.float32)
     faces = np.asarray(model.faces)
     motion = np.linalg.norm(model.deltas, axis=-1).max(axis=0)
@@ -82,10 +110,10 @@ def main(argv=None):
     start = time.perf_counter()
     layout = patch_layout(neutral, faces, args.patches, rings=args.rings, active=active)
     layout_s = time.perf_counter() - start
-    sizes = np.array([len(v) for v in layout.patch_vertices()])
     print(f"layout: {args.patches} patches over {active.sum()} vertices in {layout_s:.1f} s")
-
-    capture = load_livelinkface(args.data_dir).weights_for(rig.names, missing="zero")
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*TongueOut", category=UserWarning)
+        capture = load_livelinkface(args.data_dir).weights_for(rig.names, missing="zero")
     capture_train, capture_test = split_capture(capture)
     rng = np.random.default_rng(0)
     train = np.concatenate(
@@ -95,6 +123,88 @@ def main(argv=None):
     train_shapes = np.asarray(evaluate_batch(rig, train, chunk=32), np.float32)
     test_shapes = np.asarray(evaluate_batch(rig, test, chunk=32), np.float32)
     basis, picked = pbs_basis(neutral, train_shapes, args.basis)
+    skin = np.zeros(len(neutral), bool)
+    for name, (a, b) in zip(model.part_names, model.part_vertex_range, strict=True):
+        skin[a:b] |= name in SKIN
+    return dict(
+        model=model,
+        rig=rig,
+        neutral=neutral,
+        faces=faces,
+        active=active,
+        parts=parts,
+        layout=layout,
+        layout_s=layout_s,
+        capture=capture,
+        capture_train=capture_train,
+        train=train,
+        test=test,
+        train_shapes=train_shapes,
+        test_shapes=test_shapes,
+        basis=basis,
+        picked=picked,
+        skin=skin,
+        graph=edge_graph(neutral, faces),
+    )
+
+
+def _training_set(args, head):
+    pool = np.random.default_rng([0, 3]).choice(
+        np.flatnonzero(head["skin"]), min(POOL_SIZE, int(head["skin"].sum())), replace=False
+    )
+    distances = seed_distances(head["layout"], head["graph"])
+    return build_pbs_training_set(
+        head["neutral"], head["train_shapes"], head["layout"], head["basis"], distances, pool
+    ), distances
+
+
+def _train(args, argv, head):
+    options = PBSTrainOptions(
+        model=args.train,
+        steps=args.steps,
+        max_minutes=args.minutes,
+        decay_start=args.decay_start,
+        decay_steps=args.decay_steps,
+    )
+    data, _ = _training_set(args, head)
+    folder = args.out / MODELS_DIR / args.train
+    folder.mkdir(parents=True, exist_ok=True)
+    scale = float(np.abs(head["train_shapes"] - head["neutral"]).max())
+    _, step, seconds, history = train_pbs(
+        data,
+        options,
+        checkpoint=folder / "checkpoint.eqx",
+        displacement_scale=scale,
+        progress=not args.no_progress,
+    )
+    save_json(
+        folder / "train.json",
+        {
+            "model": args.train,
+            "steps": step,
+            "train_minutes": seconds / 60,
+            "options": options.to_dict(),
+            "history": history,
+            "provenance": provenance(experiment_command(__file__, argv)),
+        },
+    )
+    print(f"{args.train}: {step} steps in {seconds / 60:.1f} min")
+
+
+def main(argv=None):
+    args = _parser().parse_args(argv)
+    if args.quick:
+        args.patches, args.n_random = 60, 60
+    command = experiment_command(__file__, argv)
+    head = _whole_head(args)
+    if args.train is not None:
+        return _train(args, argv, head)
+    model, neutral, faces = head["model"], head["neutral"], head["faces"]
+    layout, layout_s, parts = head["layout"], head["layout_s"], head["parts"]
+    sizes = np.array([len(v) for v in layout.patch_vertices()])
+    capture, capture_train = head["capture"], head["capture_train"]
+    test, test_shapes = head["test"], head["test_shapes"]
+    basis, picked, active = head["basis"], head["picked"], head["active"]
 
     fitted = fit_pbs(layout, neutral, basis, test_shapes)
     represented = np.asarray(pbs_shape(layout, neutral, basis, fitted))
@@ -122,9 +232,7 @@ def main(argv=None):
 
     # Table 5, GBS rows: handles by geodesic farthest points on the skin (Face, Head and
     # Neck), reconstruction relative to the neutral (no base shape), error over every vertex
-    skin = np.zeros(len(neutral), bool)
-    for name, (a, b) in zip(model.part_names, model.part_vertex_range, strict=True):
-        skin[a:b] |= name in SKIN
+    skin = head["skin"]
     skin_index = np.flatnonzero(skin)
     local = np.full(len(neutral), -1)
     local[skin_index] = np.arange(len(skin_index))
@@ -149,6 +257,56 @@ def main(argv=None):
         "std_mm": float(no_motion.std()),
         "train_minutes": 0.0,
     }
+
+    # Table 5 and Figure 8, the trained rows: the same handles, base = the neutral
+    data, distances = _training_set(args, head)
+    handle_distance = jnp.asarray(distances[:, handles])
+    trained, figure8, forward = {}, {}, {}
+    for name in PBS_MODELS:
+        checkpoint = args.out / MODELS_DIR / name / "checkpoint.eqx"
+        if not checkpoint.exists():
+            print(f"{name}: no checkpoint at {checkpoint}, row skipped")
+            continue
+        net, state = load_pbs_model(checkpoint, neutral, args.patches, len(basis))
+        shapes = np.asarray(
+            pbs_reconstruct(
+                net,
+                data,
+                jnp.asarray(handles),
+                handle_distance,
+                jnp.asarray(neutral),
+                jnp.asarray(test_shapes),
+                EVAL_RADIUS_CM,
+                EVAL_FALLOFF_PER_CM,
+            )
+        )
+        per_shape = (np.linalg.norm(shapes - test_shapes, axis=-1) * CM_TO_MM).mean(axis=1)
+        trained[name] = {
+            "mean_mm": float(per_shape.mean()),
+            "std_mm": float(per_shape.std()),
+            "train_minutes": float(state["seconds"] / 60),
+            "steps": int(state["step"]),
+            "parameters": parameter_count(net),
+        }
+        if name in PBS_VARIANTS:
+            figure8[name] = trained[name]["mean_mm"]
+        print(f"{name}: {trained[name]}")
+        # one whole-head forward pass at 200 handles (CANRig-PBS models)
+        h200, d200 = jnp.asarray(handles[:200]), handle_distance[:, :200]
+        one = jnp.asarray(test_shapes[:1])
+        forward[name] = _timed(
+            lambda net=net, h200=h200, d200=d200, one=one: pbs_reconstruct(
+                net,
+                data,
+                h200,
+                d200,
+                jnp.asarray(neutral),
+                one,
+                EVAL_RADIUS_CM,
+                EVAL_FALLOFF_PER_CM,
+            )
+        )
+    table5.update(trained)
 
     # gather form against the sparse matrix product, one shape
     w_layout = layout.matrix()

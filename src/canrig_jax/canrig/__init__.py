@@ -53,6 +53,27 @@ from ._pbs import (
     pbs_basis,
     pbs_shape,
 )
+from ._pbs_model import (
+    PBS_VARIANTS,
+    CANRigPBS,
+    ShapeTransformer,
+    patch_means,
+    pbs_delta_shape,
+)
+from ._pbs_train import (
+    PBS_MODELS,
+    PBSExamples,
+    PBSTrainingSet,
+    PBSTrainOptions,
+    build_pbs_training_set,
+    load_pbs_model,
+    pbs_example_loss,
+    pbs_reconstruct,
+    predict_pbs_weights,
+    sample_pbs_examples,
+    seed_distances,
+    train_pbs,
+)
 from ._rig import HandleEdit, Handles, NeuralRig, deform, edit_mask, trace_edit
 from ._train import (
     EUCLIDEAN_SOFTNESS_MM,
@@ -179,4 +200,21 @@ __all__ = [
     "train",
     "train_step",
     "weighted_geodesic_distance",
+    "PBS_MODELS",
+    "PBS_VARIANTS",
+    "CANRigPBS",
+    "PBSExamples",
+    "PBSTrainOptions",
+    "PBSTrainingSet",
+    "ShapeTransformer",
+    "build_pbs_training_set",
+    "load_pbs_model",
+    "patch_means",
+    "pbs_delta_shape",
+    "pbs_example_loss",
+    "pbs_reconstruct",
+    "predict_pbs_weights",
+    "sample_pbs_examples",
+    "seed_distances",
+    "train_pbs",
 ]

@@ -46,12 +46,16 @@ class PatchLayout(eqx.Module):
         vertex_weights: (N, C) their weights; rows sum to 1 on covered vertices, 0 elsewhere.
         seeds: (P,) the seed vertex of each patch.
         cell: (N,) each vertex's Voronoi cell (its core patch), -1 where no patch covers it.
+        entries: optional (vertex, patch, weight), each (E,), the nonzero entries of W_layout
+            sorted by vertex (``patch_layout`` fills them): eq. 7 then reads E entries
+            instead of N x C (most vertices lie in 1-3 patches, the busiest in C).
     """
 
     vertex_patches: Int[Array, "N C"]
     vertex_weights: Float[Array, "N C"]
     seeds: Int[Array, " P"]
     cell: Int[Array, " N"]
+    entries: tuple[Int[Array, " E"], Int[Array, " E"], Float[Array, " E"]] | None = None
 
     def __check_init__(self):
         patches, weights = self.vertex_patches, self.vertex_weights
@@ -190,6 +194,11 @@ def patch_layout(
         vertex_weights=jnp.asarray(weights),
         seeds=jnp.asarray(index[seeds_local].astype(np.int32)),
         cell=jnp.asarray(cell),
+        entries=(
+            jnp.asarray(rows.astype(np.int32)),
+            jnp.asarray(weight.indices.astype(np.int32)),
+            jnp.asarray(weight.data.astype(np.float32)),
+        ),
     )
 
 
@@ -278,10 +287,19 @@ def _pbs_shape(
     basis: Float[Array, "B N 3"],
     weights: Float[Array, "P B"],
 ) -> Float[Array, "N 3"]:
-    """S = S_neutral + W_layout S_pred S_basis (eq. 7) in gather form; zero weights give the
-    neutral exactly."""
-    per_vertex = weights[layout.vertex_patches]  # (N, C, B)
-    blended = jnp.einsum("nc,ncb->nb", layout.vertex_weights, per_vertex)
+    """S = S_neutral + W_layout S_pred S_basis (eq. 7) in gather form (the nonzero
+    ``entries`` when the layout has them); zero weights give the neutral exactly."""
+    if layout.entries is None:
+        per_vertex = weights[layout.vertex_patches]  # (N, C, B)
+        blended = jnp.einsum("nc,ncb->nb", layout.vertex_weights, per_vertex)
+    else:
+        vertex, patch, weight = layout.entries
+        blended = jax.ops.segment_sum(
+            weight[:, None] * weights[patch],
+            vertex,
+            num_segments=neutral.shape[0],
+            indices_are_sorted=True,
+        )
     return neutral + jnp.einsum("nb,bnk->nk", blended, basis)
 
 

@@ -1,0 +1,260 @@
+"""CANRig-PBS (section 4, eqs. 6-8) and the Shape Transformer baseline ([CZG*22]): networks
+that predict patch-blendshape weights S_pred (P x (B - 1)) from handle displacements, so that a
+whole 26,719-vertex head is S = S_base + W_layout S_pred S_basis (``_pbs.py``).
+
+**CANRig-PBS** reuses the CANRig encoder (``ShapePreservingCANRig``: keys from the handles'
+canonical positions, zero-preserving values from their displacements modulated by the base
+shape, masked multi-head cross-attention with the extra ``beta`` column) with the *patches*
+as the queries: a patch's query is encoded at its seed vertex (the generator of its geodesic
+Voronoi cell, on the canonical shape), and its mask row is the handles' influence evaluated
+at that seed (geodesic distance from the seed to each handle). The attended vector of each
+patch goes through an output MLP that gives its B - 1 PBS weights:
+
+- ``per_patch`` (the paper's section 4): P small zero-preserving MLPs, one per patch
+  (stacked parameters, ``eqx.filter_vmap``), input multiplied by an affine map of the patch's
+  base position (eq. 10's L_s at the patch: the layout-weighted mean of the base shape over
+  the patch's vertices);
+- ``base_multiplied``: one shared zero-preserving MLP, the same multiplied input;
+- ``no_modulation``: one shared zero-preserving MLP on the attended vector alone.
+
+These are Figure 8's three rows. All stay zero-preserving: zero displacements give zero
+weights, so the base shape exactly; a patch that every clamped mask misses gets zero weights,
+so a vertex covered only by such patches does not move at all.
+
+**Shape Transformer** (Chandran et al. 2022), the baseline of Tables 5 and 6: handle tokens
+(Fourier-encoded canonical position and displacement) through a transformer encoder, then
+each patch's query (its seed's position) cross-attends to the encoded tokens and an MLP
+gives its weights. No base shape, no masks, not zero-preserving: it reconstructs relative to
+the canonical shape only.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, PRNGKeyArray
+
+from ._mlp import ZeroPreservingMLP
+from ._model import ShapePreservingCANRig, _per_row
+from ._pbs import PatchLayout, _pbs_shape
+
+PBS_VARIANTS = ("per_patch", "base_multiplied", "no_modulation")
+"""CANRig-PBS output heads (Figure 8's ablation); ``per_patch`` is the paper's model."""
+
+
+def patch_means(layout: PatchLayout, points: Float[Array, "*B N 3"]) -> Float[Array, "*B P 3"]:
+    """Each patch's layout-weighted mean of ``points`` over the vertices it covers."""
+    weights = layout.vertex_weights  # (N, C)
+    index = layout.vertex_patches.reshape(-1)
+    p = layout.seeds.shape[0]
+
+    def one(x):
+        total = jax.ops.segment_sum(
+            (weights[..., None] * x[:, None]).reshape(-1, 3), index, num_segments=p
+        )
+        mass = jax.ops.segment_sum(weights.reshape(-1), index, num_segments=p)
+        return total / jnp.maximum(mass, 1e-12)[:, None]
+
+    lead = points.shape[:-2]
+    flat = points.reshape(-1, *points.shape[-2:])
+    return jax.vmap(one)(flat).reshape(*lead, p, 3)
+
+
+class CANRigPBS(eqx.Module):
+    """CANRig-PBS: masked cross-attention from handles to patches, PBS weights out.
+
+    Attributes:
+        encoder: the CANRig encoder (queries, keys, values, attention, base modulation); its
+            per-vertex output MLP is unused and dropped (``None``).
+        patch_mlp: the output MLP: one per patch (stacked, leading axis P) for ``per_patch``,
+            else one shared.
+        variant: one of ``PBS_VARIANTS``.
+    """
+
+    encoder: ShapePreservingCANRig
+    patch_mlp: ZeroPreservingMLP
+    variant: str = eqx.field(static=True)
+
+    def __init__(
+        self,
+        canonical: Float[np.ndarray, "V 3"],
+        n_patches: int,
+        n_weights: int,
+        *,
+        variant: str = "per_patch",
+        patch_width: int = 32,
+        key: PRNGKeyArray,
+        **options,
+    ):
+        """``canonical`` (V, 3) the neutral (normalisation of positions); ``n_weights`` =
+        B - 1 basis offsets; ``options``: the CANRig encoder's (``n_heads``, ``latent``,
+        ``width``, ``n_layers``, ``fourier``, ``displacement_scale``); ``patch_width``: the
+        hidden width of each per-patch MLP."""
+        if variant not in PBS_VARIANTS:
+            raise ValueError(f"variant: expected one of {PBS_VARIANTS}, got {variant!r}")
+        for name, value in (("n_patches", n_patches), ("n_weights", n_weights)):
+            if int(value) < 1:
+                raise ValueError(f"{name}: expected >= 1, got {value}")
+        ke, km = jax.random.split(key)
+        encoder = ShapePreservingCANRig(canonical, key=ke, **options)
+        self.encoder = eqx.tree_at(lambda m: m.output_mlp, encoder, None)
+        arch = encoder.arch
+        if variant == "per_patch":
+            keys = jax.random.split(km, int(n_patches))
+            self.patch_mlp = eqx.filter_vmap(
+                lambda k: ZeroPreservingMLP(
+                    arch.latent,
+                    int(n_weights),
+                    width=patch_width,
+                    n_layers=arch.n_layers,
+                    activation=jnp.tanh,
+                    key=k,
+                )
+            )(keys)
+        else:
+            self.patch_mlp = ZeroPreservingMLP(
+                arch.latent,
+                int(n_weights),
+                width=arch.width,
+                n_layers=arch.n_layers,
+                activation=jnp.tanh,
+                key=km,
+            )
+        self.variant = variant
+
+    def encode_patches(self, seeds_canonical: Float[Array, "P 3"]) -> Float[Array, "heads P d"]:
+        """Queries of the patches at their seeds' canonical positions; cache these."""
+        return self.encoder.encode_queries(seeds_canonical)
+
+    def __call__(
+        self,
+        patch_queries: Float[Array, "heads P d"],
+        patch_base: Float[Array, "P 3"],
+        handle_canonical: Float[Array, "H 3"],
+        handle_base: Float[Array, "H 3"],
+        displacements: Float[Array, "H 3"],
+        mask: Float[Array, "P H"],
+        beta: float | Float[Array, ""] | None = None,
+    ) -> Float[Array, "P Bm1"]:
+        """S_pred, the PBS weights of each patch (a delta over the base shape's).
+
+        ``patch_base``: ``patch_means(layout, base)``; ``mask``: the handles' influence at
+        each patch's seed (``influence_mask``), clamped here."""
+        enc = self.encoder
+        keys = enc.encode_keys(handle_canonical)
+        values = enc.encode_values(displacements, handle_base)
+        attention = enc.attention(patch_queries, keys, mask, beta)
+        attended = enc.merge_heads(jnp.matmul(attention, values))  # (P, latent)
+        if self.variant != "no_modulation":
+            attended = attended * _per_row(enc.output_modulation, enc.normalise(patch_base))
+        if self.variant == "per_patch":
+            return eqx.filter_vmap(lambda mlp, x: mlp(x))(self.patch_mlp, attended)
+        return _per_row(self.patch_mlp, attended)
+
+
+class _EncoderBlock(eqx.Module):
+    attention: eqx.nn.MultiheadAttention
+    mlp: eqx.nn.MLP
+    norm1: eqx.nn.LayerNorm
+    norm2: eqx.nn.LayerNorm
+
+    def __init__(self, size: int, n_heads: int, width: int, key: PRNGKeyArray):
+        ka, km = jax.random.split(key)
+        self.attention = eqx.nn.MultiheadAttention(n_heads, size, key=ka)
+        self.mlp = eqx.nn.MLP(size, size, width, 1, activation=jax.nn.gelu, key=km)
+        self.norm1 = eqx.nn.LayerNorm(size)
+        self.norm2 = eqx.nn.LayerNorm(size)
+
+    def __call__(self, x: Float[Array, "H size"]) -> Float[Array, "H size"]:
+        y = jax.vmap(self.norm1)(x)
+        x = x + self.attention(y, y, y)
+        return x + jax.vmap(self.mlp)(jax.vmap(self.norm2)(x))
+
+
+class ShapeTransformer(eqx.Module):
+    """The Shape Transformer baseline: a transformer encoder over handle tokens and a
+    cross-attention decoder queried per patch; PBS weights out (relative to the canonical
+    shape: no base shape, no masks)."""
+
+    centre: tuple[float, float, float] = eqx.field(static=True)
+    position_scale: float = eqx.field(static=True)
+    displacement_scale: float = eqx.field(static=True)
+    fourier: int = eqx.field(static=True)
+    token: eqx.nn.MLP
+    blocks: tuple[_EncoderBlock, ...]
+    query: eqx.nn.MLP
+    cross: eqx.nn.MultiheadAttention
+    head: eqx.nn.MLP
+
+    def __init__(
+        self,
+        canonical: Float[np.ndarray, "V 3"],
+        n_weights: int,
+        *,
+        latent: int = 64,
+        n_heads: int = 4,
+        width: int = 128,
+        n_layers: int = 2,
+        fourier: int = 6,
+        displacement_scale: float = 1.0,
+        key: PRNGKeyArray,
+    ):
+        canonical = np.asarray(canonical, np.float64)
+        if canonical.ndim != 2 or canonical.shape[1] != 3:
+            raise ValueError(f"canonical: expected shape (V, 3), got {canonical.shape}")
+        if latent % n_heads:
+            raise ValueError(f"latent: expected a multiple of n_heads={n_heads}, got {latent}")
+        centre = canonical.mean(axis=0)
+        self.centre = tuple(float(c) for c in centre)
+        self.position_scale = float(np.sqrt(((canonical - centre) ** 2).sum(axis=1).mean()))
+        self.displacement_scale = float(displacement_scale)
+        self.fourier = int(fourier)
+        n_position = 3 + 6 * self.fourier
+        kt, kb, kq, kc, kh = jax.random.split(key, 5)
+        self.token = eqx.nn.MLP(n_position + 3, latent, width, 1, activation=jax.nn.gelu, key=kt)
+        self.blocks = tuple(
+            _EncoderBlock(latent, n_heads, width, k) for k in jax.random.split(kb, n_layers)
+        )
+        self.query = eqx.nn.MLP(n_position, latent, width, 1, activation=jax.nn.gelu, key=kq)
+        self.cross = eqx.nn.MultiheadAttention(n_heads, latent, key=kc)
+        self.head = eqx.nn.MLP(latent, int(n_weights), width, 1, activation=jax.nn.gelu, key=kh)
+
+    def encode_position(self, points: Float[Array, "N 3"]) -> Float[Array, "N F"]:
+        x = (points - jnp.asarray(self.centre, points.dtype)) / self.position_scale
+        if not self.fourier:
+            return x
+        frequencies = jnp.pi * 2.0 ** jnp.arange(self.fourier, dtype=x.dtype)
+        angles = (x[..., None] * frequencies).reshape(*x.shape[:-1], -1)
+        return jnp.concatenate([x, jnp.sin(angles), jnp.cos(angles)], axis=-1)
+
+    def encode_patches(self, seeds_canonical: Float[Array, "P 3"]) -> Float[Array, "P latent"]:
+        return jax.vmap(self.query)(self.encode_position(seeds_canonical))
+
+    def __call__(
+        self,
+        patch_queries: Float[Array, "P latent"],
+        handle_canonical: Float[Array, "H 3"],
+        displacements: Float[Array, "H 3"],
+    ) -> Float[Array, "P Bm1"]:
+        tokens = jnp.concatenate(
+            [self.encode_position(handle_canonical), displacements / self.displacement_scale],
+            axis=-1,
+        )
+        x = jax.vmap(self.token)(tokens)
+        for block in self.blocks:
+            x = block(x)
+        attended = self.cross(patch_queries, x, x)
+        return jax.vmap(self.head)(attended)
+
+
+def pbs_delta_shape(
+    layout: PatchLayout,
+    base: Float[Array, "N 3"],
+    basis: Float[Array, "Bm1 N 3"],
+    weights: Float[Array, "P Bm1"],
+) -> Float[Array, "N 3"]:
+    """S = S_base + W_layout S_pred S_basis (eq. 7 with the base in place of the neutral):
+    zero weights give the base exactly. jit/vmap-able (the validated form is ``pbs_shape``)."""
+    return _pbs_shape(layout, base, basis, weights)

@@ -1,0 +1,432 @@
+"""Training CANRig-PBS and the Shape Transformer on whole-head shapes (CANRig eq. 8).
+
+One example: a target shape (a training pose of the whole head), a base shape (the neutral,
+or with probability ``p_neutral`` not, another training shape; always the neutral for the
+Shape Transformer, which has no base), a set of handles drawn from a pool of skin vertices
+with the displacements target - base at them, one radius and falloff. The loss is eq. 8:
+
+    L = mean_v ||S_v - S*_v||^2 (mm^2, over ``n_vertices`` random moving vertices)
+        + weight_loss * mean ||S_pred - (W*_target - W*_base)||^2
+
+with W* the PBS fit (``fit_pbs``) of each training shape. The mask of a patch is the
+handles' influence evaluated at the patch's seed vertex (geodesic distance on the whole
+head's edge graph).
+
+The loop, checkpoints (atomic, resumable bit-identically) and the Adam schedule are the
+CANRig trainer's (``_checkpoint.run_training``, ``_train.adam``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from .._checkpoint import load_checkpoint as _load_file
+from .._checkpoint import read_checkpoint_state as _read_state_file
+from .._checkpoint import run_training
+from .._checkpoint import save_checkpoint as _save_file
+from .._metrics import CM_TO_MM
+from ..mesh import weighted_geodesic_distance
+from ._masks import influence_mask
+from ._pbs import PatchLayout, fit_pbs
+from ._pbs_model import PBS_VARIANTS, CANRigPBS, ShapeTransformer, patch_means, pbs_delta_shape
+from ._train import adam
+
+PBS_MODELS = (*PBS_VARIANTS, "shape_transformer")
+PBS_CHECKPOINT_FORMAT = "canrig-pbs-checkpoint-1"
+
+
+@dataclasses.dataclass(frozen=True)
+class PBSTrainOptions:
+    """Model, optimiser and example settings (units: cm)."""
+
+    model: str = "per_patch"  # one of PBS_MODELS
+    n_heads: int = 4
+    latent: int = 64
+    width: int = 96
+    n_layers: int = 3
+    fourier: int = 6
+    patch_width: int = 32
+    learning_rate: float = 1e-3
+    decay_steps: int = 0
+    decay_floor: float = 0.02
+    decay_start: int = 0
+    steps: int = 5_000
+    max_minutes: float | None = None
+    batch: int = 8
+    n_handles: tuple[int, int] = (100, 300)
+    handle_bucket: int = 100
+    n_vertices: int = 1024
+    radius_cm: tuple[float, float] = (2.0, 8.0)
+    falloff_per_cm: tuple[float, float] = (0.5, 2.0)
+    p_neutral: float = 0.5
+    weight_loss: float = 1.0
+    seed: int = 0
+    checkpoint_every: int = 250
+    log_every: int = 25
+
+    def __post_init__(self):
+        if self.model not in PBS_MODELS:
+            raise ValueError(f"model: expected one of {PBS_MODELS}, got {self.model!r}")
+        if not self.learning_rate > 0:
+            raise ValueError(f"learning_rate: expected > 0, got {self.learning_rate}")
+        lo, hi = self.n_handles
+        if not 1 <= lo <= hi or self.handle_bucket < 1:
+            raise ValueError(f"n_handles: expected 1 <= low <= high, got {self.n_handles}")
+        for name in ("radius_cm", "falloff_per_cm"):
+            lo, hi = getattr(self, name)
+            if not 0 < lo <= hi:
+                raise ValueError(f"{name}: expected 0 < low <= high, got {(lo, hi)}")
+        if not 0.0 <= self.p_neutral <= 1.0:
+            raise ValueError(f"p_neutral: expected a value in [0, 1], got {self.p_neutral}")
+        if self.batch < 1 or self.n_vertices < 1 or self.steps < 0:
+            raise ValueError("batch, n_vertices: expected >= 1; steps: expected >= 0")
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> PBSTrainOptions:
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+
+
+class PBSTrainingSet(eqx.Module):
+    """Whole-head training data (device arrays).
+
+    Attributes:
+        neutral: (N, 3) canonical shape; shapes: (M, N, 3) training shapes (cm).
+        weights: (M, P, B - 1) their PBS fits; basis: (B - 1, N, 3) the PBS offsets.
+        layout: the patch layout; seeds: (P, 3) the seeds' canonical positions.
+        pool: (Q,) candidate handle vertices; pool_distance: (P, Q) geodesic distance from
+            each patch seed to each pool vertex (cm; inf beyond the limit).
+        moving: (A,) the vertices the loss samples (those some training shape moves).
+        patch_base: (M + 1, P, 3) ``patch_means`` of each training shape, then the neutral's
+            (the base modulation, precomputed for training).
+    """
+
+    neutral: Float[Array, "N 3"]
+    shapes: Float[Array, "M N 3"]
+    weights: Float[Array, "M P Bm1"]
+    basis: Float[Array, "Bm1 N 3"]
+    layout: PatchLayout
+    seeds: Float[Array, "P 3"]
+    pool: Int[Array, " Q"]
+    pool_distance: Float[Array, "P Q"]
+    moving: Int[Array, " A"]
+    patch_base: Float[Array, "M1 P 3"]
+
+
+def seed_distances(layout: PatchLayout, graph, limit: float = np.inf) -> np.ndarray:
+    """(P, N) geodesic distance from each patch's seed to every vertex (cm)."""
+    return weighted_geodesic_distance(graph, np.asarray(layout.seeds), limit=limit)
+
+
+def build_pbs_training_set(
+    neutral: Float[np.ndarray, "N 3"],
+    shapes: Float[np.ndarray, "M N 3"],
+    layout: PatchLayout,
+    basis: Float[np.ndarray, "Bm1 N 3"],
+    distances: Float[np.ndarray, "P N"],
+    pool: Int[np.ndarray, " Q"],
+) -> PBSTrainingSet:
+    """The training set: PBS fits of ``shapes`` and the seed-to-pool distances (``distances``
+    from ``seed_distances``)."""
+    neutral = np.asarray(neutral, np.float32)
+    shapes = np.asarray(shapes, np.float32)
+    if shapes.ndim != 3 or shapes.shape[1:] != neutral.shape:
+        raise ValueError(f"shapes: expected (M, {len(neutral)}, 3), got {shapes.shape}")
+    pool = np.asarray(pool)
+    if pool.ndim != 1 or len(pool) == 0 or pool.min() < 0 or pool.max() >= len(neutral):
+        raise ValueError(f"pool: expected vertex indices in [0, {len(neutral)})")
+    weights = np.concatenate(
+        [
+            np.asarray(fit_pbs(layout, neutral, basis, shapes[i : i + 32]))
+            for i in range(0, len(shapes), 32)
+        ]
+    )
+    moving = np.flatnonzero(np.abs(shapes - neutral).max(axis=(0, 2)) > 0)
+    seeds = neutral[np.asarray(layout.seeds)]
+    patch_base = np.asarray(
+        patch_means(layout, jnp.asarray(np.concatenate([shapes, neutral[None]])))
+    )
+    return PBSTrainingSet(
+        neutral=jnp.asarray(neutral),
+        shapes=jnp.asarray(shapes),
+        weights=jnp.asarray(weights, jnp.float32),
+        basis=jnp.asarray(basis, jnp.float32),
+        layout=layout,
+        seeds=jnp.asarray(seeds),
+        pool=jnp.asarray(pool, jnp.int32),
+        pool_distance=jnp.asarray(np.asarray(distances)[:, pool], jnp.float32),
+        moving=jnp.asarray(moving, jnp.int32),
+        patch_base=jnp.asarray(patch_base, jnp.float32),
+    )
+
+
+class PBSExamples(eqx.Module):
+    target: Int[Array, " E"]
+    base: Int[Array, " E"]  # -1: the neutral
+    handles: Int[Array, "E H"]  # indices into the pool
+    radius: Float[Array, " E"]
+    falloff: Float[Array, " E"]
+    vertices: Int[Array, "E S"]  # indices into ``moving``
+
+
+def sample_pbs_examples(
+    rng: np.random.Generator, n_shapes: int, n_pool: int, n_moving: int, o: PBSTrainOptions
+) -> PBSExamples:
+    """One batch; the handle count is a multiple of ``handle_bucket`` (few compilations)."""
+    lo, hi = o.n_handles
+    n = int(rng.integers(lo, hi + 1))
+    n = int(min(max(lo, round(n / o.handle_bucket) * o.handle_bucket), hi, n_pool))
+    e = o.batch
+    target = rng.integers(0, n_shapes, e)
+    other = (target + rng.integers(1, max(n_shapes, 2), e)) % n_shapes
+    neutral = rng.random(e) < o.p_neutral
+    if o.model == "shape_transformer":
+        neutral[:] = True
+    handles = np.stack([rng.choice(n_pool, n, replace=False) for _ in range(e)])
+    radius = np.exp(rng.uniform(*np.log(o.radius_cm), e))
+    falloff = rng.uniform(*o.falloff_per_cm, e)
+    vertices = rng.integers(0, n_moving, (e, o.n_vertices))
+    return PBSExamples(
+        target=jnp.asarray(target, jnp.int32),
+        base=jnp.asarray(np.where(neutral, -1, other), jnp.int32),
+        handles=jnp.asarray(handles, jnp.int32),
+        radius=jnp.asarray(radius, jnp.float32),
+        falloff=jnp.asarray(falloff, jnp.float32),
+        vertices=jnp.asarray(vertices, jnp.int32),
+    )
+
+
+def make_pbs_model(
+    options: PBSTrainOptions, data_or_neutral, n_patches: int, n_weights: int, scale: float
+):
+    neutral = np.asarray(getattr(data_or_neutral, "neutral", data_or_neutral))
+    key = jax.random.PRNGKey(options.seed)
+    if options.model == "shape_transformer":
+        return ShapeTransformer(
+            neutral,
+            n_weights,
+            latent=options.latent,
+            n_heads=options.n_heads,
+            width=options.width,
+            n_layers=2,
+            fourier=options.fourier,
+            displacement_scale=scale,
+            key=key,
+        )
+    return CANRigPBS(
+        neutral,
+        n_patches,
+        n_weights,
+        variant=options.model,
+        patch_width=options.patch_width,
+        n_heads=options.n_heads,
+        latent=options.latent,
+        width=options.width,
+        n_layers=options.n_layers,
+        fourier=options.fourier,
+        displacement_scale=scale,
+        key=key,
+    )
+
+
+def predict_pbs_weights(
+    model: CANRigPBS | ShapeTransformer,
+    data: PBSTrainingSet,
+    handle_vertices: Int[Array, " H"],
+    handle_distance: Float[Array, "P H"],
+    base: Float[Array, "N 3"],
+    displacements: Float[Array, "H 3"],
+    radius: Float[Array, ""],
+    falloff: Float[Array, ""],
+    *,
+    queries: Array | None = None,
+    patch_base: Float[Array, "P 3"] | None = None,
+) -> Float[Array, "P Bm1"]:
+    """S_pred for one edit (the Shape Transformer ignores the base, masks and radius).
+    ``queries`` (``model.encode_patches(data.seeds)``) and ``patch_base`` (``patch_means``
+    of ``base``) may be given when cached."""
+    if queries is None:
+        queries = model.encode_patches(data.seeds)
+    if isinstance(model, ShapeTransformer):
+        return model(queries, data.neutral[handle_vertices], displacements)
+    if patch_base is None:
+        patch_base = patch_means(data.layout, base)
+    n = handle_vertices.shape[0]
+    mask = influence_mask(handle_distance, jnp.full((n,), radius), jnp.full((n,), falloff))
+    return model(
+        queries,
+        patch_base,
+        data.neutral[handle_vertices],
+        base[handle_vertices],
+        displacements,
+        mask,
+    )
+
+
+def _shape_at(data: PBSTrainingSet, base, weights, vertices):
+    """base + W_layout S_pred S_basis at some vertices only."""
+    patches = data.layout.vertex_patches[vertices]  # (S, C)
+    blended = jnp.einsum("sc,scb->sb", data.layout.vertex_weights[vertices], weights[patches])
+    return base[vertices] + jnp.einsum("sb,bsk->sk", blended, data.basis[:, vertices])
+
+
+def pbs_example_loss(model, data: PBSTrainingSet, ex: PBSExamples, weight_loss: float):
+    queries = model.encode_patches(data.seeds)  # once per batch
+
+    def one(target, base_index, handles, radius, falloff, vertices):
+        is_neutral = base_index < 0
+        patch_base = data.patch_base[jnp.where(is_neutral, -1, base_index)]
+        base_index = jnp.maximum(base_index, 0)
+        base = jnp.where(is_neutral, data.neutral, data.shapes[base_index])
+        base_weights = jnp.where(is_neutral, 0.0, data.weights[base_index])
+        goal = data.shapes[target]
+        h = data.pool[handles]
+        predicted = predict_pbs_weights(
+            model,
+            data,
+            h,
+            data.pool_distance[:, handles],
+            base,
+            goal[h] - base[h],
+            radius,
+            falloff,
+            queries=queries,
+            patch_base=patch_base,
+        )
+        v = data.moving[vertices]
+        shape = _shape_at(data, base, predicted, v)
+        error = (shape - goal[v]) * CM_TO_MM
+        shape_mse = jnp.mean(jnp.sum(error**2, axis=-1))
+        weight_mse = jnp.mean((predicted - (data.weights[target] - base_weights)) ** 2)
+        return shape_mse, weight_mse, jnp.mean(jnp.linalg.norm(error, axis=-1))
+
+    shape_mse, weight_mse, error = jax.vmap(one)(
+        ex.target, ex.base, ex.handles, ex.radius, ex.falloff, ex.vertices
+    )
+    total = jnp.mean(shape_mse) + weight_loss * jnp.mean(weight_mse)
+    return total, {"error_mm": jnp.mean(error), "weight_mse": jnp.mean(weight_mse)}
+
+
+@eqx.filter_jit
+def _pbs_train_step(model, opt_state, data, ex, optimiser, weight_loss):
+    (total, aux), grads = eqx.filter_value_and_grad(pbs_example_loss, has_aux=True)(
+        model, data, ex, weight_loss
+    )
+    updates, opt_state = optimiser.update(grads, opt_state, eqx.filter(model, eqx.is_array))
+    return eqx.apply_updates(model, updates), opt_state, total, aux
+
+
+def _optimiser(options: PBSTrainOptions):
+    return adam(
+        options.learning_rate, options.decay_steps, options.decay_floor, options.decay_start
+    )
+
+
+def load_pbs_model(path, neutral, n_patches: int, n_weights: int):
+    """(model, header) of a ``train_pbs`` checkpoint."""
+    state = _read_state_file(path, PBS_CHECKPOINT_FORMAT)
+    options = PBSTrainOptions.from_dict(state["options"])
+    like = make_pbs_model(options, neutral, n_patches, n_weights, state["displacement_scale"])
+    like_opt = _optimiser(options).init(eqx.filter(like, eqx.is_array))
+    (model, _), state = _load_file(path, (like, like_opt), PBS_CHECKPOINT_FORMAT)
+    return model, state
+
+
+def train_pbs(
+    data: PBSTrainingSet,
+    options: PBSTrainOptions,
+    *,
+    checkpoint: str | os.PathLike | None = None,
+    displacement_scale: float = 1.0,
+    progress: bool = True,
+    stop_after: int | None = None,
+):
+    """Train (or resume from ``checkpoint``) CANRig-PBS or the Shape Transformer until
+    ``options.steps`` or ``options.max_minutes``. Returns (model, step, seconds, history)."""
+    if not isinstance(options, PBSTrainOptions):
+        raise TypeError(f"options: expected PBSTrainOptions, got {type(options).__name__}")
+    n_patches, n_weights = data.weights.shape[1:]
+    model = make_pbs_model(options, data, n_patches, n_weights, displacement_scale)
+    optimiser = _optimiser(options)
+    opt_state = optimiser.init(eqx.filter(model, eqx.is_array))
+    step, seconds, history = 0, 0.0, []
+    if checkpoint is not None and os.path.exists(checkpoint):
+        (model, opt_state), state = _load_file(
+            checkpoint, (model, opt_state), PBS_CHECKPOINT_FORMAT
+        )
+        saved = PBSTrainOptions.from_dict(state["options"])
+        budget = {"steps": options.steps, "max_minutes": options.max_minutes}
+        if dataclasses.replace(saved, **budget) != options:
+            raise ValueError(f"checkpoint: {checkpoint} was written with different options")
+        step, seconds, history = state["step"], state["seconds"], state["history"]
+
+    def save(step, seconds, history):
+        if checkpoint is not None:
+            state = {
+                "options": options.to_dict(),
+                "displacement_scale": displacement_scale,
+                "step": step,
+                "seconds": seconds,
+                "history": history,
+            }
+            _save_file(checkpoint, (model, opt_state), state, PBS_CHECKPOINT_FORMAT)
+
+    sizes = (data.shapes.shape[0], data.pool.shape[0], data.moving.shape[0])
+
+    def one_step(step):
+        nonlocal model, opt_state
+        ex = sample_pbs_examples(np.random.default_rng([options.seed, step]), *sizes, options)
+        model, opt_state, loss, aux = _pbs_train_step(
+            model, opt_state, data, ex, optimiser, options.weight_loss
+        )
+        return {"loss": loss, **aux}
+
+    step, seconds = run_training(
+        one_step, save, options, step, seconds, history, progress, options.model, stop_after
+    )
+    return model, step, seconds, history
+
+
+@eqx.filter_jit
+def pbs_reconstruct(
+    model: CANRigPBS | ShapeTransformer,
+    data: PBSTrainingSet,
+    handle_vertices: Int[Array, " H"],
+    handle_distance: Float[Array, "P H"],
+    base: Float[Array, "N 3"],
+    targets: Float[Array, "F N 3"],
+    radius: float,
+    falloff: float,
+) -> Float[Array, "F N 3"]:
+    """Whole-head shapes for the handles moved to each target (displacements target - base
+    at the handles), vmapped over the targets."""
+
+    queries = model.encode_patches(data.seeds)
+    patch_base = patch_means(data.layout, base)
+
+    def one(target):
+        d = target[handle_vertices] - base[handle_vertices]
+        weights = predict_pbs_weights(
+            model,
+            data,
+            handle_vertices,
+            handle_distance,
+            base,
+            d,
+            radius,
+            falloff,
+            queries=queries,
+            patch_base=patch_base,
+        )
+        return pbs_delta_shape(data.layout, base, data.basis, weights)
+
+    return jax.lax.map(one, targets)
