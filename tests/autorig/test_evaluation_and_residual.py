@@ -311,3 +311,38 @@ def test_part_matching_on_makehuman_is_plausible_and_reported(ict_head, data_dir
         closest_point_correspondence(
             ict_head.neutral, ict_head.faces, vertices, faces, ict_head.landmarks, landmarks
         )
+
+
+@pytest.mark.slow  # ~1 min: the ICT pose source, an ICP fit and two transfers
+def test_transfer_poses_needs_only_the_head(data_dir):
+    """Deformation transfer onto a held-out-like ICT identity given as a bare mesh (vertices
+    and faces, no landmarks, no ground truth): the landmarks are fitted, and the transfer
+    is as good as with the true landmarks and far better than no motion."""
+    from types import SimpleNamespace
+
+    from canrig_jax.autorig import ict_pose_source, make_head, transfer_poses
+
+    source = ict_pose_source(data_dir, progress=False)
+    assert source.train == [] and source.test == {}
+    coefficients = np.random.default_rng(123).standard_normal(100)
+    truth = make_head(
+        source.head,
+        source.head_displacements,
+        coefficients,
+        "decimate_1300",
+        name="bare",
+        data_dir=data_dir,
+    )
+    bare = SimpleNamespace(vertices=truth.vertices, faces=truth.faces)
+    transferred = transfer_poses(source, bare)
+    assert transferred.shape == truth.displacements.shape and np.isfinite(transferred).all()
+    with_landmarks = transfer_poses(source, truth)  # the head's own (true) landmarks
+
+    def mae(p):
+        return float(np.linalg.norm(p - truth.displacements, axis=-1).mean())
+
+    no_motion = mae(np.zeros_like(transferred))
+    assert mae(transferred) < 0.5 * no_motion, (mae(transferred), no_motion)
+    assert mae(transferred) < 1.3 * mae(with_landmarks), (mae(transferred), mae(with_landmarks))
+    with pytest.raises(ValueError, match="head: .*faces"):
+        transfer_poses(source, SimpleNamespace(vertices=truth.vertices))

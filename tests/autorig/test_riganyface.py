@@ -208,6 +208,31 @@ def test_only_the_global_encoder_carries_information_across_components(
             assert change == 0.0, change
 
 
+def test_hybrid_model_diffuses_implicitly_once_per_head_and_spectrally_per_pose(
+    poses, head_operators
+):
+    """``stem_method="implicit"``: the global encoder and the stem use implicit diffusion
+    (eq. (1)), the per-pose blocks stay spectral. Implicit diffusion keeps every vertex's
+    own detail (at time 0 it is the identity; the 64 eigenpairs are a low-pass projection)."""
+    unit, operators = head_operators
+    kwargs = dict(width=8, global_size=4, global_width=8, key=jax.random.PRNGKey(2))
+    hybrid = RigAnyFace(poses.n_basis, stem_method="implicit", **kwargs)
+    spectral = RigAnyFace(poses.n_basis, **kwargs)
+    assert [b.diffusion.method for b in hybrid.shared] == ["implicit"] * 2
+    assert [b.diffusion.method for b in hybrid.encoder.blocks] == ["implicit"] * 2
+    assert [c.block.diffusion.method for c in hybrid.conditional] == ["spectral"] * 2
+    features = jnp.asarray(np.random.default_rng(0).normal(size=(unit.shape[0], 8)), jnp.float32)
+    np.testing.assert_allclose(hybrid.shared[0].diffusion(features, operators), features, atol=1e-5)
+    low_pass = spectral.shared[0].diffusion(features, operators)
+    assert np.abs(np.asarray(low_pass) - np.asarray(features)).max() > 0.1
+    vectors = jnp.asarray(poses.vectors()[:3])
+    a = np.asarray(hybrid(vectors, jnp.asarray(unit), operators))
+    b = np.asarray(spectral(vectors, jnp.asarray(unit), operators))
+    assert np.isfinite(a).all() and np.abs(a - b).max() > 1e-5
+    with pytest.raises(ValueError, match="method"):
+        RigAnyFace(poses.n_basis, stem_method="explicit", **kwargs)
+
+
 def test_spectral_gradient_shortcut_equals_the_sparse_gradient_of_the_diffusion(head_operators):
     unit, operators = head_operators
     features = jnp.asarray(

@@ -277,16 +277,12 @@ def ict_autorig_dataset(
     topology ("same_topology": same remeshing recipe, new identity) and in
     ``unseen_topology`` (a resolution never seen in training).
     """
-    from ..rig import ict_quartic_rig
-
     if unseen_topology in train_topologies:
         raise ValueError(f"unseen_topology: {unseen_topology!r} is also a training topology")
     if n_train < 1 or n_test < 1:
         raise ValueError(f"n_train, n_test: expected >= 1, got {n_train}, {n_test}")
-    head = load_ict(data_dir, parts=None)
-    face_rig, _ = ict_quartic_rig(data_dir, progress=progress)
-    poses = quartic_pose_set(face_rig, per_order)
-    displacements = pose_displacements(head_rig(face_rig, head), poses)
+    source = ict_pose_source(data_dir, per_order=per_order, progress=progress)
+    head, poses, displacements = source.head, source.poses, source.head_displacements
     jobs = []
     train_rng = np.random.default_rng([seed, 0])
     for i in range(n_train):
@@ -321,6 +317,26 @@ def ict_autorig_dataset(
         head_displacements=displacements,
         train=split["train"],
         test={k: split[k] for k in ("same_topology", "unseen_topology")},
+    )
+
+
+def ict_pose_source(
+    data_dir=None, *, per_order: dict[int, int] | None = None, progress: bool = True
+) -> AutorigDataset:
+    """What deformation transfer and copying carry onto a new head, without any training
+    or held-out identity: the generic ICT head, the pose set (``quartic_pose_set``) and every
+    pose's ground truth on the head. An ``AutorigDataset`` with no heads (``train`` empty,
+    ``test`` empty), accepted wherever the baselines take a dataset (``transfer_poses``,
+    ``copy_poses``, ``fit_head_landmarks``, ``head_correspondence``, ``face_placement``).
+    Seconds with the quartic rig cached (``ict_quartic_rig``), minutes the first time."""
+    from ..rig import ict_quartic_rig
+
+    head = load_ict(data_dir, parts=None)
+    face_rig, _ = ict_quartic_rig(data_dir, progress=progress)
+    poses = quartic_pose_set(face_rig, per_order)
+    displacements = pose_displacements(head_rig(face_rig, head), poses)
+    return AutorigDataset(
+        poses=poses, head=head, head_displacements=displacements, train=[], test={}
     )
 
 
@@ -392,12 +408,30 @@ def head_correspondence(dataset: AutorigDataset, vertices, faces, landmarks):
     )
 
 
+def _correspondence_of(dataset: AutorigDataset, head):
+    """``head_correspondence`` of any head: its ``landmarks`` when it has them, else ICT's
+    landmarks fitted to it (``fit_head_landmarks``, on its ``skin`` when it names one)."""
+    for name in ("vertices", "faces"):
+        if not hasattr(head, name):
+            raise ValueError(f"head: expected an object with vertices and faces, no {name!r}")
+    landmarks = getattr(head, "landmarks", None)
+    if landmarks is None:
+        landmarks, _ = fit_head_landmarks(
+            dataset, head.vertices, head.faces, region=getattr(head, "skin", None)
+        )
+    return head_correspondence(dataset, head.vertices, head.faces, landmarks)
+
+
 def transfer_poses(dataset: AutorigDataset, head, correspondence=None) -> np.ndarray:
     """The deformation-transfer baseline: every ground-truth pose of the generic ICT head
     carried onto ``head`` (Sumner & Popović; landmark + closest-point correspondence).
 
     Args:
-        head: a ``RiggedHead``, or any head with ``vertices``, ``faces`` and ``landmarks``.
+        dataset: the source: ``ict_pose_source()`` (or an ``ict_autorig_dataset``).
+        head: any head with ``vertices`` (centimetres, y up, facing +z) and ``faces`` — a
+            ``RiggedHead``, a loaded mesh; its ``landmarks`` (68 ICT Multi-PIE vertices) are
+            used when it has them, else fitted (``fit_head_landmarks``, no hand-picked
+            vertices; on its ``skin`` when it has one).
         correspondence: a precomputed ``head_correspondence`` (else computed here).
 
     Returns (P, V, 3) displacements on ``head`` (centimetres)."""
@@ -406,7 +440,7 @@ def transfer_poses(dataset: AutorigDataset, head, correspondence=None) -> np.nda
         source.neutral, dataset.head_displacements, (), dataset.poses.labels, source.faces
     )
     if correspondence is None:
-        correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
+        correspondence = _correspondence_of(dataset, head)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # "correctives are not transferred": there are none
         transferred = deformation_transfer(source_rig, head.vertices, correspondence)
@@ -419,7 +453,7 @@ def copy_poses(dataset: AutorigDataset, head, correspondence=None) -> np.ndarray
     rotated into the head's orientation (the similarity of the carried ICT neutral onto the
     head; no scaling). (P, V, 3) displacements, centimetres."""
     if correspondence is None:
-        correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
+        correspondence = _correspondence_of(dataset, head)
     carried = correspondence.vertex_map.carry(dataset.head_displacements.astype(np.float64))
     _, rotation, _ = similarity_transform(
         correspondence.vertex_map.carry(dataset.head.neutral.astype(np.float64)),

@@ -100,6 +100,11 @@ class RigAnyFace(eqx.Module):
         global_size: length of G_0; 0 disables the global encoder (the ablation).
         global_width: channels of the global encoder's 2 blocks.
         method: diffusion discretisation, "spectral" (needs eigenpairs) or "implicit".
+        stem_method: discretisation of the blocks that run once per head (the global encoder
+            and the stem); ``None``: ``method``. ``"implicit"`` with a spectral ``method`` is
+            the hybrid: implicit diffusion (eq. (1)) reaches every vertex of a small part (the
+            128 eigenpairs give a small disconnected part little more than its constant), at a
+            once-per-head cost, while the per-pose blocks keep the cheap spectral products.
         output_scale: the network's raw output is multiplied by this (unit-sphere units),
             so its last layer works at O(1) values.
         residual: predict a correction on top of a given base displacement (call with
@@ -128,6 +133,7 @@ class RigAnyFace(eqx.Module):
         global_size: int = 32,
         global_width: int = 32,
         method: str = "spectral",
+        stem_method: str | None = None,
         output_scale: float = 0.01,
         residual: bool = False,
         key: PRNGKeyArray,
@@ -139,6 +145,7 @@ class RigAnyFace(eqx.Module):
             raise ValueError(f"n_conditional: expected >= 1, got {n_conditional}")
         if global_size < 0 or n_shared < 0:
             raise ValueError("global_size, n_shared: expected >= 0")
+        stem_method = method if stem_method is None else stem_method
         k_enc, k_first, k_shared, k_cond, k_last = jax.random.split(key, 5)
         self.encoder = (
             DiffusionNet(
@@ -146,7 +153,7 @@ class RigAnyFace(eqx.Module):
                 global_size,
                 global_width,
                 2,
-                method=method,
+                method=stem_method,
                 outputs="global_mean",
                 key=k_enc,
             )
@@ -155,7 +162,7 @@ class RigAnyFace(eqx.Module):
         )
         self.first = eqx.nn.Linear(N_INPUT_FEATURES, width, key=k_first)
         self.shared = tuple(
-            DiffusionNetBlock(width, method=method, key=k)
+            DiffusionNetBlock(width, method=stem_method, key=k)
             for k in jax.random.split(k_shared, n_shared)
         )
         self.conditional = tuple(

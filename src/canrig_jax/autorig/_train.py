@@ -55,6 +55,7 @@ class TrainOptions:
     global_width: int = 32
     k: int = 128
     method: str = "spectral"
+    stem_method: str | None = None
     learning_rate: float = 1e-3
     warmup_steps: int = 200
     steps: int = 2500
@@ -97,6 +98,7 @@ def make_model(options: TrainOptions, n_pose_inputs: int, output_scale: float) -
         global_size=options.global_size,
         global_width=options.global_width,
         method=options.method,
+        stem_method=options.stem_method,
         output_scale=output_scale,
         residual=options.residual,
         key=jax.random.PRNGKey(options.seed),
