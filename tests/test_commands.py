@@ -12,6 +12,7 @@ import re
 import subprocess
 import sys
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -36,6 +37,10 @@ from canrig_jax.rig import (
 )
 
 SUBCOMMANDS = ("autorig", "animate", "invert", "correct")
+DEFAULT_MODEL = (
+    Path(__file__).resolve().parents[1] / "experiments/results/autorig" / "checkpoint_raf.eqx"
+)
+"""The checkpoint ``canrig autorig`` loads by default."""
 
 
 @pytest.fixture(scope="module")
@@ -63,6 +68,8 @@ def test_help(command, capsys):
     assert f"usage: canrig {command}" in text and "-o OUTPUT" in text
     if command == "invert":
         assert "--method {quartic,linear,seol" in text and "--alpha" in text
+    if command == "autorig":
+        assert "--orientation {check,fix,trust}" in text
 
 
 def test_console_script_runs_in_a_fresh_process():
@@ -197,6 +204,40 @@ def test_errors_name_the_file_and_write_nothing(workspace, capsys, tmp_path):
     assert sorted(os.listdir(tmp_path)) == before
     status, _, err = _run(capsys, "autorig", tmp_path / "h.obj", "-o", tmp_path / "r.glb")
     assert status == 2 and "h.obj is empty" in err
+
+
+@pytest.mark.slow
+def test_autorig_orientation_option(tmp_path, capsys, data_dir):
+    """A real ICT identity stored z up (turned 90 degrees about x): the default check refuses
+    it naming HEAD and the option, --orientation fix gives the upright head's rig turned into
+    the file's frame, --orientation trust runs the model on the head as stored (another rig)."""
+    from canrig_jax.autorig import generate_rig, load_model
+    from canrig_jax.data import ict_identity, load_ict
+    from canrig_jax.mesh import decimate
+
+    ict = load_ict(data_dir, parts=None)
+    identity = ict_identity(np.random.default_rng(11).standard_normal(100), data_dir, model=ict)
+    mesh = decimate(identity, ict.faces, 1300)
+    turn = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # y up -> z up
+    turned = (mesh.vertices @ turn.T).astype(np.float32)
+    save_obj(tmp_path / "zup.obj", turned, mesh.faces)
+    argv = ("autorig", tmp_path / "zup.obj", "--units", "cm")
+    status, _, err = _run(capsys, *argv, "-o", tmp_path / "checked.glb")
+    assert status == 2 and "zup.obj" in err and "--orientation fix" in err, err
+    assert not (tmp_path / "checked.glb").exists()
+
+    status, _, err = _run(capsys, *argv, "--orientation", "fix", "-o", tmp_path / "fixed.glb")
+    assert status == 0 and "turned the head" in err and "up +z" in err, err
+    fixed = load_gltf_rig(tmp_path / "fixed.glb")
+    np.testing.assert_allclose(fixed.neutral, turned, atol=1e-4)
+    model, poses, _ = load_model(DEFAULT_MODEL)
+    upright = generate_rig(model, poses, mesh.vertices.astype(np.float32), mesh.faces).rig
+    np.testing.assert_allclose(fixed.deltas, np.asarray(upright.deltas) @ turn.T, atol=1e-4)
+
+    status, _, err = _run(capsys, *argv, "--orientation", "trust", "-o", tmp_path / "trust.glb")
+    assert status == 0, err
+    trusted = load_gltf_rig(tmp_path / "trust.glb")
+    assert np.abs(np.asarray(trusted.deltas) - np.asarray(fixed.deltas)).max() > 1e-3
 
 
 @pytest.mark.slow

@@ -126,11 +126,29 @@ def _autorig(args) -> None:
     model, poses, _ = autorig.load_model(model_path)
     progress(f"loaded RigAnyFace from {model_path} ({poses.n_poses} training poses)")
     chunk = {} if args.pose_chunk is None else {"pose_chunk": args.pose_chunk}
-    generated = autorig.generate_rig(
-        model, poses, head.vertices_in("cm"), head.faces, k=args.k, **chunk
-    )
+    try:
+        generated = autorig.generate_rig(
+            model,
+            poses,
+            head.vertices_in("cm"),
+            head.faces,
+            k=args.k,
+            orientation=args.orientation,
+            **chunk,
+        )
+    except ValueError as error:
+        if args.orientation == "check" and "seems to face another way" in str(error):
+            raise CommandError(
+                f"HEAD {head.path}: {error} (on the command line: --orientation fix or trust)"
+            ) from error
+        raise
     seconds = generated.seconds
     rig = generated.rig
+    if generated.rotated:
+        progress(
+            f"turned the head for the model ({generated.orientation.describe()}) and the "
+            "rig back: the rig is in the head's own frame"
+        )
     progress(
         f"generated {rig.n_blendshapes} blendshapes and "
         f"{sum(int(c.indices.shape[0]) for c in rig.correctives)} correctives "
@@ -432,6 +450,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", help=f"RigAnyFace checkpoint (default: {DEFAULT_MODEL})")
     p.add_argument("--k", type=int, default=128, help="Laplacian eigenpairs (default: %(default)s)")
     p.add_argument("--pose-chunk", type=int, help="poses per network pass (default: the library's)")
+    p.add_argument(
+        "--orientation",
+        choices=("check", "fix", "trust"),
+        default="check",
+        help="the model expects +y up and +z forward: check refuses a head that clearly faces "
+        "elsewhere, fix turns it for the model and the rig back, trust skips the check "
+        "(default: %(default)s)",
+    )
     p.set_defaults(run=_autorig)
 
     p = command(
