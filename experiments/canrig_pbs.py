@@ -14,10 +14,12 @@ Writes results.json, table.md, patch_layout.png, pbs_error.png.
 from __future__ import annotations
 
 import argparse
+import json
 import time
 import warnings
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import matplotlib
@@ -29,13 +31,19 @@ import numpy as np  # noqa: E402
 from canrig_jax import CM_TO_MM, experiment_command, provenance, save_json, save_text  # noqa: E402
 from canrig_jax.autorig import head_rig  # noqa: E402
 from canrig_jax.canrig import (  # noqa: E402
+    CLAMP,
     PBS_MODELS,
     PBS_VARIANTS,
     PBSTrainOptions,
+    ShapePreservingCANRig,
     build_pbs_training_set,
+    expression_region,
     fit_pbs,
+    global_blendshape_dialogue,
     global_blendshape_fit,
     held_out_poses,
+    influence_mask,
+    influence_reach,
     load_pbs_model,
     parameter_count,
     patch_layout,
@@ -45,6 +53,7 @@ from canrig_jax.canrig import (  # noqa: E402
     seed_distances,
     split_capture,
     train_pbs,
+    weighted_geodesic_distance,
 )
 from canrig_jax.data import load_ict, load_livelinkface  # noqa: E402
 from canrig_jax.mesh import edge_graph, farthest_point_vertices  # noqa: E402
@@ -65,6 +74,8 @@ def _timed(fn, repeats=10):
 
 
 MODELS_DIR = "models"
+TABLE5_MODELS = ("per_patch", "shape_transformer")
+FIGURE8_TAG = "_fig8"  # Figure 8's runs: 1,000 steps of the same 2,000-step schedule
 EVAL_RADIUS_CM, EVAL_FALLOFF_PER_CM = 4.0, 1.0  # Table 5's masks (CANRig-PBS)
 POOL_SIZE = 4096  # candidate handle vertices on the skin for training
 
@@ -89,6 +100,9 @@ def _parser():
     parser.add_argument("--steps", type=int, default=4000)
     parser.add_argument("--decay-start", type=int, default=0)
     parser.add_argument("--decay-steps", type=int, default=4000)
+    parser.add_argument(
+        "--tag", default="", help="folder suffix: OUT/models/NAME+TAG (e.g. Figure 8's runs)"
+    )
     parser.add_argument("--no-progress", action="store_true")
     return parser
 
@@ -167,7 +181,7 @@ def _train(args, argv, head):
         decay_steps=args.decay_steps,
     )
     data, _ = _training_set(args, head)
-    folder = args.out / MODELS_DIR / args.train
+    folder = args.out / MODELS_DIR / (args.train + args.tag)
     folder.mkdir(parents=True, exist_ok=True)
     scale = float(np.abs(head["train_shapes"] - head["neutral"]).max())
     _, step, seconds, history = train_pbs(
@@ -191,12 +205,140 @@ def _train(args, argv, head):
     print(f"{args.train}: {step} steps in {seconds / 60:.1f} min")
 
 
+DIALOGUE_HANDLES, DIALOGUE_RADIUS_CM, DIALOGUE_FALLOFF = 60, 1.5, 3.0
+MOUTH_THRESHOLD_CM = 0.3  # as experiments/canrig_workflows.py
+
+
+def _dense_reference_ms(head, handles):
+    """One dense per-vertex forward pass (an untrained ShapePreservingCANRig, the encoder
+    sizes of PBSTrainOptions) on all vertices at these handles: the timing reference."""
+    o = PBSTrainOptions()
+    neutral = head["neutral"]
+    net = ShapePreservingCANRig(
+        neutral,
+        n_heads=o.n_heads,
+        latent=o.latent,
+        width=o.width,
+        n_layers=o.n_layers,
+        fourier=o.fourier,
+        key=jax.random.PRNGKey(0),
+    )
+    distance = weighted_geodesic_distance(head["graph"], handles)  # (H, V)
+    mask = influence_mask(distance.T, EVAL_RADIUS_CM, EVAL_FALLOFF_PER_CM)
+    queries = net.encode_queries(jnp.asarray(neutral))
+    base = jnp.asarray(neutral)
+    d = jnp.asarray(head["test_shapes"][0][handles] - neutral[handles])
+    index = jnp.asarray(handles)
+    call = eqx.filter_jit(lambda net, q, base, m, d: net(q, base, base[index], base[index], d, m))
+    return _timed(lambda: call(net, queries, base, mask, d))
+
+
+def _table6(args, head, data, distances):
+    """Dialogue replacement (Table 6) on the whole head for the trained models and GBS.
+
+    The mouth mask is ``expression_region`` of the whole-head rig (threshold 3 mm, as the
+    workflows experiment); PBS moves whole patches, so the evaluated mouth region is every
+    vertex a patch seeded in the mouth mask covers, and the rest of the face is the
+    complement. CANRig-PBS: 60 handles in the mouth where no patch seeded outside it is
+    within the masks' reach, moved to the target frame, base = the source frame. Shape
+    Transformer and GBS (no base shape): the source frame is first inverted from 200 handles
+    (those 60 + 140 geodesic farthest points off the mouth region), then the 60 move."""
+    neutral, layout, rig = head["neutral"], head["layout"], head["rig"]
+    capture = head["capture"]
+    n = 6 if args.quick else 45
+    source = np.asarray(evaluate_batch(rig, capture[90 : 90 + n], chunk=16), np.float32)
+    target = np.asarray(evaluate_batch(rig, capture[135 : 135 + n], chunk=16), np.float32)
+    mouth = expression_region(rig, threshold=MOUTH_THRESHOLD_CM)
+    seeds = np.asarray(layout.seeds)
+    mouth_patch = mouth[seeds]
+    covered = np.asarray(layout.vertex_weights) > 0
+    region = (covered & mouth_patch[np.asarray(layout.vertex_patches)]).any(axis=1)
+    reach = float(influence_reach(DIALOGUE_RADIUS_CM, DIALOGUE_FALLOFF, CLAMP))
+    outside_seed_distance = distances[~mouth_patch].min(axis=0)  # (N,) to the nearest
+    candidates = np.flatnonzero(mouth & (outside_seed_distance > reach))
+    mouth_handles = candidates[farthest_point_vertices(neutral[candidates], DIALOGUE_HANDLES)]
+    off = np.flatnonzero(~region & head["skin"])
+    still = off[farthest_point_vertices(neutral[off], 200 - DIALOGUE_HANDLES)]
+    all_handles = np.concatenate([mouth_handles, still])
+    moved = np.arange(len(all_handles)) < DIALOGUE_HANDLES
+
+    def error(a, b, where):
+        return float((np.linalg.norm(a - b, axis=-1) * CM_TO_MM)[:, where].mean())
+
+    methods, outputs = {}, {}
+    for name in ("per_patch", "shape_transformer"):
+        checkpoint = args.out / MODELS_DIR / name / "checkpoint.eqx"
+        if not checkpoint.exists():
+            continue
+        net, _ = load_pbs_model(checkpoint, neutral, args.patches, len(head["basis"]))
+        if name == "per_patch":  # base = each source frame, the mouth handles move
+            index, bases = mouth_handles, source
+            inverted_targets, edited_targets = source, target
+        else:  # no base: from the neutral, every handle at the frame (the mouth's edited)
+            index, bases = all_handles, neutral
+            inverted_targets, edited_targets = source, source.copy()
+            edited_targets[:, mouth_handles] = target[:, mouth_handles]
+        inverted, edited = (
+            np.asarray(
+                pbs_reconstruct(
+                    net,
+                    data,
+                    jnp.asarray(index),
+                    jnp.asarray(distances[:, index]),
+                    jnp.asarray(bases),
+                    jnp.asarray(goal),
+                    DIALOGUE_RADIUS_CM,
+                    DIALOGUE_FALLOFF,
+                )
+            )
+            for goal in (inverted_targets, edited_targets)
+        )
+        outputs[name] = edited
+        methods[name] = {
+            "rig_inversion_mm": float(
+                (np.linalg.norm(inverted - source, axis=-1) * CM_TO_MM).max()
+                if name == "per_patch"
+                else (np.linalg.norm(inverted - source, axis=-1) * CM_TO_MM).mean()
+            ),
+            "mouth_difference_mm": error(edited, target, region),
+            "rest_of_face_change_mm": float(
+                (np.linalg.norm(edited - source, axis=-1) * CM_TO_MM)[:, ~region].max()
+                if name == "per_patch"
+                else error(edited, source, ~region)
+            ),
+        }
+    for name, basis in (("gbs_19", head["basis"]), ("gbs_ict_53", np.asarray(rig.deltas))):
+        inverted, edited = global_blendshape_dialogue(
+            basis, neutral, source, target, all_handles, moved
+        )
+        inverted, edited = np.asarray(inverted), np.asarray(edited)
+        outputs[name] = edited
+        methods[name] = {
+            "rig_inversion_mm": error(inverted, source, slice(None)),
+            "mouth_difference_mm": error(edited, target, region),
+            "rest_of_face_change_mm": error(edited, source, ~region),
+        }
+    table6 = {
+        "methods": methods,
+        "no_edit_mouth_difference_mm": error(source, target, region),
+        "frames": {"source": [90, 89 + n], "target": [135, 134 + n]},
+        "mouth_region_vertices": int(region.sum()),
+        "protocol": "source capture frames 90-134, target 135-179; CANRig-PBS inversion and "
+        "rest of face are maxima, the others means; mouth region: every vertex covered by "
+        f"a patch seeded in expression_region(threshold={MOUTH_THRESHOLD_CM} cm) "
+        f"({int(region.sum())} vertices)",
+    }
+    print(f"table 6: {methods}")
+    return table6, {"source": source, "target": target, "outputs": outputs, "region": region}
+
+
 def main(argv=None):
     args = _parser().parse_args(argv)
     if args.quick:
         args.patches, args.n_random = 60, 60
     command = experiment_command(__file__, argv)
     head = _whole_head(args)
+    head["out"] = args.out
     if args.train is not None:
         return _train(args, argv, head)
     model, neutral, faces = head["model"], head["neutral"], head["faces"]
@@ -261,51 +403,43 @@ def main(argv=None):
     # Table 5 and Figure 8, the trained rows: the same handles, base = the neutral
     data, distances = _training_set(args, head)
     handle_distance = jnp.asarray(distances[:, handles])
-    trained, figure8, forward = {}, {}, {}
-    for name in PBS_MODELS:
-        checkpoint = args.out / MODELS_DIR / name / "checkpoint.eqx"
-        if not checkpoint.exists():
-            print(f"{name}: no checkpoint at {checkpoint}, row skipped")
-            continue
-        net, state = load_pbs_model(checkpoint, neutral, args.patches, len(basis))
-        shapes = np.asarray(
-            pbs_reconstruct(
-                net,
-                data,
-                jnp.asarray(handles),
-                handle_distance,
-                jnp.asarray(neutral),
-                jnp.asarray(test_shapes),
-                EVAL_RADIUS_CM,
-                EVAL_FALLOFF_PER_CM,
-            )
+    neutral_j, test_j = jnp.asarray(neutral), jnp.asarray(test_shapes)
+
+    def reconstruct(net, index, distance, targets):
+        return pbs_reconstruct(
+            net, data, index, distance, neutral_j, targets, EVAL_RADIUS_CM, EVAL_FALLOFF_PER_CM
         )
+
+    def evaluate(folder):
+        checkpoint = args.out / MODELS_DIR / folder / "checkpoint.eqx"
+        if not checkpoint.exists():
+            print(f"{folder}: no checkpoint at {checkpoint}, row skipped")
+            return None, None
+        net, state = load_pbs_model(checkpoint, neutral, args.patches, len(basis))
+        shapes = np.asarray(reconstruct(net, jnp.asarray(handles), handle_distance, test_j))
         per_shape = (np.linalg.norm(shapes - test_shapes, axis=-1) * CM_TO_MM).mean(axis=1)
-        trained[name] = {
+        row = {
             "mean_mm": float(per_shape.mean()),
             "std_mm": float(per_shape.std()),
             "train_minutes": float(state["seconds"] / 60),
             "steps": int(state["step"]),
             "parameters": parameter_count(net),
         }
-        if name in PBS_VARIANTS:
-            figure8[name] = trained[name]["mean_mm"]
-        print(f"{name}: {trained[name]}")
-        # one whole-head forward pass at 200 handles (CANRig-PBS models)
-        h200, d200 = jnp.asarray(handles[:200]), handle_distance[:, :200]
-        one = jnp.asarray(test_shapes[:1])
-        forward[name] = _timed(
-            lambda net=net, h200=h200, d200=d200, one=one: pbs_reconstruct(
-                net,
-                data,
-                h200,
-                d200,
-                jnp.asarray(neutral),
-                one,
-                EVAL_RADIUS_CM,
-                EVAL_FALLOFF_PER_CM,
-            )
-        )
+        print(f"{folder}: {row}")
+        return net, row
+
+    trained, figure8, forward = {}, {}, {}
+    h200, d200 = jnp.asarray(handles[:200]), handle_distance[:, :200]
+    for name in TABLE5_MODELS:
+        net, row = evaluate(name)
+        if row is not None:
+            trained[name] = row
+            # one whole-head forward pass at 200 handles
+            forward[name] = _timed(lambda net=net: reconstruct(net, h200, d200, test_j[:1]))
+    for name in PBS_VARIANTS:
+        _, row = evaluate(name + FIGURE8_TAG)
+        if row is not None:
+            figure8[name] = row
     table5.update(trained)
 
     # gather form against the sparse matrix product, one shape
@@ -326,34 +460,71 @@ def main(argv=None):
         f"gather {gather_ms:.2f} ms, scipy.sparse {sparse_ms:.2f} ms"
     )
 
+    forward["dense_per_vertex_reference"] = _dense_reference_ms(head, handles[:200])
+    table6, dialogue_run = _table6(args, head, data, distances) if trained else ({}, None)
     results = {
         "pbs": pbs,
         "table5": table5,
+        "figure8": figure8,
+        "table6": table6,
+        "forward_ms_whole_head": forward.get("per_patch"),
+        "forward_ms": forward,
         "timing": timing,
         "protocol": {
-            "shapes": "linear ICT rig, all 26,719 vertices",
+            "shapes": "whole ICT head (26,719 vertices): the ict-quartic rig on the face part "
+            "plus ICT's expression deltas elsewhere (autorig.head_rig)",
             "train": f"capture frames 0-{len(capture_train) - 1} + {args.n_random} random poses",
             "test": f"capture frames {len(capture_train)}-{len(capture) - 1} + 100 random "
             "poses (held_out_poses)",
             "handles": f"{args.handles} geodesic farthest points on the skin ({', '.join(SKIN)})",
+            "masks": f"CANRig-PBS: radius {EVAL_RADIUS_CM} cm, falloff {EVAL_FALLOFF_PER_CM}/cm, "
+            "evaluated at each patch's seed vertex (geodesic distance on the whole head)",
+            "forward": "one call at 200 handles (ms, median): the whole-head shape from the "
+            "handle displacements; dense_per_vertex_reference: an untrained per-vertex "
+            "ShapePreservingCANRig with the same encoder on all 26,719 vertices, dense masks",
         },
-        "not_built": "CANRig-PBS and Shape Transformer (training), Figure 8, Table 6",
         "provenance": provenance(command),
     }
     args.out.mkdir(parents=True, exist_ok=True)
     save_json(args.out / "results.json", results)
     rows = [
-        "| method | mean (std) mm | training minutes |",
-        "|---|---|---|",
+        "| method | mean (std) mm | training minutes | steps | parameters |",
+        "|---|---|---|---|---|",
     ]
     labels = {
         "no_motion": "no motion (the neutral)",
         "gbs_pbs_basis": f"GBS, the {len(basis)} PBS offsets",
         "gbs_ict_53": "GBS, ICT's 53 expressions",
+        "shape_transformer": "Shape Transformer (PBS output)",
+        "per_patch": "CANRig-PBS (per-patch MLPs)",
     }
     for key, label in labels.items():
+        if key not in table5:
+            continue
         row = table5[key]
-        rows.append(f"| {label} | {row['mean_mm']:.3f} ({row['std_mm']:.3f}) | 0 |")
+        rows.append(
+            f"| {label} | {row['mean_mm']:.3f} ({row['std_mm']:.3f}) | "
+            f"{row['train_minutes']:.1f} | {row.get('steps', '-')} | "
+            f"{row.get('parameters', '-')} |"
+        )
+    fig8 = [
+        "| Figure 8 variant | held-out mean (std) mm | steps | parameters |",
+        "|---|---|---|---|",
+    ] + [
+        f"| {k} | {v['mean_mm']:.3f} ({v['std_mm']:.3f}) | {v['steps']} | {v['parameters']} |"
+        for k, v in figure8.items()
+    ]
+    t6 = [
+        "| method | rig inversion mm | mouth difference mm | rest of face change mm |",
+        "|---|---|---|---|",
+    ] + [
+        f"| {k} | {v['rig_inversion_mm']:.3f} | {v['mouth_difference_mm']:.3f} | "
+        f"{v['rest_of_face_change_mm']:.3f} |"
+        for k, v in table6.get("methods", {}).items()
+    ]
+    fwd = ["| forward pass, 200 handles, whole head | ms |", "|---|---|"] + [
+        f"| {k} | {v:.1f} |" for k, v in forward.items()
+    ]
     text = "\n".join(
         [
             "# Patch blendshapes on the whole ICT head (issue 18)",
@@ -369,7 +540,7 @@ def main(argv=None):
             f"| per-patch least squares | {pbs['fit_mean_mm']:.4f} | {pbs['fit_p95_mm']:.4f} | "
             f"{pbs['fit_face_mean_mm']:.4f} | {pbs['fit_max_mm']:.3f} |",
             "",
-            f"Table 5 (GBS rows; {args.handles} handles, reconstruction relative to the neutral, "
+            f"Table 5 ({args.handles} handles, reconstruction relative to the neutral, "
             f"{len(test)} held-out shapes):",
             "",
             *rows,
@@ -377,10 +548,39 @@ def main(argv=None):
             f"W_layout application: gather form {gather_ms:.2f} ms, "
             f"scipy.sparse {sparse_ms:.2f} ms (one shape).",
             "",
+            "Figure 8 (each variant 1,000 steps of the same 2,000-step cosine schedule; "
+            "Table 5's protocol):",
+            "",
+            *fig8,
+            "",
+            "Table 6 (dialogue replacement on the whole head; " + table6.get("protocol", "") + "):",
+            "",
+            *t6,
+            "",
+            *fwd,
+            "",
         ]
     )
     save_text(args.out / "table.md", text)
-    save_text(args.out / "COMMAND", command + "\n")
+    trained_commands = [
+        json.loads((args.out / MODELS_DIR / name / "train.json").read_text())["provenance"][
+            "command"
+        ]
+        for name in [*trained, *(k + FIGURE8_TAG for k in figure8)]
+        if (args.out / MODELS_DIR / name / "train.json").exists()
+    ]
+    save_text(
+        args.out / "COMMAND",
+        "# training, one model each (resumable; the same command continues a run)\n"
+        + "".join(c + "\n" for c in trained_commands)
+        + "# evaluation (Table 5, Figure 8, Table 6, timing, figures)\n"
+        + command
+        + "\n",
+    )
+    if "per_patch" in trained:
+        _figure_edit(head, data, distances, handles[:200], args.out / "whole_head_edit.png")
+    if dialogue_run is not None:
+        _figure_dialogue(head, dialogue_run, args.out / "table6_error.png")
 
     cell = np.asarray(layout.cell).astype(float)
     shuffled = np.random.default_rng(0).permutation(args.patches)
@@ -410,6 +610,60 @@ def main(argv=None):
         title="PBS fit, mean held-out error (0-0.2 mm)",
     )
     save_figure(fig, args.out / "pbs_error.png")
+
+
+def _figure_edit(head, data, distances, handles, path):
+    """Figure: the per-patch model at 200 handles on the held-out shape that moves most."""
+    neutral, faces, test = head["neutral"], head["faces"], head["test_shapes"]
+    pick = int(np.argmax(np.linalg.norm(test - neutral, axis=-1).mean(axis=1)))
+    checkpoint = head["out"] / MODELS_DIR / "per_patch" / "checkpoint.eqx"
+    net, _ = load_pbs_model(checkpoint, neutral, data.weights.shape[1], data.weights.shape[2])
+    out = np.asarray(
+        pbs_reconstruct(
+            net,
+            data,
+            jnp.asarray(handles),
+            jnp.asarray(distances[:, handles]),
+            jnp.asarray(neutral),
+            jnp.asarray(test[pick : pick + 1]),
+            EVAL_RADIUS_CM,
+            EVAL_FALLOFF_PER_CM,
+        )[0]
+    )
+    fig, axes = plt.subplots(1, 3, figsize=(13, 5))
+    panels = (
+        (test[pick], np.linalg.norm(test[pick] - neutral, axis=-1) * CM_TO_MM, 10, "target motion"),
+        (out, np.linalg.norm(out - neutral, axis=-1) * CM_TO_MM, 10, "CANRig-PBS motion"),
+        (out, np.linalg.norm(out - test[pick], axis=-1) * CM_TO_MM, 3, "error"),
+    )
+    for ax, (mesh, value, top, title) in zip(axes, panels, strict=True):
+        plot_vertex_scalar(ax, mesh, faces, value, vmin=0, vmax=top, title=f"{title} (0-{top} mm)")
+    axes[0].scatter(*neutral[handles][:, :2].T, s=2, c="k")
+    fig.suptitle(f"200 handles, whole head (26,719 vertices), held-out shape {pick}")
+    save_figure(fig, path)
+
+
+def _figure_dialogue(head, run, path):
+    """Figure 12 analog: per method, the distance to the target frame in the middle of the
+    clip (mm) and the mouth region."""
+    faces = head["faces"]
+    frame = len(run["source"]) // 2
+    names = list(run["outputs"])
+    fig, axes = plt.subplots(1, len(names) + 1, figsize=(4 * (len(names) + 1), 4.5))
+    plot_vertex_scalar(
+        axes[0],
+        run["source"][frame],
+        faces,
+        run["region"].astype(float),
+        vmin=0,
+        vmax=1,
+        title="mouth region",
+    )
+    for ax, name in zip(axes[1:], names, strict=True):
+        edited = run["outputs"][name][frame]
+        distance = np.linalg.norm(edited - run["target"][frame], axis=-1) * CM_TO_MM
+        plot_vertex_scalar(ax, edited, faces, distance, vmin=0, vmax=5, title=f"{name} (0-5 mm)")
+    save_figure(fig, path)
 
 
 if __name__ == "__main__":

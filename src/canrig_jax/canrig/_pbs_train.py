@@ -402,18 +402,18 @@ def pbs_reconstruct(
     data: PBSTrainingSet,
     handle_vertices: Int[Array, " H"],
     handle_distance: Float[Array, "P H"],
-    base: Float[Array, "N 3"],
+    base: Float[Array, "*F N 3"],
     targets: Float[Array, "F N 3"],
     radius: float,
     falloff: float,
 ) -> Float[Array, "F N 3"]:
-    """Whole-head shapes for the handles moved to each target (displacements target - base
-    at the handles), vmapped over the targets."""
-
+    """Whole-head shapes with the handles moved to each target (displacements target - base
+    at the handles), mapped over the targets; ``base`` is one shape for all of them or one
+    per target (e.g. the source frames of a dialogue replacement). The Shape Transformer has
+    no base: give it the neutral."""
     queries = model.encode_patches(data.seeds)
-    patch_base = patch_means(data.layout, base)
 
-    def one(target):
+    def one(base, target, patch_base):
         d = target[handle_vertices] - base[handle_vertices]
         weights = predict_pbs_weights(
             model,
@@ -429,4 +429,9 @@ def pbs_reconstruct(
         )
         return pbs_delta_shape(data.layout, base, data.basis, weights)
 
-    return jax.lax.map(one, targets)
+    if base.ndim == 2:
+        patch_base = patch_means(data.layout, base)
+        return jax.lax.map(lambda t: one(base, t, patch_base), targets)
+    return jax.lax.map(
+        lambda bt: one(bt[0], bt[1], patch_means(data.layout, bt[0])), (base, targets)
+    )
