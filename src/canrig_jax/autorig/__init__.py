@@ -127,3 +127,14 @@ __all__ = [
     "transfer_poses",
     "winding_numbers",
 ]
+
+# 2D supervision (issue 25)
+from ._supervision_2d import (  # noqa: E402
+    Supervision2DOptions,
+    load_model_2d,
+    loss_2d,
+    padded_faces,
+    train_2d,
+)
+
+__all__ += ["Supervision2DOptions", "load_model_2d", "loss_2d", "padded_faces", "train_2d"]
