@@ -21,6 +21,7 @@ DIR/training_loss.png and the checkpoints (a rerun resumes them).
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from pathlib import Path
 
@@ -400,6 +401,11 @@ def main(argv=None):
     parser.add_argument("--views", type=float, nargs="+", default=[0.0, 35.0], help="yaws")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--train-only", choices=RUNS, default=None)
+    parser.add_argument(
+        "--rasteriser-only",
+        action="store_true",
+        help="only the rasteriser checks and speed, into --out/results.json (kept by later runs)",
+    )
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     if args.quick:
@@ -411,9 +417,17 @@ def main(argv=None):
         image_size=args.image_size, poses_2d=args.poses_2d, yaw_degrees=tuple(args.views)
     )
     results = {"provenance": provenance(command)}
-    if args.train_only is None:
+    previous = args.out / "results.json"
+    if args.rasteriser_only or (args.train_only is None and not previous.exists()):
         results["rasteriser"], _ = rasteriser_checks(args.data_dir, args.quick)
+        results["rasteriser"]["provenance"] = provenance(command)
         print("rasteriser:", {k: v for k, v in results["rasteriser"].items() if "note" not in k})
+        if args.rasteriser_only:
+            save_json(previous, results)
+            save_text(args.out / "table.md", table(results))
+            return
+    elif args.train_only is None:  # the rasteriser section of an earlier --rasteriser-only run
+        results["rasteriser"] = json.loads(previous.read_text())["rasteriser"]
     dataset, heads, rigged = build_data(args)
     data = training_set(heads, dataset.poses, k=128, progress=not args.no_progress)
     faces = padded_faces(heads)
