@@ -14,6 +14,12 @@ nothing and builds no training data: with the committed checkpoints it measures,
 held-out heads, penetration where the ground truth has none (``penetration_clean``:
 ``penetration_free_set``) and re-measures the plain penetration next to it.
 
+``--train-only NAME`` trains (or resumes) one model's checkpoint and writes no results: a
+chunk of a long run, or the two pure models in parallel processes; the standard command then
+resumes the finished checkpoints and evaluates. ``--raf-loss euclidean_static`` trains the pure
+models with the per-vertex Euclidean loss plus the static-vertex term (issue 19; the run in
+experiments/results/autorig_retrain) instead of the issue-7 squared loss.
+
 Writes DIR/results.json, DIR/table.md, DIR/training_loss.png, DIR/poses_<head>.png and
 DIR/makehuman.png (predicted poses with 0-5 mm error maps next to the ground truth),
 DIR/rig.glb (one predicted rig as glTF 2.0 with named morph targets) and the checkpoints
@@ -73,6 +79,13 @@ from canrig_jax.render import plot_vertex_scalar, save_figure
 from canrig_jax.rig import export_gltf, load_gltf_rig
 
 MODELS = {"raf": {}, "raf_no_global_encoder": {"global_size": 0}}
+RAF_LOSSES = {
+    "squared": {"loss": "squared", "static_weight": 0.0},
+    "euclidean_static": {"loss": "euclidean", "static_weight": 1.0},
+}
+"""Losses of pure RAF (``--raf-loss``): the issue-7 recipe (the standard checkpoints), and the
+per-vertex Euclidean loss plus the static-vertex term (issue 19; experiments/results/
+autorig_retrain)."""
 RESIDUAL = "raf_dt_residual"
 RESIDUAL_OPTIONS = {"residual": True, "loss": "euclidean", "static_weight": 1.0}
 BASELINES = ("no_motion", "copy_deltas", "deformation_transfer")
@@ -98,7 +111,13 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--data-dir", default=None, help="data folder (else $CANRIG_DATA)")
     parser.add_argument("--quick", action="store_true", help="2 identities, 20 steps (tests)")
-    parser.add_argument("--minutes", type=float, default=25.0, help="training budget per model")
+    parser.add_argument(
+        "--minutes",
+        type=float,
+        default=None,
+        help="training-time budget per model (accumulated over resumed runs; default: none, "
+        "the cosine schedule runs to --steps)",
+    )
     parser.add_argument("--steps", type=int, default=2500, help="step budget per model")
     parser.add_argument("--train-identities", type=int, default=24)
     parser.add_argument("--test-identities", type=int, default=8)
@@ -136,6 +155,21 @@ def main(argv=None):
         help="evaluate only: RAF with the bounding-box placement against face_placement, on "
         "the held-out heads as they are and cut below the chin, into --out/results.json",
     )
+    parser.add_argument(
+        "--raf-loss",
+        choices=tuple(RAF_LOSSES),
+        default="squared",
+        help="loss of raf and raf_no_global_encoder (default: %(default)s, the standard "
+        "checkpoints' recipe)",
+    )
+    parser.add_argument(
+        "--train-only",
+        choices=tuple(MODELS),
+        default=None,
+        help="train (or resume) only this model's checkpoint in --out and stop: writes no "
+        "results (a chunk of a long run, or the models in parallel processes); the standard "
+        "command then resumes the finished checkpoints and evaluates",
+    )
     args = parser.parse_args(argv)
     if args.placement_only:
         return refresh_placement(args, argv)
@@ -146,7 +180,8 @@ def main(argv=None):
     progress = not args.no_progress
     args.out.mkdir(parents=True, exist_ok=True)
     command = experiment_command(__file__, argv)
-    save_text(args.out / COMMAND_FILE, command + "\n")
+    if args.train_only is None:
+        save_text(args.out / COMMAND_FILE, command + "\n")
 
     start = time.perf_counter()
     dataset = ict_autorig_dataset(
@@ -174,7 +209,9 @@ def main(argv=None):
     # -- training (resumes from the checkpoints) ----------------------------------------------
     models, trained = {}, {}
     for name, overrides in MODELS.items():
-        model_options = dataclasses.replace(options, **overrides)
+        if args.train_only not in (None, name):
+            continue
+        model_options = dataclasses.replace(options, **RAF_LOSSES[args.raf_loss], **overrides)
         path = args.out / f"checkpoint_{name}.eqx"
         result = train(
             data, poses, model_options, checkpoint=path, progress=progress, devices=args.devices
@@ -186,9 +223,12 @@ def main(argv=None):
             "parameters": parameter_count(models[name]),
             "final_train_error_mm": state["history"][-1]["error_mm"],
             "history": state["history"],
+            "options": model_options.to_dict(),
         }
         print(f"{name}: {result.step} steps in {result.seconds / 60:.1f} min")
     del data
+    if args.train_only is not None:
+        return None
 
     # -- DT + learned residual: the training heads' transferred poses are its base --------
     base = [cached_transfer(dataset, head, args.cache, args.seed) for head in dataset.train]
