@@ -406,12 +406,15 @@ def pbs_reconstruct(
     targets: Float[Array, "F N 3"],
     radius: float,
     falloff: float,
+    queries: Array | None = None,
 ) -> Float[Array, "F N 3"]:
     """Whole-head shapes with the handles moved to each target (displacements target - base
     at the handles), mapped over the targets; ``base`` is one shape for all of them or one
     per target (e.g. the source frames of a dialogue replacement). The Shape Transformer has
-    no base: give it the neutral."""
-    queries = model.encode_patches(data.seeds)
+    no base: give it the neutral. ``queries``: ``model.encode_patches(data.seeds)``, cached
+    by the caller (they depend only on the canonical shape), else computed here."""
+    if queries is None:
+        queries = model.encode_patches(data.seeds)
 
     def one(base, target, patch_base):
         d = target[handle_vertices] - base[handle_vertices]
