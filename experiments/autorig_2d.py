@@ -284,11 +284,12 @@ def evaluate(models: dict, dataset, data_dir) -> dict:
     return results
 
 
-def figures(model, dataset, out: Path):
-    """Renders of a generated rig's poses and the 2D displacement field of one pose."""
+def figures(models: dict, dataset, out: Path):
+    """Renders of the 2D model's generated rig's poses, and the 2D displacement field of one
+    pose by every model and the ground truth."""
     head = dataset.test["unseen_topology"][0]
     poses = dataset.poses
-    rig = generate_rig(model, poses, head.vertices, head.faces)
+    rig = generate_rig(models["2d_unrigged_plus_3d"], poses, head.vertices, head.faces)
     names = ["jawOpen", "mouthSmile_L", "eyeBlink_L", "browInnerUp_L"]
     ids = [poses.labels.index(n) for n in names if n in poses.labels]
     centre = head.vertices.mean(0)
@@ -297,9 +298,8 @@ def figures(model, dataset, out: Path):
     neutral, _ = lambert_image(head.vertices, head.faces, camera)
     axes[0, 0].imshow(neutral, cmap="gray", vmin=0, vmax=1)
     axes[0, 0].set_title("neutral")
-    truth_neutral, _ = lambert_image(head.vertices, head.faces, camera)
-    axes[1, 0].imshow(truth_neutral, cmap="gray", vmin=0, vmax=1)
-    axes[1, 0].set_title("(ground truth row)")
+    axes[1, 0].imshow(neutral, cmap="gray", vmin=0, vmax=1)
+    axes[1, 0].set_title("neutral")
     for j, p in enumerate(ids, start=1):
         img, _ = lambert_image(head.vertices + rig.displacements[p], head.faces, camera)
         axes[0, j].imshow(img, cmap="gray", vmin=0, vmax=1)
@@ -312,18 +312,20 @@ def figures(model, dataset, out: Path):
     save_figure(fig, out / "rig_poses.png")
     plt.close(fig)
     p = poses.labels.index("jawOpen")
-    fig, axes = plt.subplots(1, 2, figsize=(10, 5))
-    for ax, (title, disp) in zip(
-        axes,
-        [("generated", rig.displacements[p]), ("ground truth", head.displacements[p])],
-        strict=True,
-    ):
-        field = displacement_field(head.vertices, head.vertices + disp, head.faces, camera)
-        flow = np.asarray(field.attributes) * (np.asarray(field.silhouette) > 0.5)[..., None]
-        magnitude = np.linalg.norm(flow, axis=-1)
-        im = ax.imshow(
-            magnitude, cmap="magma", vmin=0, vmax=max(1e-6, np.percentile(magnitude, 99.5))
-        )
+    panels = [
+        (name, generate_rig(m, poses, head.vertices, head.faces).displacements[p])
+        for name, m in models.items()
+    ]
+    panels.append(("ground truth", head.displacements[p]))
+    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 5))
+    fields = [
+        displacement_field(head.vertices, head.vertices + disp, head.faces, camera)
+        for _, disp in panels
+    ]
+    flows = [np.asarray(f.attributes) * (np.asarray(f.silhouette) > 0.5)[..., None] for f in fields]
+    top = max(float(np.percentile(np.linalg.norm(f, axis=-1), 99.5)) for f in flows)
+    for ax, (title, _), flow in zip(axes, panels, flows, strict=True):
+        im = ax.imshow(np.linalg.norm(flow, axis=-1), cmap="magma", vmin=0, vmax=top)
         step = 12
         rows, cols = np.mgrid[step // 2 : 256 : step, step // 2 : 256 : step]
         ax.quiver(
@@ -337,9 +339,10 @@ def figures(model, dataset, out: Path):
             scale=1.0,
             width=0.003,
         )
-        ax.set_title(f"{title}: 2D displacement of jawOpen (px, 256^2)")
+        ax.set_title(title, fontsize=10)
         ax.axis("off")
-        fig.colorbar(im, ax=ax, fraction=0.046)
+        fig.colorbar(im, ax=ax, fraction=0.046, label="px")
+    fig.suptitle("2D displacement of jawOpen on a held-out head (256^2, pixels)")
     save_figure(fig, out / "displacement_field.png")
     plt.close(fig)
 
@@ -476,7 +479,7 @@ def main(argv=None):
         "options_2d": opts2d.to_dict(),
         "stage1_fraction": args.stage1_fraction,
     }
-    figures(models["2d_unrigged_plus_3d"], dataset, args.out)
+    figures(models, dataset, args.out)
     plot_history({n: info[n]["history"] for n in runs}, args.out / "training_loss.png")
     save_json(args.out / "results.json", results)
     save_text(args.out / "table.md", table(results))
