@@ -206,9 +206,10 @@ def sample_pbs_examples(
 
 
 def make_pbs_model(
-    options: PBSTrainOptions, data_or_neutral, n_patches: int, n_weights: int, scale: float
-):
-    neutral = np.asarray(getattr(data_or_neutral, "neutral", data_or_neutral))
+    options: PBSTrainOptions, neutral, n_patches: int, n_weights: int, scale: float
+) -> CANRigPBS | ShapeTransformer:
+    """The untrained model of ``options.model`` (``scale``: the displacement scale, cm)."""
+    neutral = np.asarray(neutral)
     key = jax.random.PRNGKey(options.seed)
     if options.model == "shape_transformer":
         return ShapeTransformer(
@@ -355,7 +356,7 @@ def train_pbs(
     if not isinstance(options, PBSTrainOptions):
         raise TypeError(f"options: expected PBSTrainOptions, got {type(options).__name__}")
     n_patches, n_weights = data.weights.shape[1:]
-    model = make_pbs_model(options, data, n_patches, n_weights, displacement_scale)
+    model = make_pbs_model(options, data.neutral, n_patches, n_weights, displacement_scale)
     optimiser = _optimiser(options)
     opt_state = optimiser.init(eqx.filter(model, eqx.is_array))
     step, seconds, history = 0, 0.0, []
