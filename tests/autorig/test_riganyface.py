@@ -143,6 +143,7 @@ def test_deformation_transfer_baseline_follows_the_ground_truth(
 # -- model ----------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_padding_does_not_change_the_prediction(small_model, head_operators, poses):
     unit, operators = head_operators
     vectors = jnp.asarray(poses.vectors()[:7])
@@ -343,6 +344,7 @@ def test_penetration_free_set_scores_the_truth_zero_and_catches_a_push(heads, ic
 # -- training -------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_training_lowers_the_error_and_resumes_to_the_same_model(heads, poses, tmp_path):
     data = training_set(heads[:1], poses, k=64, progress=False)
     options = TrainOptions(

@@ -202,6 +202,7 @@ def test_fit_is_never_worse_and_minimises(rig, poses):
     assert abs(float(exact.error) - float(fitted.error)) < 0.1 * float(direct.error)
 
 
+@pytest.mark.slow
 def test_fit_in_a_region_only_lowers_the_region_error(rig, poses, ict_face):
     """The reported error is the region's measured one, never above direct, and the shape is
     the forward pass of the returned displacements (taken from the solver's state, not
@@ -290,6 +291,7 @@ def test_clip_edit_is_local_in_time_and_space(rig, poses):
     assert not np.allclose(edited.clip[4], clip[4])
 
 
+@pytest.mark.slow
 def test_dialogue_replacement_keeps_the_rest_of_the_face(rig, poses, ict_face):
     mouth = expression_region(ict_face)
     reach = float(influence_reach(1.0, FALLOFF, rig.model.clamp))

@@ -48,6 +48,7 @@ def _chosen_alpha(take, make, name):
     return select_alpha(sweep, method=name)["alpha"]
 
 
+@pytest.mark.slow
 def test_quartic_cd_is_more_accurate_than_linear_cd_and_seol(take):
     rig, problem, clean, noisy, *_ = take
     rmse = {

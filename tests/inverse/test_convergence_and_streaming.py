@@ -26,6 +26,7 @@ def _cardinality(weights):
     return (np.asarray(weights) > CARDINALITY_TOL).sum(1)
 
 
+@pytest.mark.slow
 def test_stopping_rule_and_newton_step_reach_the_minimum_of_plain_cd_in_fewer_passes(
     ict_quartic_problem, noisy
 ):
