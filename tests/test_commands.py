@@ -140,6 +140,7 @@ def test_invert_a_folder_of_obj(workspace, capsys, tmp_path):
     assert np.abs(np.delete(back.weights, back.names.index("JawOpen"), axis=1)).max() < 1e-3
 
 
+@pytest.mark.slow
 def test_correct_bakes_the_sculpts(workspace, capsys, tmp_path):
     """WPSE from 3 sculpted frames: the baked targets reproduce each sculpt at its pose."""
     root, rig = workspace

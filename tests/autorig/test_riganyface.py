@@ -155,6 +155,7 @@ def test_padding_does_not_change_the_prediction(small_model, head_operators, pos
     assert np.all(np.asarray(padded[:, unit.shape[0] :]) == 0)
 
 
+@pytest.mark.slow
 def test_all_poses_in_one_call_equal_one_pose_at_a_time(small_model, head_operators, poses):
     """The batched path (pose-independent work done once) and the chunked path are the
     per-pose function."""
@@ -316,6 +317,7 @@ def test_inner_parts_are_inside_the_skin_and_pushing_them_out_is_detected(heads,
         )
 
 
+@pytest.mark.slow
 def test_penetration_free_set_scores_the_truth_zero_and_catches_a_push(heads, ict_head):
     head = heads[0]
     names = ict_head.part_names

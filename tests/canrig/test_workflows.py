@@ -99,6 +99,7 @@ def test_jacobian_equals_autodiff(variant, ict_face, poses):
         np.testing.assert_allclose(shape, forward(edit.displacements), atol=1e-6)
 
 
+@pytest.mark.slow
 def test_normal_matrix_equals_autodiff(rig, poses):
     """J^T W J assembled from the blocks (one-width and parts layouts, with a region weight)
     equals the one from jax.jacfwd of the forward pass."""

@@ -65,6 +65,7 @@ def test_solve_sequence_and_stream_compile_once(ict_quartic_problem, noisy, capl
         assert _count_compiles(caplog, "_solve_one") == 1
 
 
+@pytest.mark.slow
 def test_stream_with_warm_starts_equals_the_warm_started_take(ict_quartic_problem, noisy):
     method = inverse.QuarticCD(alpha=0.5, passes=4)
     take = inverse.solve_sequence(ict_quartic_problem, noisy, method, warm_start=True)
