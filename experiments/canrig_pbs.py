@@ -405,9 +405,17 @@ def main(argv=None):
     handle_distance = jnp.asarray(distances[:, handles])
     neutral_j, test_j = jnp.asarray(neutral), jnp.asarray(test_shapes)
 
-    def reconstruct(net, index, distance, targets):
+    def reconstruct(net, index, distance, targets, queries=None):
         return pbs_reconstruct(
-            net, data, index, distance, neutral_j, targets, EVAL_RADIUS_CM, EVAL_FALLOFF_PER_CM
+            net,
+            data,
+            index,
+            distance,
+            neutral_j,
+            targets,
+            EVAL_RADIUS_CM,
+            EVAL_FALLOFF_PER_CM,
+            queries,
         )
 
     def evaluate(folder):
@@ -438,17 +446,7 @@ def main(argv=None):
             # (patch queries cached once per mesh, as the per-vertex reference's queries)
             queries = net.encode_patches(data.seeds)
             forward[name] = _timed(
-                lambda net=net, queries=queries: pbs_reconstruct(
-                    net,
-                    data,
-                    h200,
-                    d200,
-                    neutral_j,
-                    test_j[:1],
-                    EVAL_RADIUS_CM,
-                    EVAL_FALLOFF_PER_CM,
-                    queries,
-                )
+                lambda net=net, queries=queries: reconstruct(net, h200, d200, test_j[:1], queries)
             )
     for name in PBS_VARIANTS:
         _, row = evaluate(name + FIGURE8_TAG)

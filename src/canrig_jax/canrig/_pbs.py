@@ -79,6 +79,15 @@ class PatchLayout(eqx.Module):
                 f"{int(np.argmax(bad))} sums to {sums[bad][0]:.6g}"
             )
 
+    def nonzero(self) -> tuple[Int[Array, " E"], Int[Array, " E"], Float[Array, " E"]]:
+        """(vertex, patch, weight) of W_layout's entries, sorted by vertex: ``entries`` when
+        the layout has them, else every slot of the padded form (zero weights included)."""
+        if self.entries is not None:
+            return self.entries
+        n, c = self.vertex_patches.shape
+        vertex = jnp.repeat(jnp.arange(n, dtype=self.vertex_patches.dtype), c)
+        return vertex, self.vertex_patches.reshape(-1), self.vertex_weights.reshape(-1)
+
     @property
     def n_patches(self) -> int:
         return int(self.seeds.shape[0])
@@ -287,19 +296,15 @@ def _pbs_shape(
     basis: Float[Array, "B N 3"],
     weights: Float[Array, "P B"],
 ) -> Float[Array, "N 3"]:
-    """S = S_neutral + W_layout S_pred S_basis (eq. 7) in gather form (the nonzero
-    ``entries`` when the layout has them); zero weights give the neutral exactly."""
-    if layout.entries is None:
-        per_vertex = weights[layout.vertex_patches]  # (N, C, B)
-        blended = jnp.einsum("nc,ncb->nb", layout.vertex_weights, per_vertex)
-    else:
-        vertex, patch, weight = layout.entries
-        blended = jax.ops.segment_sum(
-            weight[:, None] * weights[patch],
-            vertex,
-            num_segments=neutral.shape[0],
-            indices_are_sorted=True,
-        )
+    """S = S_neutral + W_layout S_pred S_basis (eq. 7) over W_layout's entries
+    (``PatchLayout.nonzero``); zero weights give the neutral exactly."""
+    vertex, patch, weight = layout.nonzero()
+    blended = jax.ops.segment_sum(
+        weight[:, None] * weights[patch],
+        vertex,
+        num_segments=neutral.shape[0],
+        indices_are_sorted=True,
+    )
     return neutral + jnp.einsum("nb,bnk->nk", blended, basis)
 
 

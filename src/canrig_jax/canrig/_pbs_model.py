@@ -46,15 +46,12 @@ PBS_VARIANTS = ("per_patch", "base_multiplied", "no_modulation")
 
 def patch_means(layout: PatchLayout, points: Float[Array, "*B N 3"]) -> Float[Array, "*B P 3"]:
     """Each patch's layout-weighted mean of ``points`` over the vertices it covers."""
-    weights = layout.vertex_weights  # (N, C)
-    index = layout.vertex_patches.reshape(-1)
+    vertex, patch, weight = layout.nonzero()
     p = layout.seeds.shape[0]
+    mass = jax.ops.segment_sum(weight, patch, num_segments=p)
 
     def one(x):
-        total = jax.ops.segment_sum(
-            (weights[..., None] * x[:, None]).reshape(-1, 3), index, num_segments=p
-        )
-        mass = jax.ops.segment_sum(weights.reshape(-1), index, num_segments=p)
+        total = jax.ops.segment_sum(weight[:, None] * x[vertex], patch, num_segments=p)
         return total / jnp.maximum(mass, 1e-12)[:, None]
 
     lead = points.shape[:-2]
@@ -101,27 +98,22 @@ class CANRigPBS(eqx.Module):
         encoder = ShapePreservingCANRig(canonical, key=ke, **options)
         self.encoder = eqx.tree_at(lambda m: m.output_mlp, encoder, None)
         arch = encoder.arch
-        if variant == "per_patch":
-            keys = jax.random.split(km, int(n_patches))
-            self.patch_mlp = eqx.filter_vmap(
-                lambda k: ZeroPreservingMLP(
-                    arch.latent,
-                    int(n_weights),
-                    width=patch_width,
-                    n_layers=arch.n_layers,
-                    activation=jnp.tanh,
-                    key=k,
-                )
-            )(keys)
-        else:
-            self.patch_mlp = ZeroPreservingMLP(
+
+        def output_mlp(width, key):
+            return ZeroPreservingMLP(
                 arch.latent,
                 int(n_weights),
-                width=arch.width,
+                width=width,
                 n_layers=arch.n_layers,
                 activation=jnp.tanh,
-                key=km,
+                key=key,
             )
+
+        if variant == "per_patch":  # one per patch, parameters stacked on a leading axis
+            keys = jax.random.split(km, int(n_patches))
+            self.patch_mlp = eqx.filter_vmap(lambda k: output_mlp(patch_width, k))(keys)
+        else:
+            self.patch_mlp = output_mlp(arch.width, km)
         self.variant = variant
 
     def encode_patches(self, seeds_canonical: Float[Array, "P 3"]) -> Float[Array, "heads P d"]:

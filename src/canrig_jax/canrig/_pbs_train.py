@@ -261,8 +261,7 @@ def predict_pbs_weights(
         return model(queries, data.neutral[handle_vertices], displacements)
     if patch_base is None:
         patch_base = patch_means(data.layout, base)
-    n = handle_vertices.shape[0]
-    mask = influence_mask(handle_distance, jnp.full((n,), radius), jnp.full((n,), falloff))
+    mask = influence_mask(handle_distance, radius, falloff)  # one radius for every handle
     return model(
         queries,
         patch_base,
