@@ -22,6 +22,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import subprocess
+import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -53,7 +57,9 @@ from canrig_jax.render import (
     lambert_image,
     look_at,
     rasterise,
+    rasterise_hard,
     save_figure,
+    silhouette,
 )
 
 RUNS = ("3d_only", "2d_unrigged_plus_3d")
@@ -135,33 +141,120 @@ def rasteriser_checks(data_dir, quick: bool) -> tuple[dict, tuple]:
         "fraction_within_0.1mm": float(np.mean(error < 0.1)),
     }
     out["hard_reference"] = f"NumPy Moeller-Trumbore ray casting, {size}^2, perspective 30 deg"
-    # speed at 256^2: one call, forward + backward, and batched over 4 views
+    out["fast_path"] = fast_path_checks(vertices, faces, centre, size, quick)
+    # speed at 256^2, forward + backward of a silhouette loss: the fast path and the soft one
     camera = look_at(centre + [0, 0, 60.0], centre, image_size=256)
     default = RasterSettings()
-    target = rasterise(vertices, faces, camera, settings=default).silhouette
+    shifted = vertices + jnp.asarray([0.3, 0.2, 0.0])
+    renders = {
+        "fast": lambda v: silhouette(v, faces, camera),
+        "soft": lambda v: rasterise(v, faces, camera, settings=default).silhouette,
+    }
+    repeats = 2 if quick else 5
+    for name, render in renders.items():
+        target = render(shifted)
 
-    @jax.jit
-    def step(v):
-        def f(v):
-            return jnp.mean(
-                (rasterise(v, faces, camera, settings=default).silhouette - target) ** 2
-            )
+        @jax.jit
+        def step(v, render=render, target=target):
+            return jax.value_and_grad(lambda v: jnp.mean((render(v) - target) ** 2))(v)
 
-        return jax.value_and_grad(f)(v)
-
-    jax.block_until_ready(step(vertices))
-    times = []
-    for _ in range(2 if quick else 5):
-        start = time.perf_counter()
-        jax.block_until_ready(step(vertices + 0.01))
-        times.append(time.perf_counter() - start)
-    out["fps_256"] = float(1.0 / np.median(times))
+        jax.block_until_ready(step(vertices))
+        times = []
+        for _ in range(repeats if name == "fast" else min(repeats, 3)):
+            start = time.perf_counter()
+            jax.block_until_ready(step(vertices + 0.01))
+            times.append(time.perf_counter() - start)
+        out["fps_256" if name == "fast" else "fps_256_soft"] = float(1.0 / np.median(times))
+    load = os.getloadavg()[0]
     out["fps_256_note"] = (
-        f"forward + backward of a silhouette loss, {int(target.shape[0])}^2, default settings "
-        f"(tiles of 8, 128 faces per tile), median of {len(times)}, shared 2-core CPU (timings "
-        "inflated by the other jobs); benchmarks/bench_render.py has the full table"
+        "forward + backward of a silhouette loss, 256^2, median of warm calls; fps_256: the "
+        "fast path (rasterise_hard + antialiased silhouette), fps_256_soft: the soft "
+        f"rasteriser (tiles of 8, 128 faces per tile); shared 2-core CPU, load average {load:.1f}"
+        " (timings inflated by the other jobs); benchmarks/bench_render.py has the full table"
     )
     return out, (vertices, faces)
+
+
+def chunk_overflow(data, faces, opts2d) -> int:
+    """Largest ``Fragments.overflow`` over the training heads' neutrals and their most
+    displaced pose, every view (0: the fast path's chunk budget drops nothing)."""
+    cameras = opts2d.cameras()
+    worst = 0
+    for h in range(data.n_heads):
+        amplitude = np.abs(np.asarray(data.displacements[h])).reshape(
+            data.displacements.shape[1], -1
+        )
+        pose = int(np.argmax(amplitude.max(1)))
+        for v in (data.vertices[h], data.vertices[h] + data.displacements[h][pose]):
+            for k in range(len(opts2d.yaw_degrees)):
+                camera = jax.tree.map(lambda x, k=k: x[k], cameras)
+                fragments = rasterise_hard(v, faces[h], camera, chunk_budget=opts2d.chunk_budget)
+                worst = max(worst, int(fragments.overflow))
+    return worst
+
+
+FAST_GRADIENT_CHECK = """
+import jax, sys
+jax.config.update("jax_enable_x64", True)
+import numpy as np, jax.numpy as jnp
+from canrig_jax.render import interpolate, look_at, rasterise_hard, silhouette
+data = np.load(sys.argv[1])
+v0, faces = jnp.asarray(data["v"], jnp.float64), jnp.asarray(data["f"])
+centre = np.asarray(v0.mean(0))
+camera = look_at(centre + [0, 0, 60.0], centre, image_size=64)
+rng = np.random.default_rng(0)
+w = jnp.asarray(rng.standard_normal((2, 64, 64)))
+attribute = jnp.asarray(rng.standard_normal((v0.shape[0], 1)))
+for term in range(2):
+    def loss(v):
+        fragments = rasterise_hard(v, faces, camera)
+        if term == 0:
+            return jnp.sum(w[0] * silhouette(v, faces, camera, fragments))
+        values = interpolate(v, faces, camera, fragments, attribute)
+        return jnp.sum(w[1] * values.attributes[..., 0]) + 0.1 * jnp.sum(w[1] * values.depth)
+    loss = jax.jit(loss)
+    g = jax.grad(loss)(v0)
+    u = jnp.asarray(rng.standard_normal(v0.shape)) * (jnp.abs(g) > 0)
+    u = u / jnp.linalg.norm(u)
+    fd = (loss(v0 + 1e-6 * u) - loss(v0 - 1e-6 * u)) / 2e-6
+    print(float(jnp.abs(fd - jnp.sum(g * u)) / jnp.abs(fd)))
+"""
+
+
+def fast_path_checks(vertices, faces, centre, size, quick) -> dict:
+    """The fast path (``rasterise_hard`` + ``interpolate`` + ``silhouette``): gradients vs
+    finite differences (float64, a subprocess), visibility vs ray casting, speed at 256^2."""
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "head.npz"
+        np.savez(path, v=np.asarray(vertices), f=np.asarray(faces))
+        run = subprocess.run(
+            [sys.executable, "-c", FAST_GRADIENT_CHECK, str(path)],
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+    errors = [float(x) for x in run.stdout.split()[-2:]]
+    out["grad_rel_error_silhouette"], out["grad_rel_error_interpolation"] = errors
+    out["grad_check"] = (
+        "64^2, float64, visibility recomputed at each evaluation; a random direction over the "
+        "vertices with a nonzero gradient, central difference 1e-6 cm; silhouette: antialiased "
+        "mask; interpolation: a random attribute + 0.1 x depth"
+    )
+    camera = look_at(centre + [0, 0, 60.0], centre, image_size=size)
+    fragments = rasterise_hard(vertices, faces, camera)
+    hit, depth = ray_cast_depth(np.asarray(vertices), np.asarray(faces), camera)
+    mask = np.asarray(fragments.covered)
+    both = mask & hit
+    error = np.abs(np.asarray(fragments.depth)[both] - depth[both]) * 10.0  # mm
+    out["hard_vs_reference_iou"] = float(both.sum() / (mask | hit).sum())
+    out["hard_vs_reference_depth_mm"] = {
+        "median": float(np.median(error)),
+        "q99": float(np.percentile(error, 99)),
+        "fraction_within_0.1mm": float(np.mean(error < 0.1)),
+    }
+    out["overflow"] = int(fragments.overflow)
+    return out
 
 
 def build_data(args):
@@ -378,12 +471,34 @@ def table(r: dict) -> str:
     lines += [
         "| quantity | value |",
         "|---|---|",
-        f"| gradient vs finite differences (relative) | {ras['grad_rel_error']:.2e} |",
-        f"| hard limit vs ray casting: mask IoU | {ras['hard_vs_reference_iou']:.4f} |",
-        f"| hard limit vs ray casting: depth median / q99 (mm) | "
+        f"| soft rasteriser: gradient vs finite differences (relative) | "
+        f"{ras['grad_rel_error']:.2e} |",
+        f"| soft rasteriser, hard limit vs ray casting: mask IoU | "
+        f"{ras['hard_vs_reference_iou']:.4f} |",
+        f"| soft rasteriser, hard limit vs ray casting: depth median / q99 (mm) | "
         f"{ras['hard_vs_reference_depth_mm']['median']:.2e} / "
         f"{ras['hard_vs_reference_depth_mm']['q99']:.3f} |",
-        f"| forward + backward at 256^2 (frames/s) | {ras['fps_256']:.2f} |",
+        f"| forward + backward at 256^2 (frames/s), fast path | {ras['fps_256']:.2f} |",
+    ]
+    if "fps_256_soft" in ras:
+        lines.append(
+            f"| forward + backward at 256^2 (frames/s), soft rasteriser | "
+            f"{ras['fps_256_soft']:.2f} |"
+        )
+    if "fast_path" in ras:
+        fast = ras["fast_path"]
+        lines += [
+            f"| fast path: silhouette gradient vs finite differences (relative, float64) | "
+            f"{fast['grad_rel_error_silhouette']:.2e} |",
+            f"| fast path: interpolation gradient vs finite differences (relative, float64) | "
+            f"{fast['grad_rel_error_interpolation']:.2e} |",
+            f"| fast path: visibility vs ray casting: mask IoU | "
+            f"{fast['hard_vs_reference_iou']:.4f} |",
+            f"| fast path: visibility vs ray casting: depth median / q99 (mm) | "
+            f"{fast['hard_vs_reference_depth_mm']['median']:.2e} / "
+            f"{fast['hard_vs_reference_depth_mm']['q99']:.3f} |",
+        ]
+    lines += [
         "",
     ]
     if "training" in r:
@@ -421,8 +536,14 @@ def main(argv=None):
     parser.add_argument("--steps", type=int, default=400, help="steps of each method")
     parser.add_argument("--stage1-fraction", type=float, default=0.5)
     parser.add_argument("--minutes", type=float, default=None, help="clock budget per stage")
-    parser.add_argument("--image-size", type=int, default=40)
+    parser.add_argument("--image-size", type=int, default=256)
     parser.add_argument("--poses-2d", type=int, default=2, help="rendered poses per head/step")
+    parser.add_argument(
+        "--rasteriser",
+        choices=("fast", "soft"),
+        default="fast",
+        help="2D losses: hard visibility + interpolation + antialiasing (fast), or soft",
+    )
     parser.add_argument("--views", type=float, nargs="+", default=[0.0, 35.0], help="yaws")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--train-only", choices=RUNS, default=None)
@@ -439,7 +560,10 @@ def main(argv=None):
     args.out.mkdir(parents=True, exist_ok=True)
     command = experiment_command(__file__, argv)
     opts2d = Supervision2DOptions(
-        image_size=args.image_size, poses_2d=args.poses_2d, yaw_degrees=tuple(args.views)
+        image_size=args.image_size,
+        poses_2d=args.poses_2d,
+        yaw_degrees=tuple(args.views),
+        rasteriser=args.rasteriser,
     )
     results = {"provenance": provenance(command)}
     previous = args.out / "results.json"
@@ -456,6 +580,11 @@ def main(argv=None):
     dataset, heads, rigged = build_data(args)
     data = training_set(heads, dataset.poses, k=128, progress=not args.no_progress)
     faces = padded_faces(heads)
+    if opts2d.rasteriser == "fast" and args.train_only != "3d_only":
+        overflow = chunk_overflow(data, faces, opts2d)
+        print(f"fast rasteriser: chunks over budget on the training heads: {overflow}")
+        if overflow:
+            raise SystemExit("raise Supervision2DOptions.chunk_budget: some triangles are dropped")
     runs = RUNS if args.train_only is None else (args.train_only,)
     models, info = {}, {}
     for name in runs:

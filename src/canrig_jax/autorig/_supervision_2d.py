@@ -35,12 +35,22 @@ import numpy as np
 
 from .._checkpoint import load_checkpoint, read_checkpoint_state, run_training, save_checkpoint
 from .._metrics import CM_TO_MM
-from ..render import RasterSettings, orbit_cameras, project_points, rasterise, screen_displacement
+from ..render import (
+    RasterSettings,
+    interpolate,
+    orbit_cameras,
+    project_points,
+    rasterise,
+    rasterise_hard,
+    screen_displacement,
+    silhouette,
+)
 from ._data import PoseSet, RiggedHead
 from ._train import TrainingSet, TrainOptions, batch_loss, make_model, optimiser
 
 CHECKPOINT_FORMAT_2D = "riganyface-2d-checkpoint-1"
 STAGES = ("2d", "3d+2d", "3d")
+RASTERISERS = ("fast", "soft")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,7 +65,13 @@ class Supervision2DOptions:
         poses_2d: poses per head and step that are rendered (a subset of the step's poses).
         mask_weight, displacement_weight, landmark_weight: the three terms.
         weight_2d: the 2D loss's weight next to the 3D loss in stage 2.
-        sigma, gamma, faces_per_tile: rasteriser settings (``RasterSettings``).
+        rasteriser: ``"fast"``: hard visibility (``rasterise_hard``), differentiable
+            interpolation (``interpolate``) and antialiased masks (``silhouette``);
+            ``"soft"``: the soft rasteriser (``rasterise``, seconds per view at 256^2).
+        chunk_budget: the fast path's chunk budget (``rasterise_hard``): the orthographic
+            views are filled by the face, whose triangles' screen boxes (front, back and
+            inner parts) add up to ~7 x the image at 256^2.
+        sigma, gamma, faces_per_tile: soft rasteriser settings (``RasterSettings``).
     """
 
     image_size: int = 48
@@ -67,6 +83,8 @@ class Supervision2DOptions:
     displacement_weight: float = 1.0
     landmark_weight: float = 1.0
     weight_2d: float = 1.0
+    rasteriser: str = "fast"
+    chunk_budget: float = 10.0
     sigma: float = 0.5
     gamma: float = 1e-2
     faces_per_tile: int = 96
@@ -76,6 +94,10 @@ class Supervision2DOptions:
             raise ValueError(f"image_size: expected >= 8, got {self.image_size}")
         if not self.yaw_degrees:
             raise ValueError("yaw_degrees: expected at least one view")
+        if self.rasteriser not in RASTERISERS:
+            raise ValueError(f"rasteriser: expected one of {RASTERISERS}, got {self.rasteriser!r}")
+        if not self.chunk_budget > 0:
+            raise ValueError(f"chunk_budget: expected > 0, got {self.chunk_budget}")
         if self.poses_2d < 1:
             raise ValueError(f"poses_2d: expected >= 1, got {self.poses_2d}")
         for name in ("mask_weight", "displacement_weight", "landmark_weight", "weight_2d"):
@@ -122,26 +144,40 @@ def loss_2d(predicted, truth, vertices, faces, landmarks, cameras, options: Supe
     posed_true = vertices[None] + truth
 
     def one_view(camera):
-        def mask(posed):
-            return rasterise(posed, faces, camera, settings=settings).silhouette
+        if options.rasteriser == "fast":
 
+            def fragments(v):
+                return rasterise_hard(v, faces, camera, chunk_budget=options.chunk_budget)
+
+            def mask(posed):
+                return silhouette(posed, faces, camera, fragments(posed))
+
+            def field(attributes):
+                return interpolate(vertices, faces, camera, neutral, attributes)
+
+            neutral = fragments(vertices)
+            inside = neutral.covered[..., None]
+        else:
+
+            def mask(posed):
+                return rasterise(posed, faces, camera, settings=settings).silhouette
+
+            def field(attributes):
+                return rasterise(vertices, faces, camera, attributes, settings=settings)
+
+            inside = None
         sil_pred = jax.vmap(mask)(posed_pred)
         sil_true = jax.lax.stop_gradient(jax.vmap(mask)(posed_true))
         mask_term = jnp.mean((sil_pred - sil_true) ** 2)
         flow_pred = screen_displacement(camera, vertices, posed_pred)  # (Q, V, 2)
         flow_true = screen_displacement(camera, vertices, posed_true)
-        error = jnp.moveaxis(flow_pred - flow_true, 0, 1).reshape(vertices.shape[0], -1)
-        field = rasterise(vertices, faces, camera, error, settings=settings)
-        inside = field.silhouette[..., None]
-        flow_error = jnp.sum(inside * field.attributes**2) / jnp.maximum(jnp.sum(inside), 1.0)
-        target = rasterise(
-            vertices,
-            faces,
-            camera,
-            jnp.moveaxis(flow_true, 0, 1).reshape(vertices.shape[0], -1),
-            settings=settings,
-        )
-        flow_scale = jnp.sum(inside * target.attributes**2) / jnp.maximum(jnp.sum(inside), 1.0)
+        error = field(jnp.moveaxis(flow_pred - flow_true, 0, 1).reshape(vertices.shape[0], -1))
+        target = field(jnp.moveaxis(flow_true, 0, 1).reshape(vertices.shape[0], -1))
+        if inside is None:
+            inside = error.silhouette[..., None]
+        area = jnp.maximum(jnp.sum(inside), 1.0)
+        flow_error = jnp.sum(inside * error.attributes**2) / area
+        flow_scale = jnp.sum(inside * target.attributes**2) / area
         lm_pred, _ = project_points(camera, posed_pred[:, landmarks])
         lm_true, _ = project_points(camera, posed_true[:, landmarks])
         lm_error = jnp.mean(jnp.sum((lm_pred - lm_true) ** 2, -1))

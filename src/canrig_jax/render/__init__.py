@@ -1,6 +1,10 @@
-"""Figures (matplotlib: per-vertex scalar maps) and a differentiable soft rasteriser in JAX
-(cameras, silhouettes, depth, Lambert shading, interpolated attributes, 2D displacement)."""
+"""Figures (matplotlib: per-vertex scalar maps) and differentiable rasterisers in JAX
+(cameras, silhouettes, depth, Lambert shading, interpolated attributes, 2D displacement):
+a soft one (``rasterise``, SoftRas-style) and a fast hard one with differentiable
+interpolation and antialiased silhouettes (``rasterise_hard`` + ``interpolate`` +
+``antialias``, nvdiffrast-style)."""
 
+from ._antialias import antialias, silhouette
 from ._camera import (
     PROJECTIONS,
     Camera,
@@ -12,6 +16,7 @@ from ._camera import (
     screen_displacement,
     stack_cameras,
 )
+from ._hard import Fragments, Interpolation, interpolate, rasterise_hard
 from ._mesh_plot import plot_vertex_scalar, save_figure
 from ._raster import (
     DEFAULT_LIGHTS,
@@ -24,22 +29,28 @@ from ._raster import (
 )
 
 __all__ = [
+    "antialias",
     "DEFAULT_LIGHTS",
     "PROJECTIONS",
     "Camera",
+    "Fragments",
+    "Interpolation",
     "RasterSettings",
     "Rendering",
     "camera_depth",
     "check_camera",
     "displacement_field",
     "lambert_image",
+    "interpolate",
     "look_at",
     "orbit_cameras",
     "plot_vertex_scalar",
     "project_points",
     "rasterise",
+    "rasterise_hard",
     "save_figure",
     "screen_displacement",
+    "silhouette",
     "stack_cameras",
     "vertex_normals",
 ]
