@@ -14,9 +14,13 @@ nothing and builds no training data: with the committed checkpoints it measures,
 held-out heads, penetration where the ground truth has none (``penetration_clean``:
 ``penetration_free_set``) and re-measures the plain penetration next to it.
 
-``--train-only NAME`` trains (or resumes) one model's checkpoint and writes no results: a
-chunk of a long run, or the two pure models in parallel processes; the standard command then
-resumes the finished checkpoints and evaluates. ``--raf-loss euclidean_static`` trains the pure
+``--train-only NAME`` trains (or resumes) one model's checkpoint (``raf_dt_residual`` too) and
+writes no results: a chunk of a long run, or models in parallel processes; the standard command
+then resumes the finished checkpoints and evaluates. ``--residual-gate TAU`` gates the residual
+model's correction by the DT motion (``RigAnyFace(residual_gate=)``: what DT leaves still stays
+still), ``--residual-static-weight`` sets its static-vertex term. ``--validation-only CKPT...``
+compares checkpoints on validation identities (neither training nor test; how a model is
+chosen) into DIR/validation.json. ``--raf-loss euclidean_static`` trains the pure
 models with the per-vertex Euclidean loss plus the static-vertex term (issue 19; the run in
 experiments/results/autorig_retrain) instead of the issue-7 squared loss.
 
@@ -163,14 +167,41 @@ def main(argv=None):
         "checkpoints' recipe)",
     )
     parser.add_argument(
+        "--validation-only",
+        type=Path,
+        nargs="+",
+        default=None,
+        metavar="CHECKPOINT",
+        help="evaluate only: these checkpoints, no motion and DT on validation identities "
+        "(their own random stream: neither training nor held-out test identities) at the "
+        "held-out resolution, into --out/validation.json; how models are chosen",
+    )
+    parser.add_argument("--validation-identities", type=int, default=4)
+    parser.add_argument(
+        "--residual-gate",
+        type=float,
+        default=0.0,
+        help="tau (unit-sphere units) of raf_dt_residual's gate on its correction, "
+        "|b|^2 / (|b|^2 + tau^2) with b the DT displacement: what DT leaves still stays "
+        "still (default: 0, no gate, the committed issue-19 model)",
+    )
+    parser.add_argument(
+        "--residual-static-weight",
+        type=float,
+        default=RESIDUAL_OPTIONS["static_weight"],
+        help="weight of raf_dt_residual's static-vertex term (default: %(default)s)",
+    )
+    parser.add_argument(
         "--train-only",
-        choices=tuple(MODELS),
+        choices=(*MODELS, RESIDUAL),
         default=None,
         help="train (or resume) only this model's checkpoint in --out and stop: writes no "
         "results (a chunk of a long run, or the models in parallel processes); the standard "
         "command then resumes the finished checkpoints and evaluates",
     )
     args = parser.parse_args(argv)
+    if args.validation_only:
+        return validate(args, argv)
     if args.placement_only:
         return refresh_placement(args, argv)
     if args.timing_only:
@@ -200,14 +231,15 @@ def main(argv=None):
         seed=args.seed,
         checkpoint_every=10 if args.quick else 200,
     )
-    data = training_set(dataset.train, poses, k=options.k, progress=progress)
-    print(
-        f"{len(dataset.train)} training heads ({data.vertices.shape[1]} padded vertices), "
-        f"{poses.n_poses} poses, data in {time.perf_counter() - start:.0f} s"
-    )
+    models, trained = {}, {}
+    if args.train_only != RESIDUAL:
+        data = training_set(dataset.train, poses, k=options.k, progress=progress)
+        print(
+            f"{len(dataset.train)} training heads ({data.vertices.shape[1]} padded vertices), "
+            f"{poses.n_poses} poses, data in {time.perf_counter() - start:.0f} s"
+        )
 
     # -- training (resumes from the checkpoints) ----------------------------------------------
-    models, trained = {}, {}
     for name, overrides in MODELS.items():
         if args.train_only not in (None, name):
             continue
@@ -226,15 +258,15 @@ def main(argv=None):
             "options": model_options.to_dict(),
         }
         print(f"{name}: {result.step} steps in {result.seconds / 60:.1f} min")
-    del data
-    if args.train_only is not None:
+    if args.train_only in MODELS:
         return None
 
     # -- DT + learned residual: the training heads' transferred poses are its base --------
     base = [cached_transfer(dataset, head, args.cache, args.seed) for head in dataset.train]
     residual_options = dataclasses.replace(
         options,
-        **RESIDUAL_OPTIONS,
+        **{**RESIDUAL_OPTIONS, "static_weight": args.residual_static_weight},
+        residual_gate=args.residual_gate,
         steps=20 if args.quick else args.residual_steps,
         warmup_steps=5 if args.quick else min(200, args.residual_steps // 10),
         max_minutes=None,
@@ -255,6 +287,8 @@ def main(argv=None):
     }
     print(f"{RESIDUAL}: {result.step} steps in {result.seconds / 60:.1f} min")
     del data, base
+    if args.train_only == RESIDUAL:
+        return None
 
     # -- evaluation on held-out heads ------------------------------------------------------------
     part_names = dataset.head.part_names
@@ -519,6 +553,70 @@ def refresh_timing(args, argv=None) -> dict:
     results["timing_provenance"] = provenance(experiment_command(__file__, argv))
     write_results(args.out, results)
     print(f"rewrote rig_seconds of {path} and table.md")
+    return results
+
+
+VALIDATION_SEED_OFFSET = 1000
+"""Validation identities are the held-out stream of seed + this: no training identity (stream
+[seed, 0]) and no held-out test identity (stream [seed, 1]) is among them."""
+
+
+def validate(args, argv=None) -> dict:
+    """Errors by pose and vertex class (``class_errors``) of ``args.validation_only``'s
+    checkpoints, no motion and DT on validation identities at the held-out resolution;
+    written to ``args.out``/validation.json. Evaluation only: nothing is trained."""
+    models = {}
+    for path in args.validation_only:
+        if not path.exists():
+            raise ValueError(f"--validation-only: no checkpoint {path}")
+        models[f"{path.parent.name}/{path.stem}"] = load_model(path)[0]
+    dataset = ict_autorig_dataset(
+        args.data_dir,
+        n_train=1,
+        n_test=args.validation_identities,
+        seed=args.seed + VALIDATION_SEED_OFFSET,
+        progress=not args.no_progress,
+    )
+    poses = dataset.poses
+    predicted = {name: [] for name in ("no_motion", "deformation_transfer", *models)}
+    truth = []
+    for head in dataset.test[HELDOUT_SPLIT]:
+        transferred = transfer_poses(dataset, head)
+        truth.append(head.displacements)
+        predicted["no_motion"].append(np.zeros_like(head.displacements))
+        predicted["deformation_transfer"].append(transferred)
+        for name, model in models.items():
+            predicted[name].append(
+                generate_rig(
+                    model,
+                    poses,
+                    head.vertices,
+                    head.faces,
+                    base=transferred if model.residual else None,
+                ).displacements
+            )
+        print(f"validated {head.name}")
+    results = {
+        "validation": {name: class_errors(p, truth, poses) for name, p in predicted.items()},
+        "protocol": {
+            "identities": f"held-out stream of seed {args.seed + VALIDATION_SEED_OFFSET} "
+            f"(not training, not test), {len(truth)} heads",
+            "split": HELDOUT_SPLIT,
+            "static_mm": STATIC_MM,
+        },
+        "provenance": provenance(experiment_command(__file__, argv)),
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    save_json(args.out / "validation.json", results)
+    for name, classes in results["validation"].items():
+        print(
+            name,
+            " ".join(
+                f"{c}: mae {v['mae_mm']:.4f} static {v['static_mae_mm']:.4f} "
+                f"moving {v['moving_mae_mm']:.4f}"
+                for c, v in classes.items()
+            ),
+        )
     return results
 
 

@@ -4,6 +4,7 @@ landmarks to a new head."""
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -115,6 +116,41 @@ def test_residual_model_refuses_a_missing_or_misshaped_base(small_head, tiny_pos
             operators=operators,
             base=np.zeros((tiny_poses.n_poses, mesh.vertices.shape[0], 3)),
         )
+
+
+def test_gated_residual_keeps_what_the_base_leaves_still_exactly_still(small_head, tiny_poses):
+    """With residual_gate tau the correction vanishes where the base is zero and is (almost)
+    the ungated one where the base moves by many tau; tau without residual is refused."""
+    mesh, unit, operators, _ = small_head
+    tau = 1e-4
+    gated, plain = (
+        eqx.tree_at(
+            lambda m: (m.last.weight, m.last.bias),
+            RigAnyFace(
+                tiny_poses.n_basis, width=8, global_size=4, global_width=8, residual=True,
+                residual_gate=gate, output_scale=0.01, key=jax.random.PRNGKey(2),
+            ),
+            (jnp.full((3, 8), 0.3), jnp.full((3,), 0.1)),
+        )  # a nonzero last layer: the correction is no longer zero
+        for gate in (tau, 0.0)
+    )  # fmt: skip
+    rng = np.random.default_rng(1)
+    base = rng.normal(0, 0.05, (tiny_poses.n_poses, unit.shape[0], 3)).astype(np.float32)
+    still = rng.random((tiny_poses.n_poses, unit.shape[0])) < 0.5
+    base[still] = 0.0
+    vectors, vertices = jnp.asarray(tiny_poses.vectors()), jnp.asarray(unit)
+    out = np.asarray(gated(vectors, vertices, operators, base=base))
+    ungated = np.asarray(plain(vectors, vertices, operators, base=base))
+    np.testing.assert_array_equal(out[still], 0.0)
+    assert np.abs(ungated[still]).max() > 1e-3  # the ungated correction does move them
+    large = np.linalg.norm(base, axis=-1) > 100 * tau  # gate > 0.9999 there
+    np.testing.assert_allclose(out[large], ungated[large], rtol=1e-3, atol=1e-6)
+    chunked = gated(vectors, vertices, operators, base=base, pose_chunk=4)
+    np.testing.assert_allclose(np.asarray(chunked), out, rtol=1e-5, atol=1e-7)
+    with pytest.raises(ValueError, match="residual_gate"):
+        RigAnyFace(tiny_poses.n_basis, width=8, residual_gate=tau, key=jax.random.PRNGKey(0))
+    with pytest.raises(ValueError, match="residual_gate"):
+        TrainOptions(residual_gate=tau)
 
 
 def test_static_vertex_term_is_zero_on_a_still_head_and_measures_drift():

@@ -14,7 +14,10 @@ Given a neutral head normalised to the unit sphere (``normalise``) and its ``Mes
 With ``residual=True`` (beyond the paper: "DT + learned residual") the model is given a base
 displacement of every pose (deformation transfer from the ICT head, ``transfer_poses``),
 feeds it to the first fusion as a per-vertex, per-pose feature, and returns base + correction.
-The output layer starts at zero, so the untrained model returns the base exactly.
+The output layer starts at zero, so the untrained model returns the base exactly. With
+``residual_gate`` = tau > 0 the correction of a (pose, vertex) pair is multiplied by
+|b|^2 / (|b|^2 + tau^2), b its base displacement: what the base leaves exactly still stays
+exactly still, and the correction acts in full where the base moves by several tau.
 
 All poses of a head go through one call as (V, P, C) features, so diffusion and the spatial
 gradients act on all poses in one matrix product (optionally over chunks of ``pose_chunk``
@@ -109,6 +112,9 @@ class RigAnyFace(eqx.Module):
             so its last layer works at O(1) values.
         residual: predict a correction on top of a given base displacement (call with
             ``base=``); the correction is exactly zero at initialisation.
+        residual_gate: tau (unit-sphere units) of the gate |b|^2 / (|b|^2 + tau^2) on the
+            correction of each (pose, vertex) pair with base displacement b; 0: no gate. Only
+            with ``residual``.
         key: PRNG key (keyword-only).
     """
 
@@ -122,6 +128,7 @@ class RigAnyFace(eqx.Module):
     global_size: int = eqx.field(static=True)
     output_scale: float = eqx.field(static=True)
     residual: bool = eqx.field(static=True)
+    residual_gate: float = eqx.field(static=True, default=0.0)
 
     def __init__(
         self,
@@ -136,6 +143,7 @@ class RigAnyFace(eqx.Module):
         stem_method: str | None = None,
         output_scale: float = 0.01,
         residual: bool = False,
+        residual_gate: float = 0.0,
         key: PRNGKeyArray,
     ):
         for name, value in (("n_pose_inputs", n_pose_inputs), ("width", width)):
@@ -145,6 +153,11 @@ class RigAnyFace(eqx.Module):
             raise ValueError(f"n_conditional: expected >= 1, got {n_conditional}")
         if global_size < 0 or n_shared < 0:
             raise ValueError("global_size, n_shared: expected >= 0")
+        if not residual_gate >= 0 or (residual_gate > 0 and not residual):
+            raise ValueError(
+                f"residual_gate: expected 0, or > 0 with residual=True; got {residual_gate} "
+                f"(residual={residual})"
+            )
         stem_method = method if stem_method is None else stem_method
         k_enc, k_first, k_shared, k_cond, k_last = jax.random.split(key, 5)
         self.encoder = (
@@ -181,6 +194,7 @@ class RigAnyFace(eqx.Module):
             )
             self.base_in = eqx.nn.Linear(3, width, use_bias=False, key=k_base)
         self.residual = bool(residual)
+        self.residual_gate = float(residual_gate)
         self.n_pose_inputs = int(n_pose_inputs)
         self.global_size = int(global_size)
         self.output_scale = float(output_scale)
@@ -262,7 +276,12 @@ class RigAnyFace(eqx.Module):
                 z = block(z, chunk, operators)
             out = per_vertex(self.last, z) * mask[:, None] * self.output_scale
             out = jnp.swapaxes(out, 0, 1)
-            return out + chunk_base if self.base_in is not None else out
+            if self.base_in is None:
+                return out
+            if self.residual_gate > 0:
+                squared = jnp.sum(chunk_base**2, axis=-1, keepdims=True)
+                out = out * (squared / (squared + self.residual_gate**2))
+            return out + chunk_base
 
         if pose_chunk is None or n_poses <= pose_chunk:
             return displacements((conditions, base))

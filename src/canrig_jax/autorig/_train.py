@@ -8,7 +8,8 @@ Euclidean distance (divided by the root of that mean square), plus ``static_weig
 ``static_vertex_error``, the mean length of the predicted motion of vertices whose ground
 truth does not move (below ``STATIC_CM``) — the term that keeps eyeballs and the back of the
 head still. ``residual=True`` trains the "DT + learned residual" model (``RigAnyFace``): the
-training set then carries each head's deformation-transfer poses as the base.
+training set then carries each head's deformation-transfer poses as the base;
+``residual_gate`` > 0 gates its correction by the base's motion (``RigAnyFace``).
 Adam with linear warm-up and cosine decay (optax). Each step draws ``heads_per_step`` heads
 and ``poses_per_step`` of their poses from ``numpy.random.default_rng([seed, step])``, so a
 run resumed from its checkpoint (one file, written atomically) draws the same batches and
@@ -69,12 +70,17 @@ class TrainOptions:
     loss: str = "squared"
     static_weight: float = 0.0
     residual: bool = False
+    residual_gate: float = 0.0
 
     def __post_init__(self):
         if self.loss not in LOSSES:
             raise ValueError(f"loss: expected one of {LOSSES}, got {self.loss!r}")
         if not self.static_weight >= 0:
             raise ValueError(f"static_weight: expected >= 0, got {self.static_weight}")
+        if not self.residual_gate >= 0 or (self.residual_gate > 0 and not self.residual):
+            raise ValueError(
+                f"residual_gate: expected 0, or > 0 with residual=True; got {self.residual_gate}"
+            )
         if not self.learning_rate > 0:
             raise ValueError(f"learning_rate: expected > 0, got {self.learning_rate}")
         if self.steps < 1 or self.warmup_steps < 0 or self.warmup_steps >= self.steps:
@@ -101,6 +107,7 @@ def make_model(options: TrainOptions, n_pose_inputs: int, output_scale: float) -
         stem_method=options.stem_method,
         output_scale=output_scale,
         residual=options.residual,
+        residual_gate=options.residual_gate,
         key=jax.random.PRNGKey(options.seed),
     )
 
