@@ -2,15 +2,19 @@
 
 Heads whose 3D rig is withheld ("unrigged") are supervised only through renderings of their
 ground-truth poses from a few fixed views (``canrig_jax.render``, orthographic cameras on the
-unit-sphere head): the soft **mask** of the posed head, the **2D displacement** field (each
+unit-sphere head): the **mask** of the posed head, the **2D displacement** field (each
 visible neutral surface point's screen motion, neutral -> pose) and the 68 **2D landmarks**.
+By default they are rendered by the fast path (``rasterise_hard`` visibility,
+``interpolate``, antialiased ``silhouette``: tens of ms per 256^2 view), else by the soft
+rasteriser (``Supervision2DOptions.rasteriser``).
 This replaces the paper's MegActor videos and RAFT flow (their weights cannot be obtained
 here) by the same three signals rendered from the held-back ground truth, so it measures how
 much the 2D route can carry when its signals are clean.
 
 Per step, for each drawn head, ``poses_2d`` of its drawn poses and every view:
 
-* mask: mean squared difference of the predicted and the target soft silhouettes;
+* mask: mean squared difference of the predicted and the target silhouettes (antialiased,
+  or soft);
 * displacement: the neutral is rendered once per view with the per-vertex screen-displacement
   error of all those poses as attributes (interpolation is linear in the attributes), and the
   mean squared error over the neutral's silhouette, in pixels, divided by the target's mean
