@@ -12,8 +12,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from canrig_jax.data import load_ict
-from canrig_jax.mesh import decimate
 from canrig_jax.render import (
     Fragments,
     RasterSettings,
@@ -26,20 +24,7 @@ from canrig_jax.render import (
     silhouette,
 )
 
-from .test_raster import ray_cast
-
-
-@pytest.fixture(scope="module")
-def head(data_dir):
-    """The whole ICT head (17 parts) decimated to ~1,750 vertices (cm)."""
-    ict = load_ict(data_dir, parts=None)
-    d = decimate(ict.neutral, ict.faces, 1750)
-    return np.asarray(d.vertices, np.float32), np.asarray(d.faces, np.int32)
-
-
-def front_camera(vertices, size, **kwargs):
-    centre = vertices.mean(0)
-    return look_at(centre + np.array([0.0, 0.0, 60.0]), centre, image_size=size, **kwargs)
+from .test_raster import front_camera, ray_cast
 
 
 @pytest.mark.parametrize(

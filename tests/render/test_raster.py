@@ -11,8 +11,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from canrig_jax.data import load_ict
-from canrig_jax.mesh import decimate
 from canrig_jax.render import (
     Camera,
     RasterSettings,
@@ -25,14 +23,6 @@ from canrig_jax.render import (
     rasterise,
     screen_displacement,
 )
-
-
-@pytest.fixture(scope="module")
-def head(data_dir):
-    """The whole ICT head (17 parts) decimated to ~1,750 vertices (cm)."""
-    ict = load_ict(data_dir, parts=None)
-    d = decimate(ict.neutral, ict.faces, 1750)
-    return np.asarray(d.vertices, np.float32), np.asarray(d.faces, np.int32)
 
 
 def front_camera(vertices, size, **kwargs):
