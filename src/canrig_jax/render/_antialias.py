@@ -39,7 +39,7 @@ from jaxtyping import Array, Float, Int
 
 from .._checks import check_finite
 from ._camera import Camera, project_points
-from ._hard import Fragments, check_fragments, edge_functions, rasterise_hard
+from ._hard import Fragments, check_budget, check_fragments, edge_functions, rasterise_hard
 from ._raster import _check_inputs
 
 
@@ -152,16 +152,9 @@ def antialias(
             f"{tuple(camera.image_size)} + (C,), got {tuple(image.shape)}"
         )
     check_finite("image", image)
-    _check_edge_budget(edge_budget)
+    check_budget("edge_budget", edge_budget)
     image = jnp.asarray(image, vertices.dtype)
     return _antialias_jit(image, vertices, faces, camera, fragments, float(edge_budget))
-
-
-def _check_edge_budget(edge_budget) -> None:
-    if not (
-        isinstance(edge_budget, int | float) and math.isfinite(edge_budget) and edge_budget > 0
-    ):
-        raise ValueError(f"edge_budget: expected a finite number > 0, got {edge_budget!r}")
 
 
 def silhouette(
@@ -178,7 +171,7 @@ def silhouette(
     silhouette edges): hard visibility (``rasterise_hard``, or ``fragments`` when given) +
     ``antialias``; its gradient with respect to ``vertices`` moves the silhouette edges.
     ValueError naming the argument for bad input (as ``rasterise_hard`` and ``antialias``)."""
-    _check_edge_budget(edge_budget)
+    check_budget("edge_budget", edge_budget)
     if fragments is None:
         fragments = rasterise_hard(
             vertices, faces, camera, chunk_size=chunk_size, chunk_budget=chunk_budget

@@ -160,13 +160,16 @@ def _rasterise_hard(vertices, faces, camera: Camera, chunk_size: int, chunk_budg
 _rasterise_hard_jit = eqx.filter_jit(_rasterise_hard)
 
 
+def check_budget(name: str, value) -> None:
+    """A static work budget (chunks, edges): a finite number > 0, or a ValueError naming it."""
+    if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+        raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
+
+
 def _check_chunks(chunk_size, chunk_budget) -> None:
     if not (isinstance(chunk_size, int | np.integer) and chunk_size >= 1):
         raise ValueError(f"chunk_size: expected an int >= 1, got {chunk_size!r}")
-    if not (
-        isinstance(chunk_budget, int | float) and math.isfinite(chunk_budget) and chunk_budget > 0
-    ):
-        raise ValueError(f"chunk_budget: expected a finite number > 0, got {chunk_budget!r}")
+    check_budget("chunk_budget", chunk_budget)
 
 
 def rasterise_hard(
