@@ -58,42 +58,12 @@ from canrig_jax.render import (
     look_at,
     rasterise,
     rasterise_hard,
+    ray_cast,
     save_figure,
     silhouette,
 )
 
 RUNS = ("3d_only", "2d_unrigged_plus_3d")
-
-
-def ray_cast_depth(vertices, faces, camera):
-    """Independent reference for the hard limit: Moeller-Trumbore ray casting (NumPy, float64)
-    through every pixel centre of a pinhole ``camera``: (hit (H, W), depth (H, W))."""
-    h, w = camera.image_size
-    rotation = np.asarray(camera.rotation, np.float64)
-    position = np.asarray(camera.position, np.float64)
-    focal = float(camera.focal)
-    cu, cv = np.asarray(camera.principal, np.float64)
-    rows, cols = np.meshgrid(np.arange(h) + 0.5, np.arange(w) + 0.5, indexing="ij")
-    local = np.stack([(cols - cu) / focal, -(rows - cv) / focal, -np.ones_like(cols)], -1)
-    directions = local.reshape(-1, 3) @ rotation
-    tri = np.asarray(vertices, np.float64)[faces]
-    a, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    depth = np.full(h * w, np.inf)
-    for start in range(0, h * w, 256):
-        d = directions[start : start + 256, None]
-        p = np.cross(d, e2)
-        det = np.sum(e1 * p, -1)
-        inv = 1.0 / np.where(np.abs(det) > 1e-12, det, 1.0)
-        s = position - a
-        u = np.sum(s * p, -1) * inv
-        q = np.cross(s, e1)
-        v = np.sum(d * q, -1) * inv
-        t = np.sum(e2 * q, -1) * inv
-        hit = (np.abs(det) > 1e-12) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
-        along = t * (d @ -rotation[2])  # distance along the viewing axis
-        depth[start : start + 256] = np.where(hit, along, np.inf).min(axis=1)
-    hit = np.isfinite(depth)
-    return hit.reshape(h, w), np.where(hit, depth, np.nan).reshape(h, w)
 
 
 def rasteriser_checks(data_dir, quick: bool) -> tuple[dict, tuple]:
@@ -130,7 +100,7 @@ def rasteriser_checks(data_dir, quick: bool) -> tuple[dict, tuple]:
     hard = rasterise(
         vertices, faces, camera, settings=RasterSettings.hard(faces_per_tile=faces.shape[0])
     )
-    hit, depth = ray_cast_depth(np.asarray(vertices), np.asarray(faces), camera)
+    hit, depth = ray_cast(np.asarray(vertices), np.asarray(faces), camera)
     mask = np.asarray(hard.silhouette) > 0.5
     both = mask & hit
     error = np.abs(np.asarray(hard.depth)[both] - depth[both]) * 10.0  # mm
@@ -243,7 +213,7 @@ def fast_path_checks(vertices, faces, centre, size, quick) -> dict:
     )
     camera = look_at(centre + [0, 0, 60.0], centre, image_size=size)
     fragments = rasterise_hard(vertices, faces, camera)
-    hit, depth = ray_cast_depth(np.asarray(vertices), np.asarray(faces), camera)
+    hit, depth = ray_cast(np.asarray(vertices), np.asarray(faces), camera)
     mask = np.asarray(fragments.covered)
     both = mask & hit
     error = np.abs(np.asarray(fragments.depth)[both] - depth[both]) * 10.0  # mm

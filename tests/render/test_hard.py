@@ -21,10 +21,11 @@ from canrig_jax.render import (
     orbit_cameras,
     rasterise,
     rasterise_hard,
+    ray_cast,
     silhouette,
 )
 
-from .test_raster import front_camera, ray_cast
+from .test_raster import front_camera
 
 
 @pytest.mark.parametrize(

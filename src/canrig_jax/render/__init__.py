@@ -2,7 +2,7 @@
 (cameras, silhouettes, depth, Lambert shading, interpolated attributes, 2D displacement):
 a soft one (``rasterise``, SoftRas-style) and a fast hard one with differentiable
 interpolation and antialiased silhouettes (``rasterise_hard`` + ``interpolate`` +
-``antialias``, nvdiffrast-style)."""
+``antialias``, nvdiffrast-style), and a NumPy ray caster (``ray_cast``) to check them."""
 
 from ._antialias import antialias, silhouette
 from ._camera import (
@@ -27,6 +27,7 @@ from ._raster import (
     rasterise,
     vertex_normals,
 )
+from ._reference import ray_cast
 
 __all__ = [
     "antialias",
@@ -48,6 +49,7 @@ __all__ = [
     "project_points",
     "rasterise",
     "rasterise_hard",
+    "ray_cast",
     "save_figure",
     "screen_displacement",
     "silhouette",
