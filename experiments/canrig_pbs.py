@@ -56,7 +56,7 @@ from canrig_jax.canrig import (  # noqa: E402
     weighted_geodesic_distance,
 )
 from canrig_jax.data import load_ict, load_livelinkface  # noqa: E402
-from canrig_jax.mesh import edge_graph, farthest_point_vertices  # noqa: E402
+from canrig_jax.mesh import bridged_edge_graph, edge_graph, farthest_point_vertices  # noqa: E402
 from canrig_jax.render import plot_vertex_scalar, save_figure  # noqa: E402
 from canrig_jax.rig import evaluate_batch, ict_quartic_rig, random_sparse_poses  # noqa: E402
 
@@ -102,6 +102,14 @@ def _parser():
     parser.add_argument("--decay-steps", type=int, default=4000)
     parser.add_argument(
         "--tag", default="", help="folder suffix: OUT/models/NAME+TAG (e.g. Figure 8's runs)"
+    )
+    parser.add_argument(
+        "--graph",
+        choices=("bridged", "mesh"),
+        default="bridged",
+        help="geodesics of the masks: 'bridged' (mesh.bridged_edge_graph: teeth, gums, "
+        "eyelashes and the other floating parts reach the skin handles) or 'mesh' (edges "
+        "only: those parts are out of every handle's reach; the runs before 2026-12-02)",
     )
     parser.add_argument("--no-progress", action="store_true")
     return parser
@@ -158,7 +166,7 @@ def _whole_head(args):
         basis=basis,
         picked=picked,
         skin=skin,
-        graph=edge_graph(neutral, faces),
+        graph=(bridged_edge_graph if args.graph == "bridged" else edge_graph)(neutral, faces),
     )
 
 
@@ -172,6 +180,19 @@ def _training_set(args, head):
     ), distances
 
 
+def _check_graph(args, folder: Path) -> None:
+    """Masks depend on the geodesic graph: refuse to resume or evaluate a masked model
+    trained on the other one (train.json says which; runs before the option: 'mesh')."""
+    meta = folder / "train.json"
+    if folder.name.startswith("shape_transformer") or not meta.exists():
+        return  # the Shape Transformer has no masks
+    trained = json.loads(meta.read_text()).get("graph", "mesh")
+    if trained != args.graph:
+        raise ValueError(
+            f"--graph: {folder} was trained with --graph {trained}, this run uses {args.graph}"
+        )
+
+
 def _train(args, argv, head):
     options = PBSTrainOptions(
         model=args.train,
@@ -182,6 +203,7 @@ def _train(args, argv, head):
     )
     data, _ = _training_set(args, head)
     folder = args.out / MODELS_DIR / (args.train + args.tag)
+    _check_graph(args, folder)
     folder.mkdir(parents=True, exist_ok=True)
     scale = float(np.abs(head["train_shapes"] - head["neutral"]).max())
     _, step, seconds, history = train_pbs(
@@ -198,6 +220,7 @@ def _train(args, argv, head):
             "steps": step,
             "train_minutes": seconds / 60,
             "options": options.to_dict(),
+            "graph": args.graph,
             "history": history,
             "provenance": provenance(experiment_command(__file__, argv)),
         },
@@ -223,7 +246,8 @@ def _dense_reference_ms(head, handles):
         fourier=o.fourier,
         key=jax.random.PRNGKey(0),
     )
-    distance = weighted_geodesic_distance(head["graph"], handles)  # (H, V)
+    # (H, V): paths from every vertex to the handles (the transpose of a bridged graph)
+    distance = weighted_geodesic_distance(head["graph"].T.tocsr(), handles)
     mask = influence_mask(distance.T, EVAL_RADIUS_CM, EVAL_FALLOFF_PER_CM)
     queries = net.encode_queries(jnp.asarray(neutral))
     base = jnp.asarray(neutral)
@@ -423,6 +447,7 @@ def main(argv=None):
         if not checkpoint.exists():
             print(f"{folder}: no checkpoint at {checkpoint}, row skipped")
             return None, None
+        _check_graph(args, checkpoint.parent)
         net, state = load_pbs_model(checkpoint, neutral, args.patches, len(basis))
         shapes = np.asarray(reconstruct(net, jnp.asarray(handles), handle_distance, test_j))
         per_shape = (np.linalg.norm(shapes - test_shapes, axis=-1) * CM_TO_MM).mean(axis=1)
@@ -490,7 +515,13 @@ def main(argv=None):
             "poses (held_out_poses)",
             "handles": f"{args.handles} geodesic farthest points on the skin ({', '.join(SKIN)})",
             "masks": f"CANRig-PBS: radius {EVAL_RADIUS_CM} cm, falloff {EVAL_FALLOFF_PER_CM}/cm, "
-            "evaluated at each patch's seed vertex (geodesic distance on the whole head)",
+            "evaluated at each patch's seed vertex (geodesic distance on the whole head, "
+            + (
+                "bridged: every floating part's vertices step to their nearest skin-component "
+                "vertex)"
+                if args.graph == "bridged"
+                else "mesh edges only: teeth, gums, eyelashes out of reach)"
+            ),
             "forward": "one call at 200 handles (ms, median): the whole-head shape from the "
             "handle displacements; dense_per_vertex_reference: an untrained per-vertex "
             "ShapePreservingCANRig with the same encoder on all 26,719 vertices, dense masks",

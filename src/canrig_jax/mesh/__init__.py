@@ -13,6 +13,7 @@ from ._deformation_gradient import (
     triangle_frames,
 )
 from ._geodesic import (
+    bridged_edge_graph,
     edge_graph,
     farthest_point_vertices,
     mesh_edges,
@@ -54,6 +55,7 @@ __all__ = [
     "DeformationGradientBlend",
     "FallbackCounts",
     "connected_components",
+    "bridged_edge_graph",
     "edge_graph",
     "farthest_point_vertices",
     "mesh_edges",

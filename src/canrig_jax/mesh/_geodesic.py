@@ -4,6 +4,13 @@ it, and farthest-point sampling.
 Distances are shortest paths on the mesh's edge graph, each edge weighted by its 3D length
 (times an optional per-edge factor; ``scipy.sparse.csgraph.dijkstra``), so a vertex on the
 upper lip reaches the lower lip only around the mouth corner, never across the mouth gap.
+
+A head is rarely one connected surface: teeth, gums, eyelashes and eye parts float beside the
+skin, so no path along edges reaches them from a handle on the skin. ``bridged_edge_graph``
+adds one directed "exit" edge from every vertex of every other component to its nearest
+vertex (3D) of the main one: shortest paths lead out of a small part onto the skin, never
+into one and out again, so no path between two skin vertices takes a shortcut through the
+teeth across the mouth gap.
 """
 
 from __future__ import annotations
@@ -11,7 +18,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 from jaxtyping import ArrayLike
-from scipy.sparse.csgraph import dijkstra
+from scipy.sparse.csgraph import connected_components, dijkstra
+from scipy.spatial import cKDTree
 
 from ._checks import check_mesh, check_vertices
 
@@ -55,6 +63,33 @@ def edge_graph(
     return (graph + graph.T).tocsr()
 
 
+def bridged_edge_graph(
+    vertices: np.ndarray, faces: np.ndarray, edge_factor: np.ndarray | None = None
+) -> sp.csr_matrix:
+    """``edge_graph`` plus a directed edge (weight: the 3D distance) from every vertex of every
+    connected component but the largest to its nearest vertex of the largest.
+
+    The result is not symmetric: distances from any vertex *to* the main component are finite
+    (``weighted_geodesic_distance(graph, sources)`` with the sources anywhere and the targets
+    on the main component; its transpose for paths from the main component into the small
+    parts). Paths between two vertices of the main component never leave it. A mesh of one
+    component gets the plain ``edge_graph``.
+    """
+    vertices, faces = check_mesh(vertices, faces)
+    graph = edge_graph(vertices, faces, edge_factor)
+    n_components, label = connected_components(graph, directed=False)
+    if n_components == 1:
+        return graph
+    main = np.flatnonzero(label == np.argmax(np.bincount(label)))
+    others = np.flatnonzero(label != label[main[0]])
+    length, nearest = cKDTree(vertices[main]).query(vertices[others])
+    n = len(vertices)
+    exits = sp.csr_matrix(
+        (np.maximum(length, MIN_EDGE_LENGTH), (others, main[nearest])), shape=(n, n)
+    )
+    return (graph + exits).tocsr()
+
+
 def _check_graph(graph) -> sp.csr_matrix:
     if not sp.issparse(graph) or graph.ndim != 2 or graph.shape[0] != graph.shape[1]:
         raise TypeError(
@@ -67,7 +102,7 @@ def weighted_geodesic_distance(
     graph: sp.csr_matrix, sources: ArrayLike, *, limit: float = np.inf
 ) -> np.ndarray:
     """(H, V) float32 shortest-path distance from each source vertex to every vertex, along
-    ``graph`` (``edge_graph``).
+    ``graph`` (``edge_graph``, or a directed one such as ``bridged_edge_graph``).
 
     Vertices farther than ``limit`` (or unreachable) get ``inf``; a finite limit makes many
     sources on a large mesh cheap.
@@ -85,7 +120,8 @@ def weighted_geodesic_distance(
         )
     if not limit > 0:
         raise ValueError(f"limit: expected > 0, got {limit}")
-    return dijkstra(graph, directed=False, indices=sources, limit=limit).astype(np.float32)
+    # directed: a symmetric graph (edge_graph) gives the undirected distances
+    return dijkstra(graph, directed=True, indices=sources, limit=limit).astype(np.float32)
 
 
 def farthest_point_vertices(
