@@ -117,3 +117,66 @@ def test_bad_input(face, face_rig):
     )
     with pytest.warns(UserWarning, match="correctives are not transferred"):
         deformation_transfer(corrected, face.neutral, correspondence)
+
+
+STATIC_CM = 1e-3  # the evaluation's static threshold, 0.01 mm
+
+
+@pytest.fixture(scope="module")
+def remeshed_identity(data_dir, face):
+    """An identity's face decimated to 2,000 vertices, its correspondence to the generic face
+    (landmarks + closest points) and its ground truth (the identity's expressions carried by
+    the decimation's surface map)."""
+    target = ict_identity(np.random.default_rng(3).standard_normal(100), data_dir, model=face)
+    coarse = decimate(target, face.faces, 2000)
+    landmarks = coarse.nearest_vertices(target[face.landmarks])
+    correspondence = closest_point_correspondence(
+        face.neutral, face.faces, coarse.vertices, coarse.faces, face.landmarks, landmarks
+    )
+    return coarse, correspondence, coarse.map.carry(face.deltas)
+
+
+def test_anchored_transfer_holds_what_the_source_leaves_still(face, face_rig, remeshed_identity):
+    """Anchored vertices are exactly zero; the rest move; where the ground truth is static the
+    anchored error is far below plain DT's, and the error overall is no larger."""
+    coarse, correspondence, truth = remeshed_identity
+    plain = np.asarray(deformation_transfer(face_rig, coarse.vertices, correspondence).deltas)
+    anchored = np.asarray(
+        deformation_transfer(
+            face_rig, coarse.vertices, correspondence, static_below=STATIC_CM
+        ).deltas
+    )
+    carried = np.linalg.norm(correspondence.vertex_map.carry(face.deltas), axis=-1)
+    # the anchors are scaled by the carried-neutral similarity (~1 here): margins of 2x
+    still, moving = carried < 0.5 * STATIC_CM, carried > 2 * STATIC_CM
+    assert still.mean() > 0.3 and moving.mean() > 0.1
+    assert np.all(anchored[still] == 0.0)
+    assert np.all(np.linalg.norm(anchored[moving], axis=-1) > 0)
+    error = {
+        name: np.linalg.norm(out - truth, axis=-1) * MM
+        for name, out in (("plain", plain), ("anchored", anchored))
+    }
+    static = np.linalg.norm(truth, axis=-1) < STATIC_CM
+    assert error["anchored"][static].mean() < 0.5 * error["plain"][static].mean()
+    assert error["anchored"].mean() <= error["plain"].mean()
+
+
+def test_anchored_transfer_off_is_plain_and_onto_itself_reproduces(face, face_rig):
+    correspondence = identity_correspondence(face.faces, face.n_vertices)
+    rig = BlendshapeRig(face.neutral, face.deltas[:6], (), face.names[:6], face.faces)
+    plain = np.asarray(deformation_transfer(rig, face.neutral, correspondence).deltas)
+    none = deformation_transfer(rig, face.neutral, correspondence, static_below=None)
+    np.testing.assert_array_equal(np.asarray(none.deltas), plain)
+    anchored = np.asarray(
+        deformation_transfer(rig, face.neutral, correspondence, static_below=STATIC_CM).deltas
+    )
+    # exact but for the anchored deltas, each shorter than the threshold
+    assert np.linalg.norm(anchored - face.deltas[:6], axis=-1).max() <= STATIC_CM + 1e-6
+    assert np.all(anchored[np.linalg.norm(face.deltas[:6], axis=-1) < 0.5 * STATIC_CM] == 0)
+
+
+@pytest.mark.parametrize("bad", [-1e-3, np.nan, np.inf, "0.01"])
+def test_anchored_transfer_bad_threshold(face, face_rig, bad):
+    correspondence = identity_correspondence(face.faces, face.n_vertices)
+    with pytest.raises(ValueError, match="^static_below:"):
+        deformation_transfer(face_rig, face.neutral, correspondence, static_below=bad)

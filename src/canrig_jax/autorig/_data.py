@@ -422,7 +422,9 @@ def _correspondence_of(dataset: AutorigDataset, head):
     return head_correspondence(dataset, head.vertices, head.faces, landmarks)
 
 
-def transfer_poses(dataset: AutorigDataset, head, correspondence=None) -> np.ndarray:
+def transfer_poses(
+    dataset: AutorigDataset, head, correspondence=None, *, static_below: float | None = None
+) -> np.ndarray:
     """The deformation-transfer baseline: every ground-truth pose of the generic ICT head
     carried onto ``head`` (Sumner & Popović; landmark + closest-point correspondence).
 
@@ -433,6 +435,9 @@ def transfer_poses(dataset: AutorigDataset, head, correspondence=None) -> np.nda
             used when it has them, else fitted (``fit_head_landmarks``, no hand-picked
             vertices; on its ``skin`` when it has one).
         correspondence: a precomputed ``head_correspondence`` (else computed here).
+        static_below: anchored transfer (``deformation_transfer(static_below=)``): per pose,
+            the vertices whose carried ICT displacement is shorter than this (cm; e.g.
+            ``STATIC_MM / 10``, the static threshold) stay exactly still. None: plain DT.
 
     Returns (P, V, 3) displacements on ``head`` (centimetres)."""
     source = dataset.head
@@ -443,7 +448,9 @@ def transfer_poses(dataset: AutorigDataset, head, correspondence=None) -> np.nda
         correspondence = _correspondence_of(dataset, head)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # "correctives are not transferred": there are none
-        transferred = deformation_transfer(source_rig, head.vertices, correspondence)
+        transferred = deformation_transfer(
+            source_rig, head.vertices, correspondence, static_below=static_below
+        )
     return np.asarray(transferred.deltas)
 
 

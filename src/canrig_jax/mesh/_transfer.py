@@ -16,6 +16,12 @@ commutes with a rigid motion or scaling of the target. The small ridge
 (``screening`` times the mean diagonal of D^T D) only fixes what edges cannot: the
 translation of each connected component (jaw-driven lower teeth translate as a whole).
 
+Anchored transfer (``static_below``): the ridge is weak, so the solve lets motion bleed into
+regions the source leaves still (eyeballs, the back of the head move by a few hundredths of a
+millimetre). With a threshold, per expression the target vertices whose anchor a_k is shorter
+are held at exactly zero (Dirichlet constraints) and the system is solved on the others,
+factorised per expression.
+
 The correspondence is a ``TriangleCorrespondence``: a source triangle for every target
 triangle plus a surface map of the target vertices on the source. On identical topology it is
 the identity (``identity_correspondence``); otherwise ``closest_point_correspondence`` aligns
@@ -285,6 +291,7 @@ def transfer_deltas(
     screening: float = 1e-3,
     min_area: float = 1e-10,
     batch_size: int = 8,
+    static_below: float | None = None,
 ) -> np.ndarray:
     """Transfer every blendshape (``source_deltas``) of a source mesh onto ``target_neutral``.
 
@@ -300,6 +307,11 @@ def transfer_deltas(
         min_area: source triangles below this area (squared units) in the neutral or an
             expression keep the identity deformation.
         batch_size: expressions per solve batch.
+        static_below: anchored transfer: per expression, the target vertices whose carried
+            source delta (the anchor a_k, in the target's orientation and size) is shorter than
+            this (target units) are held at zero displacement (Dirichlet constraints; the
+            system is reduced to the other vertices and factorised per expression), so motion
+            does not bleed into what the source leaves still. None (default): plain transfer.
 
     Returns:
         (K, V, 3) float64 target blendshape offsets. ``canrig_jax.rig.deformation_transfer``
@@ -335,6 +347,14 @@ def transfer_deltas(
         )
     if not (np.isfinite(screening) and screening > 0):
         raise ValueError(f"screening: expected a positive ridge, got {screening}")
+    if static_below is not None and not (
+        isinstance(static_below, (int, float, np.floating, np.integer))
+        and np.isfinite(static_below)
+        and static_below >= 0
+    ):
+        raise ValueError(
+            f"static_below: expected None or a finite length >= 0, got {static_below!r}"
+        )
     source_triangle = np.asarray(correspondence.source_triangle, np.int64)
     source_triangle = source_triangle.reshape(source_triangle.shape[0], -1)  # (T, S)
     n_samples = source_triangle.shape[1]
@@ -353,7 +373,8 @@ def transfer_deltas(
     difference = _difference_operator(target_faces, n_vertices)
     normal_matrix = (difference.T @ difference).tocsc()
     ridge = screening * normal_matrix.diagonal().mean()
-    solve = spla.factorized((normal_matrix + ridge * sp.identity(n_vertices)).tocsc())
+    system = (normal_matrix + ridge * sp.identity(n_vertices)).tocsc()
+    solve = spla.factorized(system)
     rest_difference = difference @ tv  # (3T, 3)
     # Source gradients and anchor deltas are expressed in the target's orientation (and the
     # anchors in its size): the similarity taking the source neutral, carried to the target
@@ -380,7 +401,28 @@ def transfer_deltas(
         rhs = difference.T @ np.moveaxis(wanted - rest_difference, 0, 1).reshape(
             wanted.shape[1], -1
         ) + ridge * np.moveaxis(anchor, 0, 1).reshape(n_vertices, -1)
-        deltas[start : start + chunk.shape[0]] = np.moveaxis(
-            solve(rhs).reshape(n_vertices, chunk.shape[0], 3), 1, 0
-        )
+        if static_below is None:
+            deltas[start : start + chunk.shape[0]] = np.moveaxis(
+                solve(rhs).reshape(n_vertices, chunk.shape[0], 3), 1, 0
+            )
+            continue
+        rhs = rhs.reshape(n_vertices, chunk.shape[0], 3)
+        for b in range(chunk.shape[0]):
+            deltas[start + b] = _anchored_solve(
+                system, solve, rhs[:, b], np.linalg.norm(anchor[b], axis=-1) >= static_below
+            )
     return deltas
+
+
+def _anchored_solve(system, solve, rhs: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """(V, 3) solution of ``system`` u = ``rhs`` with u = 0 on the vertices not ``free``
+    (Dirichlet: the rows and columns of the fixed vertices are dropped; their value is zero, so
+    the right-hand side needs no correction)."""
+    out = np.zeros_like(rhs)
+    if free.all():
+        return solve(rhs)
+    if not free.any():
+        return out
+    index = np.flatnonzero(free)
+    out[index] = spla.splu(system[index][:, index].tocsc()).solve(rhs[index])
+    return out

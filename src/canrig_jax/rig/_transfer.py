@@ -51,9 +51,12 @@ def deformation_transfer(
     screening: float = 1e-3,
     min_area: float = 1e-10,
     batch_size: int = 8,
+    static_below: float | None = None,
 ) -> BlendshapeRig:
     """Transfer every blendshape of ``source_rig`` onto ``target_neutral``
     (Sumner & Popović 2004; the geometry is ``canrig_jax.mesh.transfer_deltas``).
+    ``static_below`` (target units) anchors, per blendshape, the vertices whose carried source
+    delta is shorter at zero (anchored transfer; None: plain).
 
     Returns a linear ``BlendshapeRig`` on the target (same names, target faces). Correctives of
     the source are not transferred (a warning says so).
@@ -76,6 +79,7 @@ def deformation_transfer(
         screening=screening,
         min_area=min_area,
         batch_size=batch_size,
+        static_below=static_below,
     )
     return BlendshapeRig(
         np.asarray(target_neutral, np.float32),
