@@ -91,6 +91,15 @@ RAF_LOSSES = {
 per-vertex Euclidean loss plus the static-vertex term (issue 19; experiments/results/
 autorig_retrain)."""
 RESIDUAL = "raf_dt_residual"
+RESIDUAL_ANCHORED = "raf_anchored_dt_residual"
+"""The residual model trained on anchored deformation transfer (``--anchored-residual``)."""
+ANCHOR_CM = STATIC_MM / CM_TO_MM
+"""Anchored deformation transfer (``transfer_poses(static_below=)``): per pose, the vertices
+whose carried ICT displacement is below the evaluation's static threshold (0.01 mm) are held
+still. Not tuned: the issue's own definition of static."""
+ANCHORED = "_anchored"
+"""Suffix of a row evaluated on anchored deformation transfer (``deformation_transfer_anchored``
+and ``raf_dt_residual_anchored``: the plain-trained residual model on the anchored base)."""
 RESIDUAL_OPTIONS = {"residual": True, "loss": "euclidean", "static_weight": 1.0}
 BASELINES = ("no_motion", "copy_deltas", "deformation_transfer")
 SPLITS = ("same_topology", "unseen_topology")
@@ -192,8 +201,15 @@ def main(argv=None):
         help="weight of raf_dt_residual's static-vertex term (default: %(default)s)",
     )
     parser.add_argument(
+        "--anchored-residual",
+        action="store_true",
+        help=f"also train (or resume) and evaluate {RESIDUAL_ANCHORED}: the residual model "
+        "with the same recipe on anchored deformation transfer (its training and evaluation "
+        "base)",
+    )
+    parser.add_argument(
         "--train-only",
-        choices=(*MODELS, RESIDUAL),
+        choices=(*MODELS, RESIDUAL, RESIDUAL_ANCHORED),
         default=None,
         help="train (or resume) only this model's checkpoint in --out and stop: writes no "
         "results (a chunk of a long run, or the models in parallel processes); the standard "
@@ -232,7 +248,7 @@ def main(argv=None):
         checkpoint_every=10 if args.quick else 200,
     )
     models, trained = {}, {}
-    if args.train_only != RESIDUAL:
+    if args.train_only not in (RESIDUAL, RESIDUAL_ANCHORED):
         data = training_set(dataset.train, poses, k=options.k, progress=progress)
         print(
             f"{len(dataset.train)} training heads ({data.vertices.shape[1]} padded vertices), "
@@ -262,7 +278,6 @@ def main(argv=None):
         return None
 
     # -- DT + learned residual: the training heads' transferred poses are its base --------
-    base = [cached_transfer(dataset, head, args.cache, args.seed) for head in dataset.train]
     residual_options = dataclasses.replace(
         options,
         **{**RESIDUAL_OPTIONS, "static_weight": args.residual_static_weight},
@@ -271,30 +286,42 @@ def main(argv=None):
         warmup_steps=5 if args.quick else min(200, args.residual_steps // 10),
         max_minutes=None,
     )
-    data = training_set(dataset.train, poses, k=options.k, progress=progress, base=base)
-    path = args.out / f"checkpoint_{RESIDUAL}.eqx"
-    result = train(
-        data, poses, residual_options, checkpoint=path, progress=progress, devices=args.devices
-    )
-    models[RESIDUAL], _, state = load_model(path)
-    trained[RESIDUAL] = {
-        "steps": result.step,
-        "minutes": result.seconds / 60,
-        "parameters": parameter_count(models[RESIDUAL]),
-        "final_train_error_mm": state["history"][-1]["error_mm"],
-        "history": state["history"],
-        "options": residual_options.to_dict(),
-    }
-    print(f"{RESIDUAL}: {result.step} steps in {result.seconds / 60:.1f} min")
-    del data, base
-    if args.train_only == RESIDUAL:
+    residuals = {RESIDUAL: None}
+    if args.anchored_residual or args.train_only == RESIDUAL_ANCHORED:
+        residuals[RESIDUAL_ANCHORED] = ANCHOR_CM
+    for name, static_below in residuals.items():
+        if args.train_only not in (None, name):
+            continue
+        base = [
+            cached_transfer(dataset, head, args.cache, args.seed, static_below)
+            for head in dataset.train
+        ]
+        data = training_set(dataset.train, poses, k=options.k, progress=progress, base=base)
+        path = args.out / f"checkpoint_{name}.eqx"
+        result = train(
+            data, poses, residual_options, checkpoint=path, progress=progress, devices=args.devices
+        )
+        models[name], _, state = load_model(path)
+        trained[name] = {
+            "steps": result.step,
+            "minutes": result.seconds / 60,
+            "parameters": parameter_count(models[name]),
+            "final_train_error_mm": state["history"][-1]["error_mm"],
+            "history": state["history"],
+            "options": residual_options.to_dict(),
+            "base": "deformation_transfer" + (ANCHORED if static_below else ""),
+        }
+        print(f"{name}: {result.step} steps in {result.seconds / 60:.1f} min")
+        del data, base
+    if args.train_only is not None:
         return None
 
     # -- evaluation on held-out heads ------------------------------------------------------------
     part_names = dataset.head.part_names
-    methods = (*BASELINES, *models)
+    rows = evaluation_rows(models)
+    methods = (*BASELINES, "deformation_transfer" + ANCHORED, *rows)
     test: dict = {name: {} for name in methods if name != "no_motion"}
-    pen: dict = {name: [] for name in (*models, "ground_truth")}
+    pen: dict = {name: [] for name in (*rows, "ground_truth")}
     examples, heldout_predictions, heldout_truth = {}, {name: [] for name in methods}, []
     for split in SPLITS:
         truth_all, unit_scale = [], []
@@ -304,17 +331,21 @@ def main(argv=None):
             truth_all.append(head.displacements)
             unit_scale.append(scale)
             correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
-            transferred = transfer_poses(dataset, head, correspondence)
-            predicted_all["deformation_transfer"].append(transferred)
+            bases = {
+                "plain": transfer_poses(dataset, head, correspondence),
+                "anchored": transfer_poses(dataset, head, correspondence, static_below=ANCHOR_CM),
+            }
+            predicted_all["deformation_transfer"].append(bases["plain"])
+            predicted_all["deformation_transfer" + ANCHORED].append(bases["anchored"])
             predicted_all["copy_deltas"].append(copy_poses(dataset, head, correspondence))
-            for name, model in models.items():
+            for name, (model_name, base) in rows.items():
                 generated = generate_rig(
-                    model,
+                    models[model_name],
                     poses,
                     head.vertices,
                     head.faces,
                     operators=operators,
-                    base=transferred if model.residual else None,
+                    base=None if base is None else bases[base],
                 )
                 predicted_all[name].append(generated.displacements)
                 pen[name].append(penetration(head, generated.displacements, part_names))
@@ -399,6 +430,10 @@ def main(argv=None):
         "heldout": heldout,
         "heldout_protocol": {
             "split": HELDOUT_SPLIT,
+            "anchored": f"deformation transfer with static_below = {ANCHOR_CM} cm "
+            "(transfer_poses): per pose, vertices whose carried ICT displacement is shorter "
+            "are held at zero; *_anchored rows use it as the residual model's base",
+            "rows": {name: {"model": m, "base": b} for name, (m, b) in rows.items()},
             "heads": len(heldout_truth),
             "static_mm": STATIC_MM,
             "static": "a (pose, vertex) pair whose ground-truth displacement is < static_mm",
@@ -440,17 +475,37 @@ def main(argv=None):
     )
 
 
-def cached_transfer(dataset, head, cache: Path | None, seed: int) -> np.ndarray:
-    """``transfer_poses`` of one training head, kept in ``cache`` when given."""
+def evaluation_rows(models: dict) -> dict:
+    """Row name -> (model name, base: None, "plain" or "anchored" deformation transfer): the
+    pure models, the residual model on plain DT (as trained) and on anchored DT
+    (``raf_dt_residual_anchored``), and the residual model trained on anchored DT."""
+    rows = {}
+    for name, model in models.items():
+        if not model.residual:
+            rows[name] = (name, None)
+        elif name == RESIDUAL_ANCHORED:
+            rows[name] = (name, "anchored")
+        else:
+            rows[name] = (name, "plain")
+            rows[name + ANCHORED] = (name, "anchored")
+    return rows
+
+
+def cached_transfer(
+    dataset, head, cache: Path | None, seed: int, static_below: float | None = None
+) -> np.ndarray:
+    """``transfer_poses`` of one training head (anchored with ``static_below``), kept in
+    ``cache`` when given."""
     path = None
     if cache is not None:
         cache.mkdir(parents=True, exist_ok=True)
-        path = cache / f"dt_seed{seed}_{head.name.replace('/', '_')}.npy"
+        kind = "dt" if static_below is None else f"dt_anchored{static_below:g}"
+        path = cache / f"{kind}_seed{seed}_{head.name.replace('/', '_')}.npy"
         if path.exists():
             stored = np.load(path, allow_pickle=False)
             if stored.shape == head.displacements.shape:
                 return stored
-    transferred = transfer_poses(dataset, head).astype(np.float32)
+    transferred = transfer_poses(dataset, head, static_below=static_below).astype(np.float32)
     if path is not None:
         np.save(path, transferred, allow_pickle=False)
     return transferred
@@ -467,14 +522,23 @@ def evaluate_makehuman(dataset, models: dict, data_dir) -> tuple[dict, dict, tup
     start = time.perf_counter()
     transferred = transfer_poses(dataset, mh, correspondence)
     seconds_transfer = time.perf_counter() - start
+    bases = {
+        "plain": transferred,
+        "anchored": transfer_poses(dataset, mh, correspondence, static_below=ANCHOR_CM),
+    }
     predictions = {
         "no_motion": np.zeros_like(transferred),
         "copy_deltas": copy_poses(dataset, mh, correspondence),
         "deformation_transfer": transferred,
+        "deformation_transfer" + ANCHORED: bases["anchored"],
     }
-    for name, model in models.items():
+    for name, (model_name, base) in evaluation_rows(models).items():
         predictions[name] = generate_rig(
-            model, poses, mh.neutral, mh.faces, base=transferred if model.residual else None
+            models[model_name],
+            poses,
+            mh.neutral,
+            mh.faces,
+            base=None if base is None else bases[base],
         ).displacements
     target_index, matrix = shared_shape_matrix(poses.basis_names, mh.names)
     truth = mh.deltas[target_index]
@@ -578,21 +642,32 @@ def validate(args, argv=None) -> dict:
         progress=not args.no_progress,
     )
     poses = dataset.poses
-    predicted = {name: [] for name in ("no_motion", "deformation_transfer", *models)}
+    # residual models on both bases: plain and anchored deformation transfer
+    rows = {}
+    for name, model in models.items():
+        for base in ("plain", "anchored") if model.residual else (None,):
+            rows[name if base in (None, "plain") else f"{name}+anchored_base"] = (name, base)
+    dt = ("deformation_transfer", "deformation_transfer" + ANCHORED)
+    predicted = {name: [] for name in ("no_motion", *dt, *rows)}
     truth = []
     for head in dataset.test[HELDOUT_SPLIT]:
-        transferred = transfer_poses(dataset, head)
+        correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
+        bases = {
+            "plain": transfer_poses(dataset, head, correspondence),
+            "anchored": transfer_poses(dataset, head, correspondence, static_below=ANCHOR_CM),
+        }
         truth.append(head.displacements)
         predicted["no_motion"].append(np.zeros_like(head.displacements))
-        predicted["deformation_transfer"].append(transferred)
-        for name, model in models.items():
+        predicted[dt[0]].append(bases["plain"])
+        predicted[dt[1]].append(bases["anchored"])
+        for name, (model_name, base) in rows.items():
             predicted[name].append(
                 generate_rig(
-                    model,
+                    models[model_name],
                     poses,
                     head.vertices,
                     head.faces,
-                    base=transferred if model.residual else None,
+                    base=None if base is None else bases[base],
                 ).displacements
             )
         print(f"validated {head.name}")
@@ -633,29 +708,37 @@ def refresh_penetration(args, argv=None) -> dict:
             f"--penetration-only: needs results.json and the checkpoints of {names} in "
             f"{args.out}; run without --penetration-only first"
         )
+    if (args.out / f"checkpoint_{RESIDUAL_ANCHORED}.eqx").exists():
+        names.append(RESIDUAL_ANCHORED)
     results = json.loads(path.read_text())
     config = results["config"]
     models = {n: load_model(args.out / f"checkpoint_{n}.eqx")[0] for n in names}
+    rows = evaluation_rows(models)
     dataset = _held_out_dataset(args, config)
     poses, part_names = dataset.poses, dataset.head.part_names
-    methods = ("no_motion", "deformation_transfer", *names)
+    methods = ("no_motion", "deformation_transfer", "deformation_transfer" + ANCHORED, *rows)
     clean = {name: [] for name in (*methods, "ground_truth")}
     plain = {name: [] for name in (*methods, "ground_truth")}
     chosen, kept_vertices = [], []
     for head in dataset.test[HELDOUT_SPLIT]:
-        transferred = transfer_poses(dataset, head)
+        correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
+        bases = {
+            "plain": transfer_poses(dataset, head, correspondence),
+            "anchored": transfer_poses(dataset, head, correspondence, static_below=ANCHOR_CM),
+        }
         predicted = {
             "no_motion": np.zeros_like(head.displacements),
-            "deformation_transfer": transferred,
+            "deformation_transfer": bases["plain"],
+            "deformation_transfer" + ANCHORED: bases["anchored"],
             "ground_truth": head.displacements,
         }
-        for name, model in models.items():
+        for name, (model_name, base) in rows.items():
             predicted[name] = generate_rig(
-                model,
+                models[model_name],
                 poses,
                 head.vertices,
                 head.faces,
-                base=transferred if model.residual else None,
+                base=None if base is None else bases[base],
             ).displacements
         pose_index, vertices = penetration_free_set(head, part_names)
         chosen.append(pose_index)

@@ -16,7 +16,7 @@ def test_quick_experiment_writes_the_issue_keys(tmp_path):
     spec = importlib.util.spec_from_file_location("autorig_experiment", SCRIPT)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    module.main(["--quick", "--no-progress", "--out", str(tmp_path)])
+    module.main(["--quick", "--no-progress", "--out", str(tmp_path), "--anchored-residual"])
     results = json.loads((tmp_path / "results.json").read_text())
     for method in ("raf", "raf_no_global_encoder", "deformation_transfer"):
         for split in ("same_topology", "unseen_topology"):
@@ -30,6 +30,10 @@ def test_quick_experiment_writes_the_issue_keys(tmp_path):
         "raf",
         "raf_no_global_encoder",
         "raf_dt_residual",
+        # anchored deformation transfer, the residual model on it, and trained on it
+        "deformation_transfer_anchored",
+        "raf_dt_residual_anchored",
+        "raf_anchored_dt_residual",
     }
     assert set(results["heldout"]) == methods == set(results["makehuman"])
     for method, subsets in results["heldout"].items():
@@ -40,6 +44,12 @@ def test_quick_experiment_writes_the_issue_keys(tmp_path):
             assert abs(f * s["static_mae_mm"] + (1 - f) * s["moving_mae_mm"] - s["mae_mm"]) < 1e-6
         assert len(results["worst_poses"][method]) == 5
     assert results["heldout"]["no_motion"]["single"]["static_mae_mm"] < 0.01
+    # anchored DT holds what the ICT pose leaves still: far less static error than plain DT
+    anchored = results["heldout"]["deformation_transfer_anchored"]
+    for subset in ("single", "combinations"):
+        plain_static = results["heldout"]["deformation_transfer"][subset]["static_mae_mm"]
+        assert anchored[subset]["static_mae_mm"] < 0.5 * plain_static
+    assert results["training"]["raf_anchored_dt_residual"]["base"].endswith("_anchored")
     for e in results["makehuman"].values():
         assert set(e) == {"skin_mae_mm", "skin_q95_mm", "active_mae_mm", "amplitude_ratio_median"}
     assert results["makehuman"]["no_motion"]["amplitude_ratio_median"] == 0
