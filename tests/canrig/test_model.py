@@ -228,3 +228,24 @@ def test_influence_reach_bounds_every_non_zero_clamped_mask(neural_rig, placed):
         assert np.all(inside >= clamp)
     else:
         assert np.all(np.isinf(reach))
+
+
+def test_bridge_reaches_separate_parts_from_skin_handles(data_dir, face):
+    """On the face plus the eyelashes (separate pieces of mesh), a skin handle reaches the
+    lashes only with bridge=True, no nearer than in a straight line, while its distances on
+    the skin stay those of the plain edge graph."""
+    from canrig_jax.data import load_ict
+    from canrig_jax.mesh import edge_graph, weighted_geodesic_distance
+
+    head = load_ict(data_dir, parts=["Face", "Eyelashes left", "Eyelashes right"])
+    neutral, faces = np.asarray(head.neutral, np.float32), np.asarray(head.faces)
+    n_face = head.part_vertex_range[0][1]
+    model = CANRig(face[0], key=jax.random.PRNGKey(0))  # any model: only distances are read
+    rig = NeuralRig(model, neutral, faces, bridge=True)
+    index = np.random.default_rng(1).choice(n_face, 8, replace=False)
+    near = np.asarray(rig.handles(index).distance)  # (V, H)
+    far = weighted_geodesic_distance(edge_graph(neutral, faces), index).T
+    assert np.isinf(far[n_face:]).all() and np.isfinite(near[n_face:]).all()
+    np.testing.assert_array_equal(near[:n_face], far[:n_face])
+    straight = np.linalg.norm(neutral[n_face:, None] - neutral[index][None], axis=-1)
+    assert (near[n_face:] >= straight - 1e-4).all()

@@ -13,6 +13,11 @@ the one forward pass: a solver differentiates it with respect to ``edit.displace
 and ``jax.vmap`` batches it over edits. By default the attention is block-sparse
 (``_layout.py``: each block of ~48 vertices attends only to the handles that reach it, exact);
 ``dense=True`` uses the dense (V x H) layout instead.
+
+Distances run along the mesh's edges, so a handle on the skin never reaches a part that is a
+separate piece of mesh (teeth, gums, eyelashes on a whole head): ``bridge=True`` measures
+them along ``mesh.bridged_edge_graph`` instead, where every vertex of such a part is one step
+(its 3D distance) from its nearest vertex of the largest piece.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from ..mesh import bridged_edge_graph
 from ._layout import (
     DENSE,
     BlockLayout,
@@ -158,12 +164,18 @@ class NeuralRig:
         *,
         edge_factor: np.ndarray | None = None,
         block_size: int = 48,
+        bridge: bool = False,
     ):
         if not isinstance(model, AbstractCANRig):
             raise TypeError(f"model: expected a CANRig model, got {type(model).__name__}")
         canonical = np.asarray(canonical, np.float32)
         self.model = model
-        self.graph = edge_graph(canonical, np.asarray(faces), edge_factor)
+        if bridge:
+            # exit edges lead out of the floating parts (teeth, eyelashes): reversed, the paths
+            # from a handle on the skin lead into them (distances are measured from handles)
+            self.graph = bridged_edge_graph(canonical, np.asarray(faces), edge_factor).T.tocsr()
+        else:
+            self.graph = edge_graph(canonical, np.asarray(faces), edge_factor)
         self.canonical = jnp.asarray(canonical)
         self.faces = np.asarray(faces)
         self.queries = eqx.filter_jit(type(model).encode_queries)(model, self.canonical)
