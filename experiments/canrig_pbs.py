@@ -128,6 +128,14 @@ def _parser():
         "eyelashes and the other floating parts reach the skin handles) or 'mesh' (edges "
         "only: those parts are out of every handle's reach; the runs before 2026-12-02)",
     )
+    parser.add_argument(
+        "--handles-on",
+        choices=("skin", "moving"),
+        default="skin",
+        help="where training handles are drawn and Table 5's handles placed: the skin (Face, "
+        "Head and Neck; the protocol) or every part that moves (a variant: handles may sit on "
+        "the teeth, gums, eyelashes)",
+    )
     parser.add_argument("--no-progress", action="store_true")
     return parser
 
@@ -183,13 +191,15 @@ def _whole_head(args):
         basis=basis,
         picked=picked,
         skin=skin,
+        handle_region=skin if args.handles_on == "skin" else active,
         graph=(bridged_edge_graph if args.graph == "bridged" else edge_graph)(neutral, faces),
     )
 
 
 def _training_set(args, head):
+    region = head["handle_region"]
     pool = np.random.default_rng([0, 3]).choice(
-        np.flatnonzero(head["skin"]), min(POOL_SIZE, int(head["skin"].sum())), replace=False
+        np.flatnonzero(region), min(POOL_SIZE, int(region.sum())), replace=False
     )
     distances = seed_distances(head["layout"], head["graph"])
     return build_pbs_training_set(
@@ -215,16 +225,23 @@ def _region_errors(head, error_mm: np.ndarray) -> dict:
 
 
 def _check_graph(args, folder: Path) -> None:
-    """Masks depend on the geodesic graph: refuse to resume or evaluate a masked model
-    trained on the other one (train.json says which; runs before the option: 'mesh')."""
+    """Refuse to resume or evaluate a model trained with another --handles-on, or a masked
+    model trained on the other --graph (train.json says which; before the options: 'mesh',
+    'skin')."""
     meta = folder / "train.json"
-    if folder.name.startswith("shape_transformer") or not meta.exists():
-        return  # the Shape Transformer has no masks
-    trained = json.loads(meta.read_text()).get("graph", "mesh")
-    if trained != args.graph:
-        raise ValueError(
-            f"--graph: {folder} was trained with --graph {trained}, this run uses {args.graph}"
-        )
+    if not meta.exists():
+        return
+    meta = json.loads(meta.read_text())
+    trained = {"handles_on": meta.get("handles_on", "skin")}
+    if not folder.name.startswith("shape_transformer"):  # the Shape Transformer has no masks
+        trained["graph"] = meta.get("graph", "mesh")
+    for name, value in trained.items():
+        if value != getattr(args, name):
+            flag = "--" + name.replace("_", "-")
+            raise ValueError(
+                f"{flag}: {folder} was trained with {flag} {value}, this run uses "
+                f"{getattr(args, name)}"
+            )
 
 
 def _train(args, argv, head):
@@ -255,6 +272,7 @@ def _train(args, argv, head):
             "train_minutes": seconds / 60,
             "options": options.to_dict(),
             "graph": args.graph,
+            "handles_on": args.handles_on,
             "history": history,
             "provenance": provenance(experiment_command(__file__, argv)),
         },
@@ -431,14 +449,17 @@ def main(argv=None):
     }
 
     # Table 5, GBS rows: handles by geodesic farthest points on the skin (Face, Head and
-    # Neck), reconstruction relative to the neutral (no base shape), error over every vertex
-    skin = head["skin"]
-    skin_index = np.flatnonzero(skin)
+    # Neck; --handles-on moving: on every part that moves), reconstruction relative to the
+    # neutral (no base shape), error over every vertex
+    region = head["handle_region"]
+    region_index = np.flatnonzero(region)
     local = np.full(len(neutral), -1)
-    local[skin_index] = np.arange(len(skin_index))
-    skin_faces = local[faces[skin[faces].all(axis=1)]]
-    graph = edge_graph(neutral[skin_index], skin_faces)
-    handles = skin_index[farthest_point_vertices(neutral[skin_index], args.handles, graph=graph)]
+    local[region_index] = np.arange(len(region_index))
+    region_faces = local[faces[region[faces].all(axis=1)]]
+    graph = edge_graph(neutral[region_index], region_faces)
+    handles = region_index[
+        farthest_point_vertices(neutral[region_index], args.handles, graph=graph)
+    ]
     offsets = test_shapes - neutral
     table5 = {}
     for name, shapes in (("gbs_pbs_basis", basis), ("gbs_ict_53", np.asarray(model.deltas))):
@@ -553,7 +574,13 @@ def main(argv=None):
             "train": f"capture frames 0-{len(capture_train) - 1} + {args.n_random} random poses",
             "test": f"capture frames {len(capture_train)}-{len(capture) - 1} + 100 random "
             "poses (held_out_poses)",
-            "handles": f"{args.handles} geodesic farthest points on the skin ({', '.join(SKIN)})",
+            "handles": f"{args.handles} geodesic farthest points on "
+            + (
+                f"the skin ({', '.join(SKIN)})"
+                if args.handles_on == "skin"
+                else "every moving part"
+            )
+            + f"; training handles drawn from the same region ({args.handles_on})",
             "masks": f"CANRig-PBS: radius {EVAL_RADIUS_CM} cm, falloff {EVAL_FALLOFF_PER_CM}/cm, "
             "evaluated at each patch's seed vertex (geodesic distance on the whole head, "
             + (
