@@ -678,6 +678,8 @@ def validate(args, argv=None) -> dict:
             f"(not training, not test), {len(truth)} heads",
             "split": HELDOUT_SPLIT,
             "static_mm": STATIC_MM,
+            "bases": "a residual checkpoint's row uses plain deformation transfer as its base; "
+            f"'+anchored_base' rows anchored DT (static_below = {ANCHOR_CM} cm)",
         },
         "provenance": provenance(experiment_command(__file__, argv)),
     }
