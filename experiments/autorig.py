@@ -119,6 +119,24 @@ def _held_out_dataset(args, config):
     )
 
 
+def _train_one(args, name, data, poses, options):
+    """Train (or resume) ``checkpoint_{name}.eqx`` in ``args.out``; (model, its record)."""
+    path = args.out / f"checkpoint_{name}.eqx"
+    result = train(
+        data, poses, options, checkpoint=path, progress=not args.no_progress, devices=args.devices
+    )
+    model, _, state = load_model(path)
+    print(f"{name}: {result.step} steps in {result.seconds / 60:.1f} min")
+    return model, {
+        "steps": result.step,
+        "minutes": result.seconds / 60,
+        "parameters": parameter_count(model),
+        "final_train_error_mm": state["history"][-1]["error_mm"],
+        "history": state["history"],
+        "options": options.to_dict(),
+    }
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, required=True, help="output folder")
@@ -260,20 +278,7 @@ def main(argv=None):
         if args.train_only not in (None, name):
             continue
         model_options = dataclasses.replace(options, **RAF_LOSSES[args.raf_loss], **overrides)
-        path = args.out / f"checkpoint_{name}.eqx"
-        result = train(
-            data, poses, model_options, checkpoint=path, progress=progress, devices=args.devices
-        )
-        models[name], _, state = load_model(path)
-        trained[name] = {
-            "steps": result.step,
-            "minutes": result.seconds / 60,
-            "parameters": parameter_count(models[name]),
-            "final_train_error_mm": state["history"][-1]["error_mm"],
-            "history": state["history"],
-            "options": model_options.to_dict(),
-        }
-        print(f"{name}: {result.step} steps in {result.seconds / 60:.1f} min")
+        models[name], trained[name] = _train_one(args, name, data, poses, model_options)
     if args.train_only in MODELS:
         return None
 
@@ -297,21 +302,8 @@ def main(argv=None):
             for head in dataset.train
         ]
         data = training_set(dataset.train, poses, k=options.k, progress=progress, base=base)
-        path = args.out / f"checkpoint_{name}.eqx"
-        result = train(
-            data, poses, residual_options, checkpoint=path, progress=progress, devices=args.devices
-        )
-        models[name], _, state = load_model(path)
-        trained[name] = {
-            "steps": result.step,
-            "minutes": result.seconds / 60,
-            "parameters": parameter_count(models[name]),
-            "final_train_error_mm": state["history"][-1]["error_mm"],
-            "history": state["history"],
-            "options": residual_options.to_dict(),
-            "base": "deformation_transfer" + (ANCHORED if static_below else ""),
-        }
-        print(f"{name}: {result.step} steps in {result.seconds / 60:.1f} min")
+        models[name], trained[name] = _train_one(args, name, data, poses, residual_options)
+        trained[name]["base"] = "deformation_transfer" + (ANCHORED if static_below else "")
         del data, base
     if args.train_only is not None:
         return None
