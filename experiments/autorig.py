@@ -119,6 +119,30 @@ def _held_out_dataset(args, config):
     )
 
 
+def _transfer_bases(dataset, head, correspondence, plain=None) -> dict:
+    """The residual models' bases on ``head``: plain and anchored deformation transfer of
+    every pose (``plain``: the plain one when already computed)."""
+    if plain is None:
+        plain = transfer_poses(dataset, head, correspondence)
+    anchored = transfer_poses(dataset, head, correspondence, static_below=ANCHOR_CM)
+    return {"plain": plain, "anchored": anchored}
+
+
+def _generated(models, rows, poses, head, bases, operators=None) -> dict:
+    """Each evaluation row's generated rig on ``head`` (row -> (model, base key or None))."""
+    return {
+        name: generate_rig(
+            models[model_name],
+            poses,
+            head.vertices,
+            head.faces,
+            operators=operators,
+            base=None if base is None else bases[base],
+        )
+        for name, (model_name, base) in rows.items()
+    }
+
+
 def _train_one(args, name, data, poses, options):
     """Train (or resume) ``checkpoint_{name}.eqx`` in ``args.out``; (model, its record)."""
     path = args.out / f"checkpoint_{name}.eqx"
@@ -323,22 +347,12 @@ def main(argv=None):
             truth_all.append(head.displacements)
             unit_scale.append(scale)
             correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
-            bases = {
-                "plain": transfer_poses(dataset, head, correspondence),
-                "anchored": transfer_poses(dataset, head, correspondence, static_below=ANCHOR_CM),
-            }
+            bases = _transfer_bases(dataset, head, correspondence)
             predicted_all["deformation_transfer"].append(bases["plain"])
             predicted_all["deformation_transfer" + ANCHORED].append(bases["anchored"])
             predicted_all["copy_deltas"].append(copy_poses(dataset, head, correspondence))
-            for name, (model_name, base) in rows.items():
-                generated = generate_rig(
-                    models[model_name],
-                    poses,
-                    head.vertices,
-                    head.faces,
-                    operators=operators,
-                    base=None if base is None else bases[base],
-                )
+            generated_rigs = _generated(models, rows, poses, head, bases, operators=operators)
+            for name, generated in generated_rigs.items():
                 predicted_all[name].append(generated.displacements)
                 pen[name].append(penetration(head, generated.displacements, part_names))
             pen["ground_truth"].append(penetration(head, head.displacements, part_names))
@@ -514,24 +528,15 @@ def evaluate_makehuman(dataset, models: dict, data_dir) -> tuple[dict, dict, tup
     start = time.perf_counter()
     transferred = transfer_poses(dataset, mh, correspondence)
     seconds_transfer = time.perf_counter() - start
-    bases = {
-        "plain": transferred,
-        "anchored": transfer_poses(dataset, mh, correspondence, static_below=ANCHOR_CM),
-    }
+    bases = _transfer_bases(dataset, mh, correspondence, plain=transferred)
     predictions = {
         "no_motion": np.zeros_like(transferred),
         "copy_deltas": copy_poses(dataset, mh, correspondence),
         "deformation_transfer": transferred,
         "deformation_transfer" + ANCHORED: bases["anchored"],
     }
-    for name, (model_name, base) in evaluation_rows(models).items():
-        predictions[name] = generate_rig(
-            models[model_name],
-            poses,
-            mh.neutral,
-            mh.faces,
-            base=None if base is None else bases[base],
-        ).displacements
+    for name, generated in _generated(models, evaluation_rows(models), poses, mh, bases).items():
+        predictions[name] = generated.displacements
     target_index, matrix = shared_shape_matrix(poses.basis_names, mh.names)
     truth = mh.deltas[target_index]
     singles = {
@@ -644,24 +649,13 @@ def validate(args, argv=None) -> dict:
     truth = []
     for head in dataset.test[HELDOUT_SPLIT]:
         correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
-        bases = {
-            "plain": transfer_poses(dataset, head, correspondence),
-            "anchored": transfer_poses(dataset, head, correspondence, static_below=ANCHOR_CM),
-        }
+        bases = _transfer_bases(dataset, head, correspondence)
         truth.append(head.displacements)
         predicted["no_motion"].append(np.zeros_like(head.displacements))
         predicted[dt[0]].append(bases["plain"])
         predicted[dt[1]].append(bases["anchored"])
-        for name, (model_name, base) in rows.items():
-            predicted[name].append(
-                generate_rig(
-                    models[model_name],
-                    poses,
-                    head.vertices,
-                    head.faces,
-                    base=None if base is None else bases[base],
-                ).displacements
-            )
+        for name, generated in _generated(models, rows, poses, head, bases).items():
+            predicted[name].append(generated.displacements)
         print(f"validated {head.name}")
     results = {
         "validation": {name: class_errors(p, truth, poses) for name, p in predicted.items()},
@@ -716,24 +710,15 @@ def refresh_penetration(args, argv=None) -> dict:
     chosen, kept_vertices = [], []
     for head in dataset.test[HELDOUT_SPLIT]:
         correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
-        bases = {
-            "plain": transfer_poses(dataset, head, correspondence),
-            "anchored": transfer_poses(dataset, head, correspondence, static_below=ANCHOR_CM),
-        }
+        bases = _transfer_bases(dataset, head, correspondence)
         predicted = {
             "no_motion": np.zeros_like(head.displacements),
             "deformation_transfer": bases["plain"],
             "deformation_transfer" + ANCHORED: bases["anchored"],
             "ground_truth": head.displacements,
         }
-        for name, (model_name, base) in rows.items():
-            predicted[name] = generate_rig(
-                models[model_name],
-                poses,
-                head.vertices,
-                head.faces,
-                base=None if base is None else bases[base],
-            ).displacements
+        for name, generated in _generated(models, rows, poses, head, bases).items():
+            predicted[name] = generated.displacements
         pose_index, vertices = penetration_free_set(head, part_names)
         chosen.append(pose_index)
         kept_vertices.append(int(vertices.sum()))
