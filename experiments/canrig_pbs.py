@@ -56,14 +56,20 @@ from canrig_jax.canrig import (  # noqa: E402
     weighted_geodesic_distance,
 )
 from canrig_jax.data import load_ict, load_livelinkface  # noqa: E402
-from canrig_jax.mesh import bridged_edge_graph, edge_graph, farthest_point_vertices  # noqa: E402
+from canrig_jax.mesh import (  # noqa: E402
+    attached_edge_graph,
+    bridged_edge_graph,
+    edge_graph,
+    farthest_point_vertices,
+)
 from canrig_jax.render import plot_vertex_scalar, save_figure  # noqa: E402
 from canrig_jax.rig import evaluate_batch, ict_quartic_rig, random_sparse_poses  # noqa: E402
 
 SKIN = ("Face", "Head and Neck")
+MOUTH_INTERIOR = ("Mouth socket", "Gums and tongue", "Teeth")
 REGIONS = {  # Table 5 broken down by where the error is (ICT part names)
     "face": ("Face",),
-    "mouth_interior": ("Mouth socket", "Gums and tongue", "Teeth"),
+    "mouth_interior": MOUTH_INTERIOR,
     "eye_parts": (
         "Eye socket left",
         "Eye socket right",
@@ -122,11 +128,25 @@ def _parser():
     )
     parser.add_argument(
         "--graph",
-        choices=("bridged", "mesh"),
+        choices=("bridged", "mesh", "attached"),
         default="bridged",
         help="geodesics of the masks: 'bridged' (mesh.bridged_edge_graph: teeth, gums, "
-        "eyelashes and the other floating parts reach the skin handles) or 'mesh' (edges "
-        "only: those parts are out of every handle's reach; the runs before 2026-12-02)",
+        "eyelashes and the other floating parts reach the skin handles), 'mesh' (edges "
+        "only: those parts are out of every handle's reach; the runs before 2026-12-02) or "
+        "'attached' (a variant: bridged, and the --attach parts one-way exits onto the "
+        "nearest vertex of the --attach-onto parts, mesh.attached_edge_graph)",
+    )
+    parser.add_argument(
+        "--attach",
+        nargs="+",
+        default=list(MOUTH_INTERIOR),
+        help="--graph attached: the ICT parts measured from the --attach-onto parts",
+    )
+    parser.add_argument(
+        "--attach-onto",
+        nargs="+",
+        default=["Face"],
+        help="--graph attached: the ICT parts the --attach parts exit onto (nearest vertex, 3D)",
     )
     parser.add_argument(
         "--handles-on",
@@ -192,8 +212,36 @@ def _whole_head(args):
         picked=picked,
         skin=skin,
         handle_region=skin if args.handles_on == "skin" else active,
-        graph=(bridged_edge_graph if args.graph == "bridged" else edge_graph)(neutral, faces),
+        graph=_graph(args, model, neutral, faces),
     )
+
+
+def _part_mask(model, names, flag) -> np.ndarray:
+    """(N,) the vertices of the named ICT parts; ValueError naming ``flag`` for an unknown
+    name."""
+    ranges = dict(zip(model.part_names, model.part_vertex_range, strict=True))
+    unknown = [name for name in names if name not in ranges]
+    if unknown:
+        raise ValueError(f"{flag}: unknown ICT parts {unknown}; parts: {list(ranges)}")
+    mask = np.zeros(model.neutral.shape[0], bool)
+    for name in names:
+        mask[slice(*ranges[name])] = True
+    return mask
+
+
+def _graph(args, model, neutral, faces):
+    """The masks' edge graph (--graph)."""
+    if args.graph == "mesh":
+        return edge_graph(neutral, faces)
+    graph = bridged_edge_graph(neutral, faces)
+    if args.graph == "attached":
+        graph = attached_edge_graph(
+            graph,
+            neutral,
+            _part_mask(model, args.attach, "--attach"),
+            _part_mask(model, args.attach_onto, "--attach-onto"),
+        )
+    return graph
 
 
 def _training_set(args, head):
@@ -235,6 +283,9 @@ def _check_graph(args, folder: Path) -> None:
     trained = {"handles_on": meta.get("handles_on", "skin")}
     if not folder.name.startswith("shape_transformer"):  # the Shape Transformer has no masks
         trained["graph"] = meta.get("graph", "mesh")
+        if trained["graph"] == "attached" and args.graph == "attached":
+            trained["attach"] = meta["attach"]
+            trained["attach_onto"] = meta["attach_onto"]
     for name, value in trained.items():
         if value != getattr(args, name):
             flag = "--" + name.replace("_", "-")
@@ -272,6 +323,11 @@ def _train(args, argv, head):
             "train_minutes": seconds / 60,
             "options": options.to_dict(),
             "graph": args.graph,
+            **(
+                {"attach": args.attach, "attach_onto": args.attach_onto}
+                if args.graph == "attached"
+                else {}
+            ),
             "handles_on": args.handles_on,
             "history": history,
             "provenance": provenance(experiment_command(__file__, argv)),
@@ -583,12 +639,16 @@ def main(argv=None):
             + f"; training handles drawn from the same region ({args.handles_on})",
             "masks": f"CANRig-PBS: radius {EVAL_RADIUS_CM} cm, falloff {EVAL_FALLOFF_PER_CM}/cm, "
             "evaluated at each patch's seed vertex (geodesic distance on the whole head, "
-            + (
-                "bridged: every floating part's vertices step to their nearest skin-component "
-                "vertex)"
-                if args.graph == "bridged"
-                else "mesh edges only: teeth, gums, eyelashes out of reach)"
-            ),
+            + {
+                "bridged": "bridged: every floating part's vertices step to their nearest "
+                "skin-component vertex)",
+                "mesh": "mesh edges only: teeth, gums, eyelashes out of reach)",
+                "attached": "bridged, and the vertices of "
+                + ", ".join(args.attach)
+                + " one-way exits onto their nearest vertex of "
+                + ", ".join(args.attach_onto)
+                + ", straight through the mouth cavity: mesh.attached_edge_graph)",
+            }[args.graph],
             "forward": "one call at 200 handles (ms, median): the whole-head shape from the "
             "handle displacements; dense_per_vertex_reference: an untrained per-vertex "
             "ShapePreservingCANRig with the same encoder on all 26,719 vertices, dense masks",

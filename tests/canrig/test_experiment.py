@@ -36,3 +36,30 @@ def test_quick_train_and_eval_write_the_issue_keys(tmp_path):
     assert results["blocked_vs_dense_max_mm"] < 1e-3
     for name in ("table.md", "mask_radii.png", "heldout_error.png", "training_loss.png"):
         assert (tmp_path / name).exists()
+
+
+def test_pbs_graph_options_name_parts_and_refuse_another_attachment(tmp_path):
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    pbs = _load("canrig_pbs")
+    model = SimpleNamespace(
+        part_names=["Face", "Teeth"], part_vertex_range=[(0, 3), (3, 5)], neutral=np.zeros((5, 3))
+    )
+    np.testing.assert_array_equal(
+        pbs._part_mask(model, ["Teeth"], "--attach"), [False, False, False, True, True]
+    )
+    with pytest.raises(ValueError, match="--attach-onto: unknown ICT parts"):
+        pbs._part_mask(model, ["Lips"], "--attach-onto")
+    folder = tmp_path / "per_patch"
+    folder.mkdir()
+    meta = {"graph": "attached", "attach": ["Teeth"], "attach_onto": ["Face"]}
+    (folder / "train.json").write_text(json.dumps(meta))
+    args = pbs._parser().parse_args(["--out", str(tmp_path), "--graph", "attached"])
+    with pytest.raises(ValueError, match="--attach: "):  # trained with Teeth only
+        pbs._check_graph(args, folder)
+    args.attach = ["Teeth"]
+    pbs._check_graph(args, folder)  # the same attachment resumes
+    with pytest.raises(ValueError, match="--graph: "):
+        pbs._check_graph(pbs._parser().parse_args(["--out", str(tmp_path)]), folder)

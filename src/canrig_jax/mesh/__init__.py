@@ -13,6 +13,7 @@ from ._deformation_gradient import (
     triangle_frames,
 )
 from ._geodesic import (
+    attached_edge_graph,
     bridged_edge_graph,
     edge_graph,
     farthest_point_vertices,
@@ -55,6 +56,7 @@ __all__ = [
     "DeformationGradientBlend",
     "FallbackCounts",
     "connected_components",
+    "attached_edge_graph",
     "bridged_edge_graph",
     "edge_graph",
     "farthest_point_vertices",

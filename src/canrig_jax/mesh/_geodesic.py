@@ -11,6 +11,14 @@ adds one directed "exit" edge from every vertex of every other component to its 
 vertex (3D) of the main one: shortest paths lead out of a small part onto the skin, never
 into one and out again, so no path between two skin vertices takes a shortcut through the
 teeth across the mouth gap.
+
+A part may also be reached from a chosen stretch of surface rather than the nearest one:
+``attached_edge_graph`` adds a directed edge from every vertex of the given parts to its
+nearest vertex (3D) of a target set (the mouth interior onto the face skin, so a tooth is
+measured from the lips' inner surface, straight through the mouth cavity, rather than along
+the socket wall), and removes the edges that lead into those parts from outside: paths leave
+them, none enters, so distances between two vertices outside them are those of the graph
+without them.
 """
 
 from __future__ import annotations
@@ -88,6 +96,62 @@ def bridged_edge_graph(
         (np.maximum(length, MIN_EDGE_LENGTH), (others, main[nearest])), shape=(n, n)
     )
     return (graph + exits).tocsr()
+
+
+def attached_edge_graph(
+    graph: sp.csr_matrix, vertices: np.ndarray, attach: ArrayLike, onto: ArrayLike
+) -> sp.csr_matrix:
+    """``graph`` (``edge_graph`` or ``bridged_edge_graph``, (V, V)) with the vertices of
+    ``attach`` (a (V,) boolean mask) made one-way exits onto ``onto`` (a (V,) boolean mask,
+    disjoint from ``attach``).
+
+    Every edge from a vertex outside ``attach`` into it is removed, its edges within and out
+    of it are kept, and each of its vertices gets a directed edge (weight: the 3D distance) to
+    its nearest vertex of ``onto``. Distances from a vertex of ``attach`` to the rest are
+    finite (if ``onto`` is reachable) and at most the straight line to ``onto`` plus the path
+    on from there; no path between two vertices outside ``attach`` passes through it, so
+    their distances are those of ``graph`` with ``attach`` deleted (unchanged wherever no
+    shortest path ran through it). As ``bridged_edge_graph``: sources anywhere, targets
+    outside ``attach``; the transpose for paths from outside into it.
+    """
+    graph = _check_graph(graph).tocsr()
+    vertices = check_vertices(vertices)
+    n = len(vertices)
+    if graph.shape != (n, n):
+        raise ValueError(f"graph: expected shape ({n}, {n}), got {graph.shape}")
+    masks = []
+    for name, value in (("attach", attach), ("onto", onto)):
+        value = np.asarray(value)
+        if value.shape != (n,) or value.dtype != bool:
+            raise ValueError(
+                f"{name}: expected a ({n},) boolean mask, got {value.dtype} {value.shape}"
+            )
+        masks.append(value)
+    attach, onto = masks
+    if not attach.any():
+        raise ValueError("attach: selects no vertex")
+    if not onto.any():
+        raise ValueError("onto: selects no vertex")
+    if (attach & onto).any():
+        raise ValueError(f"onto: shares {(attach & onto).sum()} vertices with attach")
+    coo = graph.tocoo()
+    keep = ~(attach[coo.col] & ~attach[coo.row])  # no edge into attach from outside
+    targets = np.flatnonzero(onto)
+    sources = np.flatnonzero(attach)
+    length, nearest = cKDTree(vertices[targets]).query(vertices[sources])
+    rows = np.concatenate([coo.row[keep], sources])
+    cols = np.concatenate([coo.col[keep], targets[nearest]])
+    data = np.concatenate([coo.data[keep], np.maximum(length, MIN_EDGE_LENGTH)])
+    # an exit may repeat a kept edge (onto a neighbour): keep the shorter, not their sum
+    return _min_duplicates(rows, cols, data, n)
+
+
+def _min_duplicates(rows, cols, data, n) -> sp.csr_matrix:
+    """A csr matrix keeping the smallest weight of repeated (row, col) entries."""
+    key = rows.astype(np.int64) * n + cols
+    order = np.lexsort((data, key))
+    key, first = np.unique(key[order], return_index=True)
+    return sp.csr_matrix((data[order][first], (key // n, key % n)), shape=(n, n))
 
 
 def _check_graph(graph) -> sp.csr_matrix:
