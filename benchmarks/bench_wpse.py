@@ -9,6 +9,9 @@ some blendshape moves by more than 1 micrometre. Run time is one frame per call 
 ``NumpyEditEvaluator`` (the same equations in NumPy) in the same process; also per frame of
 ``jax.vmap(wpse.apply)`` over all probe frames in one call (evaluating a whole take). The
 1-minute load average is printed: the 2-core machine is shared, and timings scale with it.
+
+A second table times the run time's distance product (S, K) x (K, P) alone, at P and at
+``wpse.dot_width(P)`` (the padded width ``apply`` uses), alternating the two in one process.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import time
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from canrig_jax import save_text, wpse
@@ -65,10 +69,45 @@ def main(argv=None):
                 f"{1e3 * np.median(numpy_times):.2f} | {os.getloadavg()[0]:.1f} |"
             )
             print(lines[-1], flush=True)
+        widths = _dot_widths(model.metric, args.repeats) if part == "head" else []
+    lines += ["", *widths]
     table = "\n".join(lines) + "\n"
     save_text(args.out, table)
     print(table)
     print(f"wrote {args.out}")
+
+
+def _dot_widths(metric, repeats: int) -> list[str]:
+    """Table rows: ms per distance product at P columns and padded to ``dot_width(P)``."""
+    rows = [
+        f"Distance product ({metric.shape[0]} x {metric.shape[1]}) x ({metric.shape[1]} x P), "
+        "median ms over alternating calls:",
+        "",
+        "| P | at P | at dot_width(P) | dot_width(P) |",
+        "|---|---|---|---|",
+    ]
+    product = jax.jit(lambda m, d: m @ d.T)
+    for p in (10, 20, 48, 50, 100):
+        rng = np.random.default_rng(p)
+        right = {
+            w: jnp.asarray(rng.random((w, metric.shape[1]), np.float32))
+            for w in {p, wpse.dot_width(p)}
+        }
+        times = {w: [] for w in right}
+        for d in right.values():
+            jax.block_until_ready(product(metric, d))
+        for _ in range(repeats):
+            for w, d in right.items():
+                start = time.perf_counter()
+                jax.block_until_ready(product(metric, d))
+                times[w].append(time.perf_counter() - start)
+        padded = wpse.dot_width(p)
+        rows.append(
+            f"| {p} | {1e3 * np.median(times[p]):.2f} | {1e3 * np.median(times[padded]):.2f} "
+            f"| {padded} |"
+        )
+        print(rows[-1], flush=True)
+    return rows
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 
 from canrig_jax.wpse import (
     blendshape_metric,
+    dot_width,
     euclidean_metric,
     gaussian_kernel,
     pairwise_pose_distance_sq,
@@ -33,8 +34,9 @@ def test_unmoved_vertex_gets_uniform_metric():
 
 
 @settings(max_examples=20, deadline=None)
-@given(st.integers(1, 6), st.integers(1, 5), st.integers(0, 10_000))
+@given(st.integers(1, 6), st.sampled_from([1, 5, 16, 17, 33, 50, 64, 70]), st.integers(0, 10_000))
 def test_distances_match_a_loop(s, p, seed):
+    """Also past the widths the product is padded to (``dot_width``): padding is exact."""
     rng = np.random.default_rng(seed)
     k = 4
     metric = rng.uniform(0, 1, (s, k)).astype(np.float32)
@@ -48,10 +50,17 @@ def test_distances_match_a_loop(s, p, seed):
     )
     np.testing.assert_allclose(pose_distance_sq(metric, w, poses), expected, rtol=1e-5, atol=1e-6)
     pair = np.asarray(pairwise_pose_distance_sq(metric, poses))
-    for i in range(p):
+    for i in range(min(p, 5)):
         np.testing.assert_allclose(
             pair[:, i], pose_distance_sq(metric, poses[i], poses), rtol=1e-5, atol=1e-6
         )
+
+
+@pytest.mark.parametrize("p", [1, 10, 16, 17, 32, 48, 50, 64, 65, 100])
+def test_dot_width_covers_every_edit(p):
+    width = dot_width(p)
+    assert p <= width < p + 32
+    assert width % 16 == 0
 
 
 def test_euclidean_metric_and_kernel():

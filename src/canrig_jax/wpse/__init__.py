@@ -21,6 +21,7 @@ from ._fsm import coactivation_pairs, fix_shape_rig
 from ._layers import LayeredEdits, apply_layered, assign_layers, fit_layered
 from ._metric import (
     blendshape_metric,
+    dot_width,
     euclidean_metric,
     gaussian_kernel,
     pairwise_pose_distance_sq,
@@ -106,6 +107,7 @@ __all__ = [
     "local_to_world",
     "loo_error",
     "loo_residuals",
+    "dot_width",
     "pairwise_pose_distance_sq",
     "pose_distance_sq",
     "prepare_edits",

@@ -47,8 +47,23 @@ def euclidean_metric(n_blendshapes: int) -> Float[np.ndarray, "1 K"]:
 def pose_distance_sq(
     metric: Float[Array, "S K"], weights: Float[Array, " K"], poses: Float[Array, "P K"]
 ) -> Float[Array, "S P"]:
-    """Squared per-vertex distances sum_j alpha_{v,j} (w_j - w_{j,i})^2 as one matmul."""
-    return metric @ ((weights[None, :] - poses) ** 2).T
+    """Squared per-vertex distances sum_j alpha_{v,j} (w_j - w_{j,i})^2 as one matmul.
+
+    The (K, P) right operand is padded with zero columns to ``dot_width(P)`` and the product
+    sliced back (exact: the padding only adds columns that are dropped)."""
+    diff_sq = (weights[None, :] - poses) ** 2  # (P, K)
+    p = poses.shape[0]
+    diff_sq = jnp.pad(diff_sq, ((0, dot_width(p) - p), (0, 0)))
+    return (metric @ diff_sq.T)[:, :p]
+
+
+def dot_width(p: int) -> int:
+    """Columns the (S, K) x (K, P) distance product is computed with: 16 up to 16, else the
+    next multiple of 32. XLA's CPU matmul is much slower for other widths; measured on this
+    project's 2-core machine at S = 19,190, K = 53 (ms per product, ``benchmarks/bench_wpse.py``
+    re-measures it): P = 50 1.59 against 1.12 at 64, 48 1.30 against 1.12 at 64, 10 0.75
+    against 0.64 at 16, 100 2.57 against 1.99 at 128."""
+    return 16 if p <= 16 else -(-p // 32) * 32
 
 
 def pairwise_pose_distance_sq(
