@@ -349,7 +349,35 @@ def test_part_matching_on_makehuman_is_plausible_and_reported(ict_head, data_dir
         )
 
 
-@pytest.mark.slow  # ~1 min: the ICT pose source, an ICP fit and two transfers
+def test_anchor_modes_label_the_ict_parts_and_refuse_bad_input(ict_head):
+    """``anchor_parts``: no labels per vertex; per part, ICT's connected components; with the
+    skin per vertex, the largest component (face, head and neck, mouth and eye sockets:
+    vertices 0..14061) -1 and the others unchanged. Bad modes and per-part anchoring without
+    a threshold are refused, naming the argument."""
+    from types import SimpleNamespace
+
+    from canrig_jax.autorig import ANCHOR_MODES, anchor_parts, transfer_poses
+    from canrig_jax.mesh import connected_components
+
+    assert ANCHOR_MODES == ("vertex", "part", "skin_vertex")
+    assert anchor_parts(ict_head, "vertex") is None
+    components = connected_components(ict_head.faces, ict_head.n_vertices)
+    np.testing.assert_array_equal(anchor_parts(ict_head, "part"), components)
+    skin_vertex = anchor_parts(ict_head, "skin_vertex")
+    skin = skin_vertex == -1
+    assert skin.sum() == 14062 and skin[:14062].all()
+    np.testing.assert_array_equal(skin_vertex[~skin], components[~skin])
+    assert len(np.unique(components[~skin])) > 50  # teeth, gums, eyes, lashes: each its own
+    with pytest.raises(ValueError, match="^anchor:"):
+        anchor_parts(ict_head, "face")
+    source = SimpleNamespace(head=ict_head)
+    with pytest.raises(ValueError, match="^anchor:"):
+        transfer_poses(source, ict_head, anchor="part")  # no static_below
+    with pytest.raises(ValueError, match="^anchor:"):
+        transfer_poses(source, ict_head, static_below=1e-3, anchor="whole")
+
+
+@pytest.mark.slow  # ~1 min: the ICT pose source, an ICP fit and three transfers
 def test_transfer_poses_needs_only_the_head(data_dir):
     """Deformation transfer onto a held-out-like ICT identity given as a bare mesh (vertices
     and faces, no landmarks, no ground truth): the landmarks are fitted, and the transfer
@@ -392,5 +420,32 @@ def test_transfer_poses_needs_only_the_head(data_dir):
 
     assert static_mae(anchored) < 0.2 * static_mae(with_landmarks)
     assert mae(anchored) <= mae(with_landmarks)
+    # per-part anchoring: each of the head's parts is held exactly when the ICT part it is
+    # matched to is still in that pose, as a whole, and never while that part moves
+    from canrig_jax.autorig import head_correspondence
+    from canrig_jax.mesh import connected_components
+
+    correspondence = head_correspondence(source, truth.vertices, truth.faces, truth.landmarks)
+    per_part = transfer_poses(
+        source, truth, correspondence, static_below=STATIC_MM / 10, anchor="part"
+    )
+    held = np.all(per_part == 0.0, axis=-1)  # (P, V)
+    source_labels = connected_components(source.head.faces, source.head.n_vertices)
+    target_labels = connected_components(truth.faces, truth.n_vertices)
+    motion = np.linalg.norm(source.head_displacements, axis=-1)  # (P, Vs)
+    cases = {"still": 0, "moving": 0}
+    for label in np.unique(target_labels):
+        members = target_labels == label
+        matched = source_labels == correspondence.component_match[label]
+        peak = motion[:, matched].max(axis=1)  # (P,)
+        still, moving = peak < 0.5 * STATIC_MM / 10, peak > 2 * STATIC_MM / 10
+        assert held[np.ix_(still, members)].all()
+        assert not held[np.ix_(moving, members)].any()
+        cases["still"] += int(still.sum())
+        cases["moving"] += int(moving.sum())
+    assert cases["still"] > 100 and cases["moving"] > 100
+    # the skin moves in every pose: held nowhere per part, but per vertex partly
+    skin = target_labels == np.bincount(target_labels).argmax()
+    assert not held[:, skin].any() and not np.all(anchored[:, skin] == 0, axis=-1).all()
     with pytest.raises(ValueError, match="head: .*faces"):
         transfer_poses(source, SimpleNamespace(vertices=truth.vertices))

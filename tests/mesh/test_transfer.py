@@ -8,6 +8,7 @@ import pytest
 from canrig_jax.data import FACE, ict_identity, load_ict
 from canrig_jax.mesh import (
     closest_point_correspondence,
+    connected_components,
     decimate,
     identity_correspondence,
     similarity_transform,
@@ -180,3 +181,86 @@ def test_anchored_transfer_bad_threshold(face, face_rig, bad):
     correspondence = identity_correspondence(face.faces, face.n_vertices)
     with pytest.raises(ValueError, match="^static_below:"):
         deformation_transfer(face_rig, face.neutral, correspondence, static_below=bad)
+
+
+@pytest.fixture(scope="module")
+def mouth_and_eye(data_dir):
+    """ICT's gums and tongue, teeth and left eyeball: separate parts, of which some move as a
+    whole (the lower teeth with the jaw), some never (the eyeball) and one partly (the gums
+    and tongue: the lower gums and the tongue follow the jaw, the upper gums stay)."""
+    return load_ict(data_dir, parts=("Gums and tongue", "Teeth", "Eyeball left"))
+
+
+def test_per_part_anchoring_holds_whole_parts_only(data_dir, mouth_and_eye):
+    """Per-part anchoring on real ICT parts (an identity's shape): a part whose source is still
+    in an expression is held at exactly zero; a part that moves anywhere is never held (no
+    vertex of it exactly zero), although per-vertex anchoring holds part of it; all labels -1
+    is per-vertex anchoring, bit for bit."""
+    model = mouth_and_eye
+    chosen = [model.names.index(n) for n in ("jawOpen", "jawLeft", "browDown_L", "eyeBlink_L")]
+    rig = BlendshapeRig(
+        model.neutral, model.deltas[chosen], (), [model.names[i] for i in chosen], model.faces
+    )
+    target = ict_identity(np.random.default_rng(5).standard_normal(100), data_dir, model=model)
+    correspondence = identity_correspondence(model.faces, model.n_vertices)
+    labels = connected_components(model.faces, model.n_vertices)
+    per_part = np.asarray(
+        deformation_transfer(
+            rig, target, correspondence, static_below=STATIC_CM, static_parts=labels
+        ).deltas
+    )
+    per_vertex = np.asarray(
+        deformation_transfer(rig, target, correspondence, static_below=STATIC_CM).deltas
+    )
+    # the carried-neutral similarity scales the threshold (~1 here): a 2x margin either way
+    scale, _, _ = similarity_transform(model.neutral, target)
+    assert 0.9 < scale < 1.1
+    motion = np.linalg.norm(model.deltas[chosen], axis=-1)  # (4, V)
+    held = np.all(per_part == 0.0, axis=-1)
+    counts = {"still": 0, "moving": 0, "split_by_vertex": 0}
+    for part in np.unique(labels):
+        members = labels == part
+        for k in range(len(chosen)):
+            peak = motion[k, members].max()
+            if peak < 0.5 * STATIC_CM:
+                assert held[k, members].all()
+                counts["still"] += 1
+            elif peak > 2 * STATIC_CM:
+                assert not held[k, members].any(), (rig.names[k], int(part))
+                counts["moving"] += 1
+                vertex_held = np.all(per_vertex[k, members] == 0.0, axis=-1)
+                counts["split_by_vertex"] += int(vertex_held.any())
+    # every case occurs: still parts, moving parts, moving parts per-vertex anchoring splits
+    assert counts["still"] > 10 and counts["moving"] > 10 and counts["split_by_vertex"] > 0
+    everywhere = deformation_transfer(
+        rig,
+        target,
+        correspondence,
+        static_below=STATIC_CM,
+        static_parts=np.full(model.n_vertices, -1),
+    )
+    np.testing.assert_array_equal(np.asarray(everywhere.deltas), per_vertex)
+
+
+@pytest.mark.parametrize(
+    ("labels", "threshold"),
+    [
+        (np.zeros(3, np.int64), STATIC_CM),  # wrong length
+        ("float", STATIC_CM),
+        ("minus_two", STATIC_CM),
+        ("zeros", None),  # per-part anchoring without a threshold
+    ],
+)
+def test_per_part_anchoring_bad_labels(face, face_rig, labels, threshold):
+    correspondence = identity_correspondence(face.faces, face.n_vertices)
+    if isinstance(labels, str):
+        labels = {
+            "float": np.zeros(face.n_vertices),
+            "minus_two": np.full(face.n_vertices, -2),
+            "zeros": np.zeros(face.n_vertices, np.int64),
+        }[labels]
+    rig = BlendshapeRig(face.neutral, face.deltas[:2], (), face.names[:2], face.faces)
+    with pytest.raises(ValueError, match="^static_parts:"):
+        deformation_transfer(
+            rig, face.neutral, correspondence, static_below=threshold, static_parts=labels
+        )

@@ -1,9 +1,11 @@
 """RigAnyFace: DiffusionNet in equinox, the FACS-conditioned auto-rigger, its data and metrics."""
 
 from ._data import (
+    ANCHOR_MODES,
     AutorigDataset,
     PoseSet,
     RiggedHead,
+    anchor_parts,
     copy_poses,
     face_placement,
     fit_head_landmarks,
@@ -67,6 +69,8 @@ from ._train import (
 
 __all__ = [
     "ACTIVE_MM",
+    "ANCHOR_MODES",
+    "anchor_parts",
     "MakeHumanHead",
     "load_makehuman",
     "STATIC_CM",

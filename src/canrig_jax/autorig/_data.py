@@ -27,6 +27,7 @@ from ..data import ICTFaceModel, ict_identity, load_ict
 from ..mesh import (
     Remeshed,
     closest_point_correspondence,
+    connected_components,
     decimate,
     similarity_transform,
     subdivide,
@@ -422,8 +423,34 @@ def _correspondence_of(dataset: AutorigDataset, head):
     return head_correspondence(dataset, head.vertices, head.faces, landmarks)
 
 
+ANCHOR_MODES = ("vertex", "part", "skin_vertex")
+"""How ``transfer_poses`` anchors (``anchor=``): per vertex; per part (the generic head's
+connected components, each held as a whole or not at all); or per vertex on the skin (the
+head's largest component: face, head and neck, mouth and eye sockets) and per part
+elsewhere."""
+
+
+def anchor_parts(head: ICTFaceModel, anchor: str) -> np.ndarray | None:
+    """The ``static_parts`` labels of ``transfer_deltas`` for an ``ANCHOR_MODES`` entry on
+    the generic ICT head: None for "vertex"; its connected components for "part"; the same
+    with the largest component (the skin) -1 (per vertex) for "skin_vertex"."""
+    if anchor not in ANCHOR_MODES:
+        raise ValueError(f"anchor: expected one of {ANCHOR_MODES}, got {anchor!r}")
+    if anchor == "vertex":
+        return None
+    labels = connected_components(np.asarray(head.faces), head.n_vertices).astype(np.int64)
+    if anchor == "skin_vertex":
+        labels[labels == np.bincount(labels).argmax()] = -1
+    return labels
+
+
 def transfer_poses(
-    dataset: AutorigDataset, head, correspondence=None, *, static_below: float | None = None
+    dataset: AutorigDataset,
+    head,
+    correspondence=None,
+    *,
+    static_below: float | None = None,
+    anchor: str = "vertex",
 ) -> np.ndarray:
     """The deformation-transfer baseline: every ground-truth pose of the generic ICT head
     carried onto ``head`` (Sumner & Popović; landmark + closest-point correspondence).
@@ -438,9 +465,16 @@ def transfer_poses(
         static_below: anchored transfer (``deformation_transfer(static_below=)``): per pose,
             the vertices whose carried ICT displacement is shorter than this (cm; e.g.
             ``STATIC_MM / 10``, the static threshold) stay exactly still. None: plain DT.
+        anchor: with ``static_below``, what is held (``ANCHOR_MODES``): "vertex" (default)
+            each vertex by its own carried displacement; "part" a vertex only when the whole
+            ICT connected component it is matched to is still in that pose (a part is held as
+            a whole or not at all); "skin_vertex" per vertex on the skin, per part elsewhere.
 
     Returns (P, V, 3) displacements on ``head`` (centimetres)."""
     source = dataset.head
+    static_parts = anchor_parts(source, anchor)
+    if static_parts is not None and static_below is None:
+        raise ValueError(f"anchor: {anchor!r} anchoring needs static_below (a threshold)")
     source_rig = BlendshapeRig(
         source.neutral, dataset.head_displacements, (), dataset.poses.labels, source.faces
     )
@@ -449,7 +483,11 @@ def transfer_poses(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # "correctives are not transferred": there are none
         transferred = deformation_transfer(
-            source_rig, head.vertices, correspondence, static_below=static_below
+            source_rig,
+            head.vertices,
+            correspondence,
+            static_below=static_below,
+            static_parts=static_parts,
         )
     return np.asarray(transferred.deltas)
 

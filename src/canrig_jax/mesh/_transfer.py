@@ -20,7 +20,11 @@ Anchored transfer (``static_below``): the ridge is weak, so the solve lets motio
 regions the source leaves still (eyeballs, the back of the head move by a few hundredths of a
 millimetre). With a threshold, per expression the target vertices whose anchor a_k is shorter
 are held at exactly zero (Dirichlet constraints) and the system is solved on the others,
-factorised per expression.
+factorised per expression. Per-part anchoring (``static_parts``, labels of source parts):
+a target vertex is held only when the whole source part its surface point lies on moves less
+than the threshold, so a part is held as a whole or not at all (a target part whose closest
+source points fall partly on a still region of a moving source part is not pinned there);
+parts labelled -1 keep the per-vertex rule.
 
 The correspondence is a ``TriangleCorrespondence``: a source triangle for every target
 triangle plus a surface map of the target vertices on the source. On identical topology it is
@@ -292,6 +296,7 @@ def transfer_deltas(
     min_area: float = 1e-10,
     batch_size: int = 8,
     static_below: float | None = None,
+    static_parts: np.ndarray | None = None,
 ) -> np.ndarray:
     """Transfer every blendshape (``source_deltas``) of a source mesh onto ``target_neutral``.
 
@@ -312,6 +317,13 @@ def transfer_deltas(
             this (target units) are held at zero displacement (Dirichlet constraints; the
             system is reduced to the other vertices and factorised per expression), so motion
             does not bleed into what the source leaves still. None (default): plain transfer.
+        static_parts: per-part anchoring (needs ``static_below``): (Vs,) integer part label
+            of every source vertex (e.g. its connected component), -1 for vertices anchored
+            per vertex. A target vertex whose surface point lies on a part >= 0 (the label of
+            the point's nearest triangle corner, largest barycentric weight) is held at zero
+            in an expression only when every vertex of that source part moves less than
+            ``static_below`` there (scaled like the anchors); on a part -1 the per-vertex rule
+            applies. None (default): per vertex everywhere.
 
     Returns:
         (K, V, 3) float64 target blendshape offsets. ``canrig_jax.rig.deformation_transfer``
@@ -355,6 +367,9 @@ def transfer_deltas(
         raise ValueError(
             f"static_below: expected None or a finite length >= 0, got {static_below!r}"
         )
+    part_of_target, part_members = _static_parts(
+        static_parts, static_below, correspondence.vertex_map, source_neutral.shape[0]
+    )
     source_triangle = np.asarray(correspondence.source_triangle, np.int64)
     source_triangle = source_triangle.reshape(source_triangle.shape[0], -1)  # (T, S)
     n_samples = source_triangle.shape[1]
@@ -407,11 +422,40 @@ def transfer_deltas(
             )
             continue
         rhs = rhs.reshape(n_vertices, chunk.shape[0], 3)
+        free = np.linalg.norm(anchor, axis=-1) >= static_below  # (B, V) per vertex
+        if part_of_target is not None:
+            motion = scale * np.linalg.norm(chunk, axis=-1)  # (B, Vs), target units
+            moving_part = np.stack(
+                [motion[:, members].max(axis=1) >= static_below for members in part_members], 1
+            )  # (B, parts)
+            by_part = part_of_target >= 0
+            free[:, by_part] = moving_part[:, part_of_target[by_part]]
         for b in range(chunk.shape[0]):
-            deltas[start + b] = _anchored_solve(
-                system, solve, rhs[:, b], np.linalg.norm(anchor[b], axis=-1) >= static_below
-            )
+            deltas[start + b] = _anchored_solve(system, solve, rhs[:, b], free[b])
     return deltas
+
+
+def _static_parts(static_parts, static_below, vertex_map: SurfaceMap, n_source: int):
+    """Checked ``static_parts``: ((V,) index of each target vertex's source part, -1 for the
+    per-vertex rule; list of each part's source vertices), or (None, None) when not given."""
+    if static_parts is None:
+        return None, None
+    labels = np.asarray(static_parts)
+    if labels.shape != (n_source,) or not np.issubdtype(labels.dtype, np.integer):
+        raise ValueError(
+            f"static_parts: expected ({n_source},) integer part labels of the source vertices, "
+            f"got {labels.dtype} {labels.shape}"
+        )
+    if labels.min() < -1:
+        raise ValueError("static_parts: labels must be >= 0, or -1 for per-vertex anchoring")
+    if static_below is None:
+        raise ValueError("static_parts: per-part anchoring needs static_below (a threshold)")
+    parts, index = np.unique(labels, return_inverse=True)
+    corners = vertex_map.source_faces[vertex_map.triangle]  # (V, 3)
+    nearest = corners[np.arange(corners.shape[0]), np.argmax(vertex_map.barycentric, axis=1)]
+    part_of_target = np.where(labels[nearest] >= 0, index[nearest], -1)
+    members = [np.flatnonzero(index == i) for i in range(parts.size)]
+    return part_of_target, members
 
 
 def _anchored_solve(system, solve, rhs: np.ndarray, free: np.ndarray) -> np.ndarray:

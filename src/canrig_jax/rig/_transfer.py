@@ -52,11 +52,14 @@ def deformation_transfer(
     min_area: float = 1e-10,
     batch_size: int = 8,
     static_below: float | None = None,
+    static_parts: np.ndarray | None = None,
 ) -> BlendshapeRig:
     """Transfer every blendshape of ``source_rig`` onto ``target_neutral``
     (Sumner & Popović 2004; the geometry is ``canrig_jax.mesh.transfer_deltas``).
     ``static_below`` (target units) anchors, per blendshape, the vertices whose carried source
-    delta is shorter at zero (anchored transfer; None: plain).
+    delta is shorter at zero (anchored transfer; None: plain); ``static_parts`` ((Vs,) source
+    part labels, -1: per vertex) holds a target vertex only when its whole source part is still
+    (per-part anchoring; ``transfer_deltas``).
 
     Returns a linear ``BlendshapeRig`` on the target (same names, target faces). Correctives of
     the source are not transferred (a warning says so).
@@ -80,6 +83,7 @@ def deformation_transfer(
         min_area=min_area,
         batch_size=batch_size,
         static_below=static_below,
+        static_parts=static_parts,
     )
     return BlendshapeRig(
         np.asarray(target_neutral, np.float32),
