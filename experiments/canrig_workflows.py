@@ -81,6 +81,49 @@ def _pairs(n_poses, n_pairs, rng):
     return np.stack([a, b], axis=1)
 
 
+def _random_protocol(n_shapes, n_vertices, args):
+    """Table 4's (A, B) pairs, per handle count one random handle set per pair, and the
+    handle generator in the state the rest of the experiment continues from."""
+    pairs = _pairs(n_shapes, args.pairs, np.random.default_rng(args.seed))
+    handle_rng = np.random.default_rng([args.seed, 1])
+    random_sets = {
+        n: [handle_rng.choice(n_vertices, n, replace=False) for _ in range(args.pairs)]
+        for n in HANDLE_COUNTS
+    }
+    return pairs, random_sets, handle_rng
+
+
+def unreached_floor(rig, shapes, pairs, random_sets, progress=print):
+    """{handles: {radius name: {floor_mm, unreached_percent}}}: a lower bound of any A-to-B
+    result under Table 4's random-vertex protocol. A vertex beyond every handle's reach
+    (``influence_reach``: its clamped masks are exactly 0) keeps A's position whatever the
+    network or the fit, so its error |A - B| is in every result; the floor is that error
+    averaged over all vertices (0 on reached ones)."""
+    table = {}
+    for n in HANDLE_COUNTS:
+        floors = {name: [] for name in RADII_CM}
+        unreached = {name: [] for name in RADII_CM}
+        for p, (a, b) in enumerate(pairs):
+            nearest = np.asarray(
+                rig.handles(random_sets[n][p], limit=DISTANCE_LIMIT_CM).distance
+            ).min(axis=1)
+            error = _error_mm(shapes[a], shapes[b])
+            for name, radius in RADII_CM.items():
+                reach = float(influence_reach(radius, FALLOFF_PER_CM, rig.model.clamp))
+                still = nearest > reach
+                floors[name].append(float(np.where(still, error, 0.0).mean()))
+                unreached[name].append(float(still.mean()))
+        table[str(n)] = {
+            name: {
+                "floor_mm": float(np.mean(floors[name])),
+                "unreached_percent": 100 * float(np.mean(unreached[name])),
+            }
+            for name in RADII_CM
+        }
+        progress(f"  floor, {n} handles: {table[str(n)]}")
+    return table
+
+
 def a_to_b_table(rig, shapes, pairs, placements, n_fit, options, progress=print, n_fit_main=0):
     """{handles: {radius name: {direct_mm, fitted_mm, fitted_p95_mm, ...}}} for one handle
     placement protocol (``placements(pair index, n) -> Handles``); the first ``n_fit`` pairs
@@ -155,6 +198,12 @@ def main(argv=None):
         help="re-run only the dialogue replacement and its Table 6 baselines, updating "
         "--out/results.json, table.md and dialogue.png (the rest is kept)",
     )
+    parser.add_argument(
+        "--floor-only",
+        action="store_true",
+        help="compute only the floor of Table 4's random-vertex protocol (error at vertices "
+        "no handle reaches) into --out/results.json and table.md (the rest is kept)",
+    )
     args = parser.parse_args(argv)
     if args.quick:
         args.pairs, args.fit_pairs, args.layer_pairs = 4, 2, 2
@@ -173,16 +222,12 @@ def main(argv=None):
     rig = NeuralRig(model, neutral, np.asarray(quartic.faces))
     if args.dialogue_only:
         return _dialogue_only(args, argv, rig, quartic, capture, options)
-    rng = np.random.default_rng(args.seed)
-    pairs = _pairs(len(shapes), args.pairs, rng)
+    pairs, random_sets, handle_rng = _random_protocol(len(shapes), rig.n_vertices, args)
+    if args.floor_only:
+        return _floor_only(args, argv, rig, shapes, pairs, random_sets)
     n_fit = min(args.fit_pairs, args.pairs)
 
     # ---------------------------------------------------------------- Table 4, A to B
-    handle_rng = np.random.default_rng([args.seed, 1])
-    random_sets = {
-        n: [handle_rng.choice(rig.n_vertices, n, replace=False) for _ in range(args.pairs)]
-        for n in HANDLE_COUNTS
-    }
     geodesic = {
         n: rig.handles(
             farthest_point_vertices(neutral, n, graph=rig.graph), limit=DISTANCE_LIMIT_CM
@@ -334,6 +379,7 @@ def main(argv=None):
         "timing": timing,
         "protocol": {
             "pairs": args.pairs,
+            "seed": args.seed,
             "fitted_pairs": n_fit,
             "held_out_poses": {"capture_frames": len(capture_test), "random_poses": 100},
             "falloff_per_cm": FALLOFF_PER_CM,
@@ -447,6 +493,26 @@ def dialogue_table(rig, quartic, capture, mouth, options, n_dialogue, seed):
     return results, run
 
 
+def _floor_only(args, argv, rig, shapes, pairs, random_sets):
+    results = json.loads((args.out / "results.json").read_text())
+    protocol = results["protocol"]
+    if (protocol["pairs"], protocol.get("seed", 0)) != (args.pairs, args.seed):
+        raise ValueError(
+            f"--floor-only: pass the --pairs and --seed of {args.out}/results.json "
+            f"({protocol['pairs']}, {protocol.get('seed', 0)}; the seed was 0 before it was "
+            "recorded)"
+        )
+    results["a_to_b_floor"] = {
+        "random_vertices": unreached_floor(rig, np.asarray(shapes), pairs, random_sets)
+    }
+    results["a_to_b_floor_provenance"] = provenance(experiment_command(__file__, argv))
+    save_json(args.out / "results.json", results)
+    table = _table(results)
+    save_text(args.out / "table.md", table)
+    print(table)
+    return results
+
+
 def _dialogue_only(args, argv, rig, quartic, capture, options):
     results = json.loads((args.out / "results.json").read_text())
     mouth = expression_region(quartic, threshold=MOUTH_THRESHOLD_CM)
@@ -500,6 +566,20 @@ def _table(results):
                 f"**{c['fitted_mm']:.3f}** / {c['fitted_p95_mm']:.2f} ({c['pairs_fitted']})"
                 for c in row.values()
             ]
+            lines.append(f"| {n} | " + " | ".join(cells) + " |")
+        lines.append("")
+    floor = results.get("a_to_b_floor", {}).get("random_vertices")
+    if floor:
+        lines += [
+            "**Floor of any result, random_vertices** (mm; vertices beyond every handle's "
+            "reach keep A's position whatever the network or the fit; % of vertices unreached "
+            "in brackets)",
+            "",
+            "| handles | " + " | ".join(f"{k} ({v:g} cm)" for k, v in RADII_CM.items()) + " |",
+            "|---" * (len(RADII_CM) + 1) + "|",
+        ]
+        for n, row in floor.items():
+            cells = [f"{c['floor_mm']:.3f} ({c['unreached_percent']:.1f} %)" for c in row.values()]
             lines.append(f"| {n} | " + " | ".join(cells) + " |")
         lines.append("")
     layers = results["layers"]
