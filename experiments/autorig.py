@@ -52,6 +52,7 @@ import numpy as np
 from canrig_jax import CM_TO_MM, COMMAND_FILE, experiment_command, provenance, save_json, save_text
 from canrig_jax.autorig import (
     ACTIVE_MM,
+    ANCHOR_MODES,
     STATIC_MM,
     TrainOptions,
     class_errors,
@@ -93,6 +94,13 @@ autorig_retrain)."""
 RESIDUAL = "raf_dt_residual"
 RESIDUAL_ANCHORED = "raf_anchored_dt_residual"
 """The residual model trained on anchored deformation transfer (``--anchored-residual``)."""
+ANCHORED_RESIDUALS = {
+    RESIDUAL_ANCHORED: "vertex",
+    **{f"raf_anchored_{mode}_dt_residual": mode for mode in ANCHOR_MODES if mode != "vertex"},
+}
+"""Residual models trained on anchored deformation transfer, by anchoring mode
+(``transfer_poses(anchor=)``; ``--anchor``): per vertex (the standard), per part, per vertex on
+the skin and per part elsewhere (issue 19, per-part anchoring)."""
 ANCHOR_CM = STATIC_MM / CM_TO_MM
 """Anchored deformation transfer (``transfer_poses(static_below=)``): per pose, the vertices
 whose carried ICT displacement is below the evaluation's static threshold (0.01 mm) are held
@@ -119,13 +127,23 @@ def _held_out_dataset(args, config):
     )
 
 
-def _transfer_bases(dataset, head, correspondence, plain=None) -> dict:
+def _transfer_bases(dataset, head, correspondence, plain=None, anchors=("vertex",)) -> dict:
     """The residual models' bases on ``head``: plain and anchored deformation transfer of
-    every pose (``plain``: the plain one when already computed)."""
+    every pose (``plain``: the plain one when already computed), anchored per ``anchors``
+    (``transfer_poses(anchor=)``; keys "anchored" for "vertex", "anchored_<mode>" else)."""
     if plain is None:
         plain = transfer_poses(dataset, head, correspondence)
-    anchored = transfer_poses(dataset, head, correspondence, static_below=ANCHOR_CM)
-    return {"plain": plain, "anchored": anchored}
+    bases = {"plain": plain}
+    for mode in anchors:
+        bases[_anchored_key(mode)] = transfer_poses(
+            dataset, head, correspondence, static_below=ANCHOR_CM, anchor=mode
+        )
+    return bases
+
+
+def _anchored_key(mode: str) -> str:
+    """Base key (and row suffix without the leading '_') of anchoring mode ``mode``."""
+    return "anchored" if mode == "vertex" else f"anchored_{mode}"
 
 
 def _generated(models, rows, poses, head, bases, operators=None) -> dict:
@@ -229,6 +247,15 @@ def main(argv=None):
     )
     parser.add_argument("--validation-identities", type=int, default=4)
     parser.add_argument(
+        "--validation-anchors",
+        nargs="+",
+        choices=ANCHOR_MODES,
+        default=["vertex"],
+        help="with --validation-only: anchored DT bases to compare (transfer_poses(anchor=): "
+        "per vertex, per part, per vertex on the skin and per part elsewhere); default: "
+        "%(default)s",
+    )
+    parser.add_argument(
         "--residual-gate",
         type=float,
         default=0.0,
@@ -250,8 +277,17 @@ def main(argv=None):
         "base)",
     )
     parser.add_argument(
+        "--anchor",
+        choices=ANCHOR_MODES,
+        default="vertex",
+        help="anchoring of a second anchored-DT base (transfer_poses(anchor=)) evaluated next "
+        "to the per-vertex one; with --anchored-residual its residual model "
+        "(raf_anchored_<mode>_dt_residual) is trained or resumed and evaluated too "
+        "(default: %(default)s, only the per-vertex base)",
+    )
+    parser.add_argument(
         "--train-only",
-        choices=(*MODELS, RESIDUAL, RESIDUAL_ANCHORED),
+        choices=(*MODELS, RESIDUAL, *ANCHORED_RESIDUALS),
         default=None,
         help="train (or resume) only this model's checkpoint in --out and stop: writes no "
         "results (a chunk of a long run, or the models in parallel processes); the standard "
@@ -290,7 +326,7 @@ def main(argv=None):
         checkpoint_every=10 if args.quick else 200,
     )
     models, trained = {}, {}
-    if args.train_only not in (RESIDUAL, RESIDUAL_ANCHORED):
+    if args.train_only not in (RESIDUAL, *ANCHORED_RESIDUALS):
         data = training_set(dataset.train, poses, k=options.k, progress=progress)
         print(
             f"{len(dataset.train)} training heads ({data.vertices.shape[1]} padded vertices), "
@@ -315,19 +351,29 @@ def main(argv=None):
         warmup_steps=5 if args.quick else min(200, args.residual_steps // 10),
         max_minutes=None,
     )
-    residuals = {RESIDUAL: None}
-    if args.anchored_residual or args.train_only == RESIDUAL_ANCHORED:
-        residuals[RESIDUAL_ANCHORED] = ANCHOR_CM
-    for name, static_below in residuals.items():
+    anchors = ("vertex",) if args.anchor == "vertex" else ("vertex", args.anchor)
+    residuals = {RESIDUAL: None}  # name -> anchoring mode of its base (None: plain DT)
+    for name, mode in ANCHORED_RESIDUALS.items():
+        if (args.anchored_residual and mode in anchors) or args.train_only == name:
+            residuals[name] = mode
+    for name, mode in residuals.items():
         if args.train_only not in (None, name):
             continue
         base = [
-            cached_transfer(dataset, head, args.cache, args.seed, static_below)
+            cached_transfer(
+                dataset,
+                head,
+                args.cache,
+                args.seed,
+                None if mode is None else ANCHOR_CM,
+                anchor=mode or "vertex",
+            )
             for head in dataset.train
         ]
         data = training_set(dataset.train, poses, k=options.k, progress=progress, base=base)
         models[name], trained[name] = _train_one(args, name, data, poses, residual_options)
-        trained[name]["base"] = "deformation_transfer" + (ANCHORED if static_below else "")
+        key = "" if mode is None else "_" + _anchored_key(mode)
+        trained[name]["base"] = "deformation_transfer" + key
         del data, base
     if args.train_only is not None:
         return None
@@ -335,7 +381,8 @@ def main(argv=None):
     # -- evaluation on held-out heads ------------------------------------------------------------
     part_names = dataset.head.part_names
     rows = evaluation_rows(models)
-    methods = (*BASELINES, "deformation_transfer" + ANCHORED, *rows)
+    anchored_dt = {"deformation_transfer_" + _anchored_key(m): _anchored_key(m) for m in anchors}
+    methods = (*BASELINES, *anchored_dt, *rows)
     test: dict = {name: {} for name in methods if name != "no_motion"}
     pen: dict = {name: [] for name in (*rows, "ground_truth")}
     examples, heldout_predictions, heldout_truth = {}, {name: [] for name in methods}, []
@@ -347,9 +394,10 @@ def main(argv=None):
             truth_all.append(head.displacements)
             unit_scale.append(scale)
             correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
-            bases = _transfer_bases(dataset, head, correspondence)
+            bases = _transfer_bases(dataset, head, correspondence, anchors=anchors)
             predicted_all["deformation_transfer"].append(bases["plain"])
-            predicted_all["deformation_transfer" + ANCHORED].append(bases["anchored"])
+            for name, key in anchored_dt.items():
+                predicted_all[name].append(bases[key])
             predicted_all["copy_deltas"].append(copy_poses(dataset, head, correspondence))
             generated_rigs = _generated(models, rows, poses, head, bases, operators=operators)
             for name, generated in generated_rigs.items():
@@ -384,7 +432,7 @@ def main(argv=None):
 
     # -- MakeHuman hm08 against its person-made targets (evaluation only) -----------------
     makehuman, makehuman_info, makehuman_example = evaluate_makehuman(
-        dataset, models, args.data_dir
+        dataset, models, args.data_dir, anchors
     )
 
     # -- rig generation time, ~1,750 vertices -------------------------------------------------
@@ -439,6 +487,10 @@ def main(argv=None):
             "anchored": f"deformation transfer with static_below = {ANCHOR_CM} cm "
             "(transfer_poses): per pose, vertices whose carried ICT displacement is shorter "
             "are held at zero; *_anchored rows use it as the residual model's base",
+            "anchors": {
+                _anchored_key(m): f"transfer_poses(static_below={ANCHOR_CM}, anchor={m!r})"
+                for m in anchors
+            },
             "rows": {name: {"model": m, "base": b} for name, (m, b) in rows.items()},
             "heads": len(heldout_truth),
             "static_mm": STATIC_MM,
@@ -482,15 +534,16 @@ def main(argv=None):
 
 
 def evaluation_rows(models: dict) -> dict:
-    """Row name -> (model name, base: None, "plain" or "anchored" deformation transfer): the
-    pure models, the residual model on plain DT (as trained) and on anchored DT
-    (``raf_dt_residual_anchored``), and the residual model trained on anchored DT."""
+    """Row name -> (model name, base: None, "plain" or an anchored deformation transfer's key):
+    the pure models, the residual model on plain DT (as trained) and on anchored DT
+    (``raf_dt_residual_anchored``), and the residual models trained on anchored DT (each on its
+    own base)."""
     rows = {}
     for name, model in models.items():
         if not model.residual:
             rows[name] = (name, None)
-        elif name == RESIDUAL_ANCHORED:
-            rows[name] = (name, "anchored")
+        elif name in ANCHORED_RESIDUALS:
+            rows[name] = (name, _anchored_key(ANCHORED_RESIDUALS[name]))
         else:
             rows[name] = (name, "plain")
             rows[name + ANCHORED] = (name, "anchored")
@@ -498,27 +551,39 @@ def evaluation_rows(models: dict) -> dict:
 
 
 def cached_transfer(
-    dataset, head, cache: Path | None, seed: int, static_below: float | None = None
+    dataset,
+    head,
+    cache: Path | None,
+    seed: int,
+    static_below: float | None = None,
+    *,
+    anchor: str = "vertex",
 ) -> np.ndarray:
-    """``transfer_poses`` of one training head (anchored with ``static_below``), kept in
-    ``cache`` when given."""
+    """``transfer_poses`` of one training head (anchored with ``static_below`` per
+    ``anchor``), kept in ``cache`` when given."""
     path = None
     if cache is not None:
         cache.mkdir(parents=True, exist_ok=True)
         kind = "dt" if static_below is None else f"dt_anchored{static_below:g}"
+        kind += "" if static_below is None or anchor == "vertex" else f"_{anchor}"
         path = cache / f"{kind}_seed{seed}_{head.name.replace('/', '_')}.npy"
         if path.exists():
             stored = np.load(path, allow_pickle=False)
             if stored.shape == head.displacements.shape:
                 return stored
-    transferred = transfer_poses(dataset, head, static_below=static_below).astype(np.float32)
+    transferred = transfer_poses(dataset, head, static_below=static_below, anchor=anchor).astype(
+        np.float32
+    )
     if path is not None:
         np.save(path, transferred, allow_pickle=False)
     return transferred
 
 
-def evaluate_makehuman(dataset, models: dict, data_dir) -> tuple[dict, dict, tuple]:
-    """Every method on the MakeHuman head over the shapes it shares with ICT."""
+def evaluate_makehuman(
+    dataset, models: dict, data_dir, anchors=("vertex",)
+) -> tuple[dict, dict, tuple]:
+    """Every method on the MakeHuman head over the shapes it shares with ICT (anchored DT per
+    each mode of ``anchors``)."""
     mh = load_makehuman(data_dir)
     poses = dataset.poses
     start = time.perf_counter()
@@ -528,13 +593,14 @@ def evaluate_makehuman(dataset, models: dict, data_dir) -> tuple[dict, dict, tup
     start = time.perf_counter()
     transferred = transfer_poses(dataset, mh, correspondence)
     seconds_transfer = time.perf_counter() - start
-    bases = _transfer_bases(dataset, mh, correspondence, plain=transferred)
+    bases = _transfer_bases(dataset, mh, correspondence, plain=transferred, anchors=anchors)
     predictions = {
         "no_motion": np.zeros_like(transferred),
         "copy_deltas": copy_poses(dataset, mh, correspondence),
         "deformation_transfer": transferred,
-        "deformation_transfer" + ANCHORED: bases["anchored"],
     }
+    for mode in anchors:
+        predictions["deformation_transfer_" + _anchored_key(mode)] = bases[_anchored_key(mode)]
     for name, generated in _generated(models, evaluation_rows(models), poses, mh, bases).items():
         predictions[name] = generated.displacements
     target_index, matrix = shared_shape_matrix(poses.basis_names, mh.names)
@@ -639,21 +705,25 @@ def validate(args, argv=None) -> dict:
         progress=not args.no_progress,
     )
     poses = dataset.poses
-    # residual models on both bases: plain and anchored deformation transfer
+    # residual models on every base: plain and anchored deformation transfer
+    anchored = [_anchored_key(mode) for mode in args.validation_anchors]
     rows = {}
     for name, model in models.items():
-        for base in ("plain", "anchored") if model.residual else (None,):
-            rows[name if base in (None, "plain") else f"{name}+anchored_base"] = (name, base)
-    dt = ("deformation_transfer", "deformation_transfer" + ANCHORED)
+        for base in ("plain", *anchored) if model.residual else (None,):
+            rows[name if base in (None, "plain") else f"{name}+{base}_base"] = (name, base)
+    dt = {"deformation_transfer": "plain"}
+    dt.update({f"deformation_transfer_{key}": key for key in anchored})
     predicted = {name: [] for name in ("no_motion", *dt, *rows)}
     truth = []
     for head in dataset.test[HELDOUT_SPLIT]:
         correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
-        bases = _transfer_bases(dataset, head, correspondence)
+        bases = _transfer_bases(
+            dataset, head, correspondence, anchors=tuple(args.validation_anchors)
+        )
         truth.append(head.displacements)
         predicted["no_motion"].append(np.zeros_like(head.displacements))
-        predicted[dt[0]].append(bases["plain"])
-        predicted[dt[1]].append(bases["anchored"])
+        for name, key in dt.items():
+            predicted[name].append(bases[key])
         for name, generated in _generated(models, rows, poses, head, bases).items():
             predicted[name].append(generated.displacements)
         print(f"validated {head.name}")
@@ -666,6 +736,10 @@ def validate(args, argv=None) -> dict:
             "static_mm": STATIC_MM,
             "bases": "a residual checkpoint's row uses plain deformation transfer as its base; "
             f"'+anchored_base' rows anchored DT (static_below = {ANCHOR_CM} cm)",
+            "anchors": {
+                _anchored_key(m): f"transfer_poses(static_below={ANCHOR_CM}, anchor={m!r})"
+                for m in args.validation_anchors
+            },
         },
         "provenance": provenance(experiment_command(__file__, argv)),
     }
@@ -696,25 +770,29 @@ def refresh_penetration(args, argv=None) -> dict:
             f"--penetration-only: needs results.json and the checkpoints of {names} in "
             f"{args.out}; run without --penetration-only first"
         )
-    if (args.out / f"checkpoint_{RESIDUAL_ANCHORED}.eqx").exists():
-        names.append(RESIDUAL_ANCHORED)
+    anchors = ["vertex"]
+    for name, mode in ANCHORED_RESIDUALS.items():
+        if (args.out / f"checkpoint_{name}.eqx").exists():
+            names.append(name)
+            anchors += [] if mode in anchors else [mode]
+    anchored_dt = {"deformation_transfer_" + _anchored_key(m): _anchored_key(m) for m in anchors}
     results = json.loads(path.read_text())
     config = results["config"]
     models = {n: load_model(args.out / f"checkpoint_{n}.eqx")[0] for n in names}
     rows = evaluation_rows(models)
     dataset = _held_out_dataset(args, config)
     poses, part_names = dataset.poses, dataset.head.part_names
-    methods = ("no_motion", "deformation_transfer", "deformation_transfer" + ANCHORED, *rows)
+    methods = ("no_motion", "deformation_transfer", *anchored_dt, *rows)
     clean = {name: [] for name in (*methods, "ground_truth")}
     plain = {name: [] for name in (*methods, "ground_truth")}
     chosen, kept_vertices = [], []
     for head in dataset.test[HELDOUT_SPLIT]:
         correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
-        bases = _transfer_bases(dataset, head, correspondence)
+        bases = _transfer_bases(dataset, head, correspondence, anchors=tuple(anchors))
         predicted = {
             "no_motion": np.zeros_like(head.displacements),
             "deformation_transfer": bases["plain"],
-            "deformation_transfer" + ANCHORED: bases["anchored"],
+            **{name: bases[key] for name, key in anchored_dt.items()},
             "ground_truth": head.displacements,
         }
         for name, generated in _generated(models, rows, poses, head, bases).items():
