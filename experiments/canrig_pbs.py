@@ -272,6 +272,30 @@ def _region_errors(head, error_mm: np.ndarray) -> dict:
     return out
 
 
+def _handle_reach(head, handle_distance: np.ndarray) -> dict:
+    """Per region of ``REGIONS``: how far the patches seeded there lie from Table 5's nearest
+    handle along the masks' graph (cm; median, max), and the fraction within the masks' radius
+    and within their reach (the distance where the clamped mask becomes exactly 0)."""
+    model, seeds = head["model"], np.asarray(head["layout"].seeds)
+    ranges = dict(zip(model.part_names, model.part_vertex_range, strict=True))
+    nearest = handle_distance.min(axis=1)  # (P,)
+    reach = float(influence_reach(EVAL_RADIUS_CM, EVAL_FALLOFF_PER_CM, CLAMP))
+    out = {"radius_cm": EVAL_RADIUS_CM, "reach_cm": reach, "regions": {}}
+    for region, parts in REGIONS.items():
+        inside = np.zeros(len(seeds), bool)
+        for name in parts:
+            inside |= (seeds >= ranges[name][0]) & (seeds < ranges[name][1])
+        d = nearest[inside]
+        out["regions"][region] = {
+            "patches": int(inside.sum()),
+            "nearest_handle_median_cm": float(np.median(d)),
+            "nearest_handle_max_cm": float(d.max()),
+            "within_radius": float(np.mean(d < EVAL_RADIUS_CM)),
+            "within_reach": float(np.mean(d < reach)),
+        }
+    return out
+
+
 def _check_graph(args, folder: Path) -> None:
     """Refuse to resume or evaluate a model trained with another --handles-on, or a masked
     model trained on the other --graph (train.json says which; before the options: 'mesh',
@@ -542,6 +566,7 @@ def main(argv=None):
     # Table 5 and Figure 8, the trained rows: the same handles, base = the neutral
     data, distances = _training_set(args, head)
     handle_distance = jnp.asarray(distances[:, handles])
+    reach = _handle_reach(head, distances[:, handles])
     neutral_j, test_j = jnp.asarray(neutral), jnp.asarray(test_shapes)
 
     def reconstruct(net, index, distance, targets, queries=None):
@@ -621,6 +646,7 @@ def main(argv=None):
         "table5": table5,
         "figure8": figure8,
         "table6": table6,
+        "table5_reach": reach,
         "forward_ms_whole_head": forward.get("per_patch"),
         "forward_ms": forward,
         "timing": timing,
@@ -691,6 +717,15 @@ def main(argv=None):
         for key, label in labels.items()
         if key in table5 and "regions" in table5[key]
     ]
+    reach_rows = [
+        "| region | patches | nearest handle median (max) cm | within radius | within reach |",
+        "|---|---|---|---|---|",
+    ] + [
+        f"| {k} | {v['patches']} | {v['nearest_handle_median_cm']:.2f} "
+        f"({v['nearest_handle_max_cm']:.2f}) | {v['within_radius']:.2f} | "
+        f"{v['within_reach']:.2f} |"
+        for k, v in reach["regions"].items()
+    ]
     fig8 = [
         "| Figure 8 variant | held-out mean (std) mm | steps | parameters |",
         "|---|---|---|---|",
@@ -737,6 +772,13 @@ def main(argv=None):
             "eyelashes.",
             "",
             *by_region,
+            "",
+            f"Handle reach (--graph {args.graph}): each region's patches, the distance from "
+            "the seed to Table 5's nearest handle along the masks' graph, the fraction within "
+            f"the radius ({reach['radius_cm']:.1f} cm) and within the clamped mask's reach "
+            f"({reach['reach_cm']:.2f} cm; beyond it no handle moves the patch).",
+            "",
+            *reach_rows,
             "",
             f"W_layout application: gather form {gather_ms:.2f} ms, "
             f"scipy.sparse {sparse_ms:.2f} ms (one shape).",
