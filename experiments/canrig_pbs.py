@@ -286,6 +286,9 @@ def _handle_reach(head, handle_distance: np.ndarray) -> dict:
         for name in parts:
             inside |= (seeds >= ranges[name][0]) & (seeds < ranges[name][1])
         d = nearest[inside]
+        if not len(d):  # no patch seeded there (--quick's 60 patches)
+            out["regions"][region] = {"patches": 0}
+            continue
         out["regions"][region] = {
             "patches": int(inside.sum()),
             "nearest_handle_median_cm": float(np.median(d)),
@@ -725,6 +728,7 @@ def main(argv=None):
         f"({v['nearest_handle_max_cm']:.2f}) | {v['within_radius']:.2f} | "
         f"{v['within_reach']:.2f} |"
         for k, v in reach["regions"].items()
+        if v["patches"]
     ]
     fig8 = [
         "| Figure 8 variant | held-out mean (std) mm | steps | parameters |",

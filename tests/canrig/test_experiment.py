@@ -63,3 +63,19 @@ def test_pbs_graph_options_name_parts_and_refuse_another_attachment(tmp_path):
     pbs._check_graph(args, folder)  # the same attachment resumes
     with pytest.raises(ValueError, match="--graph: "):
         pbs._check_graph(pbs._parser().parse_args(["--out", str(tmp_path)]), folder)
+
+
+@pytest.mark.slow
+def test_pbs_quick_attached_graph_end_to_end(tmp_path):
+    pbs = _load("canrig_pbs")
+    argv = ["--quick", "--no-progress", "--out", str(tmp_path), "--graph", "attached"]
+    pbs.main([*argv, "--train", "per_patch", "--steps", "20", "--decay-steps", "20"])
+    meta = json.loads((tmp_path / "models" / "per_patch" / "train.json").read_text())
+    assert meta["graph"] == "attached" and meta["attach_onto"] == ["Face"]
+    pbs.main(argv)
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert "per_patch" in results["table5"]
+    reach = results["table5_reach"]["regions"]
+    assert reach["face"]["within_reach"] == 1.0 and reach["mouth_interior"]["patches"] > 0
+    assert reach["mouth_interior"]["within_reach"] > 0.9
+    assert results["table6"]["methods"]["per_patch"]["rest_of_face_change_mm"] == 0.0
