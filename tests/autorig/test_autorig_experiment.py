@@ -16,7 +16,12 @@ def test_quick_experiment_writes_the_issue_keys(tmp_path):
     spec = importlib.util.spec_from_file_location("autorig_experiment", SCRIPT)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    module.main(["--quick", "--no-progress", "--out", str(tmp_path), "--anchored-residual"])
+    module.main(
+        [
+            *("--quick", "--no-progress", "--out", str(tmp_path), "--anchored-residual"),
+            *("--anchor", "skin_vertex"),  # a second anchored base and its residual model
+        ]
+    )
     results = json.loads((tmp_path / "results.json").read_text())
     for method in ("raf", "raf_no_global_encoder", "deformation_transfer"):
         for split in ("same_topology", "unseen_topology"):
@@ -34,6 +39,9 @@ def test_quick_experiment_writes_the_issue_keys(tmp_path):
         "deformation_transfer_anchored",
         "raf_dt_residual_anchored",
         "raf_anchored_dt_residual",
+        # anchored per vertex on the skin and per part elsewhere, and its residual model
+        "deformation_transfer_anchored_skin_vertex",
+        "raf_anchored_skin_vertex_dt_residual",
     }
     assert set(results["heldout"]) == methods == set(results["makehuman"])
     for method, subsets in results["heldout"].items():
@@ -50,6 +58,15 @@ def test_quick_experiment_writes_the_issue_keys(tmp_path):
         plain_static = results["heldout"]["deformation_transfer"][subset]["static_mae_mm"]
         assert anchored[subset]["static_mae_mm"] < 0.5 * plain_static
     assert results["training"]["raf_anchored_dt_residual"]["base"].endswith("_anchored")
+    base = results["training"]["raf_anchored_skin_vertex_dt_residual"]["base"]
+    assert base == "deformation_transfer_anchored_skin_vertex"
+    # per part off the skin (whole parts held or free): the static pairs of a moving part
+    # are not held, so more static error than per vertex, but less than plain DT
+    per_part = results["heldout"]["deformation_transfer_anchored_skin_vertex"]
+    for subset in ("single", "combinations"):
+        plain_static = results["heldout"]["deformation_transfer"][subset]["static_mae_mm"]
+        assert anchored[subset]["static_mae_mm"] <= per_part[subset]["static_mae_mm"]
+        assert per_part[subset]["static_mae_mm"] < plain_static
     for e in results["makehuman"].values():
         assert set(e) == {"skin_mae_mm", "skin_q95_mm", "active_mae_mm", "amplitude_ratio_median"}
     assert results["makehuman"]["no_motion"]["amplitude_ratio_median"] == 0
