@@ -22,7 +22,10 @@ still), ``--residual-static-weight`` sets its static-vertex term. ``--validation
 compares checkpoints on validation identities (neither training nor test; how a model is
 chosen) into DIR/validation.json. ``--raf-loss euclidean_static`` trains the pure
 models with the per-vertex Euclidean loss plus the static-vertex term (issue 19; the run in
-experiments/results/autorig_retrain) instead of the issue-7 squared loss.
+experiments/results/autorig_retrain) instead of the issue-7 squared loss. ``--anchor MODE``
+adds a second anchored-DT base (``transfer_poses(anchor=)``: "part", or "skin_vertex": per
+vertex on the skin, per part elsewhere) and, with ``--anchored-residual``, its residual model
+``raf_anchored_<mode>_dt_residual``; ``--validation-anchors`` compares the bases on validation.
 
 Writes DIR/results.json, DIR/table.md, DIR/training_loss.png, DIR/poses_<head>.png and
 DIR/makehuman.png (predicted poses with 0-5 mm error maps next to the ground truth),
