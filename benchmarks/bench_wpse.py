@@ -69,8 +69,7 @@ def main(argv=None):
                 f"{1e3 * np.median(numpy_times):.2f} | {os.getloadavg()[0]:.1f} |"
             )
             print(lines[-1], flush=True)
-        widths = _dot_widths(model.metric, args.repeats) if part == "head" else []
-    lines += ["", *widths]
+    lines += ["", *_dot_widths(model.metric, args.repeats)]  # the head's, the last model
     table = "\n".join(lines) + "\n"
     save_text(args.out, table)
     print(table)
