@@ -190,9 +190,7 @@ def _whole_head(args):
     train_shapes = np.asarray(evaluate_batch(rig, train, chunk=32), np.float32)
     test_shapes = np.asarray(evaluate_batch(rig, test, chunk=32), np.float32)
     basis, picked = pbs_basis(neutral, train_shapes, args.basis)
-    skin = np.zeros(len(neutral), bool)
-    for name, (a, b) in zip(model.part_names, model.part_vertex_range, strict=True):
-        skin[a:b] |= name in SKIN
+    skin = _part_mask(model, SKIN)
     return dict(
         model=model,
         rig=rig,
@@ -216,7 +214,7 @@ def _whole_head(args):
     )
 
 
-def _part_mask(model, names, flag) -> np.ndarray:
+def _part_mask(model, names, flag: str = "parts") -> np.ndarray:
     """(N,) the vertices of the named ICT parts; ValueError naming ``flag`` for an unknown
     name."""
     ranges = dict(zip(model.part_names, model.part_vertex_range, strict=True))
@@ -258,11 +256,10 @@ def _training_set(args, head):
 def _region_errors(head, error_mm: np.ndarray) -> dict:
     """Mean per-vertex error (mm) over the vertices of each of ``REGIONS``, and each region's
     share of the whole-head mean (its error summed over its vertices / all vertices)."""
-    model, n = head["model"], error_mm.shape[1]
-    ranges = dict(zip(model.part_names, model.part_vertex_range, strict=True))
+    n = error_mm.shape[1]
     out = {}
     for region, parts in REGIONS.items():
-        index = np.concatenate([np.arange(*ranges[name]) for name in parts])
+        index = np.flatnonzero(_part_mask(head["model"], parts))
         part = error_mm[:, index]
         out[region] = {
             "mean_mm": float(part.mean()),
@@ -276,15 +273,12 @@ def _handle_reach(head, handle_distance: np.ndarray) -> dict:
     """Per region of ``REGIONS``: how far the patches seeded there lie from Table 5's nearest
     handle along the masks' graph (cm; median, max), and the fraction within the masks' radius
     and within their reach (the distance where the clamped mask becomes exactly 0)."""
-    model, seeds = head["model"], np.asarray(head["layout"].seeds)
-    ranges = dict(zip(model.part_names, model.part_vertex_range, strict=True))
+    seeds = np.asarray(head["layout"].seeds)
     nearest = handle_distance.min(axis=1)  # (P,)
     reach = float(influence_reach(EVAL_RADIUS_CM, EVAL_FALLOFF_PER_CM, CLAMP))
     out = {"radius_cm": EVAL_RADIUS_CM, "reach_cm": reach, "regions": {}}
     for region, parts in REGIONS.items():
-        inside = np.zeros(len(seeds), bool)
-        for name in parts:
-            inside |= (seeds >= ranges[name][0]) & (seeds < ranges[name][1])
+        inside = _part_mask(head["model"], parts)[seeds]
         d = nearest[inside]
         if not len(d):  # no patch seeded there (--quick's 60 patches)
             out["regions"][region] = {"patches": 0}
