@@ -19,6 +19,7 @@ from canrig_jax.rig import evaluate
 METHOD_CASES = (
     inverse.QuarticCD(alpha=0.5, passes=4),
     inverse.QuarticCD(alpha=0.5, passes=3, tol=0.0, newton=False, order="random"),
+    inverse.QuarticNewton(alpha=0.5, iterations=4),
     inverse.LinearCD(alpha=0.5, passes=4),
     inverse.Seol(),
     inverse.Joshi(),
@@ -41,7 +42,7 @@ CASES = [
     )
     for m in METHOD_CASES
 ]
-FAST_ON_LINEAR = (inverse.QuarticCD, inverse.LMMM, inverse.Cetinaslan)
+FAST_ON_LINEAR = (inverse.QuarticCD, inverse.QuarticNewton, inverse.LMMM, inverse.Cetinaslan)
 """Methods run on the linear rig by default (LMMM used to return NaN there); the others on
 the linear rig are in ``-m slow`` (the default run is shared by the whole suite)."""
 
@@ -159,6 +160,10 @@ def test_hyper_parameters_are_checked_at_construction():
         (lambda: inverse.Seol(order="random"), "order"),
         (lambda: inverse.Cetinaslan(alpha=-2.0), "alpha"),
         (lambda: inverse.LMMM(iterations=0), "iterations"),
+        (lambda: inverse.QuarticNewton(iterations=0), "iterations"),
+        (lambda: inverse.QuarticNewton(line_steps=0), "line_steps"),
+        (lambda: inverse.QuarticNewton(tol=1.0), "tol"),
+        (lambda: inverse.QuarticNewton(upper=-1.0), "upper"),
         (lambda: inverse.JaxoptLBFGSB(objective="mesh"), "objective"),
     ]:
         with pytest.raises(ValueError, match=argument):

@@ -5,7 +5,8 @@
     sol.weights, sol.objective, sol.history, sol.result, sol.stats
 
 Every method is an ``AbstractInverseMethod`` (``METHODS`` lists the classes):
-``QuarticCD``, ``LinearCD`` (coordinate descent, ``AbstractCoordinateDescent``), ``Seol``,
+``QuarticCD``, ``LinearCD`` (coordinate descent, ``AbstractCoordinateDescent``),
+``QuarticNewton`` (projected Gauss-Newton on the same objective), ``Seol``,
 ``Joshi``, ``Cetinaslan``, ``LMMM``, ``JaxoptLBFGSB``. Coordinate orders in ``ORDERS``;
 whole takes with ``solve_sequence``; live capture with ``Stream``; metrics
 (``summarize``, ``roughness``, ``select_alpha``); the NumPy reference of Algorithm 1
@@ -34,6 +35,7 @@ from ._metrics import (
     summarize,
 )
 from ._problem import InverseProblem, prepare
+from ._projected_newton import QuarticNewton, coefficient_jacobian
 from ._reference import (
     NumpyDenseRig,
     decreasing_norm_order,
@@ -46,7 +48,7 @@ from ._reference import (
 from ._solution import Solution
 from ._solve import Stream, solve, solve_sequence
 
-METHODS = (QuarticCD, LinearCD, Seol, Joshi, Cetinaslan, LMMM, JaxoptLBFGSB)
+METHODS = (QuarticCD, QuarticNewton, LinearCD, Seol, Joshi, Cetinaslan, LMMM, JaxoptLBFGSB)
 """Every inverse-rig method class (each a final ``AbstractInverseMethod``)."""
 
 __all__ = [
@@ -75,6 +77,8 @@ __all__ = [
     "LMMM",
     "LinearCD",
     "QuarticCD",
+    "QuarticNewton",
+    "coefficient_jacobian",
     "Seol",
     "Solution",
     "Stream",
