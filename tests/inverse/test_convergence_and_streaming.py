@@ -116,12 +116,11 @@ def test_converged_quartic_cd_reaches_an_independent_float64_lbfgsb_minimum(
         assert float(cd.objective) <= value * (1 + 2e-5), (float(cd.objective), value)
 
 
-def test_projected_newton_reaches_converged_cd_with_its_zeros(
-    ict_quartic_problem, noisy
-):
-    """QuarticNewton minimises the same objective: no higher than converged QuarticCD (and the
-    independent float64 L-BFGS-B minimum of frame 0) in a handful of iterations, with weights exactly 0 where the L1 term holds them (cardinality within one of CD's),
-    a history that never increases, and the same solution warm-started from a nearby frame."""
+def test_projected_newton_reaches_converged_cd_with_its_zeros(ict_quartic_problem, noisy):
+    """QuarticNewton minimises the same objective: no higher than converged QuarticCD (and
+    the independent float64 L-BFGS-B minimum of frame 0) in a handful of iterations, with
+    weights exactly 0 where the L1 term holds them (cardinality within one of CD's), a
+    history that never increases, and the same solution warm-started from a nearby frame."""
     from canrig_jax.inverse import minimum
 
     problem, alpha = ict_quartic_problem, 5.0
