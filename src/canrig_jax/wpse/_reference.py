@@ -12,6 +12,7 @@ import time
 import jax
 import numpy as np
 
+from .._threads import single_threaded_blas
 from ._pse import apply
 
 
@@ -121,7 +122,10 @@ def time_runtime(model, weights, posed, passes: int = 5) -> dict:
         model: a fitted ``PoseSpaceEdit``.
         weights: (T, K) probe poses; posed: (T, V, 3) the base rig at them.
         passes: passes over the T frames; JAX and NumPy alternate pass by pass, so both see
-            the same spells of load on a shared machine.
+            the same spells of load on a shared machine. NumPy runs with one BLAS thread:
+            a multi-threaded BLAS keeps its threads spinning after each call and took the
+            second core from the JAX call timed next (on the 2-core machine JAX's median was
+            0.5-1.1 ms lower with the reference on one thread, three paired runs).
 
     Returns ``jax_seconds`` and ``numpy_seconds`` ((passes * T,) arrays), ``batched_seconds``
     (per frame of ``jax.vmap(apply)`` over all T frames in one call, median of 5 calls: the
@@ -140,10 +144,11 @@ def time_runtime(model, weights, posed, passes: int = 5) -> dict:
             start = time.perf_counter()
             jax.block_until_ready(run(model, w, mesh))
             jax_seconds.append(time.perf_counter() - start)
-        for w, mesh in zip(weights, posed, strict=True):
-            start = time.perf_counter()
-            expected = reference(w, mesh)
-            numpy_seconds.append(time.perf_counter() - start)
+        with single_threaded_blas():
+            for w, mesh in zip(weights, posed, strict=True):
+                start = time.perf_counter()
+                expected = reference(w, mesh)
+                numpy_seconds.append(time.perf_counter() - start)
     run_batch = jax.jit(jax.vmap(apply, (None, 0, 0)))
     jax.block_until_ready(run_batch(model, device_w, device_p))
     batched = []
