@@ -42,7 +42,7 @@ CASES = [
     )
     for m in METHOD_CASES
 ]
-FAST_ON_LINEAR = (inverse.QuarticCD, inverse.QuarticNewton, inverse.LMMM, inverse.Cetinaslan)
+FAST_ON_LINEAR = (inverse.QuarticCD, inverse.LMMM, inverse.Cetinaslan)
 """Methods run on the linear rig by default (LMMM used to return NaN there); the others on
 the linear rig are in ``-m slow`` (the default run is shared by the whole suite)."""
 

@@ -117,12 +117,10 @@ def test_converged_quartic_cd_reaches_an_independent_float64_lbfgsb_minimum(
 
 
 def test_projected_newton_reaches_converged_cd_with_its_zeros(ict_quartic_problem, noisy):
-    """QuarticNewton minimises the same objective: no higher than converged QuarticCD (and
-    the independent float64 L-BFGS-B minimum of frame 0) in a handful of iterations, with
-    weights exactly 0 where the L1 term holds them (cardinality within one of CD's), a
-    history that never increases, and the same solution warm-started from a nearby frame."""
-    from canrig_jax.inverse import minimum
-
+    """QuarticNewton minimises the same objective: no higher than converged QuarticCD (which
+    reaches the independent float64 L-BFGS-B minimum, tested above) in a handful of
+    iterations, with weights exactly 0 where the L1 term holds them (cardinality within one
+    of CD's), a history that never increases, and the same solution warm-started."""
     problem, alpha = ict_quartic_problem, 5.0
     cd = inverse.solve_sequence(problem, noisy, inverse.QuarticCD(alpha=alpha))
     newton = inverse.solve_sequence(problem, noisy, inverse.QuarticNewton(alpha=alpha))
@@ -135,10 +133,6 @@ def test_projected_newton_reaches_converged_cd_with_its_zeros(ict_quartic_proble
     assert np.all(np.abs(_cardinality(newton.weights) - _cardinality(cd.weights)) <= 1)
     history = np.asarray(newton.history)
     assert np.all(np.diff(history, axis=1) <= 0)
-    offset = (noisy[0].astype(np.float64) - np.asarray(problem.neutral)).ravel()
-    best = minimum(problem, noisy[0], alpha).astype(np.float32)
-    value = float(inverse.objective(problem, best, offset.astype(np.float32), alpha))
-    assert objective[0] <= value * (1 + 2e-5), (objective[0], value)
     warm = inverse.solve_sequence(
         problem, noisy, inverse.QuarticNewton(alpha=alpha), warm_start=True
     )
