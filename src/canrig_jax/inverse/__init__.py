@@ -35,7 +35,7 @@ from ._metrics import (
     summarize,
 )
 from ._problem import InverseProblem, prepare
-from ._projected_newton import QuarticNewton, coefficient_jacobian
+from ._projected_newton import QuarticNewton
 from ._reference import (
     NumpyDenseRig,
     decreasing_norm_order,
@@ -78,7 +78,6 @@ __all__ = [
     "LinearCD",
     "QuarticCD",
     "QuarticNewton",
-    "coefficient_jacobian",
     "Seol",
     "Solution",
     "Stream",

@@ -242,7 +242,7 @@ class AbstractCoordinateDescent(AbstractInverseMethod):
 
         def newton(weights, gradient, energy):
             """Projected Gauss-Newton step on the free weights, kept if it lowers E."""
-            g = jax.vmap(derivative, (None, 0))(weights, indices)  # (K, m)
+            g = model.slopes(weights)  # (K, m)
             grad = jnp.einsum("km,km->k", g, gradient[model.support]) + alpha
             # row i: (Q G)[:, i] = g_i^T Q[S_i, :], each at its support's padded width
             free = (weights > 0) & (weights < upper)
@@ -257,7 +257,7 @@ class AbstractCoordinateDescent(AbstractInverseMethod):
                 ),
                 indices,
             )
-            jac = jnp.zeros((k, width), weights.dtype).at[indices[:, None], model.support].add(g)
+            jac = model.jacobian(weights)
             hessian = jac @ qg.T  # G^T Q G
             pair = free[:, None] & free[None, :]
             ridge = 1e-6 * jnp.max(jnp.abs(jnp.diag(hessian)))

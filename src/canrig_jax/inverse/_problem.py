@@ -79,6 +79,20 @@ class InverseProblem(eqx.Module):
             [weights, *(combination_coefficients(weights, c) for c in self.combinations)]
         )
 
+    def slopes(self, weights: Float[Array, " K"]) -> Float[Array, "K m"]:
+        """(K, m) d a / d w_i on the support of each weight i: the product of the other
+        weights of each combination (1 for column i itself), 0 on padding."""
+        extended = jnp.append(weights, jnp.ones((1,), weights.dtype))
+        slope = jnp.prod(extended[self.support_others], axis=-1)
+        return jnp.where(self.support_valid, slope, 0.0)
+
+    def jacobian(self, weights: Float[Array, " K"]) -> Float[Array, "K P"]:
+        """(K, P) G = d a / d w, the slopes scattered onto their columns."""
+        k, width = self.n_blendshapes, self.gram.shape[0]
+        rows = jnp.arange(k)[:, None]
+        zeros = jnp.zeros((k, width), weights.dtype)
+        return zeros.at[rows, self.support].add(self.slopes(weights))
+
     def objective(
         self,
         weights: Float[Array, " K"],

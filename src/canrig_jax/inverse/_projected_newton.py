@@ -38,23 +38,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
-from jaxtyping import Array, Float
 
 from ._base import AbstractInverseMethod, Iterate, check_alpha, check_count, check_upper
-from ._problem import InverseProblem
-
-
-def coefficient_jacobian(
-    problem: InverseProblem, weights: Float[Array, " K"]
-) -> Float[Array, "K P"]:
-    """(K, P) G = d a / d w: row i holds, on the columns that contain weight i, the product
-    of the combination's other weights (1 on column i itself), zero elsewhere."""
-    k, width = problem.n_blendshapes, problem.gram.shape[0]
-    extended = jnp.append(weights, jnp.ones((1,), weights.dtype))
-    slope = jnp.prod(extended[problem.support_others], axis=-1)
-    slope = jnp.where(problem.support_valid, slope, 0.0)
-    rows = jnp.arange(k)[:, None]
-    return jnp.zeros((k, width), weights.dtype).at[rows, problem.support].add(slope)
 
 
 class QuarticNewton(AbstractInverseMethod):
@@ -91,18 +76,11 @@ class QuarticNewton(AbstractInverseMethod):
         projection = problem.projection(offset)
         lengths = 0.5 ** jnp.arange(self.line_steps, dtype=gram.dtype)
 
-        def energy(weights):
-            a = problem.coefficients(weights)
-            return (
-                0.5 * (a @ gram @ a - 2.0 * a @ projection + offset @ offset)
-                + alpha * weights.sum()
-            )
-
         def iteration(state):
             n, weights, value, _, history = state
             a = problem.coefficients(weights)
             residual = gram @ a - projection  # Q a - p
-            jacobian = coefficient_jacobian(problem, weights)
+            jacobian = problem.jacobian(weights)
             grad = jacobian @ residual + alpha
             hessian = (jacobian @ gram) @ jacobian.T
             eps = jnp.minimum(
@@ -137,7 +115,7 @@ class QuarticNewton(AbstractInverseMethod):
             n, _, value, gain, _ = state
             return (n < self.iterations) & ((n == 0) | (gain > self.tol * jnp.abs(value)))
 
-        value0 = energy(init)
+        value0 = problem.objective(init, projection, offset @ offset, alpha)
         history0 = jnp.zeros(self.iterations, gram.dtype)
         state = (jnp.asarray(0), init, value0, jnp.asarray(jnp.inf, gram.dtype), history0)
         n, weights, value, gain, history = jax.lax.while_loop(keep_going, iteration, state)
