@@ -52,7 +52,14 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from canrig_jax import CM_TO_MM, COMMAND_FILE, experiment_command, provenance, save_json, save_text
+from canrig_jax import (
+    CM_TO_MM,
+    experiment_command,
+    provenance,
+    record_command,
+    save_json,
+    save_text,
+)
 from canrig_jax.autorig import (
     ACTIVE_MM,
     ANCHOR_MODES,
@@ -309,7 +316,7 @@ def main(argv=None):
     args.out.mkdir(parents=True, exist_ok=True)
     command = experiment_command(__file__, argv)
     if args.train_only is None:
-        save_text(args.out / COMMAND_FILE, command + "\n")
+        record_command(args.out, command)
 
     start = time.perf_counter()
     dataset = ict_autorig_dataset(

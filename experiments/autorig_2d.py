@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import matplotlib.pyplot as plt
 import numpy as np
 
-from canrig_jax import COMMAND_FILE, experiment_command, provenance, save_json, save_text
+from canrig_jax import experiment_command, provenance, record_command, save_json, save_text
 from canrig_jax.autorig import (
     Supervision2DOptions,
     TrainOptions,
@@ -582,7 +582,7 @@ def main(argv=None):
     plot_history({n: info[n]["history"] for n in runs}, args.out / "training_loss.png")
     save_json(args.out / "results.json", results)
     save_text(args.out / "table.md", table(results))
-    save_text(args.out / COMMAND_FILE, command + "\n")
+    record_command(args.out, command)
     print(table(results))
     print(f"wrote {args.out}")
 

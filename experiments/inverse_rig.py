@@ -18,11 +18,11 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from canrig_jax import (
-    COMMAND_FILE,
     experiment_command,
     inverse,
     per_vertex_distance,
     provenance,
+    record_command,
     save_json,
     save_text,
 )
@@ -282,7 +282,7 @@ def main(argv=None):
     save_json(args.out / "results.json", results)
     save_text(args.out / "table.md", _table(cases, orderings, timing, reference))
     if not args.quick:
-        save_text(args.out / COMMAND_FILE, command + "\n")
+        record_command(args.out, command)
     for name, case in cases.items():
         _tradeoff_plot(case["sweep"], case["chosen"], args.out / f"tradeoff_{name}.png")
         _weight_curves(case, args.out / f"weight_curves_{name}.png")

@@ -21,7 +21,14 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from canrig_jax import CM_TO_MM, COMMAND_FILE, experiment_command, provenance, save_json, save_text
+from canrig_jax import (
+    CM_TO_MM,
+    experiment_command,
+    provenance,
+    record_command,
+    save_json,
+    save_text,
+)
 from canrig_jax.autorig import LearnedDiffusion
 from canrig_jax.data import ict_identity, load_ict, load_mediapipe_face
 from canrig_jax.mesh import (
@@ -192,7 +199,7 @@ def main(argv=None):
     args.out.mkdir(parents=True, exist_ok=True)
     command = experiment_command(__file__, command_args)
     save_json(args.out / "results.json", {**results, "provenance": provenance(command)})
-    save_text(args.out / COMMAND_FILE, command + "\n")
+    record_command(args.out, command)
     table = _table(results)
     save_text(args.out / "table.md", table)
     _plot_transfer(example, head.names, args.out / "deformation_transfer_error.png")

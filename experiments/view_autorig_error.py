@@ -24,11 +24,10 @@ import numpy as np
 
 from canrig_jax import (
     CM_TO_MM,
-    COMMAND_FILE,
     experiment_command,
     provenance,
+    record_command,
     save_json,
-    save_text,
 )
 from canrig_jax.autorig import generate_rig, load_makehuman, load_model, shared_shape_matrix
 from canrig_jax.data import load_livelinkface
@@ -46,7 +45,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     command = experiment_command(__file__, argv)
-    save_text(args.out / COMMAND_FILE, command + "\n")
+    record_command(args.out, command)
 
     head = load_makehuman(args.data_dir)
     model, poses, _ = load_model(args.checkpoint)

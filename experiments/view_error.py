@@ -44,13 +44,12 @@ import numpy as np
 
 from canrig_jax import (
     CM_TO_MM,
-    COMMAND_FILE,
     experiment_command,
     inverse,
     per_vertex_distance,
     provenance,
+    record_command,
     save_json,
-    save_text,
     wpse,
 )
 from canrig_jax.canrig import (
@@ -321,12 +320,9 @@ def main(argv=None) -> dict:
         "provenance": provenance(command),
     }
     save_json(out / "error_glb.json", results)
-    commands = out / COMMAND_FILE
-    previous = commands.read_text() if commands.exists() else ""
-    if command not in previous.splitlines():
-        note = "# error.glb (vertex colour = error) for canrig view (issue 23):\n"
-        separator = "\n" if previous and not previous.endswith("\n") else ""
-        save_text(commands, previous + separator + note + command + "\n")
+    record_command(
+        out, command, note="error.glb (vertex colour = error) for canrig view (issue 23):"
+    )
     print(
         f"{args.experiment}: mean {results['mean_mm']:.3f} mm, max {results['max_mm']:.3f} mm at "
         f"vertex {glb.worst_vertex} (frame {glb.worst_frame}); red from {glb.vmax_mm:.3f} mm; "

@@ -60,3 +60,17 @@ def test_every_results_writer_records_provenance(script):
     if script in PENDING and "provenance(" not in source:
         pytest.xfail("adopted by the script's owner (issue 21)")
     assert "provenance(" in source and "experiment_command(" in source
+
+
+def test_record_command_keeps_what_the_command_file_already_holds(tmp_path):
+    """A re-run appends its command instead of overwriting the log of earlier refreshes."""
+    from canrig_jax import record_command
+
+    first = "python experiments/x.py --out results/x"
+    path = record_command(tmp_path, first)
+    assert path.read_text() == first + "\n"
+    (tmp_path / COMMAND_FILE).write_text(path.read_text() + "# refreshed by hand:\npython y.py\n")
+    record_command(tmp_path, first)  # already there: nothing changes
+    assert path.read_text().splitlines() == [first, "# refreshed by hand:", "python y.py"]
+    record_command(tmp_path, "python z.py", note="a view")
+    assert path.read_text().splitlines()[-2:] == ["# a view", "python z.py"]

@@ -36,6 +36,7 @@ from ._provenance import (
     git_commit,
     package_versions,
     provenance,
+    record_command,
     with_provenance,
 )
 from ._sharding import (
@@ -61,6 +62,7 @@ __all__ = [
     "shard_batch",
     "CACHE_ENV_VAR",
     "COMMAND_FILE",
+    "record_command",
     "CM_TO_MM",
     "PACKAGES",
     "CorruptFileError",

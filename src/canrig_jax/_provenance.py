@@ -80,6 +80,21 @@ def package_versions(packages: Sequence[str] = PACKAGES) -> dict[str, str | None
     return out
 
 
+def record_command(folder: str | Path, command: str, note: str | None = None) -> Path:
+    """Add ``command`` to ``folder``'s ``COMMAND`` file (written atomically) without losing
+    what is there: a new file holds the command; an existing one keeps every line (other
+    commands, comments on how the results were refreshed) and gets the command appended,
+    after ``note`` as a ``#`` comment line if given, unless one of its lines already is that
+    command. Returns the file's path."""
+    from ._io import save_text
+
+    path = Path(folder) / COMMAND_FILE
+    lines = path.read_text().splitlines() if path.exists() else []
+    if command.strip() not in (line.strip() for line in lines):
+        lines += ([f"# {note}"] if note else []) + [command.strip()]
+    return save_text(path, "\n".join(lines) + "\n")
+
+
 def provenance(command: str) -> dict:
     """The record an experiment's ``results.json`` carries under ``"provenance"``: the command,
     the git commit (and whether the working tree had uncommitted changes to tracked files),
