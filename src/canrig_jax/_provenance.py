@@ -15,6 +15,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from ._io import save_text
+
 COMMAND_FILE = "COMMAND"
 """Name of the file holding the committed command(s) of an experiment's results folder."""
 
@@ -86,8 +88,6 @@ def record_command(folder: str | Path, command: str, note: str | None = None) ->
     commands, comments on how the results were refreshed) and gets the command appended,
     after ``note`` as a ``#`` comment line if given, unless one of its lines already is that
     command. Returns the file's path."""
-    from ._io import save_text
-
     path = Path(folder) / COMMAND_FILE
     lines = path.read_text().splitlines() if path.exists() else []
     if command.strip() not in (line.strip() for line in lines):
