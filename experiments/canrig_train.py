@@ -57,6 +57,7 @@ OPTION_HELP = {
     "interpolation_prior": "add the mask-weighted mean of the handle displacements",
     "query_modulation": "output input also modulated by an affine map of the vertex's query",
     "linear_skip": "bias-free linear skip in value/output MLPs",
+    "value_position": "value modulation: an MLP of the handle's encoded base position",
     "p_neutral": "base shape: the neutral",
 }
 QUICK = {"steps": 30, "max_minutes": None, "checkpoint_every": 10, "log_every": 5}

@@ -25,7 +25,10 @@ VARIANTS = [
     (ShapePreservingCANRig, {}),
     # the options of the standard configuration: positional encoding, query modulation
     (CANRig, {"fourier": 6, "query_modulation": True}),
-    (ShapePreservingCANRig, {"fourier": 6, "query_modulation": True, "linear_skip": True}),
+    (
+        ShapePreservingCANRig,
+        {"fourier": 6, "query_modulation": True, "linear_skip": True, "value_position": True},
+    ),
 ]
 
 

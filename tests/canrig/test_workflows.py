@@ -43,7 +43,11 @@ def _rig(ict_face, variant):
     options = {"fourier": 2, "interpolation_prior": True}
     if variant == "shape_preserving":
         model = ShapePreservingCANRig(
-            neutral, key=jax.random.PRNGKey(1), query_modulation=True, **options
+            neutral,
+            key=jax.random.PRNGKey(1),
+            query_modulation=True,
+            value_position=True,
+            **options,
         )
     else:
         model = CANRig(neutral, key=jax.random.PRNGKey(1), **options)

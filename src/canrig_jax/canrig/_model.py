@@ -41,8 +41,11 @@ Options beyond the paper (all off by default; see experiments/results/canrig/
 ablation_short_runs.md): ``interpolation_prior`` adds sum_h M_vh d_h / max(sum_h M_vh, 1) to
 the output, so the network learns the correction to a plain mask-weighted interpolation;
 ``query_modulation`` multiplies the attended vector also by an affine map of the vertex's
-query; ``linear_skip`` gives the zero-preserving MLPs a bias-free linear skip. All three are
-linear in d or multiply the attended vector, so both exact properties still hold.
+query; ``linear_skip`` gives the zero-preserving MLPs a bias-free linear skip; ``value_position``
+(shape-preserving variant) replaces the affine L_b of the value modulation by an MLP of the
+handle's encoded base position (the same encoding as the keys'), so a value can say where its
+handle is, not only how it moved. All four are linear in d, multiply the attended vector or
+multiply W_d d, so both exact properties still hold.
 """
 
 from __future__ import annotations
@@ -77,6 +80,7 @@ class Architecture:
     fourier: int
     linear_skip: bool
     interpolation_prior: bool
+    value_position: bool = False
 
 
 def _per_row(fn, x: Float[Array, "*B F"], *more: Float[Array, "*B G"]) -> Float[Array, "*B O"]:
@@ -436,25 +440,41 @@ class ShapePreservingCANRig(AbstractCANRig):
     output_mlp: ZeroPreservingMLP
     query_modulation: eqx.nn.Linear | None
     value_embedding: eqx.nn.Linear
-    value_modulation: eqx.nn.Linear
+    value_modulation: eqx.nn.Linear | eqx.nn.MLP
     output_modulation: eqx.nn.Linear
 
-    def __init__(self, canonical: Float[np.ndarray, "V 3"], *, key: PRNGKeyArray, **options):
+    def __init__(
+        self,
+        canonical: Float[np.ndarray, "V 3"],
+        *,
+        key: PRNGKeyArray,
+        value_position: bool = False,
+        **options,
+    ):
         key, ke, kb, ks, kv = jax.random.split(key, 5)
         # the plain model's parameters, drawn with the same keys as before the refactor
         plain = CANRig(canonical, key=key, **options)
-        self.arch = plain.arch
+        self.arch = dataclasses.replace(plain.arch, value_position=bool(value_position))
         self.query_mlp, self.key_mlp = plain.query_mlp, plain.key_mlp
         self.output_mlp, self.query_modulation = plain.output_mlp, plain.query_modulation
         width, latent = self.arch.width, self.arch.latent
         self.value_embedding = eqx.nn.Linear(3, width, use_bias=False, key=ke)
-        self.value_modulation = eqx.nn.Linear(3, width, key=kb)
+        if value_position:
+            n_in = 3 + 6 * self.arch.fourier
+            mlp = dict(width_size=width, depth=self.arch.n_layers - 1, activation=jax.nn.gelu)
+            self.value_modulation = eqx.nn.MLP(n_in, width, **mlp, key=kb)
+        else:
+            self.value_modulation = eqx.nn.Linear(3, width, key=kb)
         self.output_modulation = eqx.nn.Linear(3, latent, key=ks)
         self.value_mlp = _zero_preserving(self.arch, width, latent, jax.nn.gelu, kv)
 
     def value_input(self, displacements, handle_base):
         embedded = _per_row(self.value_embedding, displacements / self.displacement_scale)
-        return embedded * _per_row(self.value_modulation, self.normalise(handle_base))
+        if self.arch.value_position:
+            position = self.encode_position(handle_base)
+        else:
+            position = self.normalise(handle_base)
+        return embedded * _per_row(self.value_modulation, position)
 
     def output_modulation_of(self, base, queries):
         modulation = _per_row(self.output_modulation, self.normalise(base))
