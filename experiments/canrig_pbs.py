@@ -28,7 +28,14 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from canrig_jax import CM_TO_MM, experiment_command, provenance, save_json, save_text  # noqa: E402
+from canrig_jax import (  # noqa: E402
+    CM_TO_MM,
+    experiment_command,
+    provenance,
+    record_command,
+    save_json,
+    save_text,
+)
 from canrig_jax.autorig import head_rig  # noqa: E402
 from canrig_jax.canrig import (  # noqa: E402
     CLAMP,
@@ -155,6 +162,16 @@ def _parser():
         help="where training handles are drawn and Table 5's handles placed: the skin (Face, "
         "Head and Neck; the protocol) or every part that moves (a variant: handles may sit on "
         "the teeth, gums, eyelashes)",
+    )
+    parser.add_argument(
+        "--table6-sweep",
+        type=int,
+        nargs="+",
+        default=None,
+        metavar="K",
+        help="only Table 6 again with K mouth handles for each K (a variant; the protocol has "
+        "60): its reach floor and every method's mouth difference, added to OUT's "
+        "results.json (table6_handle_sweep) and table.md; needs OUT's trained checkpoints",
     )
     parser.add_argument("--no-progress", action="store_true")
     return parser
@@ -361,6 +378,63 @@ DIALOGUE_HANDLES, DIALOGUE_RADIUS_CM, DIALOGUE_FALLOFF = 60, 1.5, 3.0
 MOUTH_THRESHOLD_CM = 0.3  # as experiments/canrig_workflows.py
 
 
+SWEEP_HEADER = "Table 6, a variant: the number of mouth handles"
+
+
+def _table6_sweep(args, command, head):
+    """``--table6-sweep``: Table 6 with each number of mouth handles (the 140 still ones
+    unchanged), merged into OUT's results.json and table.md."""
+    data, distances = _training_set(args, head)
+    sweep = {}
+    for count in args.table6_sweep:
+        if count < 1:
+            raise ValueError(f"--table6-sweep: expected counts >= 1, got {count}")
+        table6, _ = _table6(args, head, data, distances, n_mouth=count)
+        sweep[str(count)] = {
+            "reach_floor_mm": table6["reach_floor_mm"],
+            "unreached_region_vertices": table6["unreached_region_vertices"],
+            **{k: v["mouth_difference_mm"] for k, v in table6["methods"].items()},
+            "per_patch_rest_of_face_change_max_mm": table6["methods"]
+            .get("per_patch", {})
+            .get("rest_of_face_change_mm"),
+        }
+    path = args.out / "results.json"
+    results = json.loads(path.read_text()) if path.exists() else {}
+    results["table6_handle_sweep"] = {
+        "mouth_difference_mm": sweep,
+        "protocol": "Table 6's protocol with K mouth handles (farthest points among the same "
+        "candidates) instead of 60; the baselines get the same K plus the 140 still handles; "
+        "reach_floor_mm: the mouth difference of the region's vertices no moved handle's "
+        "clamped mask reaches (they keep the source frame in any CANRig-PBS result)",
+        "provenance": provenance(command),
+    }
+    save_json(path, results)
+    methods = [
+        k
+        for k in ("per_patch", "shape_transformer", "gbs_19", "gbs_ict_53")
+        if k in sweep[str(args.table6_sweep[0])]
+    ]
+    lines = [
+        f"{SWEEP_HEADER} (`{command}`): the mouth difference (mm) with K mouth handles; "
+        "reach floor: the part of it no CANRig-PBS network can remove (region vertices beyond "
+        "every moved handle's clamped mask keep the source frame).",
+        "",
+        "| mouth handles | reach floor (unreached vertices) | " + " | ".join(methods) + " |",
+        "|---|---|" + "---|" * len(methods),
+    ] + [
+        f"| {k} | {v['reach_floor_mm']:.3f} ({v['unreached_region_vertices']}) | "
+        + " | ".join(f"{v[m]:.3f}" for m in methods)
+        + " |"
+        for k, v in sweep.items()
+    ]
+    table = args.out / "table.md"
+    text = table.read_text() if table.exists() else ""
+    text = text.split(SWEEP_HEADER)[0].rstrip("\n") + "\n\n" + "\n".join(lines) + "\n"
+    save_text(table, text)
+    record_command(args.out, command)
+    print("\n".join(lines))
+
+
 def _dense_reference_ms(head, handles):
     """One dense per-vertex forward pass (an untrained ShapePreservingCANRig, the encoder
     sizes of PBSTrainOptions) on all vertices at these handles: the timing reference."""
@@ -386,7 +460,44 @@ def _dense_reference_ms(head, handles):
     return _timed(lambda: call(net, queries, base, mask, d))
 
 
-def _table6(args, head, data, distances):
+def _dialogue_clips(head, n: int):
+    """Table 6's source (capture frames 90..) and target (135..) clips on the whole head, the
+    evaluated mouth region (N,) and the mouth patches (P,) (see ``_table6``)."""
+    layout, rig, capture = head["layout"], head["rig"], head["capture"]
+    source = np.asarray(evaluate_batch(rig, capture[90 : 90 + n], chunk=16), np.float32)
+    target = np.asarray(evaluate_batch(rig, capture[135 : 135 + n], chunk=16), np.float32)
+    mouth = expression_region(rig, threshold=MOUTH_THRESHOLD_CM)
+    mouth_patch = mouth[np.asarray(layout.seeds)]
+    covered = np.asarray(layout.vertex_weights) > 0
+    region = (covered & mouth_patch[np.asarray(layout.vertex_patches)]).any(axis=1)
+    return source, target, mouth, mouth_patch, region
+
+
+def _mouth_handles(head, distances, mouth, mouth_patch, count: int):
+    """``count`` mouth handles (farthest points among the mouth vertices that no patch seeded
+    outside the mouth reaches) and the 200 - 60 still handles off the region."""
+    reach = float(influence_reach(DIALOGUE_RADIUS_CM, DIALOGUE_FALLOFF, CLAMP))
+    outside_seed_distance = distances[~mouth_patch].min(axis=0)  # (N,) to the nearest
+    candidates = np.flatnonzero(mouth & (outside_seed_distance > reach))
+    return candidates[farthest_point_vertices(head["neutral"][candidates], count)]
+
+
+def reach_floor(head, distances, handles, source, target, region) -> tuple[float, int]:
+    """(mm, vertices): the region's vertices whose every covering patch lies beyond the
+    clamped mask's reach from every moved handle keep the source frame in any CANRig-PBS
+    result, so their error |source - target|, averaged over the region and the frames, is
+    a lower bound of its mouth difference whatever the network."""
+    layout = head["layout"]
+    reach = float(influence_reach(DIALOGUE_RADIUS_CM, DIALOGUE_FALLOFF, CLAMP))
+    reached_patch = distances[:, handles].min(axis=1) <= reach  # (P,)
+    covered = np.asarray(layout.vertex_weights) > 0
+    reached = (covered & reached_patch[np.asarray(layout.vertex_patches)]).any(axis=1)
+    unreached = region & ~reached
+    error = np.linalg.norm(source - target, axis=-1) * CM_TO_MM
+    return float(error[:, unreached].sum(axis=1).mean() / region.sum()), int(unreached.sum())
+
+
+def _table6(args, head, data, distances, n_mouth: int = DIALOGUE_HANDLES):
     """Dialogue replacement (Table 6) on the whole head for the trained models and GBS.
 
     The mouth mask is ``expression_region`` of the whole-head rig (threshold 3 mm, as the
@@ -396,24 +507,14 @@ def _table6(args, head, data, distances):
     within the masks' reach, moved to the target frame, base = the source frame. Shape
     Transformer and GBS (no base shape): the source frame is first inverted from 200 handles
     (those 60 + 140 geodesic farthest points off the mouth region), then the 60 move."""
-    neutral, layout, rig = head["neutral"], head["layout"], head["rig"]
-    capture = head["capture"]
+    neutral, rig = head["neutral"], head["rig"]
     n = 6 if args.quick else 45
-    source = np.asarray(evaluate_batch(rig, capture[90 : 90 + n], chunk=16), np.float32)
-    target = np.asarray(evaluate_batch(rig, capture[135 : 135 + n], chunk=16), np.float32)
-    mouth = expression_region(rig, threshold=MOUTH_THRESHOLD_CM)
-    seeds = np.asarray(layout.seeds)
-    mouth_patch = mouth[seeds]
-    covered = np.asarray(layout.vertex_weights) > 0
-    region = (covered & mouth_patch[np.asarray(layout.vertex_patches)]).any(axis=1)
-    reach = float(influence_reach(DIALOGUE_RADIUS_CM, DIALOGUE_FALLOFF, CLAMP))
-    outside_seed_distance = distances[~mouth_patch].min(axis=0)  # (N,) to the nearest
-    candidates = np.flatnonzero(mouth & (outside_seed_distance > reach))
-    mouth_handles = candidates[farthest_point_vertices(neutral[candidates], DIALOGUE_HANDLES)]
+    source, target, mouth, mouth_patch, region = _dialogue_clips(head, n)
+    mouth_handles = _mouth_handles(head, distances, mouth, mouth_patch, n_mouth)
     off = np.flatnonzero(~region & head["skin"])
     still = off[farthest_point_vertices(neutral[off], 200 - DIALOGUE_HANDLES)]
     all_handles = np.concatenate([mouth_handles, still])
-    moved = np.arange(len(all_handles)) < DIALOGUE_HANDLES
+    moved = np.arange(len(all_handles)) < n_mouth
 
     def error(a, b, where):
         return float((np.linalg.norm(a - b, axis=-1) * CM_TO_MM)[:, where].mean())
@@ -471,8 +572,12 @@ def _table6(args, head, data, distances):
             "mouth_difference_mm": error(edited, target, region),
             "rest_of_face_change_mm": error(edited, source, ~region),
         }
+    floor_mm, unreached = reach_floor(head, distances, mouth_handles, source, target, region)
     table6 = {
         "methods": methods,
+        "mouth_handles": int(n_mouth),
+        "reach_floor_mm": floor_mm,
+        "unreached_region_vertices": unreached,
         "no_edit_mouth_difference_mm": error(source, target, region),
         "frames": {"source": [90, 89 + n], "target": [135, 134 + n]},
         "mouth_region_vertices": int(region.sum()),
@@ -494,6 +599,8 @@ def main(argv=None):
     head["out"] = args.out
     if args.train is not None:
         return _train(args, argv, head)
+    if args.table6_sweep is not None:
+        return _table6_sweep(args, command, head)
     model, neutral, faces = head["model"], head["neutral"], head["faces"]
     layout, layout_s, parts = head["layout"], head["layout_s"], head["parts"]
     sizes = np.array([len(v) for v in layout.patch_vertices()])
@@ -790,6 +897,16 @@ def main(argv=None):
             "",
             *t6,
             "",
+            *(
+                [
+                    f"Reach floor of CANRig-PBS's mouth difference: {table6['reach_floor_mm']:.3f}"
+                    f" mm ({table6['unreached_region_vertices']} of the region's vertices lie "
+                    "beyond every moved handle's clamped mask and keep the source frame).",
+                    "",
+                ]
+                if "reach_floor_mm" in table6
+                else []
+            ),
             *fwd,
             "",
         ]

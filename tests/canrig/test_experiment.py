@@ -79,3 +79,37 @@ def test_pbs_quick_attached_graph_end_to_end(tmp_path):
     assert reach["face"]["within_reach"] == 1.0 and reach["mouth_interior"]["patches"] > 0
     assert reach["mouth_interior"]["within_reach"] > 0.9
     assert results["table6"]["methods"]["per_patch"]["rest_of_face_change_mm"] == 0.0
+    # the handle sweep: no network goes below the reach floor, more handles never raise it,
+    # the exact zero outside the region holds for every count; re-running replaces the section
+    for _ in range(2):
+        pbs.main([*argv, "--table6-sweep", "2", "8"])
+    sweep = json.loads((tmp_path / "results.json").read_text())["table6_handle_sweep"]
+    rows = sweep["mouth_difference_mm"]
+    assert rows["2"]["reach_floor_mm"] >= rows["8"]["reach_floor_mm"]
+    for row in rows.values():
+        assert row["per_patch"] >= row["reach_floor_mm"] - 1e-6
+        assert row["per_patch_rest_of_face_change_max_mm"] == 0.0
+    assert (tmp_path / "table.md").read_text().count(pbs.SWEEP_HEADER) == 1
+    assert "table5" in json.loads((tmp_path / "results.json").read_text())  # kept
+
+
+def test_reach_floor_counts_only_vertices_no_moved_handle_reaches():
+    """Two patches over four vertices; the handle reaches patch 0 only: vertices covered by
+    patch 1 alone keep the source, and their error averaged over the region is the floor."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    pbs = _load("canrig_pbs")
+    layout = SimpleNamespace(
+        vertex_patches=np.array([[0, 0], [0, 1], [1, 1], [1, 1]]),
+        vertex_weights=np.array([[1.0, 0.0], [0.5, 0.5], [1.0, 0.0], [1.0, 0.0]]),
+    )
+    distances = np.array([[0.0, 0.0, 0.0, 0.0], [99.0, 99.0, 99.0, 99.0]])  # (P, N)
+    source = np.zeros((1, 4, 3), np.float32)
+    target = np.zeros((1, 4, 3), np.float32)
+    target[0, :, 0] = [0.1, 0.2, 0.3, 0.4]  # cm
+    region = np.array([True, True, True, False])
+    floor, unreached = pbs.reach_floor({"layout": layout}, distances, [0], source, target, region)
+    assert unreached == 1  # vertex 2 (vertex 1 is also covered by the reached patch 0)
+    assert floor == pytest.approx(3.0 / 3)  # 3 mm at vertex 2, averaged over 3 region vertices
