@@ -474,8 +474,8 @@ def _dialogue_clips(head, n: int):
 
 
 def _mouth_handles(head, distances, mouth, mouth_patch, count: int):
-    """``count`` mouth handles (farthest points among the mouth vertices that no patch seeded
-    outside the mouth reaches) and the 200 - 60 still handles off the region."""
+    """``count`` mouth handles: farthest points among the mouth vertices from which no patch
+    seeded outside the mouth is within the clamped mask's reach."""
     reach = float(influence_reach(DIALOGUE_RADIUS_CM, DIALOGUE_FALLOFF, CLAMP))
     outside_seed_distance = distances[~mouth_patch].min(axis=0)  # (N,) to the nearest
     candidates = np.flatnonzero(mouth & (outside_seed_distance > reach))
