@@ -178,7 +178,7 @@ class DiffusionNet(eqx.Module):
         Raises ValueError (before tracing) when ``features`` is not (V, in_size) for the
         operators' V, or contains non-finite values.
         """
-        shape = jnp.shape(features)
+        shape = np.shape(features)
         n_vertices = operators.mass.shape[0]
         if len(shape) != 2 or shape != (n_vertices, self.first.in_features):
             raise ValueError(

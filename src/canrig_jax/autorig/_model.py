@@ -230,26 +230,26 @@ class RigAnyFace(eqx.Module):
         """
         if pose_chunk is not None and pose_chunk < 1:
             raise ValueError(f"pose_chunk: expected a positive number of poses, got {pose_chunk}")
-        if jnp.ndim(poses) != 2 or jnp.shape(poses)[1] != self.n_pose_inputs:
+        if np.ndim(poses) != 2 or np.shape(poses)[1] != self.n_pose_inputs:
             raise ValueError(
                 f"poses: expected shape (P, {self.n_pose_inputs}) (one pose vector per row), "
-                f"got {jnp.shape(poses)}"
+                f"got {np.shape(poses)}"
             )
         n_vertices = operators.mass.shape[-1]
-        if jnp.shape(vertices) != (n_vertices, 3):
+        if np.shape(vertices) != (n_vertices, 3):
             raise ValueError(
                 f"vertices: expected shape ({n_vertices}, 3) to match the operators, "
-                f"got {jnp.shape(vertices)}"
+                f"got {np.shape(vertices)}"
             )
         if self.residual != (base is not None):
             raise ValueError(
                 "base: a residual model needs the base displacements (P, V, 3), a plain model "
                 f"takes none (residual={self.residual}, base given: {base is not None})"
             )
-        if base is not None and jnp.shape(base) != (jnp.shape(poses)[0], n_vertices, 3):
+        if base is not None and np.shape(base) != (np.shape(poses)[0], n_vertices, 3):
             raise ValueError(
-                f"base: expected shape ({jnp.shape(poses)[0]}, {n_vertices}, 3), "
-                f"got {jnp.shape(base)}"
+                f"base: expected shape ({np.shape(poses)[0]}, {n_vertices}, 3), "
+                f"got {np.shape(base)}"
             )
         mask = operators.vertex_mask[:, None]
         code = self.global_code(vertices, operators)

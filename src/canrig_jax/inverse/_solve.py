@@ -44,7 +44,7 @@ def _check_problem(problem) -> InverseProblem:
 
 
 def _check_target(problem: InverseProblem, name: str, target, batched: bool) -> None:
-    shape = jnp.shape(target)
+    shape = np.shape(target)
     expected = (problem.n_vertices, 3)
     if (shape[1:] if batched else shape) != expected or (batched and len(shape) != 3):
         want = "(T, " + ", ".join(map(str, expected)) + ")" if batched else str(expected)
@@ -106,8 +106,8 @@ def _check_init(problem: InverseProblem, init, name: str = "init"):
     k = problem.n_blendshapes
     if init is None:
         return jnp.zeros(k, problem.columns.dtype)
-    if jnp.shape(init) != (k,):
-        raise ValueError(f"{name}: expected shape ({k},), got {jnp.shape(init)}")
+    if np.shape(init) != (k,):
+        raise ValueError(f"{name}: expected shape ({k},), got {np.shape(init)}")
     check_finite(name, init)
     return init
 

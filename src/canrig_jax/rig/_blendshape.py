@@ -226,7 +226,7 @@ class BlendshapeRig(eqx.Module):
 def check_weights(rig: BlendshapeRig, weights) -> None:
     """Validate a weight vector against a rig (shape, and finiteness when concrete)."""
     check_real("weights", weights)
-    shape = jnp.shape(weights)
+    shape = np.shape(weights)
     if shape != (rig.n_blendshapes,):
         raise ValueError(
             f"weights: expected shape ({rig.n_blendshapes},) for a rig with "

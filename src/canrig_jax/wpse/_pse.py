@@ -75,8 +75,8 @@ class PoseSpaceEdit(eqx.Module):
 
 
 def check_sigma(sigma) -> None:
-    if jnp.ndim(sigma) != 0:
-        raise ValueError(f"sigma: expected a scalar, got shape {jnp.shape(sigma)}")
+    if np.ndim(sigma) != 0:
+        raise ValueError(f"sigma: expected a scalar, got shape {np.shape(sigma)}")
     if not isinstance(sigma, jax.core.Tracer):
         value = float(sigma)
         if not np.isfinite(value) or value <= 0:
@@ -350,13 +350,13 @@ def correction(
 
 def check_pose(model: PoseSpaceEdit, weights, posed) -> None:
     """Shapes of a run-time pose and base mesh (and finiteness when concrete)."""
-    if jnp.shape(weights) != (model.n_blendshapes,):
+    if np.shape(weights) != (model.n_blendshapes,):
         raise ValueError(
-            f"weights: expected shape ({model.n_blendshapes},), got {jnp.shape(weights)}; "
+            f"weights: expected shape ({model.n_blendshapes},), got {np.shape(weights)}; "
             "batch with jax.vmap"
         )
-    if jnp.shape(posed) != (model.n_vertices, 3):
-        raise ValueError(f"posed: expected shape ({model.n_vertices}, 3), got {jnp.shape(posed)}")
+    if np.shape(posed) != (model.n_vertices, 3):
+        raise ValueError(f"posed: expected shape ({model.n_vertices}, 3), got {np.shape(posed)}")
     _check_finite("weights", weights)
     _check_finite("posed", posed)
 
