@@ -58,7 +58,6 @@ OPTION_HELP = {
     "query_modulation": "output input also modulated by an affine map of the vertex's query",
     "linear_skip": "bias-free linear skip in value/output MLPs",
     "value_position": "value modulation: an MLP of the handle's encoded base position",
-    "global_context": "output also modulated by a map of the sum of all handle values",
     "p_neutral": "base shape: the neutral",
 }
 QUICK = {"steps": 30, "max_minutes": None, "checkpoint_every": 10, "log_every": 5}

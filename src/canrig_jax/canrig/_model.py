@@ -64,10 +64,6 @@ from ._layout import DENSE, Layout
 from ._masks import CLAMP
 from ._mlp import ZeroPreservingMLP
 
-CONTEXT_SCALE = 100.0
-"""``global_context`` pools the sum of the handle values divided by this (about the number of
-handles of an edit), so the pooled vector stays of order one."""
-
 
 @dataclasses.dataclass(frozen=True)
 class Architecture:
@@ -85,7 +81,6 @@ class Architecture:
     linear_skip: bool
     interpolation_prior: bool
     value_position: bool = False
-    global_context: bool = False
 
 
 def _per_row(fn, x: Float[Array, "*B F"], *more: Float[Array, "*B G"]) -> Float[Array, "*B O"]:
@@ -207,16 +202,11 @@ class AbstractCANRig(eqx.Module):
         attended: Float[Array, "*B N latent"],
         base: Float[Array, "*B N 3"],
         queries: Float[Array, "*B heads N d"],
-        context: Float[Array, "*B latent"] | None = None,
     ) -> Float[Array, "*B N 3"]:
-        """The output MLP's offset of each vertex from the base shape (0 where attended = 0).
-        ``context`` (``handle_context``) multiplies every vertex's attended vector by
-        1 + context."""
+        """The output MLP's offset of each vertex from the base shape (0 where attended = 0)."""
         modulation = self.output_modulation_of(base, self.merge_heads(queries))
         if modulation is not None:
             attended = attended * modulation
-        if context is not None:
-            attended = attended * (1.0 + context[..., None, :])
         return _per_row(self.output_mlp, attended) * self.displacement_scale
 
     def vertex_modulation(
@@ -240,13 +230,6 @@ class AbstractCANRig(eqx.Module):
         (zero-preserving) and exactly 0 where every clamped mask is 0."""
         return jnp.matmul(self.interpolation_weights(mask), displacements)
 
-    def handle_context(
-        self, values: Float[Array, "*B heads H d"]
-    ) -> Float[Array, "*B latent"] | None:
-        """With ``global_context``: a linear map of the sum of every handle's value (divided
-        by ``CONTEXT_SCALE``), what the whole edit looks like; None otherwise."""
-        return None
-
     # ------------------------------------------------------------ the one forward pass
     def trace(
         self,
@@ -263,8 +246,7 @@ class AbstractCANRig(eqx.Module):
         """The forward pass with its intermediates (``__call__`` returns ``.shape``).
         ``local_queries``: ``layout.vertices(queries, axis=-2)`` if cached by the caller."""
         keys = layout.handles(self.encode_keys(handle_canonical), axis=-2)
-        all_values = self.encode_values(displacements, handle_base)
-        values = layout.handles(all_values, axis=-2)
+        values = layout.handles(self.encode_values(displacements, handle_base), axis=-2)
         if local_queries is None:
             local_queries = layout.vertices(queries, axis=-2)
         # local arrays, one per part of a ``PartsLayout`` (jax.tree.map over the parts)
@@ -274,7 +256,7 @@ class AbstractCANRig(eqx.Module):
         attended = layout.scatter(
             jax.tree.map(lambda a, v: self.merge_heads(jnp.matmul(a, v)), attention, values)
         )
-        shape = base + self.decode(attended, base, queries, self.handle_context(all_values))
+        shape = base + self.decode(attended, base, queries)
         if self.interpolation_prior:
             moved = jax.tree.map(self.interpolate, mask, layout.handles(displacements, axis=-2))
             shape = shape + layout.scatter(moved)
@@ -460,7 +442,6 @@ class ShapePreservingCANRig(AbstractCANRig):
     value_embedding: eqx.nn.Linear
     value_modulation: eqx.nn.Linear | eqx.nn.MLP
     output_modulation: eqx.nn.Linear
-    context_map: eqx.nn.Linear | None
 
     def __init__(
         self,
@@ -468,15 +449,12 @@ class ShapePreservingCANRig(AbstractCANRig):
         *,
         key: PRNGKeyArray,
         value_position: bool = False,
-        global_context: bool = False,
         **options,
     ):
         key, ke, kb, ks, kv = jax.random.split(key, 5)
         # the plain model's parameters, drawn with the same keys as before the refactor
         plain = CANRig(canonical, key=key, **options)
-        self.arch = dataclasses.replace(
-            plain.arch, value_position=bool(value_position), global_context=bool(global_context)
-        )
+        self.arch = dataclasses.replace(plain.arch, value_position=bool(value_position))
         self.query_mlp, self.key_mlp = plain.query_mlp, plain.key_mlp
         self.output_mlp, self.query_modulation = plain.output_mlp, plain.query_modulation
         width, latent = self.arch.width, self.arch.latent
@@ -489,11 +467,6 @@ class ShapePreservingCANRig(AbstractCANRig):
             self.value_modulation = eqx.nn.Linear(3, width, key=kb)
         self.output_modulation = eqx.nn.Linear(3, latent, key=ks)
         self.value_mlp = _zero_preserving(self.arch, width, latent, jax.nn.gelu, kv)
-        self.context_map = (
-            eqx.nn.Linear(latent, latent, use_bias=False, key=jax.random.fold_in(ks, 1))
-            if global_context
-            else None
-        )
 
     def value_input(self, displacements, handle_base):
         embedded = _per_row(self.value_embedding, displacements / self.displacement_scale)
@@ -507,12 +480,6 @@ class ShapePreservingCANRig(AbstractCANRig):
         modulation = _per_row(self.output_modulation, self.normalise(base))
         by_query = self.vertex_modulation(queries)
         return modulation if by_query is None else modulation + by_query
-
-    def handle_context(self, values):
-        if self.context_map is None:
-            return None
-        pooled = jnp.sum(self.merge_heads(values), axis=-2) / CONTEXT_SCALE
-        return _per_row(self.context_map, pooled)
 
     def attention_beta(self, beta):
         """The extra attention column's logit (default 0, the training value)."""

@@ -51,7 +51,6 @@ class TrainOptions:
     query_modulation: bool = False
     interpolation_prior: bool = False
     value_position: bool = False
-    global_context: bool = False
     learning_rate: float = 1e-3
     decay_steps: int = 0  # 0: constant rate; else cosine decay over this many steps
     decay_floor: float = 0.05
@@ -78,9 +77,8 @@ class TrainOptions:
                 f"decay_steps, decay_start: expected >= 0, got {self.decay_steps}, "
                 f"{self.decay_start}"
             )
-        for name in ("value_position", "global_context"):
-            if getattr(self, name) and self.variant != "shape_preserving":
-                raise ValueError(f"{name}: only the shape_preserving variant has it")
+        if self.value_position and self.variant != "shape_preserving":
+            raise ValueError("value_position: only the shape_preserving variant has it")
         if self.loss not in LOSSES:
             raise ValueError(f"loss: expected one of {sorted(LOSSES)}, got {self.loss!r}")
         if not 0.0 <= self.decay_floor <= 1.0:
@@ -135,7 +133,7 @@ def make_model(options: TrainOptions, canonical, displacement_scale: float = 1.0
         interpolation_prior=options.interpolation_prior,
         displacement_scale=displacement_scale,
         key=jax.random.PRNGKey(options.seed),
-        **{k: True for k in ("value_position", "global_context") if getattr(options, k)},
+        **({"value_position": True} if options.value_position else {}),
     )
 
 

@@ -92,13 +92,7 @@ def displacement_jacobian(
 
     Only the values depend on d, so the block of vertex v and handle h is
     sum_k A^k_vh G_v^k U_h^k + P_vh I (A the attention of head k, G the output MLP's
-    Jacobian, U the value MLP's, P the interpolation prior's weight). A model with
-    ``global_context`` (every vertex depends on every handle) has no such blocks: it raises."""
-    if model.arch.global_context:
-        raise NotImplementedError(
-            "model: its global_context couples every vertex to every handle, so the "
-            "structured Jacobian (and the fitted workflows) do not apply; use fit=False"
-        )
+    Jacobian, U the value MLP's, P the interpolation prior's weight)."""
     trace = trace_edit(model, queries, canonical, edit, layout)
     value_jac = _value_jacobian(model, edit.displacements, edit.base[edit.index])  # (H,k,e,3)
     decode_jac = _decode_jacobian(model, trace.attended, edit.base, queries)  # (V, 3, k, e)
