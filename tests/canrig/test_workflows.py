@@ -47,7 +47,6 @@ def _rig(ict_face, variant):
             key=jax.random.PRNGKey(1),
             query_modulation=True,
             value_position=True,
-            pair_offsets=2,
             **options,
         )
     else:

@@ -44,12 +44,8 @@ the output, so the network learns the correction to a plain mask-weighted interp
 query; ``linear_skip`` gives the zero-preserving MLPs a bias-free linear skip; ``value_position``
 (shape-preserving variant) replaces the affine L_b of the value modulation by an MLP of the
 handle's encoded base position (the same encoding as the keys'), so a value can say where its
-handle is, not only how it moved; ``pair_offsets = L`` (shape-preserving variant) multiplies
-each handle's value, as each vertex sees it, by a linear map of the vertex-to-handle offset
-on the base shape (normalised, with L octaves of sin/cos): o_v = sum_h A_vh (u_h * g(b_h -
-S_B,v)), so the same handle motion can mean different things at different places around it.
-All five are linear in d, multiply the attended vector or multiply W_d d (or u_h), so both
-exact properties still hold; the structured Jacobian carries the pair factor.
+handle is, not only how it moved. All four are linear in d, multiply the attended vector or
+multiply W_d d, so both exact properties still hold.
 """
 
 from __future__ import annotations
@@ -85,7 +81,6 @@ class Architecture:
     linear_skip: bool
     interpolation_prior: bool
     value_position: bool = False
-    pair_offsets: int = 0
 
 
 def _per_row(fn, x: Float[Array, "*B F"], *more: Float[Array, "*B G"]) -> Float[Array, "*B O"]:
@@ -106,7 +101,6 @@ class AbstractCANRig(eqx.Module):
     value_mlp: eqx.AbstractVar[ZeroPreservingMLP]
     output_mlp: eqx.AbstractVar[ZeroPreservingMLP]
     query_modulation: eqx.AbstractVar[eqx.nn.Linear | None]
-    pair_map: eqx.AbstractVar[eqx.nn.Linear | None]
 
     # ------------------------------------------------------------ what the variants change
     @abc.abstractmethod
@@ -236,22 +230,6 @@ class AbstractCANRig(eqx.Module):
         (zero-preserving) and exactly 0 where every clamped mask is 0."""
         return jnp.matmul(self.interpolation_weights(mask), displacements)
 
-    def pair_factor(
-        self, vertex_base: Float[Array, "*B S 3"], handle_base: Float[Array, "*B W 3"]
-    ) -> Float[Array, "*B heads S W d"]:
-        """With ``pair_offsets = L``: a linear map of the offset from vertex to handle on the
-        base shape (normalised, with L octaves of sin/cos), per head, multiplying each
-        handle's value as seen from each vertex."""
-        offset = (handle_base[..., None, :, :] - vertex_base[..., :, None, :]) / (
-            self.arch.position_scale
-        )
-        frequencies = jnp.pi * 2.0 ** jnp.arange(self.arch.pair_offsets, dtype=offset.dtype)
-        angles = (offset[..., None] * frequencies).reshape(*offset.shape[:-1], -1)
-        features = jnp.concatenate([offset, jnp.sin(angles), jnp.cos(angles)], axis=-1)
-        g = features @ self.pair_map.weight.T + self.pair_map.bias
-        g = g.reshape(*g.shape[:-1], self.n_heads, -1)
-        return jnp.moveaxis(g, -2, -4)
-
     # ------------------------------------------------------------ the one forward pass
     def trace(
         self,
@@ -275,21 +253,9 @@ class AbstractCANRig(eqx.Module):
         attention = jax.tree.map(
             lambda q, k, m: self.attention(q, k, m, beta), local_queries, keys, mask
         )
-        if self.pair_map is None:
-            attended = layout.scatter(
-                jax.tree.map(lambda a, v: self.merge_heads(jnp.matmul(a, v)), attention, values)
-            )
-        else:
-            local_base = layout.vertices(base, axis=-2)
-            local_handle_base = layout.handles(handle_base, axis=-2)
-
-            def attend(a, v, sv, ph):
-                g = self.pair_factor(sv, ph)  # (..., heads, S, W, d)
-                return self.merge_heads(jnp.einsum("...ksw,...kwd,...kswd->...ksd", a, v, g))
-
-            attended = layout.scatter(
-                jax.tree.map(attend, attention, values, local_base, local_handle_base)
-            )
+        attended = layout.scatter(
+            jax.tree.map(lambda a, v: self.merge_heads(jnp.matmul(a, v)), attention, values)
+        )
         shape = base + self.decode(attended, base, queries)
         if self.interpolation_prior:
             moved = jax.tree.map(self.interpolate, mask, layout.handles(displacements, axis=-2))
@@ -415,7 +381,6 @@ class CANRig(AbstractCANRig):
     value_mlp: ZeroPreservingMLP
     output_mlp: ZeroPreservingMLP
     query_modulation: eqx.nn.Linear | None
-    pair_map: None = None
 
     def __init__(
         self,
@@ -477,7 +442,6 @@ class ShapePreservingCANRig(AbstractCANRig):
     value_embedding: eqx.nn.Linear
     value_modulation: eqx.nn.Linear | eqx.nn.MLP
     output_modulation: eqx.nn.Linear
-    pair_map: eqx.nn.Linear | None
 
     def __init__(
         self,
@@ -485,17 +449,12 @@ class ShapePreservingCANRig(AbstractCANRig):
         *,
         key: PRNGKeyArray,
         value_position: bool = False,
-        pair_offsets: int = 0,
         **options,
     ):
-        if int(pair_offsets) < 0:
-            raise ValueError(f"pair_offsets: expected >= 0 octaves, got {pair_offsets}")
         key, ke, kb, ks, kv = jax.random.split(key, 5)
         # the plain model's parameters, drawn with the same keys as before the refactor
         plain = CANRig(canonical, key=key, **options)
-        self.arch = dataclasses.replace(
-            plain.arch, value_position=bool(value_position), pair_offsets=int(pair_offsets)
-        )
+        self.arch = dataclasses.replace(plain.arch, value_position=bool(value_position))
         self.query_mlp, self.key_mlp = plain.query_mlp, plain.key_mlp
         self.output_mlp, self.query_modulation = plain.output_mlp, plain.query_modulation
         width, latent = self.arch.width, self.arch.latent
@@ -508,11 +467,6 @@ class ShapePreservingCANRig(AbstractCANRig):
             self.value_modulation = eqx.nn.Linear(3, width, key=kb)
         self.output_modulation = eqx.nn.Linear(3, latent, key=ks)
         self.value_mlp = _zero_preserving(self.arch, width, latent, jax.nn.gelu, kv)
-        self.pair_map = (
-            eqx.nn.Linear(3 + 6 * int(pair_offsets), latent, key=jax.random.fold_in(ks, 2))
-            if pair_offsets
-            else None
-        )
 
     def value_input(self, displacements, handle_base):
         embedded = _per_row(self.value_embedding, displacements / self.displacement_scale)

@@ -51,7 +51,6 @@ class TrainOptions:
     query_modulation: bool = False
     interpolation_prior: bool = False
     value_position: bool = False
-    pair_offsets: int = 0
     learning_rate: float = 1e-3
     decay_steps: int = 0  # 0: constant rate; else cosine decay over this many steps
     decay_floor: float = 0.05
@@ -135,7 +134,6 @@ def make_model(options: TrainOptions, canonical, displacement_scale: float = 1.0
         displacement_scale=displacement_scale,
         key=jax.random.PRNGKey(options.seed),
         **({"value_position": True} if options.value_position else {}),
-        **({"pair_offsets": options.pair_offsets} if options.pair_offsets else {}),
     )
 
 

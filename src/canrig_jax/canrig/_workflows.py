@@ -98,27 +98,15 @@ def displacement_jacobian(
     decode_jac = _decode_jacobian(model, trace.attended, edit.base, queries)  # (V, 3, k, e)
     mask = edit_mask(edit, model.clamp, layout)  # the trace's (XLA computes it once)
 
-    pairs = getattr(model, "pair_map", None) is not None
-
-    def local_blocks(decode, value, attention, mask, vertex_base, handle_base):
+    def local_blocks(decode, value, attention, mask):
         # decode (.., S, 3, k, e), value (.., W, k, e, 3), attention (.., k, S, W); one head
         # at a time: (S*3 x e) @ (e x W*3) products weighted by A^k and accumulated (4x
-        # faster on CPU than materialising every head's products before the sum); with
-        # pair_offsets each (vertex, handle) product has the pair's factor g (.., k, S, W, e)
-        pair = model.pair_factor(vertex_base, handle_base) if pairs else None
+        # faster on CPU than materialising every head's products before the sum)
         blocks = 0.0
         for head in range(model.n_heads):
-            if pair is None:
-                products = jnp.einsum(
-                    "...sie,...wej->...siwj", decode[..., head, :], value[..., head, :, :]
-                )
-            else:
-                products = jnp.einsum(
-                    "...sie,...swe,...wej->...siwj",
-                    decode[..., head, :],
-                    pair[..., head, :, :, :],
-                    value[..., head, :, :],
-                )
+            products = jnp.einsum(
+                "...sie,...wej->...siwj", decode[..., head, :], value[..., head, :, :]
+            )
             blocks = blocks + attention[..., head, :, None, :, None] * products
         if model.interpolation_prior:
             prior = model.interpolation_weights(mask)  # (.., S, W)
@@ -132,8 +120,6 @@ def displacement_jacobian(
         layout.handles(value_jac, axis=0),
         trace.attention,
         mask,
-        layout.vertices(edit.base, axis=0),
-        layout.handles(edit.base[edit.index], axis=0),
     )
     return trace.shape, blocks
 
