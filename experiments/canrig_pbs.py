@@ -375,6 +375,8 @@ def _train(args, argv, head):
 
 
 DIALOGUE_HANDLES, DIALOGUE_RADIUS_CM, DIALOGUE_FALLOFF = 60, 1.5, 3.0
+DIALOGUE_REACH_CM = float(influence_reach(DIALOGUE_RADIUS_CM, DIALOGUE_FALLOFF, CLAMP))
+"""Beyond this distance from a mouth handle its clamped mask is exactly 0."""
 MOUTH_THRESHOLD_CM = 0.3  # as experiments/canrig_workflows.py
 
 
@@ -384,12 +386,13 @@ SWEEP_HEADER = "Table 6, a variant: the number of mouth handles"
 def _table6_sweep(args, command, head):
     """``--table6-sweep``: Table 6 with each number of mouth handles (the 140 still ones
     unchanged), merged into OUT's results.json and table.md."""
+    if min(args.table6_sweep) < 1:
+        raise ValueError(f"--table6-sweep: expected counts >= 1, got {args.table6_sweep}")
     data, distances = _training_set(args, head)
+    clips = _dialogue_clips(head, 6 if args.quick else 45)
     sweep = {}
     for count in args.table6_sweep:
-        if count < 1:
-            raise ValueError(f"--table6-sweep: expected counts >= 1, got {count}")
-        table6, _ = _table6(args, head, data, distances, n_mouth=count)
+        table6, _ = _table6(args, head, data, distances, n_mouth=count, clips=clips)
         sweep[str(count)] = {
             "reach_floor_mm": table6["reach_floor_mm"],
             "unreached_region_vertices": table6["unreached_region_vertices"],
@@ -468,17 +471,14 @@ def _dialogue_clips(head, n: int):
     target = np.asarray(evaluate_batch(rig, capture[135 : 135 + n], chunk=16), np.float32)
     mouth = expression_region(rig, threshold=MOUTH_THRESHOLD_CM)
     mouth_patch = mouth[np.asarray(layout.seeds)]
-    covered = np.asarray(layout.vertex_weights) > 0
-    region = (covered & mouth_patch[np.asarray(layout.vertex_patches)]).any(axis=1)
-    return source, target, mouth, mouth_patch, region
+    return source, target, mouth, mouth_patch, layout.covered_by(mouth_patch)
 
 
 def _mouth_handles(head, distances, mouth, mouth_patch, count: int):
     """``count`` mouth handles: farthest points among the mouth vertices from which no patch
     seeded outside the mouth is within the clamped mask's reach."""
-    reach = float(influence_reach(DIALOGUE_RADIUS_CM, DIALOGUE_FALLOFF, CLAMP))
     outside_seed_distance = distances[~mouth_patch].min(axis=0)  # (N,) to the nearest
-    candidates = np.flatnonzero(mouth & (outside_seed_distance > reach))
+    candidates = np.flatnonzero(mouth & (outside_seed_distance > DIALOGUE_REACH_CM))
     return candidates[farthest_point_vertices(head["neutral"][candidates], count)]
 
 
@@ -487,17 +487,13 @@ def reach_floor(head, distances, handles, source, target, region) -> tuple[float
     clamped mask's reach from every moved handle keep the source frame in any CANRig-PBS
     result, so their error |source - target|, averaged over the region and the frames, is
     a lower bound of its mouth difference whatever the network."""
-    layout = head["layout"]
-    reach = float(influence_reach(DIALOGUE_RADIUS_CM, DIALOGUE_FALLOFF, CLAMP))
-    reached_patch = distances[:, handles].min(axis=1) <= reach  # (P,)
-    covered = np.asarray(layout.vertex_weights) > 0
-    reached = (covered & reached_patch[np.asarray(layout.vertex_patches)]).any(axis=1)
-    unreached = region & ~reached
+    reached_patch = distances[:, handles].min(axis=1) <= DIALOGUE_REACH_CM  # (P,)
+    unreached = region & ~head["layout"].covered_by(reached_patch)
     error = np.linalg.norm(source - target, axis=-1) * CM_TO_MM
     return float(error[:, unreached].sum(axis=1).mean() / region.sum()), int(unreached.sum())
 
 
-def _table6(args, head, data, distances, n_mouth: int = DIALOGUE_HANDLES):
+def _table6(args, head, data, distances, n_mouth: int = DIALOGUE_HANDLES, clips=None):
     """Dialogue replacement (Table 6) on the whole head for the trained models and GBS.
 
     The mouth mask is ``expression_region`` of the whole-head rig (threshold 3 mm, as the
@@ -506,10 +502,11 @@ def _table6(args, head, data, distances, n_mouth: int = DIALOGUE_HANDLES):
     complement. CANRig-PBS: 60 handles in the mouth where no patch seeded outside it is
     within the masks' reach, moved to the target frame, base = the source frame. Shape
     Transformer and GBS (no base shape): the source frame is first inverted from 200 handles
-    (those 60 + 140 geodesic farthest points off the mouth region), then the 60 move."""
+    (those 60 + 140 geodesic farthest points off the mouth region), then the 60 move.
+    ``clips``: ``_dialogue_clips`` if the caller has them."""
     neutral, rig = head["neutral"], head["rig"]
     n = 6 if args.quick else 45
-    source, target, mouth, mouth_patch, region = _dialogue_clips(head, n)
+    source, target, mouth, mouth_patch, region = clips or _dialogue_clips(head, n)
     mouth_handles = _mouth_handles(head, distances, mouth, mouth_patch, n_mouth)
     off = np.flatnonzero(~region & head["skin"])
     still = off[farthest_point_vertices(neutral[off], 200 - DIALOGUE_HANDLES)]

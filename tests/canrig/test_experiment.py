@@ -96,14 +96,16 @@ def test_pbs_quick_attached_graph_end_to_end(tmp_path):
 def test_reach_floor_counts_only_vertices_no_moved_handle_reaches():
     """Two patches over four vertices; the handle reaches patch 0 only: vertices covered by
     patch 1 alone keep the source, and their error averaged over the region is the floor."""
-    from types import SimpleNamespace
-
     import numpy as np
 
+    from canrig_jax.canrig import PatchLayout
+
     pbs = _load("canrig_pbs")
-    layout = SimpleNamespace(
+    layout = PatchLayout(
         vertex_patches=np.array([[0, 0], [0, 1], [1, 1], [1, 1]]),
         vertex_weights=np.array([[1.0, 0.0], [0.5, 0.5], [1.0, 0.0], [1.0, 0.0]]),
+        seeds=np.array([0, 2]),
+        cell=np.array([0, 0, 1, 1]),
     )
     distances = np.array([[0.0, 0.0, 0.0, 0.0], [99.0, 99.0, 99.0, 99.0]])  # (P, N)
     source = np.zeros((1, 4, 3), np.float32)

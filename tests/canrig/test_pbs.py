@@ -65,6 +65,17 @@ def test_layout_cells_are_connected_and_rows_sum_to_one(face, layout):
     assert np.all(own >= w.max(axis=1) - 1e-6)
 
 
+def test_covered_by_is_the_union_of_the_selected_patches_vertices(layout):
+    selected = np.random.default_rng(0).random(layout.n_patches) < 0.2
+    expected = np.zeros(layout.n_vertices, bool)
+    patch_vertices = layout.patch_vertices()
+    for p in np.flatnonzero(selected):
+        expected[patch_vertices[p]] = True
+    np.testing.assert_array_equal(layout.covered_by(selected), expected)
+    with pytest.raises(ValueError, match="patches"):
+        layout.covered_by(selected[:-1])
+
+
 def test_gather_form_equals_the_sparse_layout_and_zero_is_the_neutral(face, layout, basis):
     neutral = face[0]
     weights = np.random.default_rng(0).normal(size=(N_PATCHES, len(basis))).astype(np.float32)

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import scipy.sparse as sp
-from jaxtyping import Array, ArrayLike, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from scipy.sparse.csgraph import dijkstra
 
 from .._checks import check_finite, check_real
@@ -105,6 +105,14 @@ class PatchLayout(eqx.Module):
             (weights[keep], (rows[keep], np.asarray(self.vertex_patches).ravel()[keep])),
             shape=(self.n_vertices, self.n_patches),
         )
+
+    def covered_by(self, patches: Bool[np.ndarray, " P"]) -> Bool[np.ndarray, " N"]:
+        """(N,) the vertices that at least one of the selected ``patches`` covers."""
+        patches = np.asarray(patches, bool)
+        if patches.shape != (self.n_patches,):
+            raise ValueError(f"patches: expected shape ({self.n_patches},), got {patches.shape}")
+        covered = np.asarray(self.vertex_weights) > 0
+        return (covered & patches[np.asarray(self.vertex_patches)]).any(axis=1)
 
     def patch_vertices(self) -> list[np.ndarray]:
         """Per patch, the vertices it covers (its cell and rings)."""
