@@ -59,8 +59,6 @@ OPTION_HELP = {
     "linear_skip": "bias-free linear skip in value/output MLPs",
     "value_position": "value modulation: an MLP of the handle's encoded base position",
     "p_neutral": "base shape: the neutral",
-    "fit_weight": "weight of the loss at the fitted displacements (canrig.fitted_range)",
-    "init_from": "start from this checkpoint's model (same architecture): a fine-tune",
 }
 QUICK = {"steps": 30, "max_minutes": None, "checkpoint_every": 10, "log_every": 5}
 """``--quick``: a few steps on the tiny training set (``DataOptions.quick``)."""

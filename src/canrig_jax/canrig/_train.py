@@ -31,8 +31,6 @@ from .._sharding import data_parallel
 from ._data import ExampleOptions, Examples, TrainingSet, sample_examples
 from ._masks import influence_mask
 from ._model import CANRig, ShapePreservingCANRig
-from ._rig import HandleEdit
-from ._workflows import FitOptions, fit_displacements
 
 VARIANTS = {"canrig": CANRig, "shape_preserving": ShapePreservingCANRig}
 LOSSES = ("squared", "euclidean")
@@ -62,8 +60,6 @@ class TrainOptions:
     beta: float = 0.0
     sp_weight: float = 1.0
     loss: str = "squared"  # per-vertex penalty: "squared" (eq. 3) or "euclidean"
-    fit_weight: float = 0.0  # weight of the loss at the fitted displacements (``fitted_range``)
-    init_from: str | None = None  # start from this checkpoint's model (a fine-tune)
     seed: int = 0
     checkpoint_every: int = 250
     log_every: int = 25
@@ -87,8 +83,6 @@ class TrainOptions:
             raise ValueError(f"loss: expected one of {sorted(LOSSES)}, got {self.loss!r}")
         if not 0.0 <= self.decay_floor <= 1.0:
             raise ValueError(f"decay_floor: expected a value in [0, 1], got {self.decay_floor}")
-        if not (np.isfinite(self.fit_weight) and self.fit_weight >= 0):
-            raise ValueError(f"fit_weight: expected a finite value >= 0, got {self.fit_weight}")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -152,101 +146,36 @@ def vertex_penalty(difference: Float[Array, "N 3"], loss: str) -> Float[Array, "
     return jnp.mean(jnp.sqrt(squared + EUCLIDEAN_SOFTNESS_MM**2))
 
 
-def _base_shape(data: TrainingSet, target, base, nearby) -> Float[Array, "V 3"]:
-    """An example's base shape: the target's nearby pose, the neutral (``base`` < 0) or a
-    training shape."""
-    return jnp.where(
-        nearby == 1,
-        data.nearby[target],
-        jnp.where(base < 0, data.neutral, data.shapes[jnp.maximum(base, 0)]),
-    )
-
-
-def fitted_range(
-    model: CANRig,
-    data: TrainingSet,
-    ex: Examples,
-    beta,
-    options: FitOptions | None = None,
-) -> Float[Array, "B H 3"]:
-    """Each example's handle displacements fitted to its target: ``fit_displacements`` (the
-    evaluation's solver and ``options``) on the handle pool's vertices (every handle is one
-    of them), started from the direct displacements; padding handles (``handle_valid`` 0)
-    reach nothing and stay 0. The loss at these displacements, with them held fixed, is what
-    ``TrainOptions.fit_weight`` adds: by the envelope theorem its gradient is that of the
-    fitted error min_d ||rig(d) - target||^2 itself, so it trains the set of shapes the
-    handles can reach (what a fitted edit uses), not only the direct pass. No gradient flows
-    through the solve (``jax.lax.stop_gradient``)."""
-    options = FitOptions() if options is None else options
-    dynamic, static = eqx.partition(model, eqx.is_array)
-    model = eqx.combine(jax.lax.stop_gradient(dynamic), static)
-    canonical = data.neutral[data.pool]
-    queries = model.encode_queries(canonical)
-    pool_distance = data.pool_distance[data.pool]  # (P, P)
-    region = jnp.ones(data.pool.shape[0], canonical.dtype)
-
-    def one(target, base, nearby, handles, valid, radius, falloff):
-        target_shape = data.shapes[target][data.pool]
-        base_shape = _base_shape(data, target, base, nearby)[data.pool]
-        n = handles.shape[0]
-        edit = HandleEdit(
-            index=handles,
-            distance=jnp.where(valid[None, :] > 0, pool_distance[:, handles], jnp.inf),
-            displacements=(target_shape[handles] - base_shape[handles]) * valid[:, None],
-            radius=jnp.full(n, radius),
-            falloff=jnp.full(n, falloff),
-            base=base_shape,
-            beta=jnp.asarray(beta, canonical.dtype),
-        )
-        solution = fit_displacements(
-            model, queries, canonical, edit, target_shape, region, options=options
-        )
-        return solution.displacements * valid[:, None]
-
-    return jax.vmap(one)(
-        ex.target, ex.base, ex.base_nearby, ex.handles, ex.handle_valid, ex.radius, ex.falloff
-    )
-
-
 def example_loss(
-    model: CANRig,
-    data: TrainingSet,
-    ex: Examples,
-    beta,
-    sp_weight,
-    loss: str = "squared",
-    fitted: Float[Array, "B H 3"] | None = None,
-    fit_weight: float = 0.0,
+    model: CANRig, data: TrainingSet, ex: Examples, beta, sp_weight, loss: str = "squared"
 ) -> tuple[Float[Array, ""], dict]:
     """Mean over the batch of (L2 + sp_weight * L_sp) on each example's vertex subset, with
     the per-vertex penalty ``loss`` (``vertex_penalty``); also the mean squared error (mm^2)
-    and the mean per-vertex error (mm) on those vertices. With ``fitted`` (``fitted_range``)
-    the batch's L2 at those displacements, times ``fit_weight``, is added (and its mean
-    per-vertex error reported as ``fitted_error_mm``)."""
+    and the mean per-vertex error (mm) on those vertices."""
 
-    def one(target, base, nearby, handles, valid, vertices, radius, falloff, fitted):
+    def one(target, base, nearby, handles, valid, vertices, radius, falloff):
         target_shape = data.shapes[target]
-        base_shape = _base_shape(data, target, base, nearby)
+        base_shape = jnp.where(
+            nearby == 1,
+            data.nearby[target],
+            jnp.where(base < 0, data.neutral, data.shapes[jnp.maximum(base, 0)]),
+        )
         handle_vertex = data.pool[handles]
         distance = data.pool_distance[vertices][:, handles]
         n = handles.shape[0]
         mask = influence_mask(distance, jnp.full(n, radius), jnp.full(n, falloff), model.clamp)
         mask = mask * valid[None, :]
         queries = model.encode_queries(data.neutral[vertices])
-
-        def predict(displacements):
-            return model(
-                queries,
-                base_shape[vertices],
-                data.neutral[handle_vertex],
-                base_shape[handle_vertex],
-                displacements,
-                mask,
-                beta,
-            )
-
         displacements = (target_shape[handle_vertex] - base_shape[handle_vertex]) * valid[:, None]
-        predicted = predict(displacements)
+        predicted = model(
+            queries,
+            base_shape[vertices],
+            data.neutral[handle_vertex],
+            base_shape[handle_vertex],
+            displacements,
+            mask,
+            beta,
+        )
         truth = target_shape[vertices]
         # eq. (5): outside the region (blend mask from the largest influence) keep the base
         blend = jnp.max(mask, axis=1)[:, None]
@@ -255,14 +184,9 @@ def example_loss(
         l_sp = vertex_penalty(predicted - blended, loss)
         squared = jnp.mean(jnp.sum((predicted - truth) ** 2, axis=1))
         error = jnp.mean(jnp.linalg.norm(predicted - truth, axis=1))
-        if fitted is None:
-            return fit, l_sp, squared, error, jnp.zeros(()), jnp.zeros(())
-        reached = predict(fitted)
-        fitted_fit = vertex_penalty(reached - truth, loss)
-        fitted_error = jnp.mean(jnp.linalg.norm(reached - truth, axis=1))
-        return fit, l_sp, squared, error, fitted_fit, fitted_error
+        return fit, l_sp, squared, error
 
-    fit, l_sp, squared, error, fitted_fit, fitted_error = jax.vmap(one)(
+    fit, l_sp, squared, error = jax.vmap(one)(
         ex.target,
         ex.base,
         ex.base_nearby,
@@ -271,25 +195,16 @@ def example_loss(
         ex.vertices,
         ex.radius,
         ex.falloff,
-        fitted,
     )
     total = jnp.mean(fit) + sp_weight * jnp.mean(l_sp)
     aux = {"l2_mm2": jnp.mean(squared) * CM_TO_MM**2, "error_mm": jnp.mean(error) * CM_TO_MM}
-    if fitted is not None:
-        total = total + fit_weight * jnp.mean(fitted_fit)
-        aux["fitted_error_mm"] = jnp.mean(fitted_error) * CM_TO_MM
     return total, aux
 
 
 @eqx.filter_jit
-def train_step(
-    model, opt_state, data, ex, optimiser, beta, sp_weight, loss="squared", fit_weight=0.0
-):
-    """One Adam step; with ``fit_weight`` > 0 (static), the batch's ``fitted_range`` is
-    solved first and its loss added (``example_loss``)."""
-    fitted = fitted_range(model, data, ex, beta) if fit_weight > 0 else None
+def train_step(model, opt_state, data, ex, optimiser, beta, sp_weight, loss="squared"):
     (total, aux), grads = eqx.filter_value_and_grad(example_loss, has_aux=True)(
-        model, data, ex, beta, sp_weight, loss, fitted, fit_weight
+        model, data, ex, beta, sp_weight, loss
     )
     updates, opt_state = optimiser.update(grads, opt_state, eqx.filter(model, eqx.is_array))
     return eqx.apply_updates(model, updates), opt_state, total, aux
@@ -327,40 +242,6 @@ def load_model(path, canonical) -> tuple[CANRig, dict]:
 
 # --------------------------------------------------------------------------- training
 
-ARCHITECTURE_FIELDS = (
-    "variant",
-    "n_heads",
-    "latent",
-    "width",
-    "n_layers",
-    "fourier",
-    "linear_skip",
-    "query_modulation",
-    "interpolation_prior",
-    "value_position",
-)
-"""The ``TrainOptions`` that shape the network: a fine-tune (``init_from``) must match them."""
-
-
-def _initial_model(options: TrainOptions, canonical) -> tuple[CANRig, float]:
-    """The model of ``options.init_from`` (a checkpoint of the same architecture) and its
-    displacement scale; ValueError naming ``init_from`` otherwise."""
-    path = options.init_from
-    if not os.path.exists(path):
-        raise ValueError(f"init_from: no checkpoint at {path}")
-    saved = TrainOptions.from_dict(read_checkpoint_state(path)["options"])
-    differ = [f for f in ARCHITECTURE_FIELDS if getattr(saved, f) != getattr(options, f)]
-    if differ:
-        raise ValueError(
-            f"init_from: {path} has another architecture ({', '.join(differ)}: "
-            + ", ".join(
-                f"{getattr(saved, f)!r} there, {getattr(options, f)!r} here" for f in differ
-            )
-            + ")"
-        )
-    model, state = load_model(path, canonical)
-    return model, state["displacement_scale"]
-
 
 @dataclasses.dataclass
 class TrainResult:
@@ -393,27 +274,17 @@ def train(
     ``devices`` (default: all): data-parallel over that many devices (``canrig_jax.
     data_parallel``), each step's examples split over them, parameters replicated; the
     trajectory equals the single-device one to float tolerance, and a checkpoint resumes on
-    any device count.
-
-    ``options.init_from`` starts from that checkpoint's model (same architecture; its
-    displacement scale replaces ``displacement_scale``) with a fresh optimiser: a fine-tune,
-    e.g. with ``options.fit_weight`` > 0 (``fitted_range``)."""
+    any device count."""
     if not isinstance(options, TrainOptions):
         raise TypeError(f"options: expected TrainOptions, got {type(options).__name__}")
     placement = data_parallel(devices, options.examples.batch, "examples.batch")
     if data_options is not None:
         data_options = json.loads(json.dumps(data_options))  # as the checkpoint stores them
-    resume = checkpoint is not None and os.path.exists(checkpoint)
-    if resume:  # the scale the run was started with (a fine-tune's is its init's)
-        displacement_scale = read_checkpoint_state(checkpoint)["displacement_scale"]
-    if options.init_from is not None and not resume:
-        model, displacement_scale = _initial_model(options, data.neutral)
-    else:
-        model = make_model(options, data.neutral, displacement_scale)
+    model = make_model(options, data.neutral, displacement_scale)
     optimiser = make_optimiser(options)
     opt_state = optimiser.init(eqx.filter(model, eqx.is_array))
     step, seconds, history = 0, 0.0, []
-    if resume:
+    if checkpoint is not None and os.path.exists(checkpoint):
         model, opt_state, state = load_checkpoint(checkpoint, model, opt_state)
         saved = TrainOptions.from_dict(state["options"])
         budget = {"steps": options.steps, "max_minutes": options.max_minutes}
@@ -476,10 +347,8 @@ def train(
             beta,
             options.sp_weight,
             options.loss,
-            options.fit_weight,
         )
-        fitted = {} if options.fit_weight == 0 else {"fitted_error_mm": aux["fitted_error_mm"]}
-        return {"loss": loss, "error_mm": aux["error_mm"], **fitted}
+        return {"loss": loss, "error_mm": aux["error_mm"]}
 
     step, seconds = run_training(
         one_step, save, options, step, seconds, history, progress, "canrig", stop_after
