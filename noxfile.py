@@ -1,5 +1,6 @@
 """nox sessions: tests, lint, bench, demo, experiments."""
 
+import os
 from pathlib import Path
 
 import nox
@@ -8,11 +9,19 @@ nox.options.sessions = ["tests", "lint"]
 nox.options.default_venv_backend = "venv"
 
 
+TEST_WORKERS = min(2, os.cpu_count() or 1)
+"""Test processes (pytest-xdist). Most of the suite's time is XLA compilation, which runs on
+one core per process, so two processes fill the 2-core CI machine (12:38 min serial, 8:45 with
+two, 2026-12-02); more would each hold another copy of the session's rigs (2-5 GB)."""
+
+
 @nox.session
 def tests(session):
-    """Default test run (fast; long experiments are marked slow)."""
+    """Default test run (fast; long experiments are marked slow), one file per worker
+    (``--dist loadfile``: a module's fixtures are built once). ``-- -n 0`` runs serially."""
     session.install("-e", ".[dev]")
-    session.run("python", "-m", "pytest", *session.posargs)
+    workers = ("-n", str(TEST_WORKERS), "--dist", "loadfile")
+    session.run("python", "-m", "pytest", *workers, *session.posargs)
 
 
 @nox.session
