@@ -389,7 +389,7 @@ def _table6_sweep(args, command, head):
     if min(args.table6_sweep) < 1:
         raise ValueError(f"--table6-sweep: expected counts >= 1, got {args.table6_sweep}")
     data, distances = _training_set(args, head)
-    clips = _dialogue_clips(head, 6 if args.quick else 45)
+    clips = _dialogue_clips(head, args)
     sweep = {}
     for count in args.table6_sweep:
         table6, _ = _table6(args, head, data, distances, n_mouth=count, clips=clips)
@@ -463,9 +463,11 @@ def _dense_reference_ms(head, handles):
     return _timed(lambda: call(net, queries, base, mask, d))
 
 
-def _dialogue_clips(head, n: int):
-    """Table 6's source (capture frames 90..) and target (135..) clips on the whole head, the
-    evaluated mouth region (N,) and the mouth patches (P,) (see ``_table6``)."""
+def _dialogue_clips(head, args):
+    """Table 6's source (capture frames 90..) and target (135..) clips on the whole head (45
+    frames each, 6 with ``--quick``), the mouth mask (N,), the mouth patches (P,) and the
+    evaluated mouth region (N,) (see ``_table6``)."""
+    n = 6 if args.quick else 45
     layout, rig, capture = head["layout"], head["rig"], head["capture"]
     source = np.asarray(evaluate_batch(rig, capture[90 : 90 + n], chunk=16), np.float32)
     target = np.asarray(evaluate_batch(rig, capture[135 : 135 + n], chunk=16), np.float32)
@@ -505,8 +507,10 @@ def _table6(args, head, data, distances, n_mouth: int = DIALOGUE_HANDLES, clips=
     (those 60 + 140 geodesic farthest points off the mouth region), then the 60 move.
     ``clips``: ``_dialogue_clips`` if the caller has them."""
     neutral, rig = head["neutral"], head["rig"]
-    n = 6 if args.quick else 45
-    source, target, mouth, mouth_patch, region = clips or _dialogue_clips(head, n)
+    if clips is None:
+        clips = _dialogue_clips(head, args)
+    source, target, mouth, mouth_patch, region = clips
+    n = len(source)
     mouth_handles = _mouth_handles(head, distances, mouth, mouth_patch, n_mouth)
     off = np.flatnonzero(~region & head["skin"])
     still = off[farthest_point_vertices(neutral[off], 200 - DIALOGUE_HANDLES)]
