@@ -13,6 +13,7 @@ from canrig_jax.canrig import (
     fit_pbs,
     global_blendshape_dialogue,
     global_blendshape_fit,
+    local_pbs_fit,
     patch_layout,
     pbs_basis,
     pbs_shape,
@@ -172,6 +173,52 @@ def test_global_blendshape_dialogue(face, basis, shapes):
         global_blendshape_dialogue(basis, neutral, source, target, index, moved[:10])
     with pytest.raises(ValueError, match="target"):
         global_blendshape_dialogue(basis, neutral, source, target[:2], index, moved)
+
+
+def test_local_fit_is_a_masked_ridge_solve_per_patch(face, basis, shapes):
+    """local_pbs_fit against an independent NumPy solve per patch on real expressions; a
+    patch no mask reaches gets exactly zero weights, zero displacements give exactly zero,
+    and with a tiny ridge a basis combination seen by enough handles is recovered."""
+    neutral = face[0]
+    index = np.random.default_rng(6).choice(len(neutral), 50, replace=False)
+    a = basis[:, index].astype(np.float64)  # (B-1, H, 3)
+    mask = np.random.default_rng(7).random((5, 50)) * (np.arange(50) < 30)
+    mask[2] = 0.0  # a patch no handle reaches
+    mask[4, 3:] = 0.0  # one that sees three handles only
+    d = (shapes[3] - neutral)[index]
+    ours = np.asarray(local_pbs_fit(a.astype(np.float32), d, mask.astype(np.float32), 0.05))
+    scale = 0.05 * np.mean(a**2) * 3
+    for p in range(5):
+        gram = np.einsum("h,bhk,chk->bc", mask[p], a, a) + scale * np.eye(len(a))
+        expected = np.linalg.solve(gram, np.einsum("h,bhk,hk->b", mask[p], a, d))
+        np.testing.assert_allclose(ours[p], expected, rtol=2e-3, atol=2e-4)
+    assert np.all(ours[2] == 0.0)
+    zero = local_pbs_fit(a.astype(np.float32), 0 * d, mask.astype(np.float32))
+    assert np.all(np.asarray(zero) == 0.0)
+    x = np.linspace(0.1, 0.9, len(basis)).astype(np.float32)
+    full = np.ones((3, 50), np.float32)
+    recovered = local_pbs_fit(a.astype(np.float32), np.einsum("b,bhk->hk", x, a), full, 1e-6)
+    np.testing.assert_allclose(np.asarray(recovered), np.tile(x, (3, 1)), atol=5e-3)
+
+
+@pytest.mark.parametrize(
+    ("change", "name"),
+    [
+        (lambda a, d, m: (a[:, :, :2], d, m), "handle_basis"),
+        (lambda a, d, m: (a, d[:10], m), "displacements"),
+        (lambda a, d, m: (a, d, m[:, :10]), "mask"),
+        (lambda a, d, m: (a, d, -m), "mask"),
+        (lambda a, d, m: (a, d * np.nan, m), "displacements"),
+    ],
+)
+def test_bad_input_of_the_local_fit(face, basis, change, name):
+    a = basis[:, :20]
+    d = np.zeros((20, 3), np.float32)
+    m = np.ones((4, 20), np.float32)
+    with pytest.raises(ValueError, match=name):
+        local_pbs_fit(*change(a, d, m))
+    with pytest.raises(ValueError, match="ridge"):
+        local_pbs_fit(a, d, m, ridge=0.0)
 
 
 @pytest.mark.parametrize(

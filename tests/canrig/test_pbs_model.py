@@ -16,6 +16,8 @@ from canrig_jax.canrig import (
     PBSTrainOptions,
     ShapeTransformer,
     build_pbs_training_set,
+    influence_mask,
+    local_pbs_fit,
     edge_graph,
     patch_layout,
     patch_means,
@@ -44,7 +46,7 @@ def data(ict_face):
     return build_pbs_training_set(neutral, shapes, layout, basis, distances, pool)
 
 
-def _model(data, variant, seed=0):
+def _model(data, variant, seed=0, **options):
     return CANRigPBS(
         np.asarray(data.neutral),
         N_PATCHES,
@@ -54,6 +56,7 @@ def _model(data, variant, seed=0):
         patch_width=16,
         fourier=2,
         key=jax.random.PRNGKey(seed),
+        **options,
     )
 
 
@@ -66,8 +69,9 @@ def _edit(data, n=40, seed=1):
     "variant",
     [v if v == "per_patch" else pytest.param(v, marks=pytest.mark.slow) for v in PBS_VARIANTS],
 )
-def test_zero_displacements_give_the_base_exactly(data, variant):
-    model = _model(data, variant)
+@pytest.mark.parametrize("local_prior", [False, True])
+def test_zero_displacements_give_the_base_exactly(data, variant, local_prior):
+    model = _model(data, variant, local_prior=local_prior)
     h, dist = _edit(data)
     base = data.shapes[3]
     out = pbs_reconstruct(model, data, h, dist, base, base[None], 3.0, 1.0)[0]
@@ -77,8 +81,9 @@ def test_zero_displacements_give_the_base_exactly(data, variant):
 
 
 @pytest.mark.slow
-def test_nothing_moves_beyond_every_clamped_mask(data):
-    model = _model(data, "per_patch")
+@pytest.mark.parametrize("local_prior", [False, True])
+def test_nothing_moves_beyond_every_clamped_mask(data, local_prior):
+    model = _model(data, "per_patch", local_prior=local_prior)
     h, dist = _edit(data, n=5)
     radius, falloff = 1.0, 3.0
     base, target = data.neutral, data.shapes[2]
@@ -92,6 +97,36 @@ def test_nothing_moves_beyond_every_clamped_mask(data):
     vertex_weights = np.asarray(data.layout.vertex_weights)
     touched = ((vertex_weights > 0) & reached[vertex_patches]).any(axis=1)
     assert np.array_equal(out[~touched], np.asarray(base)[~touched])
+
+
+def test_an_untrained_local_prior_model_is_the_local_fit_and_its_ridge_trains(data):
+    """With ``local_prior`` the output MLP's last layer starts at zero, so the untrained
+    model's weights are exactly local_pbs_fit with the clamped masks and the initial ridge;
+    the loss has a gradient in the ridge and in the (zero) last layer."""
+    model = _model(data, "per_patch", local_prior=True, prior_ridge=0.03)
+    h, dist = _edit(data)
+    base, d = data.neutral, data.shapes[5][h] - data.neutral[h]
+    ours = predict_pbs_weights(model, data, h, dist, base, d, 3.0, 1.0)
+    mask = np.asarray(influence_mask(dist, 3.0, 1.0))
+    mask = np.where(mask < model.encoder.clamp, 0.0, mask)
+    fit = local_pbs_fit(np.asarray(data.basis)[:, np.asarray(h)], d, mask, 0.03)
+    np.testing.assert_allclose(np.asarray(ours), np.asarray(fit), rtol=1e-4, atol=1e-5)
+
+    def loss(model):
+        return jnp.sum(predict_pbs_weights(model, data, h, dist, base, d, 3.0, 1.0) ** 2)
+
+    grads = eqx.filter_grad(loss)(model)
+    assert float(jnp.abs(grads.log_ridge)) > 0
+    assert float(jnp.abs(grads.patch_mlp.layers[-1].weight).max()) > 0
+    with pytest.raises(ValueError, match="handle_basis"):
+        model(
+            model.encode_patches(data.seeds),
+            patch_means(data.layout, base),
+            data.neutral[h],
+            base[h],
+            d,
+            jnp.asarray(mask),
+        )
 
 
 @pytest.mark.slow
@@ -180,6 +215,7 @@ def test_training_resumes_bit_identically(data, tmp_path):
         ({"n_handles": (50, 10)}, "n_handles"),
         ({"radius_cm": (0.0, 2.0)}, "radius_cm"),
         ({"p_neutral": 1.5}, "p_neutral"),
+        ({"model": "shape_transformer", "local_prior": True}, "local_prior"),
     ],
 )
 def test_bad_options_name_the_argument(kwargs, name):

@@ -374,6 +374,57 @@ def _fit_pbs(
     return jax.vmap(lambda f, r: jax.scipy.linalg.cho_solve((f, True), r))(factor, rhs)
 
 
+def local_pbs_fit(
+    handle_basis: Float[ArrayLike, "Bm1 H 3"],
+    displacements: Float[ArrayLike, "*F H 3"],
+    mask: Float[ArrayLike, "P H"],
+    ridge: float = 1e-2,
+) -> Float[Array, "*F P Bm1"]:
+    """``_local_pbs_fit`` for one set of handle displacements or a batch, validated."""
+    handle_basis = np.asarray(handle_basis)
+    if handle_basis.ndim != 3 or handle_basis.shape[2] != 3:
+        raise ValueError(f"handle_basis: expected (B - 1, H, 3), got {handle_basis.shape}")
+    n_handles = handle_basis.shape[1]
+    check_finite("handle_basis", handle_basis)
+    _check_points("displacements", displacements, n_handles, batch=True)
+    mask = np.asarray(mask)
+    if mask.ndim != 2 or mask.shape[1] != n_handles:
+        raise ValueError(f"mask: expected (P, {n_handles}), got {mask.shape}")
+    if not (np.isfinite(mask).all() and (mask >= 0).all()):
+        raise ValueError("mask: expected finite values >= 0")
+    if not (np.isfinite(ridge) and ridge > 0):
+        raise ValueError(f"ridge: expected a finite value > 0, got {ridge}")
+    core = _local_pbs_fit
+    for _ in range(np.ndim(displacements) - 2):
+        core = jax.vmap(core, (None, 0, None, None))
+    return core(jnp.asarray(handle_basis), jnp.asarray(displacements), jnp.asarray(mask), ridge)
+
+
+@jax.jit
+def _local_pbs_fit(
+    handle_basis: Float[Array, "Bm1 H 3"],
+    displacements: Float[Array, "H 3"],
+    mask: Float[Array, "P H"],
+    ridge: float | Float[Array, ""] = 1e-2,
+) -> Float[Array, "P Bm1"]:
+    """Each patch's PBS weights fitted to the handles it sees (beyond the paper; CANRig-PBS's
+    ``local_prior``): for patch p the x minimising
+
+        sum_h M_ph ||handle_basis[:, h]^T x - d_h||^2 + ridge * s * ||x||^2,
+
+    with s = the basis's mean squared offset per handle and coordinate (one constant for the
+    edit, so a patch that its handles reach weakly is shrunk towards zero, and its weights
+    fade as the masks do). Linear in the displacements (zero displacements give exactly zero
+    weights) and exactly zero for a patch every mask misses (M_p = 0). One (B-1) x (B-1)
+    Cholesky solve per patch; jit/vmap/grad-safe (also in ``ridge``)."""
+    gram = jnp.einsum("ph,bhk,chk->pbc", mask, handle_basis, handle_basis)
+    rhs = jnp.einsum("ph,bhk,hk->pb", mask, handle_basis, displacements)
+    scale = jnp.mean(handle_basis**2) * 3.0 + 1e-12
+    eye = jnp.eye(gram.shape[1], dtype=gram.dtype)
+    factor = jnp.linalg.cholesky(gram + (ridge * scale) * eye)
+    return jax.vmap(lambda f, r: jax.scipy.linalg.cho_solve((f, True), r))(factor, rhs)
+
+
 def global_blendshape_fit(
     basis: Float[ArrayLike, "B N 3"],
     handle_index: Int[ArrayLike, " H"],

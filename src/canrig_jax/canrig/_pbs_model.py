@@ -17,7 +17,14 @@ patch goes through an output MLP that gives its B - 1 PBS weights:
 - ``base_multiplied``: one shared zero-preserving MLP, the same multiplied input;
 - ``no_modulation``: one shared zero-preserving MLP on the attended vector alone.
 
-These are Figure 8's three rows. All stay zero-preserving: zero displacements give zero
+These are Figure 8's three rows. Beyond the paper, ``local_prior`` (any variant, off by
+default) adds the network's output to a per-patch least-squares fit of the basis to the
+handles the patch sees (``local_pbs_fit``, weighted by the same clamped masks, with a trained
+ridge), so the network learns the correction to a local blendshape fit; the last layer of the
+output MLP starts at zero, so an untrained model *is* that fit. The fit is linear in the
+displacements and zero where every mask is, so nothing below changes.
+
+All stay zero-preserving: zero displacements give zero
 weights, so the base shape exactly; a patch that every clamped mask misses gets zero weights,
 so a vertex covered only by such patches does not move at all.
 
@@ -38,7 +45,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from ._mlp import ZeroPreservingMLP
 from ._model import ShapePreservingCANRig, _per_row
-from ._pbs import PatchLayout, _pbs_shape
+from ._pbs import PatchLayout, _local_pbs_fit, _pbs_shape
 
 PBS_VARIANTS = ("per_patch", "base_multiplied", "no_modulation")
 """CANRig-PBS output heads (Figure 8's ablation); ``per_patch`` is the paper's model."""
@@ -68,10 +75,12 @@ class CANRigPBS(eqx.Module):
         patch_mlp: the output MLP: one per patch (stacked, leading axis P) for ``per_patch``,
             else one shared.
         variant: one of ``PBS_VARIANTS``.
+        log_ridge: with ``local_prior``, log of the local fit's ridge (trained), else None.
     """
 
     encoder: ShapePreservingCANRig
     patch_mlp: ZeroPreservingMLP
+    log_ridge: Float[Array, ""] | None
     variant: str = eqx.field(static=True)
 
     def __init__(
@@ -82,15 +91,20 @@ class CANRigPBS(eqx.Module):
         *,
         variant: str = "per_patch",
         patch_width: int = 32,
+        local_prior: bool = False,
+        prior_ridge: float = 1e-2,
         key: PRNGKeyArray,
         **options,
     ):
         """``canonical`` (V, 3) the neutral (normalisation of positions); ``n_weights`` =
         B - 1 basis offsets; ``options``: the CANRig encoder's (``n_heads``, ``latent``,
         ``width``, ``n_layers``, ``fourier``, ``displacement_scale``); ``patch_width``: the
-        hidden width of each per-patch MLP."""
+        hidden width of each per-patch MLP; ``local_prior``: add the network's output to
+        ``local_pbs_fit`` with initial ridge ``prior_ridge`` (module docstring)."""
         if variant not in PBS_VARIANTS:
             raise ValueError(f"variant: expected one of {PBS_VARIANTS}, got {variant!r}")
+        if not (np.isfinite(prior_ridge) and prior_ridge > 0):
+            raise ValueError(f"prior_ridge: expected a finite value > 0, got {prior_ridge}")
         for name, value in (("n_patches", n_patches), ("n_weights", n_weights)):
             if int(value) < 1:
                 raise ValueError(f"{name}: expected >= 1, got {value}")
@@ -114,7 +128,17 @@ class CANRigPBS(eqx.Module):
             self.patch_mlp = eqx.filter_vmap(lambda k: output_mlp(patch_width, k))(keys)
         else:
             self.patch_mlp = output_mlp(arch.width, km)
+        self.log_ridge = None
+        if local_prior:  # the correction starts at zero: an untrained model is the local fit
+            self.patch_mlp = eqx.tree_at(
+                lambda m: m.layers[-1].weight, self.patch_mlp, replace_fn=jnp.zeros_like
+            )
+            self.log_ridge = jnp.log(jnp.asarray(prior_ridge, jnp.float32))
         self.variant = variant
+
+    @property
+    def local_prior(self) -> bool:
+        return self.log_ridge is not None
 
     def encode_patches(self, seeds_canonical: Float[Array, "P 3"]) -> Float[Array, "heads P d"]:
         """Queries of the patches at their seeds' canonical positions; cache these."""
@@ -129,11 +153,15 @@ class CANRigPBS(eqx.Module):
         displacements: Float[Array, "H 3"],
         mask: Float[Array, "P H"],
         beta: float | Float[Array, ""] | None = None,
+        handle_basis: Float[Array, "Bm1 H 3"] | None = None,
     ) -> Float[Array, "P Bm1"]:
         """S_pred, the PBS weights of each patch (a delta over the base shape's).
 
         ``patch_base``: ``patch_means(layout, base)``; ``mask``: the handles' influence at
-        each patch's seed (``influence_mask``), clamped here."""
+        each patch's seed (``influence_mask``), clamped here; ``handle_basis``: the basis
+        offsets at the handle vertices, required by a ``local_prior`` model."""
+        if self.local_prior and handle_basis is None:
+            raise ValueError("handle_basis: required by a local_prior model, got None")
         enc = self.encoder
         keys = enc.encode_keys(handle_canonical)
         values = enc.encode_values(displacements, handle_base)
@@ -142,8 +170,15 @@ class CANRigPBS(eqx.Module):
         if self.variant != "no_modulation":
             attended = attended * _per_row(enc.output_modulation, enc.normalise(patch_base))
         if self.variant == "per_patch":
-            return eqx.filter_vmap(lambda mlp, x: mlp(x))(self.patch_mlp, attended)
-        return _per_row(self.patch_mlp, attended)
+            out = eqx.filter_vmap(lambda mlp, x: mlp(x))(self.patch_mlp, attended)
+        else:
+            out = _per_row(self.patch_mlp, attended)
+        if not self.local_prior:
+            return out
+        clamped = jnp.where(mask < enc.clamp, 0.0, mask)
+        return out + _local_pbs_fit(
+            handle_basis, displacements, clamped, jnp.exp(self.log_ridge)
+        )
 
 
 class _EncoderBlock(eqx.Module):

@@ -53,6 +53,7 @@ class PBSTrainOptions:
     n_layers: int = 3
     fourier: int = 6
     patch_width: int = 32
+    local_prior: bool = False  # CANRig-PBS beyond the paper: correct a local PBS fit
     learning_rate: float = 1e-3
     decay_steps: int = 0
     decay_floor: float = 0.02
@@ -74,6 +75,8 @@ class PBSTrainOptions:
     def __post_init__(self):
         if self.model not in PBS_MODELS:
             raise ValueError(f"model: expected one of {PBS_MODELS}, got {self.model!r}")
+        if self.local_prior and self.model == "shape_transformer":
+            raise ValueError("local_prior: a CANRig-PBS option; the Shape Transformer has none")
         if not self.learning_rate > 0:
             raise ValueError(f"learning_rate: expected > 0, got {self.learning_rate}")
         lo, hi = self.n_handles
@@ -229,6 +232,7 @@ def make_pbs_model(
         n_weights,
         variant=options.model,
         patch_width=options.patch_width,
+        local_prior=options.local_prior,
         n_heads=options.n_heads,
         latent=options.latent,
         width=options.width,
@@ -269,6 +273,7 @@ def predict_pbs_weights(
         base[handle_vertices],
         displacements,
         mask,
+        handle_basis=data.basis[:, handle_vertices] if model.local_prior else None,
     )
 
 
