@@ -52,6 +52,7 @@ from canrig_jax.canrig import (  # noqa: E402
     influence_mask,
     influence_reach,
     load_pbs_model,
+    local_pbs_fit,
     parameter_count,
     patch_layout,
     pbs_basis,
@@ -105,6 +106,7 @@ def _timed(fn, repeats=10):
 
 MODELS_DIR = "models"
 TABLE5_MODELS = ("per_patch", "shape_transformer")
+LOCAL_FIT_RIDGE = 1e-2  # local_pbs_fit's ridge for Table 5's no-network row (CANRigPBS's initial)
 FIGURE8_TAG = "_fig8"  # Figure 8's runs: 1,000 steps of the same 2,000-step schedule
 EVAL_RADIUS_CM, EVAL_FALLOFF_PER_CM = 4.0, 1.0  # Table 5's masks (CANRig-PBS)
 POOL_SIZE = 4096  # candidate handle vertices on the skin for training
@@ -128,6 +130,7 @@ def _parser():
     )
     parser.add_argument("--minutes", type=float, default=15.0, help="training budget")
     parser.add_argument("--steps", type=int, default=4000)
+    parser.add_argument("--learning-rate", type=float, default=PBSTrainOptions.learning_rate)
     parser.add_argument("--decay-start", type=int, default=0)
     parser.add_argument("--decay-steps", type=int, default=4000)
     parser.add_argument(
@@ -172,6 +175,12 @@ def _parser():
         help="only Table 6 again with K mouth handles for each K (a variant; the protocol has "
         "60): its reach floor and every method's mouth difference, added to OUT's "
         "results.json (table6_handle_sweep) and table.md; needs OUT's trained checkpoints",
+    )
+    parser.add_argument(
+        "--local-prior",
+        action="store_true",
+        help="--train a CANRig-PBS variant: the network corrects a per-patch masked ridge fit "
+        "of the basis to the handles it sees (CANRigPBS local_prior; beyond the paper)",
     )
     parser.add_argument("--no-progress", action="store_true")
     return parser
@@ -340,6 +349,8 @@ def _train(args, argv, head):
         max_minutes=args.minutes,
         decay_start=args.decay_start,
         decay_steps=args.decay_steps,
+        learning_rate=args.learning_rate,
+        local_prior=args.local_prior,
     )
     data, _ = _training_set(args, head)
     folder = args.out / MODELS_DIR / (args.train + args.tag)
@@ -708,18 +719,47 @@ def main(argv=None):
         print(f"{folder}: {row}")
         return net, row
 
-    trained, figure8, forward = {}, {}, {}
+    trained, figure8, forward, nets = {}, {}, {}, {}
     h200, d200 = jnp.asarray(handles[:200]), handle_distance[:, :200]
     for name in TABLE5_MODELS:
         net, row = evaluate(name)
         if row is not None:
             trained[name] = row
+            nets[name] = net
+            if getattr(net, "local_prior", False):
+                row["local_prior_ridge"] = float(jnp.exp(net.log_ridge))
             # one whole-head forward pass at 200 handles
             # (patch queries cached once per mesh, as the per-vertex reference's queries)
             queries = net.encode_patches(data.seeds)
             forward[name] = _timed(
                 lambda net=net, queries=queries: reconstruct(net, h200, d200, test_j[:1], queries)
             )
+    # the local fit alone (no network): CANRig-PBS's local prior at its trained ridge, or at
+    # the default initial one when the per_patch model has no prior
+    prior_net = nets.get("per_patch")
+    ridge = (
+        float(jnp.exp(prior_net.log_ridge))
+        if prior_net is not None and prior_net.local_prior
+        else LOCAL_FIT_RIDGE
+    )
+    mask = influence_mask(handle_distance, EVAL_RADIUS_CM, EVAL_FALLOFF_PER_CM, CLAMP)
+    local_weights = local_pbs_fit(basis[:, handles], offsets[:, handles], mask, ridge)
+    error_mm = (
+        np.stack(
+            [
+                np.linalg.norm(np.asarray(pbs_shape(layout, neutral, basis, w)) - shape, axis=-1)
+                for w, shape in zip(np.asarray(local_weights), test_shapes, strict=True)
+            ]
+        )
+        * CM_TO_MM
+    )
+    table5["local_fit"] = {
+        "mean_mm": float(error_mm.mean(axis=1).mean()),
+        "std_mm": float(error_mm.mean(axis=1).std()),
+        "train_minutes": 0.0,
+        "ridge": ridge,
+        "regions": _region_errors(head, error_mm),
+    }
     for name in PBS_VARIANTS:
         _, row = evaluate(name + FIGURE8_TAG)
         if row is not None:
@@ -797,7 +837,9 @@ def main(argv=None):
         "gbs_pbs_basis": f"GBS, the {len(basis)} PBS offsets",
         "gbs_ict_53": "GBS, ICT's 53 expressions",
         "shape_transformer": "Shape Transformer (PBS output)",
-        "per_patch": "CANRig-PBS (per-patch MLPs)",
+        "local_fit": "local PBS fit alone (CANRig-PBS's local prior without the network)",
+        "per_patch": "CANRig-PBS (per-patch MLPs)"
+        + (" + local prior" if "local_prior_ridge" in table5.get("per_patch", {}) else ""),
     }
     for key, label in labels.items():
         if key not in table5:

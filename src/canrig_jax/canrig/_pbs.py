@@ -417,11 +417,31 @@ def _local_pbs_fit(
     fade as the masks do). Linear in the displacements (zero displacements give exactly zero
     weights) and exactly zero for a patch every mask misses (M_p = 0). One (B-1) x (B-1)
     Cholesky solve per patch; jit/vmap/grad-safe (also in ``ridge``)."""
+    factor = local_fit_factor(handle_basis, mask, ridge)
+    return local_fit_solve(factor, handle_basis, mask, displacements)
+
+
+def local_fit_factor(
+    handle_basis: Float[Array, "Bm1 H 3"],
+    mask: Float[Array, "P H"],
+    ridge: float | Float[Array, ""],
+) -> Float[Array, "P Bm1 Bm1"]:
+    """The Cholesky factors of ``_local_pbs_fit``'s normal matrices (they do not depend on
+    the displacements: factor once, solve for many)."""
     gram = jnp.einsum("ph,bhk,chk->pbc", mask, handle_basis, handle_basis)
-    rhs = jnp.einsum("ph,bhk,hk->pb", mask, handle_basis, displacements)
     scale = jnp.mean(handle_basis**2) * 3.0 + 1e-12
     eye = jnp.eye(gram.shape[1], dtype=gram.dtype)
-    factor = jnp.linalg.cholesky(gram + (ridge * scale) * eye)
+    return jnp.linalg.cholesky(gram + (ridge * scale) * eye)
+
+
+def local_fit_solve(
+    factor: Float[Array, "P Bm1 Bm1"],
+    handle_basis: Float[Array, "Bm1 H 3"],
+    mask: Float[Array, "P H"],
+    displacements: Float[Array, "H 3"],
+) -> Float[Array, "P Bm1"]:
+    """``_local_pbs_fit`` with the factors of ``local_fit_factor``: linear in d."""
+    rhs = jnp.einsum("ph,bhk,hk->pb", mask, handle_basis, displacements)
     return jax.vmap(lambda f, r: jax.scipy.linalg.cho_solve((f, True), r))(factor, rhs)
 
 

@@ -176,9 +176,7 @@ class CANRigPBS(eqx.Module):
         if not self.local_prior:
             return out
         clamped = jnp.where(mask < enc.clamp, 0.0, mask)
-        return out + _local_pbs_fit(
-            handle_basis, displacements, clamped, jnp.exp(self.log_ridge)
-        )
+        return out + _local_pbs_fit(handle_basis, displacements, clamped, jnp.exp(self.log_ridge))
 
 
 class _EncoderBlock(eqx.Module):

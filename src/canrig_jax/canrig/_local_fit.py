@@ -1,0 +1,105 @@
+"""A handle rig with no network: local patch-blendshape fits (beyond the paper; the baseline
+that CANRig-PBS's ``local_prior`` corrects, here on any mesh with a patch layout).
+
+Every patch fits the basis offsets to the handle displacements its clamped masks see
+(``local_pbs_fit``, the masks evaluated at the patch's seed vertex) and the patches blend
+through the layout:
+
+    S(d) = S_base + W_layout X(d) S_basis,   X(d)_p = local_pbs_fit(basis[:, h], d, M_p, ridge)
+
+S is linear in the displacements d, zero displacements give the base exactly and a vertex
+covered only by patches that every clamped mask misses does not move. Pose A to B:
+``direct`` puts d = B[h] - A[h]; ``fit`` minimises ||S(d) - B||^2 over every vertex, a linear
+least-squares problem solved matrix-free by LSMR (``lineax``) from the direct displacements
+(LSMR's residual decreases monotonically, so the fit is never worse than the direct pass).
+Units follow the mesh (ICT: cm).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float, Int
+
+from ._masks import CLAMP, influence_mask
+from ._pbs import PatchLayout, _pbs_shape, check_basis, local_fit_factor, local_fit_solve
+
+
+class LocalFitRig(eqx.Module):
+    """The layout, the basis offsets (B - 1, V, 3) and the fit's ridge (``local_pbs_fit``)."""
+
+    layout: PatchLayout
+    basis: Float[Array, "Bm1 V 3"]
+    ridge: float = eqx.field(static=True)
+    clamp: float = eqx.field(static=True, default=CLAMP)
+
+    def __check_init__(self):
+        if not (np.isfinite(self.ridge) and self.ridge > 0):
+            raise ValueError(f"ridge: expected a finite value > 0, got {self.ridge}")
+
+
+def local_fit_rig(
+    layout: PatchLayout, basis: Float[ArrayLike, "Bm1 V 3"], ridge: float = 1e-3
+) -> LocalFitRig:
+    """A ``LocalFitRig``, validated (``basis``: offsets from the neutral, no repeated or
+    all-zero shape, the layout's vertex count)."""
+    basis = check_basis(basis, layout.n_vertices)
+    return LocalFitRig(layout, jnp.asarray(basis, jnp.float32), float(ridge))
+
+
+def _linear_map(rig: LocalFitRig, handle_index, seed_distance, radius, falloff):
+    """d -> W_layout X(d) S_basis (the offset from the base), factors computed once."""
+    mask = influence_mask(seed_distance, radius, falloff, rig.clamp)
+    handle_basis = rig.basis[:, handle_index]
+    factor = local_fit_factor(handle_basis, mask, rig.ridge)
+    zero = jnp.zeros(rig.basis.shape[1:], rig.basis.dtype)
+
+    def offset(d):
+        weights = local_fit_solve(factor, handle_basis, mask, d)
+        return _pbs_shape(rig.layout, zero, rig.basis, weights)
+
+    return offset
+
+
+@jax.jit
+def local_fit_shape(
+    rig: LocalFitRig,
+    base: Float[Array, "V 3"],
+    handle_index: Int[Array, " H"],
+    seed_distance: Float[Array, "P H"],
+    displacements: Float[Array, "H 3"],
+    radius: Float[Array, ""],
+    falloff: Float[Array, ""],
+) -> Float[Array, "V 3"]:
+    """S(d) for one edit (``seed_distance``: geodesic distance from each patch's seed to
+    each handle, cm). jit/vmap-able; linear in ``displacements``."""
+    return base + _linear_map(rig, handle_index, seed_distance, radius, falloff)(displacements)
+
+
+@eqx.filter_jit
+def local_fit_a_to_b(
+    rig: LocalFitRig,
+    a: Float[Array, "V 3"],
+    b: Float[Array, "V 3"],
+    handle_index: Int[Array, " H"],
+    seed_distance: Float[Array, "P H"],
+    radius: Float[Array, ""],
+    falloff: Float[Array, ""],
+    max_steps: int = 0,
+) -> tuple[Float[Array, "V 3"], Float[Array, "H 3"]]:
+    """Pose A to B with base A: (shape, displacements). ``max_steps`` = 0: the direct
+    displacements B[h] - A[h]; > 0: that many LSMR iterations on ||S(d) - B||^2 over every
+    vertex, started from the direct displacements (the normal matrices' factors computed
+    once)."""
+    direct = b[handle_index] - a[handle_index]
+    offset = _linear_map(rig, handle_index, seed_distance, radius, falloff)
+    start = a + offset(direct)
+    if max_steps == 0:
+        return start, direct
+    operator = lx.FunctionLinearOperator(offset, jax.ShapeDtypeStruct(direct.shape, direct.dtype))
+    solver = lx.LSMR(rtol=0.0, atol=0.0, max_steps=max_steps)
+    step = lx.linear_solve(operator, b - start, solver, throw=False).value
+    return a + offset(direct + step), direct + step
