@@ -129,6 +129,22 @@ def unreached_floor(rig, shapes, pairs, random_sets, progress=print):
     return table
 
 
+def _cell(direct, fitted, fitted_vertices) -> dict:
+    """One Table 4 cell from per-pair mean errors (mm; the first pairs fitted too) and the
+    fitted pairs' per-vertex errors."""
+    direct = np.asarray(direct, np.float64)
+    n_fitted = len(fitted)
+    return {
+        "direct_mm": float(direct.mean()),
+        "fitted_mm": float(np.mean(fitted)),
+        "fitted_p95_mm": float(np.percentile(np.concatenate(fitted_vertices), 95)),
+        "direct_on_fitted_pairs_mm": float(direct[:n_fitted].mean()),
+        "fitted_never_worse": bool(np.all(np.asarray(fitted) <= direct[:n_fitted])),
+        "pairs_direct": len(direct),
+        "pairs_fitted": n_fitted,
+    }
+
+
 def a_to_b_table(rig, shapes, pairs, placements, n_fit, options, progress=print, n_fit_main=0):
     """{handles: {radius name: {direct_mm, fitted_mm, fitted_p95_mm, ...}}} for one handle
     placement protocol (``placements(pair index, n) -> Handles``); the first ``n_fit`` pairs
@@ -159,19 +175,7 @@ def a_to_b_table(rig, shapes, pairs, placements, n_fit, options, progress=print,
             if (p + 1) % 100 == 0:
                 progress(f"  {n} handles: {p + 1}/{len(pairs)} pairs")
         for name, cell in cells.items():
-            direct = np.array(cell["direct"])
-            fitted_pairs = len(cell["fitted"])
-            table[str(n)][name] = {
-                "direct_mm": float(direct.mean()),
-                "fitted_mm": float(np.mean(cell["fitted"])),
-                "fitted_p95_mm": float(np.percentile(np.concatenate(cell["fitted_vertices"]), 95)),
-                "direct_on_fitted_pairs_mm": float(direct[:fitted_pairs].mean()),
-                "fitted_never_worse": bool(
-                    np.all(np.array(cell["fitted"]) <= direct[:fitted_pairs])
-                ),
-                "pairs_direct": len(direct),
-                "pairs_fitted": fitted_pairs,
-            }
+            table[str(n)][name] = _cell(cell["direct"], cell["fitted"], cell["fitted_vertices"])
         progress(
             f"  {n} handles: "
             + ", ".join(
@@ -613,16 +617,7 @@ def _local_fit_only(args, argv, rig, quartic, capture, shapes, pairs, random_set
                     )
                     fitted.append(float(e.mean()))
                     fitted_vertices.append(e)
-            direct = np.array(direct, np.float64)
-            table[str(n)][name] = {
-                "direct_mm": float(direct.mean()),
-                "fitted_mm": float(np.mean(fitted)),
-                "fitted_p95_mm": float(np.percentile(np.concatenate(fitted_vertices), 95)),
-                "direct_on_fitted_pairs_mm": float(direct[: len(fitted)].mean()),
-                "fitted_never_worse": bool(np.all(np.array(fitted) <= direct[: len(fitted)])),
-                "pairs_direct": len(direct),
-                "pairs_fitted": len(fitted),
-            }
+            table[str(n)][name] = _cell(direct, fitted, fitted_vertices)
             print(f"  local fit, {n} handles, {name}: {table[str(n)][name]}")
     a, b = (jnp.asarray(shapes[i]) for i in pairs[0])
     h = random_sets[200][0]
@@ -675,6 +670,22 @@ def _dialogue_only(args, argv, rig, quartic, capture, options):
     return results
 
 
+def _a_to_b_rows(table) -> list[str]:
+    """Table 4's Markdown rows (handles x radius) for one ``a_to_b_table``-like dict."""
+    lines = [
+        "| handles | " + " | ".join(f"{k} ({v:g} cm)" for k, v in RADII_CM.items()) + " |",
+        "|---" * (len(RADII_CM) + 1) + "|",
+    ]
+    for n, row in table.items():
+        cells = [
+            f"{c['direct_mm']:.3f} / {c['direct_on_fitted_pairs_mm']:.3f} / "
+            f"**{c['fitted_mm']:.3f}** / {c['fitted_p95_mm']:.2f} ({c['pairs_fitted']})"
+            for c in row.values()
+        ]
+        lines.append(f"| {n} | " + " | ".join(cells) + " |")
+    return [*lines, ""]
+
+
 def _table(results):
     model = results["protocol"]["model"]
     trained_on = (
@@ -696,18 +707,7 @@ def _table(results):
             "fitted p95 (mm); fitted pairs per cell in brackets",
             "",
         ]
-        lines.append(
-            "| handles | " + " | ".join(f"{k} ({v:g} cm)" for k, v in RADII_CM.items()) + " |"
-        )
-        lines.append("|---" * (len(RADII_CM) + 1) + "|")
-        for n, row in table.items():
-            cells = [
-                f"{c['direct_mm']:.3f} / {c['direct_on_fitted_pairs_mm']:.3f} / "
-                f"**{c['fitted_mm']:.3f}** / {c['fitted_p95_mm']:.2f} ({c['pairs_fitted']})"
-                for c in row.values()
-            ]
-            lines.append(f"| {n} | " + " | ".join(cells) + " |")
-        lines.append("")
+        lines += _a_to_b_rows(table)
     local = results.get("a_to_b_local_fit")
     if local:
         chosen = local["selected"]
@@ -719,17 +719,8 @@ def _table(results):
             f"{local['timing']['direct_ms_200_handles']:.1f} ms, fitted "
             f"{local['timing']['fit_ms_200_handles']:.1f} ms",
             "",
-            "| handles | " + " | ".join(f"{k} ({v:g} cm)" for k, v in RADII_CM.items()) + " |",
-            "|---" * (len(RADII_CM) + 1) + "|",
+            *_a_to_b_rows(local["random_vertices"]),
         ]
-        for n, row in local["random_vertices"].items():
-            cells = [
-                f"{c['direct_mm']:.3f} / {c['direct_on_fitted_pairs_mm']:.3f} / "
-                f"**{c['fitted_mm']:.3f}** / {c['fitted_p95_mm']:.2f} ({c['pairs_fitted']})"
-                for c in row.values()
-            ]
-            lines.append(f"| {n} | " + " | ".join(cells) + " |")
-        lines.append("")
     floor = results.get("a_to_b_floor", {}).get("random_vertices")
     if floor:
         lines += [
