@@ -19,7 +19,7 @@ calls, all rows in one process:
 - **the rig with no network** (``canrig.LocalFitRig``, the configuration that
   ``experiments/canrig_workflows.py --local-fit-only`` selects: 600 patches, neutral + 59
   basis offsets from 400 random training poses, ridge 1e-4): pose A to B direct, and fitted
-  with 5 LSMR iterations, the same handles and poses.
+  with 3 LSMR iterations, the same handles and poses.
 - **dialogue replacement**: 22 frames batched with ``jax.vmap`` (direct), 40 mouth handles,
   radius 1 cm, per frame.
 - **handle placement**: the Dijkstra runs from 200 handles (once per placement, not per edit).
@@ -161,7 +161,7 @@ def main(argv=None):
     layout = patch_layout(neutral, faces, 600, rings=3)
     local = local_fit_rig(layout, pbs_basis(neutral, training, 60)[0], ridge=1e-4)
     seed_distance = seed_distances(layout, rig.graph, limit=5.0)[:, random_handles.index]
-    for name, steps in (("direct", 0), ("fitted, 5 LSMR iterations", 5)):
+    for name, steps in (("direct", 0), ("fitted, 3 LSMR iterations", 3)):
         workflow_rows.append(
             (
                 f"no network (LocalFitRig), pose A to B, {name}",

@@ -539,7 +539,7 @@ def _floor_only(args, argv, rig, shapes, pairs, random_sets):
 
 
 LOCAL_FIT_GRID = {"patches": (300, 600), "basis": (19, 40, 60), "ridge": (1e-4, 1e-3, 1e-2)}
-LOCAL_FIT_LSMR_STEPS = 5
+LOCAL_FIT_LSMR_STEPS = 3
 
 
 def _local_fit_errors(local, seed_distance, a, b, handles, radius, steps):

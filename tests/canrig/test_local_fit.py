@@ -75,7 +75,7 @@ def test_fitted_a_to_b_is_the_least_squares_solution_and_never_worse(setup):
     than the direct displacements."""
     rig, _, _, shapes, handles, distance = setup
     a, b = jnp.asarray(shapes[26]), jnp.asarray(shapes[27])
-    args = (rig, a, b, jnp.asarray(handles), distance, RADIUS, FALLOFF)
+    args = (rig, a, b, handles, distance, RADIUS, FALLOFF)
     direct, d0 = local_fit_a_to_b(*args, 0)
     fitted, d = local_fit_a_to_b(*args, 300)
     columns = np.stack(
@@ -105,7 +105,25 @@ def test_fitted_a_to_b_is_the_least_squares_solution_and_never_worse(setup):
 
 
 def test_bad_input(setup):
-    _, layout, basis, _, _, _ = setup
+    rig, layout, basis, shapes, handles, distance = setup
+    a, b = shapes[0], shapes[1]
+    good = (rig, a, b, handles, distance, RADIUS, FALLOFF)
+    for position, bad, name in (
+        (1, a[:10], "a"),
+        (2, np.where(np.arange(len(b))[:, None] == 3, np.nan, b), "b"),
+        (3, np.concatenate([handles[:-1], handles[:1]]), "handle_index"),
+        (3, handles.astype(np.float32), "handle_index"),
+        (4, distance[:, :5], "seed_distance"),
+        (4, -distance, "seed_distance"),
+        (5, 0.0, "radius"),
+        (6, np.inf, "falloff"),
+    ):
+        args = list(good)
+        args[position] = bad
+        with pytest.raises(ValueError, match=name):
+            local_fit_a_to_b(*args)
+    with pytest.raises(ValueError, match="max_steps"):
+        local_fit_a_to_b(*good, -1)
     with pytest.raises(ValueError, match="ridge"):
         local_fit_rig(layout, basis, ridge=0.0)
     with pytest.raises(ValueError, match="basis"):

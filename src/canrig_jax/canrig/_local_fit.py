@@ -25,8 +25,10 @@ import lineax as lx
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from .._threads import blocking_single_threaded_blas
 from ._masks import CLAMP, influence_mask
 from ._pbs import PatchLayout, _pbs_shape, check_basis, local_fit_factor, local_fit_solve
+from ._rig import check_points
 
 
 class LocalFitRig(eqx.Module):
@@ -80,22 +82,61 @@ def local_fit_shape(
     return base + _linear_map(rig, handle_index, seed_distance, radius, falloff)(displacements)
 
 
-@eqx.filter_jit
 def local_fit_a_to_b(
     rig: LocalFitRig,
-    a: Float[Array, "V 3"],
-    b: Float[Array, "V 3"],
-    handle_index: Int[Array, " H"],
-    seed_distance: Float[Array, "P H"],
-    radius: Float[Array, ""],
-    falloff: Float[Array, ""],
+    a: Float[ArrayLike, "V 3"],
+    b: Float[ArrayLike, "V 3"],
+    handle_index: Int[ArrayLike, " H"],
+    seed_distance: Float[ArrayLike, "P H"],
+    radius: float,
+    falloff: float,
     max_steps: int = 0,
 ) -> tuple[Float[Array, "V 3"], Float[Array, "H 3"]]:
-    """Pose A to B with base A: (shape, displacements). ``max_steps`` = 0: the direct
-    displacements B[h] - A[h]; > 0: that many LSMR iterations on ||S(d) - B||^2 over every
-    vertex, started from the direct displacements (the normal matrices' factors computed
-    once), then the best of fitted, direct and zero displacements by the mean per-vertex
-    distance to B."""
+    """Pose A to B with base A: (shape, displacements), validated, then jitted (with one
+    BLAS thread: the factors' Cholesky runs in SciPy's OpenBLAS, whose threads fight XLA's).
+    ``max_steps`` = 0: the direct displacements B[h] - A[h]; > 0: that many LSMR iterations
+    on ||S(d) - B||^2 over every vertex, started from the direct displacements (the normal
+    matrices' factors computed once), then the best of fitted, direct and zero displacements
+    by the mean per-vertex distance to B. ``seed_distance``: geodesic distance from each
+    patch's seed to each handle (cm; inf beyond a limit)."""
+    n_vertices, n_patches = rig.basis.shape[1], rig.layout.n_patches
+    a = check_points("a", a, n_vertices)
+    b = check_points("b", b, n_vertices)
+    index = np.asarray(handle_index)
+    if index.ndim != 1 or not len(index) or not np.issubdtype(index.dtype, np.integer):
+        raise ValueError(f"handle_index: expected (H,) integer vertex indices, got {index.shape}")
+    if index.min() < 0 or index.max() >= n_vertices or len(np.unique(index)) != len(index):
+        raise ValueError(f"handle_index: expected distinct indices in [0, {n_vertices})")
+    distance = np.asarray(seed_distance, np.float32)
+    if (
+        distance.shape != (n_patches, len(index))
+        or np.isnan(distance).any()
+        or (distance < 0).any()
+    ):
+        raise ValueError(
+            f"seed_distance: expected ({n_patches}, {len(index)}) distances >= 0, got "
+            f"{distance.shape}"
+        )
+    for name, value in (("radius", radius), ("falloff", falloff)):
+        if not (np.isscalar(value) and np.isfinite(value) and value > 0):
+            raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
+    if not (isinstance(max_steps, int | np.integer) and max_steps >= 0):
+        raise ValueError(f"max_steps: expected an integer >= 0, got {max_steps!r}")
+    return blocking_single_threaded_blas(
+        _local_fit_a_to_b,
+        rig,
+        jnp.asarray(a),
+        jnp.asarray(b),
+        jnp.asarray(index),
+        jnp.asarray(distance),
+        float(radius),
+        float(falloff),
+        int(max_steps),
+    )
+
+
+@eqx.filter_jit
+def _local_fit_a_to_b(rig, a, b, handle_index, seed_distance, radius, falloff, max_steps):
     direct = b[handle_index] - a[handle_index]
     offset = _linear_map(rig, handle_index, seed_distance, radius, falloff)
     start = a + offset(direct)
