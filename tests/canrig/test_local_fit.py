@@ -62,6 +62,9 @@ def test_shape_is_per_patch_ridge_solves_blended_and_keeps_the_exact_zeros(setup
     np.testing.assert_allclose(ours, expected, rtol=1e-3, atol=2e-4)
     zero = local_fit_shape(rig, base, handles, distance, 0 * d, RADIUS, FALLOFF)
     assert np.array_equal(np.asarray(zero), base)
+    batch = local_fit_shape(rig, base, handles, distance, np.stack([d, 0 * d]), RADIUS, FALLOFF)
+    np.testing.assert_allclose(np.asarray(batch[0]), ours, atol=1e-5)  # a batch: vmapped
+    assert np.array_equal(np.asarray(batch[1]), base)
     reached = (mask > 0).any(axis=1)
     assert 0 < reached.sum() < N_PATCHES
     covered = np.asarray(layout.matrix()[:, reached].sum(axis=1)).ravel() > 0
@@ -124,6 +127,11 @@ def test_bad_input(setup):
             local_fit_a_to_b(*args)
     with pytest.raises(ValueError, match="max_steps"):
         local_fit_a_to_b(*good, -1)
+    d = np.zeros((len(handles), 3), np.float32)
+    with pytest.raises(ValueError, match="displacements"):
+        local_fit_shape(rig, a, handles, distance, d[:3], RADIUS, FALLOFF)
+    with pytest.raises(ValueError, match="base"):
+        local_fit_shape(rig, a[:, :2], handles, distance, d, RADIUS, FALLOFF)
     with pytest.raises(ValueError, match="ridge"):
         local_fit_rig(layout, basis, ridge=0.0)
     with pytest.raises(ValueError, match="basis"):

@@ -67,18 +67,55 @@ def _linear_map(rig: LocalFitRig, handle_index, seed_distance, radius, falloff):
     return offset
 
 
-@jax.jit
+def _check_edit(rig: LocalFitRig, handle_index, seed_distance, radius, falloff):
+    """(index, distance) as arrays, or ValueError naming the argument."""
+    n_vertices, n_patches = rig.basis.shape[1], rig.layout.n_patches
+    index = np.asarray(handle_index)
+    if index.ndim != 1 or not len(index) or not np.issubdtype(index.dtype, np.integer):
+        raise ValueError(f"handle_index: expected (H,) integer vertex indices, got {index.shape}")
+    if index.min() < 0 or index.max() >= n_vertices or len(np.unique(index)) != len(index):
+        raise ValueError(f"handle_index: expected distinct indices in [0, {n_vertices})")
+    distance = np.asarray(seed_distance, np.float32)
+    if (
+        distance.shape != (n_patches, len(index))
+        or np.isnan(distance).any()
+        or (distance < 0).any()
+    ):
+        raise ValueError(
+            f"seed_distance: expected ({n_patches}, {len(index)}) distances >= 0, got "
+            f"{distance.shape}"
+        )
+    for name, value in (("radius", radius), ("falloff", falloff)):
+        if not (np.isscalar(value) and np.isfinite(value) and value > 0):
+            raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
+    return jnp.asarray(index), jnp.asarray(distance)
+
+
 def local_fit_shape(
     rig: LocalFitRig,
-    base: Float[Array, "V 3"],
-    handle_index: Int[Array, " H"],
-    seed_distance: Float[Array, "P H"],
-    displacements: Float[Array, "H 3"],
-    radius: Float[Array, ""],
-    falloff: Float[Array, ""],
-) -> Float[Array, "V 3"]:
-    """S(d) for one edit (``seed_distance``: geodesic distance from each patch's seed to
-    each handle, cm). jit/vmap-able; linear in ``displacements``."""
+    base: Float[ArrayLike, "V 3"],
+    handle_index: Int[ArrayLike, " H"],
+    seed_distance: Float[ArrayLike, "P H"],
+    displacements: Float[ArrayLike, "*F H 3"],
+    radius: float,
+    falloff: float,
+) -> Float[Array, "*F V 3"]:
+    """S(d) = base + W_layout X(d) S_basis for one edit or a batch of displacements
+    (``seed_distance``: geodesic distance from each patch's seed to each handle, cm; inf
+    beyond a limit). Validated, then jitted; linear in ``displacements``."""
+    base = check_points("base", base, rig.basis.shape[1])
+    index, distance = _check_edit(rig, handle_index, seed_distance, radius, falloff)
+    d = np.asarray(displacements, np.float32)
+    if d.shape[-2:] != (len(index), 3) or not np.isfinite(d).all():
+        raise ValueError(f"displacements: expected finite (..., {len(index)}, 3), got {d.shape}")
+    core = _local_fit_shape
+    for _ in range(d.ndim - 2):
+        core = jax.vmap(core, (None, None, None, None, 0, None, None))
+    return core(rig, jnp.asarray(base), index, distance, jnp.asarray(d), radius, falloff)
+
+
+@jax.jit
+def _local_fit_shape(rig, base, handle_index, seed_distance, displacements, radius, falloff):
     return base + _linear_map(rig, handle_index, seed_distance, radius, falloff)(displacements)
 
 
@@ -99,27 +136,9 @@ def local_fit_a_to_b(
     matrices' factors computed once), then the best of fitted, direct and zero displacements
     by the mean per-vertex distance to B. ``seed_distance``: geodesic distance from each
     patch's seed to each handle (cm; inf beyond a limit)."""
-    n_vertices, n_patches = rig.basis.shape[1], rig.layout.n_patches
-    a = check_points("a", a, n_vertices)
-    b = check_points("b", b, n_vertices)
-    index = np.asarray(handle_index)
-    if index.ndim != 1 or not len(index) or not np.issubdtype(index.dtype, np.integer):
-        raise ValueError(f"handle_index: expected (H,) integer vertex indices, got {index.shape}")
-    if index.min() < 0 or index.max() >= n_vertices or len(np.unique(index)) != len(index):
-        raise ValueError(f"handle_index: expected distinct indices in [0, {n_vertices})")
-    distance = np.asarray(seed_distance, np.float32)
-    if (
-        distance.shape != (n_patches, len(index))
-        or np.isnan(distance).any()
-        or (distance < 0).any()
-    ):
-        raise ValueError(
-            f"seed_distance: expected ({n_patches}, {len(index)}) distances >= 0, got "
-            f"{distance.shape}"
-        )
-    for name, value in (("radius", radius), ("falloff", falloff)):
-        if not (np.isscalar(value) and np.isfinite(value) and value > 0):
-            raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
+    a = check_points("a", a, rig.basis.shape[1])
+    b = check_points("b", b, rig.basis.shape[1])
+    index, distance = _check_edit(rig, handle_index, seed_distance, radius, falloff)
     if not (isinstance(max_steps, int | np.integer) and max_steps >= 0):
         raise ValueError(f"max_steps: expected an integer >= 0, got {max_steps!r}")
     return blocking_single_threaded_blas(
@@ -127,8 +146,8 @@ def local_fit_a_to_b(
         rig,
         jnp.asarray(a),
         jnp.asarray(b),
-        jnp.asarray(index),
-        jnp.asarray(distance),
+        index,
+        distance,
         float(radius),
         float(falloff),
         int(max_steps),
