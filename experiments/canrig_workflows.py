@@ -644,6 +644,9 @@ def _local_fit_only(args, argv, rig, quartic, capture, shapes, pairs, random_set
     save_json(args.out / "results.json", results)
     text = _table(results)
     save_text(args.out / "table.md", text)
+    _figure_local_fit(
+        rig, local, seeds, shapes, pairs[0], random_sets[200][0], args.out / "a_to_b_local_fit.png"
+    )
     print(text)
     return results
 
@@ -832,6 +835,37 @@ def _figure_a_to_b(rig, shapes, pair, index, options, path):
             title=f"{name}: mean {err.mean():.2f} mm",
         )
     fig.suptitle("pose A to pose B, 200 random-vertex handles, radius 2 cm (Figure 9 analog)")
+    fig.colorbar(mapper, ax=axes, shrink=0.7, label="per-vertex error to B (mm)")
+    save_figure(fig, path)
+
+
+def _figure_local_fit(rig, local, seed_distance, shapes, pair, index, path):
+    """Table 4's first pair at its target cell: the network fitted against the rig with no
+    network, direct and fitted (one colour scale, 0-2 mm)."""
+    a, b = shapes[pair[0]], shapes[pair[1]]
+    handles = rig.handles(index, limit=DISTANCE_LIMIT_CM)
+    network = pose_a_to_b(rig, handles, a, b, 2.0, FALLOFF_PER_CM, fit=True).shape
+    shapes_of = [("CANRig network, fitted", network)] + [
+        (
+            f"LocalFitRig, {name}",
+            local_fit_a_to_b(
+                local, a, b, index, seed_distance[:, index], 2.0, FALLOFF_PER_CM, steps
+            )[0],
+        )
+        for name, steps in (("direct", 0), ("fitted", LOCAL_FIT_LSMR_STEPS))
+    ]
+    fig, axes = plt.subplots(1, 3, figsize=(10, 4.2))
+    for ax, (name, shape) in zip(axes, shapes_of, strict=True):
+        err = _error_mm(shape, b)
+        mapper = plot_vertex_scalar(
+            ax,
+            np.asarray(shape),
+            rig.faces,
+            err,
+            vmax=2.0,
+            title=f"{name}\nmean {err.mean():.3f} mm",
+        )
+    fig.suptitle("pose A to B, 200 random-vertex handles, 2 cm: the network against no network")
     fig.colorbar(mapper, ax=axes, shrink=0.7, label="per-vertex error to B (mm)")
     save_figure(fig, path)
 
