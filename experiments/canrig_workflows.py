@@ -546,14 +546,7 @@ def _local_fit_errors(local, seed_distance, a, b, handles, radius, steps):
     """(V,) error (mm) of ``local_fit_a_to_b``; ``seed_distance`` (P, V): from each patch
     seed along the rig's graph (the same Dijkstra as ``NeuralRig.handles``, transposed)."""
     shape, _ = local_fit_a_to_b(
-        local,
-        a,
-        b,
-        jnp.asarray(handles),
-        jnp.asarray(seed_distance[:, handles]),
-        radius,
-        FALLOFF_PER_CM,
-        steps,
+        local, a, b, handles, seed_distance[:, handles], radius, FALLOFF_PER_CM, steps
     )
     return _error_mm(shape, b)
 
@@ -815,28 +808,36 @@ def _table(results):
     return "\n".join(lines) + "\n"
 
 
+def _error_panels(faces, b, panels, vmax, title, path):
+    """One row of per-vertex error maps to B (mm), each panel (name, shape)."""
+    fig, axes = plt.subplots(1, len(panels), figsize=(10, 4.2))
+    for ax, (name, shape) in zip(axes, panels, strict=True):
+        err = _error_mm(shape, b)
+        mapper = plot_vertex_scalar(
+            ax, np.asarray(shape), faces, err, vmax=vmax, title=name.format(mean=err.mean())
+        )
+    fig.suptitle(title)
+    fig.colorbar(mapper, ax=axes, shrink=0.7, label="per-vertex error to B (mm)")
+    save_figure(fig, path)
+
+
 def _figure_a_to_b(rig, shapes, pair, index, options, path):
     a, b = shapes[pair[0]], shapes[pair[1]]
     handles = rig.handles(index, limit=DISTANCE_LIMIT_CM)
     direct = pose_a_to_b(rig, handles, a, b, 2.0, FALLOFF_PER_CM)
     fitted = pose_a_to_b(rig, handles, a, b, 2.0, FALLOFF_PER_CM, fit=True, options=options)
-    fig, axes = plt.subplots(1, 3, figsize=(10, 4.2))
-    plot_vertex_scalar(
-        axes[0], a, rig.faces, _error_mm(a, b), vmax=10.0, title="pose A (error to B)"
+    _error_panels(
+        rig.faces,
+        b,
+        [
+            ("pose A (error to B)", a),
+            ("direct: mean {mean:.2f} mm", direct.shape),
+            ("fitted: mean {mean:.2f} mm", fitted.shape),
+        ],
+        10.0,
+        "pose A to pose B, 200 random-vertex handles, radius 2 cm (Figure 9 analog)",
+        path,
     )
-    for ax, sol, name in ((axes[1], direct, "direct"), (axes[2], fitted, "fitted")):
-        err = _error_mm(sol.shape, b)
-        mapper = plot_vertex_scalar(
-            ax,
-            np.asarray(sol.shape),
-            rig.faces,
-            err,
-            vmax=10.0,
-            title=f"{name}: mean {err.mean():.2f} mm",
-        )
-    fig.suptitle("pose A to pose B, 200 random-vertex handles, radius 2 cm (Figure 9 analog)")
-    fig.colorbar(mapper, ax=axes, shrink=0.7, label="per-vertex error to B (mm)")
-    save_figure(fig, path)
 
 
 def _figure_local_fit(rig, local, seed_distance, shapes, pair, index, path):
@@ -854,20 +855,14 @@ def _figure_local_fit(rig, local, seed_distance, shapes, pair, index, path):
         )
         for name, steps in (("direct", 0), ("fitted", LOCAL_FIT_LSMR_STEPS))
     ]
-    fig, axes = plt.subplots(1, 3, figsize=(10, 4.2))
-    for ax, (name, shape) in zip(axes, shapes_of, strict=True):
-        err = _error_mm(shape, b)
-        mapper = plot_vertex_scalar(
-            ax,
-            np.asarray(shape),
-            rig.faces,
-            err,
-            vmax=2.0,
-            title=f"{name}\nmean {err.mean():.3f} mm",
-        )
-    fig.suptitle("pose A to B, 200 random-vertex handles, 2 cm: the network against no network")
-    fig.colorbar(mapper, ax=axes, shrink=0.7, label="per-vertex error to B (mm)")
-    save_figure(fig, path)
+    _error_panels(
+        rig.faces,
+        b,
+        [(name + "\nmean {mean:.3f} mm", shape) for name, shape in shapes_of],
+        2.0,
+        "pose A to B, 200 random-vertex handles, 2 cm: the network against no network",
+        path,
+    )
 
 
 def _figure_layers(layer_errors, path):

@@ -26,8 +26,16 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._threads import blocking_single_threaded_blas
-from ._masks import CLAMP, influence_mask
-from ._pbs import PatchLayout, _pbs_shape, check_basis, local_fit_factor, local_fit_solve
+from ._masks import CLAMP, check_handle_parameters, influence_mask
+from ._pbs import (
+    PatchLayout,
+    _check_points,
+    _pbs_shape,
+    check_basis,
+    check_handle_index,
+    local_fit_factor,
+    local_fit_solve,
+)
 from ._rig import check_points
 
 
@@ -68,13 +76,10 @@ def _linear_map(rig: LocalFitRig, handle_index, seed_distance, radius, falloff):
 
 
 def _check_edit(rig: LocalFitRig, handle_index, seed_distance, radius, falloff):
-    """(index, distance) as arrays, or ValueError naming the argument."""
-    n_vertices, n_patches = rig.basis.shape[1], rig.layout.n_patches
-    index = np.asarray(handle_index)
-    if index.ndim != 1 or not len(index) or not np.issubdtype(index.dtype, np.integer):
-        raise ValueError(f"handle_index: expected (H,) integer vertex indices, got {index.shape}")
-    if index.min() < 0 or index.max() >= n_vertices or len(np.unique(index)) != len(index):
-        raise ValueError(f"handle_index: expected distinct indices in [0, {n_vertices})")
+    """(index, distance, radius, falloff) as device arrays (radius and falloff per handle),
+    or ValueError naming the argument."""
+    index = check_handle_index(handle_index, rig.basis.shape[1])
+    n_patches = rig.layout.n_patches
     distance = np.asarray(seed_distance, np.float32)
     if (
         distance.shape != (n_patches, len(index))
@@ -85,10 +90,8 @@ def _check_edit(rig: LocalFitRig, handle_index, seed_distance, radius, falloff):
             f"seed_distance: expected ({n_patches}, {len(index)}) distances >= 0, got "
             f"{distance.shape}"
         )
-    for name, value in (("radius", radius), ("falloff", falloff)):
-        if not (np.isscalar(value) and np.isfinite(value) and value > 0):
-            raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
-    return jnp.asarray(index), jnp.asarray(distance)
+    radius, falloff = check_handle_parameters(radius, falloff, len(index))
+    return tuple(jnp.asarray(x) for x in (index, distance, radius, falloff))
 
 
 def local_fit_shape(
@@ -97,21 +100,22 @@ def local_fit_shape(
     handle_index: Int[ArrayLike, " H"],
     seed_distance: Float[ArrayLike, "P H"],
     displacements: Float[ArrayLike, "*F H 3"],
-    radius: float,
-    falloff: float,
+    radius: float | Float[ArrayLike, " H"],
+    falloff: float | Float[ArrayLike, " H"],
 ) -> Float[Array, "*F V 3"]:
     """S(d) = base + W_layout X(d) S_basis for one edit or a batch of displacements
     (``seed_distance``: geodesic distance from each patch's seed to each handle, cm; inf
     beyond a limit). Validated, then jitted; linear in ``displacements``."""
     base = check_points("base", base, rig.basis.shape[1])
-    index, distance = _check_edit(rig, handle_index, seed_distance, radius, falloff)
-    d = np.asarray(displacements, np.float32)
-    if d.shape[-2:] != (len(index), 3) or not np.isfinite(d).all():
-        raise ValueError(f"displacements: expected finite (..., {len(index)}, 3), got {d.shape}")
+    index, distance, radius, falloff = _check_edit(
+        rig, handle_index, seed_distance, radius, falloff
+    )
+    _check_points("displacements", displacements, len(index), batch=True)
     core = _local_fit_shape
-    for _ in range(d.ndim - 2):
+    for _ in range(np.ndim(displacements) - 2):
         core = jax.vmap(core, (None, None, None, None, 0, None, None))
-    return core(rig, jnp.asarray(base), index, distance, jnp.asarray(d), radius, falloff)
+    d = jnp.asarray(displacements, jnp.float32)
+    return core(rig, jnp.asarray(base), index, distance, d, radius, falloff)
 
 
 @jax.jit
@@ -125,8 +129,8 @@ def local_fit_a_to_b(
     b: Float[ArrayLike, "V 3"],
     handle_index: Int[ArrayLike, " H"],
     seed_distance: Float[ArrayLike, "P H"],
-    radius: float,
-    falloff: float,
+    radius: float | Float[ArrayLike, " H"],
+    falloff: float | Float[ArrayLike, " H"],
     max_steps: int = 0,
 ) -> tuple[Float[Array, "V 3"], Float[Array, "H 3"]]:
     """Pose A to B with base A: (shape, displacements), validated, then jitted (with one
@@ -138,7 +142,9 @@ def local_fit_a_to_b(
     patch's seed to each handle (cm; inf beyond a limit)."""
     a = check_points("a", a, rig.basis.shape[1])
     b = check_points("b", b, rig.basis.shape[1])
-    index, distance = _check_edit(rig, handle_index, seed_distance, radius, falloff)
+    index, distance, radius, falloff = _check_edit(
+        rig, handle_index, seed_distance, radius, falloff
+    )
     if not (isinstance(max_steps, int | np.integer) and max_steps >= 0):
         raise ValueError(f"max_steps: expected an integer >= 0, got {max_steps!r}")
     return blocking_single_threaded_blas(
@@ -148,8 +154,8 @@ def local_fit_a_to_b(
         jnp.asarray(b),
         index,
         distance,
-        float(radius),
-        float(falloff),
+        radius,
+        falloff,
         int(max_steps),
     )
 

@@ -370,7 +370,11 @@ def _fit_pbs(
     scale = jnp.mean(jnp.diagonal(gram, axis1=1, axis2=2), axis=1)  # (P,)
     eye = jnp.eye(gram.shape[1], dtype=gram.dtype)
     regular = gram + (ridge * scale + 1e-12)[:, None, None] * eye
-    factor = jnp.linalg.cholesky(regular)
+    return _solve_each(jnp.linalg.cholesky(regular), rhs)
+
+
+def _solve_each(factor: Float[Array, "P B B"], rhs: Float[Array, "P B"]) -> Float[Array, "P B"]:
+    """One Cholesky solve per patch (``factor``: lower-triangular factors)."""
     return jax.vmap(lambda f, r: jax.scipy.linalg.cho_solve((f, True), r))(factor, rhs)
 
 
@@ -441,8 +445,20 @@ def local_fit_solve(
     displacements: Float[Array, "H 3"],
 ) -> Float[Array, "P Bm1"]:
     """``_local_pbs_fit`` with the factors of ``local_fit_factor``: linear in d."""
-    rhs = jnp.einsum("ph,bhk,hk->pb", mask, handle_basis, displacements)
-    return jax.vmap(lambda f, r: jax.scipy.linalg.cho_solve((f, True), r))(factor, rhs)
+    return _solve_each(factor, jnp.einsum("ph,bhk,hk->pb", mask, handle_basis, displacements))
+
+
+def check_handle_index(handle_index: Int[ArrayLike, " H"], n_vertices: int) -> np.ndarray:
+    """``handle_index`` as (H,) distinct integer vertex indices in [0, ``n_vertices``), else
+    ValueError naming it."""
+    index = np.asarray(handle_index)
+    if index.ndim != 1 or not np.issubdtype(index.dtype, np.integer):
+        raise ValueError(f"handle_index: expected (H,) integer vertex indices, got {index.dtype}")
+    if index.size == 0 or index.min() < 0 or index.max() >= n_vertices:
+        raise ValueError(f"handle_index: expected indices in [0, {n_vertices})")
+    if len(np.unique(index)) != len(index):
+        raise ValueError("handle_index: repeated vertices")
+    return index
 
 
 def global_blendshape_fit(
@@ -455,13 +471,7 @@ def global_blendshape_fit(
     basis = np.asarray(basis)
     if basis.ndim != 3 or basis.shape[2] != 3:
         raise ValueError(f"basis: expected (B, N, 3), got {basis.shape}")
-    index = np.asarray(handle_index)
-    if index.ndim != 1 or not np.issubdtype(index.dtype, np.integer):
-        raise ValueError(f"handle_index: expected (H,) integer vertex indices, got {index.dtype}")
-    if index.size == 0 or index.min() < 0 or index.max() >= basis.shape[1]:
-        raise ValueError(f"handle_index: expected indices in [0, {basis.shape[1]})")
-    if len(np.unique(index)) != len(index):
-        raise ValueError("handle_index: repeated vertices")
+    index = check_handle_index(handle_index, basis.shape[1])
     _check_points("displacements", displacements, len(index), batch=True)
     if not (np.isfinite(ridge) and ridge > 0):
         raise ValueError(f"ridge: expected a finite value > 0, got {ridge}")
