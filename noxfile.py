@@ -86,7 +86,13 @@ STANDARD_EXPERIMENTS = (
         "canrig_workflows.py",
         *("--checkpoint", "experiments/results/canrig_workflows/model/checkpoint.eqx"),
         *("--out", "experiments/results/canrig_workflows", "--pairs", "1000"),
-        *("--fit-pairs", "30", "--fit-pairs-main", "1000", "--layer-pairs", "30"),
+        *("--fit-pairs", "100", "--fit-pairs-main", "1000", "--layer-pairs", "30"),
+    ),
+    (
+        "canrig_workflows.py",
+        *("--rig", "local-fit", "--out", "experiments/results/canrig_workflows_local_fit"),
+        *("--pairs", "1000", "--fit-pairs", "100", "--fit-pairs-main", "1000"),
+        *("--layer-pairs", "30"),
     ),
 )
 """The standard configurations whose outputs are committed under experiments/results/ (the

@@ -16,10 +16,10 @@ calls, all rows in one process:
 - **pose A to B, direct / fitted** (``canrig.pose_a_to_b``), 200 random-vertex handles,
   2 cm: one call each (fitted: whitened Gauss-Newton with the Jacobian of the start, the
   default; Levenberg-Marquardt; and the exact Jacobian every step).
-- **the rig with no network** (``canrig.LocalFitRig``, the configuration that
-  ``experiments/canrig_workflows.py --local-fit-only`` selects: 600 patches, neutral + 59
-  basis offsets from 400 random training poses, ridge 1e-4): pose A to B direct, and fitted
-  with 3 LSMR iterations, the same handles and poses.
+- **the rig with no network** (``canrig.LocalFitRig`` in a ``NeuralRig``, the configuration
+  that ``experiments/canrig_workflows.py --rig local-fit`` selects: 600 patches, neutral + 59
+  basis offsets from 400 random training poses, ridge 1e-4): ``pose_a_to_b`` direct, and
+  fitted (``FitOptions()``: 3 LSMR iterations), the same handles and poses.
 - **dialogue replacement**: 22 frames batched with ``jax.vmap`` (direct), 40 mouth handles,
   radius 1 cm, per frame.
 - **handle placement**: the Dijkstra runs from 200 handles (once per placement, not per edit).
@@ -52,12 +52,10 @@ from canrig_jax.canrig import (
     farthest_point_vertices,
     interior_vertices,
     load_model,
-    local_fit_a_to_b,
     local_fit_rig,
     patch_layout,
     pbs_basis,
     pose_a_to_b,
-    seed_distances,
 )
 from canrig_jax.rig import evaluate_batch, ict_linear_rig, random_sparse_poses
 
@@ -159,16 +157,17 @@ def main(argv=None):
         evaluate_batch(face, random_sparse_poses(np.random.default_rng(1), 400, face.names))
     )
     layout = patch_layout(neutral, faces, 600, rings=3)
-    local = local_fit_rig(layout, pbs_basis(neutral, training, 60)[0], ridge=1e-4)
-    seed_distance = seed_distances(layout, rig.graph, limit=5.0)[:, random_handles.index]
-    for name, steps in (("direct", 0), ("fitted, 3 LSMR iterations", 3)):
+    local = NeuralRig(
+        local_fit_rig(layout, pbs_basis(neutral, training, 60)[0], ridge=1e-4), neutral, faces
+    )
+    for name, fit in (("direct", False), ("fitted, 3 LSMR iterations", True)):
         workflow_rows.append(
             (
                 f"no network (LocalFitRig), pose A to B, {name}",
                 _time(
-                    lambda steps=steps: local_fit_a_to_b(
-                        local, a, b, random_handles.index, seed_distance, 2.0, 3.0, steps
-                    )[0].block_until_ready(),
+                    lambda fit=fit: pose_a_to_b(
+                        local, random_handles, a, b, 2.0, 3.0, fit=fit
+                    ).shape.block_until_ready(),
                     few,
                 ),
             )

@@ -12,6 +12,12 @@ poses (``canrig.held_out_poses``, as ``canrig_eval.py``). Table 4 as the paper r
 all 9,409 face vertices. Geodesic farthest-point handles from vertex 0 (``canrig_eval.py``'s
 placement) are reported beside it as a second protocol. Writes results.json, table.md and
 figures (a_to_b_error.png, layers.png, clip_edit.png, dialogue.png).
+
+``--rig local-fit`` runs every workflow on ``canrig.LocalFitRig``, a rig with no network
+(beyond the paper), instead of the checkpoint:
+
+    python experiments/canrig_workflows.py --rig local-fit \
+        --out experiments/results/canrig_workflows_local_fit
 """
 
 from __future__ import annotations
@@ -44,13 +50,11 @@ from canrig_jax.canrig import (
     interior_vertices,
     iterative_layers,
     load_model,
-    local_fit_a_to_b,
     local_fit_rig,
     max_acceleration,
     patch_layout,
     pbs_basis,
     pose_a_to_b,
-    seed_distances,
     split_capture,
 )
 from canrig_jax.data import load_livelinkface
@@ -188,7 +192,7 @@ def a_to_b_table(rig, shapes, pairs, placements, n_fit, options, progress=print,
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--checkpoint", type=Path, required=True)
+    parser.add_argument("--checkpoint", type=Path, help="CANRig checkpoint (--rig network)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--data-dir", default=None, help="data folder (else $CANRIG_DATA)")
     parser.add_argument("--quick", action="store_true", help="a few pairs, short clips")
@@ -208,12 +212,12 @@ def main(argv=None):
         "--out/results.json, table.md and dialogue.png (the rest is kept)",
     )
     parser.add_argument(
-        "--local-fit-only",
-        action="store_true",
-        help="run only Table 4 (random vertices) for a rig with no network, "
-        "canrig.LocalFitRig (local patch-blendshape fits, beyond the paper), its patches, "
-        "basis and ridge selected on pairs of training poses, into --out/results.json "
-        "(a_to_b_local_fit) and table.md (the rest is kept)",
+        "--rig",
+        choices=("network", "local-fit"),
+        default="network",
+        help="network: the CANRig checkpoint; local-fit: canrig.LocalFitRig, a rig with no "
+        "network (local patch-blendshape fits, beyond the paper), its patches, basis and "
+        "ridge selected on pairs of training poses, every workflow run on it unchanged",
     )
     parser.add_argument(
         "--floor-only",
@@ -235,15 +239,25 @@ def main(argv=None):
     poses = held_out_poses(capture_test, quartic.names, n_random=100)
     shapes = evaluate_poses(quartic, poses)
     neutral = np.asarray(quartic.neutral, np.float32)
-    model, state = load_model(args.checkpoint, neutral)
-    rig = NeuralRig(model, neutral, np.asarray(quartic.faces))
+    if args.rig == "local-fit":
+        rig, model_protocol = select_local_fit(quartic, capture, args)
+    elif args.checkpoint is None:
+        parser.error("--checkpoint: required with --rig network")
+    else:
+        model, state = load_model(args.checkpoint, neutral)
+        rig = NeuralRig(model, neutral, np.asarray(quartic.faces))
+        model_protocol = {
+            "checkpoint": str(args.checkpoint),
+            "train_steps": state["step"],
+            "train_minutes": state["seconds"] / 60.0,
+            "p_farthest": state["options"]["examples"]["p_farthest"],
+            "p_eval_radius": state["options"]["examples"]["p_eval_radius"],
+        }
     if args.dialogue_only:
         return _dialogue_only(args, argv, rig, quartic, capture, options)
     pairs, random_sets, handle_rng = _random_protocol(len(shapes), rig.n_vertices, args)
     if args.floor_only:
         return _floor_only(args, argv, rig, shapes, pairs, random_sets)
-    if args.local_fit_only:
-        return _local_fit_only(args, argv, rig, quartic, capture, shapes, pairs, random_sets)
     n_fit = min(args.fit_pairs, args.pairs)
 
     # ---------------------------------------------------------------- Table 4, A to B
@@ -335,7 +349,7 @@ def main(argv=None):
     lo, hi = edited.window
     outside_window = np.r_[0:lo, hi + 1 : len(clip)]
     clip_mask = np.asarray(
-        influence_mask(clip_handles.distance, CLIP_RADIUS_CM, FALLOFF_PER_CM, model.clamp)
+        influence_mask(clip_handles.distance, CLIP_RADIUS_CM, FALLOFF_PER_CM, rig.model.clamp)
     )
     outside_mask = clip_mask.max(axis=1) == 0
     clip_numbers = {
@@ -404,13 +418,7 @@ def main(argv=None):
             "falloff_per_cm": FALLOFF_PER_CM,
             "radii_cm": RADII_CM,
             "fit_options": {"max_steps": options.max_steps, "lsmr_steps": options.lsmr_steps},
-            "model": {
-                "checkpoint": str(args.checkpoint),
-                "train_steps": state["step"],
-                "train_minutes": state["seconds"] / 60.0,
-                "p_farthest": state["options"]["examples"]["p_farthest"],
-                "p_eval_radius": state["options"]["examples"]["p_eval_radius"],
-            },
+            "model": model_protocol,
         },
         "minutes": (time.perf_counter() - start_time) / 60.0,
     }
@@ -539,109 +547,61 @@ def _floor_only(args, argv, rig, shapes, pairs, random_sets):
 
 
 LOCAL_FIT_GRID = {"patches": (300, 600), "basis": (19, 40, 60), "ridge": (1e-4, 1e-3, 1e-2)}
-LOCAL_FIT_LSMR_STEPS = 3
 
 
-def _local_fit_errors(local, seed_distance, a, b, handles, radius, steps):
-    """(V,) error (mm) of ``local_fit_a_to_b``; ``seed_distance`` (P, V): from each patch
-    seed along the rig's graph (the same Dijkstra as ``NeuralRig.handles``, transposed)."""
-    shape, _ = local_fit_a_to_b(
-        local, a, b, handles, seed_distance[:, handles], radius, FALLOFF_PER_CM, steps
-    )
-    return _error_mm(shape, b)
-
-
-def _local_fit_only(args, argv, rig, quartic, capture, shapes, pairs, random_sets):
-    """Table 4 (random vertices) for ``LocalFitRig``: its patch count, basis size and ridge
-    picked by the direct error at 200 handles / 2 cm on pairs of the network's *training*
-    poses (never the held-out ones), then the held-out pairs and handle sets of Table 4."""
-    results = _results_of_the_same_pairs(args, "--local-fit-only")
+def select_local_fit(quartic, capture, args):
+    """``--rig local-fit``: the ``LocalFitRig`` on the face whose patch count, basis size and
+    ridge give the lowest direct error at 200 random handles / 2 cm on pairs of the network's
+    *training* poses (never the held-out ones); the basis is ``pbs_basis`` of those poses.
+    Returns (NeuralRig, the protocol's model entry with the whole selection)."""
     capture_train, _ = split_capture(capture)
-    names = quartic.names
     train = np.concatenate(
-        [capture_train, random_sparse_poses(np.random.default_rng(0), 800, names, n_active=(4, 10))]
+        [
+            capture_train,
+            random_sparse_poses(np.random.default_rng(0), 800, quartic.names, n_active=(4, 10)),
+        ]
     ).astype(np.float32)  # the training poses of build_training_set (seed 0)
     train_shapes = np.asarray(evaluate_poses(quartic, train))
     neutral, faces = np.asarray(quartic.neutral, np.float32), np.asarray(quartic.faces)
     rng = np.random.default_rng([args.seed, 7])
-    n_select = 4 if args.quick else 30
-    select_pairs = _pairs(len(train_shapes), n_select, rng)
-    select_handles = [rng.choice(rig.n_vertices, 200, replace=False) for _ in select_pairs]
-    selection, best = [], None
+    select_pairs = _pairs(len(train_shapes), 4 if args.quick else 30, rng)
+    select_sets = [rng.choice(len(neutral), 200, replace=False) for _ in select_pairs]
+    selection, best, handles = [], None, None
     for n_patches in LOCAL_FIT_GRID["patches"]:
         layout = patch_layout(neutral, faces, n_patches, rings=3)
-        seeds = seed_distances(layout, rig.graph, limit=DISTANCE_LIMIT_CM)
         for n_basis in LOCAL_FIT_GRID["basis"]:
             basis, _ = pbs_basis(neutral, train_shapes, n_basis)
             for ridge in LOCAL_FIT_GRID["ridge"]:
-                local = local_fit_rig(layout, basis, ridge)
-                error = float(
-                    np.mean(
-                        [
-                            _local_fit_errors(
-                                local, seeds, train_shapes[a], train_shapes[b], h, 2.0, 0
-                            ).mean()
-                            for (a, b), h in zip(select_pairs, select_handles, strict=True)
-                        ]
-                    )
-                )
-                row = {"patches": n_patches, "basis": n_basis, "ridge": ridge, "mm": error}
+                rig = NeuralRig(local_fit_rig(layout, basis, ridge), neutral, faces)
+                if handles is None:  # the same placements (geodesic distances) for every rig
+                    handles = [rig.handles(h, limit=DISTANCE_LIMIT_CM) for h in select_sets]
+                errors = [
+                    pose_a_to_b(
+                        rig, h, train_shapes[a], train_shapes[b], 2.0, FALLOFF_PER_CM
+                    ).error
+                    for (a, b), h in zip(select_pairs, handles, strict=True)
+                ]
+                row = {
+                    "patches": n_patches,
+                    "basis": n_basis,
+                    "ridge": ridge,
+                    "mm": float(np.mean(errors)) * CM_TO_MM,
+                }
                 selection.append(row)
                 print(f"  selection on training pairs: {row}")
-                if best is None or error < best[0]["mm"]:
-                    best = (row, local, seeds)
-    chosen, local, seeds = best
-    n_fit = min(args.fit_pairs, args.pairs)
-    table = {}
-    for n in HANDLE_COUNTS:
-        table[str(n)] = {}
-        for name, radius in RADII_CM.items():
-            main_cell = n == 200 and name == "medium"
-            fitted_pairs = max(n_fit, args.fit_pairs_main) if main_cell else n_fit
-            direct, fitted, fitted_vertices = [], [], []
-            for p, (a, b) in enumerate(pairs):
-                h = random_sets[n][p]
-                direct.append(
-                    _local_fit_errors(local, seeds, shapes[a], shapes[b], h, radius, 0).mean()
-                )
-                if p < fitted_pairs:
-                    e = _local_fit_errors(
-                        local, seeds, shapes[a], shapes[b], h, radius, LOCAL_FIT_LSMR_STEPS
-                    )
-                    fitted.append(float(e.mean()))
-                    fitted_vertices.append(e)
-            table[str(n)][name] = _cell(direct, fitted, fitted_vertices)
-            print(f"  local fit, {n} handles, {name}: {table[str(n)][name]}")
-    a, b = (jnp.asarray(shapes[i]) for i in pairs[0])
-    h = random_sets[200][0]
-    distance = jnp.asarray(seeds[:, h])
-    timing = {
-        f"{kind}_ms_200_handles": _timed(
-            lambda steps=steps: local_fit_a_to_b(
-                local, a, b, jnp.asarray(h), distance, 2.0, FALLOFF_PER_CM, steps
-            )[0].block_until_ready()
-        )
-        for kind, steps in (("direct", 0), ("fit", LOCAL_FIT_LSMR_STEPS))
-    }
-    results["a_to_b_local_fit"] = {
-        "rig": "canrig.LocalFitRig: per patch a ridge fit of the basis offsets to the handle "
-        "displacements its clamped masks see (at the patch seed), blended by the layout; no "
-        "network. Basis: pbs_basis (farthest points in shape space) of the network's training "
-        f"shapes; fitted: {LOCAL_FIT_LSMR_STEPS} LSMR iterations from the direct displacements",
+                if best is None or row["mm"] < best[0]["mm"]:
+                    best = (row, rig)
+    chosen, rig = best
+    protocol = {
+        "rig": "canrig.LocalFitRig (no network): per patch a ridge fit of the basis offsets "
+        "to the handle displacements its clamped masks see (at the patch seed), blended by the "
+        "layout, each vertex scaled by its largest clamped mask; basis: pbs_basis (farthest "
+        "points in shape space) of the network's training shapes; fitted: FitOptions.max_steps "
+        "LSMR iterations from the direct displacements",
         "selected": chosen,
         "selection_on_training_pairs": selection,
-        "random_vertices": table,
-        "timing": timing,
     }
-    results["a_to_b_local_fit_provenance"] = provenance(experiment_command(__file__, argv))
-    save_json(args.out / "results.json", results)
-    text = _table(results)
-    save_text(args.out / "table.md", text)
-    _figure_local_fit(
-        rig, local, seeds, shapes, pairs[0], random_sets[200][0], args.out / "a_to_b_local_fit.png"
-    )
-    print(text)
-    return results
+    return rig, protocol
 
 
 def _dialogue_only(args, argv, rig, quartic, capture, options):
@@ -682,19 +642,29 @@ def _a_to_b_rows(table) -> list[str]:
     return [*lines, ""]
 
 
-def _table(results):
-    model = results["protocol"]["model"]
+def _model_line(model):
+    if "selected" in model:
+        chosen = model["selected"]
+        return (
+            "Rig: `LocalFitRig`, no network (beyond the paper): "
+            f"{chosen['patches']} patches, neutral + {chosen['basis'] - 1} basis offsets, "
+            f"ridge {chosen['ridge']:g}, selected on pairs of training poses."
+        )
     trained_on = (
         "random handle sets and radii (the paper's recipe)"
         if model["p_farthest"] == 0 and model["p_eval_radius"] == 0
         else f"{model['p_farthest']:.0%} evaluation handle sets, {model['p_eval_radius']:.0%} "
         "evaluation radii"
     )
+    return f"Model trained on {trained_on}, {model['train_steps']} steps."
+
+
+def _table(results):
     lines = [
         f"Pose A to pose B (Table 4 protocol): {results['protocol']['pairs']} random pairs of "
         f"held-out ict-quartic poses (fitted on the first {results['protocol']['fitted_pairs']}), "
-        f"mean per-vertex error to B over the 9,409 face vertices (mm), falloff 3/cm. Model "
-        f"trained on {trained_on}, {model['train_steps']} steps.",
+        f"mean per-vertex error to B over the 9,409 face vertices (mm), falloff 3/cm. "
+        + _model_line(results["protocol"]["model"]),
         "",
     ]
     for protocol, table in results["a_to_b"].items():
@@ -704,19 +674,6 @@ def _table(results):
             "",
         ]
         lines += _a_to_b_rows(table)
-    local = results.get("a_to_b_local_fit")
-    if local:
-        chosen = local["selected"]
-        lines += [
-            "**random_vertices, a rig with no network** (`LocalFitRig`, beyond the paper: "
-            f"{chosen['patches']} patches, neutral + {chosen['basis'] - 1} basis offsets, ridge "
-            f"{chosen['ridge']:g}, selected on training pairs): direct / direct on the fitted "
-            "pairs / **fitted** / fitted p95 (mm); one call at 200 handles: direct "
-            f"{local['timing']['direct_ms_200_handles']:.1f} ms, fitted "
-            f"{local['timing']['fit_ms_200_handles']:.1f} ms",
-            "",
-            *_a_to_b_rows(local["random_vertices"]),
-        ]
     floor = results.get("a_to_b_floor", {}).get("random_vertices")
     if floor:
         lines += [
@@ -786,6 +743,7 @@ def _table(results):
     ]
     lines += ["| quantity | value |", "|---|---|"] + [f"| {k} | {v} |" for k, v in rows]
     baselines = dialogue.get("baselines")
+    rig_name = "LocalFitRig" if "selected" in results["protocol"]["model"] else "CANRig"
     if baselines:
         lines += [
             "",
@@ -797,7 +755,7 @@ def _table(results):
         ]
         for kind, numbers in (("direct", dialogue), ("fitted", dialogue["fitted"])):
             lines.append(
-                f"| CANRig, {kind} | {dialogue['rig_inversion_mm']:g} | "
+                f"| {rig_name}, {kind} | {dialogue['rig_inversion_mm']:g} | "
                 f"{numbers['mouth_difference_mm']:.3f} | {numbers['rest_of_face_change_mm']:g} |"
             )
         for name, b in baselines.items():
@@ -836,31 +794,6 @@ def _figure_a_to_b(rig, shapes, pair, index, options, path):
         ],
         10.0,
         "pose A to pose B, 200 random-vertex handles, radius 2 cm (Figure 9 analog)",
-        path,
-    )
-
-
-def _figure_local_fit(rig, local, seed_distance, shapes, pair, index, path):
-    """Table 4's first pair at its target cell: the network fitted against the rig with no
-    network, direct and fitted (one colour scale, 0-2 mm)."""
-    a, b = shapes[pair[0]], shapes[pair[1]]
-    handles = rig.handles(index, limit=DISTANCE_LIMIT_CM)
-    network = pose_a_to_b(rig, handles, a, b, 2.0, FALLOFF_PER_CM, fit=True).shape
-    shapes_of = [("CANRig network, fitted", network)] + [
-        (
-            f"LocalFitRig, {name}",
-            local_fit_a_to_b(
-                local, a, b, index, seed_distance[:, index], 2.0, FALLOFF_PER_CM, steps
-            )[0],
-        )
-        for name, steps in (("direct", 0), ("fitted", LOCAL_FIT_LSMR_STEPS))
-    ]
-    _error_panels(
-        rig.faces,
-        b,
-        [(name + "\nmean {mean:.3f} mm", shape) for name, shape in shapes_of],
-        2.0,
-        "pose A to B, 200 random-vertex handles, 2 cm: the network against no network",
         path,
     )
 

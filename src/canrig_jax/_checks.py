@@ -40,4 +40,24 @@ def native(x: np.ndarray) -> np.ndarray:
     return x
 
 
-__all__ = ["check_finite", "check_real", "is_concrete", "native"]
+
+
+def check_points(name: str, value, n_vertices: int, *, frames: bool = False) -> np.ndarray:
+    """``value`` as float32 points of the mesh, (V, 3) or with ``frames`` (F >= 1, V, 3):
+    real, finite, the mesh's vertex count; else TypeError/ValueError naming ``name``."""
+    array = np.asarray(value)
+    if not np.issubdtype(array.dtype, np.floating) and not np.issubdtype(array.dtype, np.integer):
+        raise TypeError(f"{name}: expected real numbers, got dtype {array.dtype}")
+    expected = "(F, V, 3) with F >= 1 frames" if frames else "(V, 3)"
+    if array.shape[-2:] != (n_vertices, 3) or array.ndim != (3 if frames else 2) or not len(array):
+        raise ValueError(
+            f"{name}: expected shape {expected}, V = {n_vertices} (the mesh's vertex count), "
+            f"got {array.shape}"
+        )
+    array = array.astype(np.float32)
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
+    return array
+
+
+__all__ = ["check_finite", "check_points", "check_real", "is_concrete", "native"]

@@ -1,24 +1,27 @@
-"""The rig with no network (``LocalFitRig``) on the real ICT face: its shape against an
-independent NumPy computation (per-patch ridge solves, then the layout blend), the exact
-zeros (zero displacements, vertices no reached patch covers), the fitted pose A to B against
-a dense NumPy least-squares solve, and bad input."""
+"""The rig with no network (``LocalFitRig``) bound to the real ICT face by ``NeuralRig``: its
+shape against an independent NumPy computation (per-patch ridge solves, the layout blend, the
+gate of the largest clamped mask per vertex), the exact zeros (zero displacements, vertices outside every
+clamped mask), the fitted pose A to B against a dense NumPy least-squares solve, the
+workflows' guarantees on it, and bad input."""
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from canrig_jax.canrig import (
-    edge_graph,
-    local_fit_a_to_b,
+    FitOptions,
+    NeuralRig,
+    clip_edit,
+    dialogue_replacement,
+    iterative_layers,
     local_fit_rig,
-    local_fit_shape,
     patch_layout,
     pbs_basis,
-    seed_distances,
+    pose_a_to_b,
 )
 from canrig_jax.rig import evaluate_batch, random_sparse_poses
 
-N_PATCHES, N_HANDLES, RADIUS, FALLOFF = 60, 24, 2.0, 3.0
+N_PATCHES, N_HANDLES, RADIUS, FALLOFF, RIDGE = 60, 24, 2.0, 3.0, 1e-3
 
 
 @pytest.fixture(scope="module")
@@ -29,112 +32,129 @@ def setup(ict_face):
     poses = random_sparse_poses(np.random.default_rng(11), 30, ict_face.names)
     shapes = np.asarray(evaluate_batch(ict_face, poses), np.float32)
     basis, _ = pbs_basis(neutral, shapes[:24], 8)
-    handles = np.random.default_rng(12).choice(len(neutral), N_HANDLES, replace=False)
-    distance = seed_distances(layout, edge_graph(neutral, faces))[:, handles]
-    rig = local_fit_rig(layout, basis, ridge=1e-3)
-    return rig, layout, basis, shapes, handles, distance.astype(np.float32)
+    rig = NeuralRig(local_fit_rig(layout, basis, ridge=RIDGE), neutral, faces)
+    index = np.random.default_rng(12).choice(len(neutral), N_HANDLES, replace=False)
+    return rig, layout, basis, shapes, rig.handles(index)
 
 
-def _numpy_shape(layout, basis, base, handles, distance, d, ridge, clamp):
-    mask = 0.5 * (1 - np.tanh(FALLOFF * (distance - RADIUS)))
-    mask = np.where(mask < clamp, 0.0, mask)
-    a = basis[:, handles].astype(np.float64)  # (B-1, H, 3)
-    scale = ridge * np.mean(a**2) * 3
+def _numpy_shape(rig, layout, basis, base, handles, d):
+    """base + g * W_layout X(d) S_basis in float64: one ridge solve per patch, the gate
+    g = min(1, 2 x the largest clamped mask)."""
+    distance = np.asarray(handles.distance, np.float64)  # (V, H)
+    with np.errstate(invalid="ignore"):
+        mask = np.where(
+            np.isfinite(distance), 0.5 * (1 - np.tanh(FALLOFF * (distance - RADIUS))), 0.0
+        )
+    mask = np.where(mask < rig.model.clamp, 0.0, mask)
+    seeds = np.asarray(layout.seeds)
+    a = basis[:, handles.index].astype(np.float64)  # (B-1, H, 3)
+    scale = RIDGE * np.mean(a**2) * 3
     weights = np.stack(
         [
             np.linalg.solve(
                 np.einsum("h,bhk,chk->bc", m, a, a) + scale * np.eye(len(a)),
                 np.einsum("h,bhk,hk->b", m, a, d),
             )
-            for m in mask
+            for m in mask[seeds]
         ]
     )  # (P, B-1)
     per_vertex = np.asarray(layout.matrix() @ weights)  # (V, B-1)
-    return base + np.einsum("vb,bvk->vk", per_vertex, basis), mask
+    gate = np.minimum(1.0, 2.0 * mask.max(axis=1))
+    return base + gate[:, None] * np.einsum("vb,bvk->vk", per_vertex, basis), gate
 
 
-def test_shape_is_per_patch_ridge_solves_blended_and_keeps_the_exact_zeros(setup):
-    rig, layout, basis, shapes, handles, distance = setup
+def test_shape_is_gated_per_patch_ridge_solves_and_keeps_the_exact_zeros(setup):
+    rig, layout, basis, shapes, handles = setup
     base, target = shapes[24], shapes[25]
-    d = target[handles] - base[handles]
-    ours = np.asarray(local_fit_shape(rig, base, handles, distance, d, RADIUS, FALLOFF))
-    expected, mask = _numpy_shape(layout, basis, base, handles, distance, d, 1e-3, rig.clamp)
+    d = target[handles.index] - base[handles.index]
+    ours = np.asarray(rig(handles, d, RADIUS, FALLOFF, base=base))
+    expected, gate = _numpy_shape(rig, layout, basis, base, handles, d)
     np.testing.assert_allclose(ours, expected, rtol=1e-3, atol=2e-4)
-    zero = local_fit_shape(rig, base, handles, distance, 0 * d, RADIUS, FALLOFF)
-    assert np.array_equal(np.asarray(zero), base)
-    batch = local_fit_shape(rig, base, handles, distance, np.stack([d, 0 * d]), RADIUS, FALLOFF)
-    np.testing.assert_allclose(np.asarray(batch[0]), ours, atol=1e-5)  # a batch: vmapped
-    assert np.array_equal(np.asarray(batch[1]), base)
-    reached = (mask > 0).any(axis=1)
-    assert 0 < reached.sum() < N_PATCHES
-    covered = np.asarray(layout.matrix()[:, reached].sum(axis=1)).ravel() > 0
-    assert np.array_equal(ours[~covered], base[~covered])
-    assert np.abs(ours[covered] - base[covered]).max() > 1e-2  # and the edit does move
+    assert np.array_equal(np.asarray(rig(handles, 0 * d, RADIUS, FALLOFF, base=base)), base)
+    outside = gate == 0
+    assert 0 < outside.sum() < len(base)
+    assert np.array_equal(ours[outside], base[outside])  # outside every clamped mask: exact
+    assert np.abs(ours[~outside] - base[~outside]).max() > 1e-2  # and the edit does move
 
 
 def test_fitted_a_to_b_is_the_least_squares_solution_and_never_worse(setup):
-    """Enough LSMR steps reach the dense least-squares minimiser of ||S(d) - B||^2 (its
-    Jacobian built column by column from S, solved by NumPy); a few steps never do worse
-    than the direct displacements."""
-    rig, _, _, shapes, handles, distance = setup
-    a, b = jnp.asarray(shapes[26]), jnp.asarray(shapes[27])
-    args = (rig, a, b, handles, distance, RADIUS, FALLOFF)
-    direct, d0 = local_fit_a_to_b(*args, 0)
-    fitted, d = local_fit_a_to_b(*args, 300)
+    """Enough LSMR steps reach the dense minimiser of the region-weighted ||S(d) - B||^2
+    (its Jacobian built column by column from the rig, solved by NumPy); the default three
+    steps are never worse than the direct or zero displacements by the reported error."""
+    rig, _, _, shapes, handles = setup
+    a, b = shapes[26], shapes[27]
+    region = np.random.default_rng(3).uniform(0.0, 2.0, rig.n_vertices).astype(np.float32)
+    many = pose_a_to_b(
+        rig, handles, a, b, RADIUS, FALLOFF, fit=True, region=region,
+        options=FitOptions(max_steps=300),
+    )  # fmt: skip
     columns = np.stack(
         [
-            np.asarray(
-                local_fit_shape(rig, a, handles, distance, e.reshape(-1, 3), RADIUS, FALLOFF)
-            )
-            - np.asarray(a)
+            np.asarray(rig(handles, e.reshape(-1, 3), RADIUS, FALLOFF, base=a)) - a
             for e in np.eye(3 * N_HANDLES, dtype=np.float32)
         ],
         axis=-1,
     ).reshape(-1, 3 * N_HANDLES)
-    best, *_ = np.linalg.lstsq(columns, (np.asarray(b) - np.asarray(a)).ravel(), rcond=None)
-    best_error = np.linalg.norm(columns @ best - (np.asarray(b) - np.asarray(a)).ravel())
-    ours_error = np.linalg.norm(np.asarray(fitted - b))
-    assert ours_error <= best_error * (1 + 1e-3)
-    direct_error = np.linalg.norm(np.asarray(direct - b))
-    assert ours_error < direct_error
-    np.testing.assert_array_equal(np.asarray(d0), np.asarray(b - a)[handles])
+    root = np.repeat(np.sqrt(region), 3)[:, None]
+    best, *_ = np.linalg.lstsq(root * columns, root[:, 0] * (b - a).ravel(), rcond=None)
 
-    def mean_error(shape):
-        return np.linalg.norm(np.asarray(shape - b), axis=-1).mean()
+    def objective(shape):
+        return float(np.sum(region[:, None] * (np.asarray(shape) - b) ** 2))
 
-    for steps in (1, 3):  # the reported error (mean distance), never worse than direct or zero
-        few, _ = local_fit_a_to_b(*args, steps)
-        assert mean_error(few) <= min(mean_error(direct), mean_error(a))
+    assert objective(many.shape) <= objective(a + (columns @ best).reshape(-1, 3)) * (1 + 1e-3)
+    direct = pose_a_to_b(rig, handles, a, b, RADIUS, FALLOFF, region=region)
+    np.testing.assert_array_equal(np.asarray(direct.displacements), (b - a)[handles.index])
+    few = pose_a_to_b(rig, handles, a, b, RADIUS, FALLOFF, fit=True, region=region)
+    assert int(few.steps) == FitOptions().max_steps
+    assert float(few.error) <= min(float(few.direct_error), float(few.base_error))
+    assert float(few.direct_error) == pytest.approx(float(direct.error), rel=1e-5)
+    assert float(few.error) < float(direct.error)  # the fit does improve on this pair
 
 
-def test_bad_input(setup):
-    rig, layout, basis, shapes, handles, distance = setup
-    a, b = shapes[0], shapes[1]
-    good = (rig, a, b, handles, distance, RADIUS, FALLOFF)
-    for position, bad, name in (
-        (1, a[:10], "a"),
-        (2, np.where(np.arange(len(b))[:, None] == 3, np.nan, b), "b"),
-        (3, np.concatenate([handles[:-1], handles[:1]]), "handle_index"),
-        (3, handles.astype(np.float32), "handle_index"),
-        (4, distance[:, :5], "seed_distance"),
-        (4, -distance, "seed_distance"),
-        (5, 0.0, "radius"),
-        (6, np.inf, "falloff"),
-    ):
-        args = list(good)
-        args[position] = bad
-        with pytest.raises(ValueError, match=name):
-            local_fit_a_to_b(*args)
-    with pytest.raises(ValueError, match="max_steps"):
-        local_fit_a_to_b(*good, -1)
-    d = np.zeros((len(handles), 3), np.float32)
-    with pytest.raises(ValueError, match="displacements"):
-        local_fit_shape(rig, a, handles, distance, d[:3], RADIUS, FALLOFF)
-    with pytest.raises(ValueError, match="base"):
-        local_fit_shape(rig, a[:, :2], handles, distance, d, RADIUS, FALLOFF)
+def test_workflows_keep_their_exact_guarantees(setup):
+    """Layers: the fitted error never increases; clip edit: frames outside the window are
+    bit-identical, vertices outside every mask do not move; dialogue: frame by frame the
+    vmapped replacement equals one edit per frame."""
+    rig, _, _, shapes, handles = setup
+    a, b = shapes[26], shapes[27]
+    rng = np.random.default_rng(5)
+    schedule = [(rig.handles(rng.choice(rig.n_vertices, n, replace=False)), r) for n, r in
+                ((6, 4.0), (20, 2.0), (40, 1.0))]  # fmt: skip
+    layers = iterative_layers(rig, a, b, schedule, FALLOFF, fit=True)
+    assert np.all(np.diff(layers.errors) <= 0) and layers.errors[-1] < layers.errors[0]
+
+    clip = shapes[20:30]
+    d = (b - a)[handles.index]
+    edited = clip_edit(rig, clip, 5, handles, d, RADIUS, FALLOFF, 2)
+    assert np.array_equal(edited.clip[:3], clip[:3]) and np.array_equal(edited.clip[8:], clip[8:])
+    _, gate = _numpy_shape(rig, *setup[1:3], a, handles, d)
+    assert np.array_equal(edited.clip[:, gate == 0], clip[:, gate == 0])
+    assert np.abs(edited.clip[5] - clip[5]).max() > 1e-2
+
+    source, target = shapes[20:23], shapes[23:26]
+    out = dialogue_replacement(rig, source, target, handles, RADIUS, FALLOFF)
+    for f in range(3):
+        one = rig(handles, (target[f] - source[f])[handles.index], RADIUS, FALLOFF, base=source[f])
+        np.testing.assert_allclose(out[f], np.asarray(one), atol=1e-5)
+
+
+def test_bad_input(setup, ict_face):
+    rig, layout, basis, shapes, handles = setup
     with pytest.raises(ValueError, match="ridge"):
         local_fit_rig(layout, basis, ridge=0.0)
     with pytest.raises(ValueError, match="basis"):
         local_fit_rig(layout, basis[:, :100])
     with pytest.raises(ValueError, match="basis"):
         local_fit_rig(layout, np.concatenate([basis, basis[:1] * 2]))
+    neutral = np.asarray(ict_face.neutral, np.float32)
+    with pytest.raises(ValueError, match="canonical"):
+        NeuralRig(rig.model, neutral[:-1], np.asarray(ict_face.faces)[:10])
+    d = np.zeros((N_HANDLES, 3), np.float32)
+    for kwargs, name in (({"radius": 0.0}, "radius"), ({"falloff": np.inf}, "falloff")):
+        with pytest.raises(ValueError, match=name):
+            rig(handles, d, **{"radius": RADIUS, "falloff": FALLOFF, **kwargs})
+    with pytest.raises(ValueError, match="displacements"):
+        rig(handles, d[:3], RADIUS, FALLOFF)
+    with pytest.raises(ValueError, match="target"):
+        pose_a_to_b(rig, handles, shapes[0], np.full_like(shapes[1], np.nan), RADIUS, FALLOFF)
+    assert jnp.all(jnp.isfinite(rig(handles, d, RADIUS, FALLOFF)))

@@ -31,7 +31,7 @@ from ._layout import (
     influence_reach,
     vertex_blocks,
 )
-from ._local_fit import LocalFitRig, local_fit_a_to_b, local_fit_rig, local_fit_shape
+from ._local_fit import LocalFitRig, local_fit_deform, local_fit_lsmr, local_fit_rig
 from ._masks import (
     CLAMP,
     MIN_EDGE_FACTOR,
@@ -123,9 +123,9 @@ __all__ = [
     "global_blendshape_fit",
     "local_pbs_fit",
     "LocalFitRig",
-    "local_fit_a_to_b",
+    "local_fit_deform",
+    "local_fit_lsmr",
     "local_fit_rig",
-    "local_fit_shape",
     "patch_layout",
     "pbs_basis",
     "pbs_shape",

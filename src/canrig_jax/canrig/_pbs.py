@@ -33,9 +33,8 @@ import scipy.sparse as sp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from scipy.sparse.csgraph import dijkstra
 
-from .._checks import check_finite, check_real
+from .._checks import check_finite, check_points, check_real
 from ..mesh import check_mesh, edge_graph, farthest_point_vertices, vertex_adjacency
-from ._rig import check_points
 
 
 class PatchLayout(eqx.Module):

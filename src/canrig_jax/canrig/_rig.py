@@ -14,6 +14,9 @@ and ``jax.vmap`` batches it over edits. By default the attention is block-sparse
 (``_layout.py``: each block of ~48 vertices attends only to the handles that reach it, exact);
 ``dense=True`` uses the dense (V x H) layout instead.
 
+The model may also be a ``LocalFitRig`` (``_local_fit.py``: no network, local linear fits of
+a data-driven basis): the same handles, edits and workflows, its own forward pass.
+
 Distances run along the mesh's edges, so a handle on the skin never reaches a part that is a
 separate piece of mesh (teeth, gums, eyelashes on a whole head): ``bridge=True`` measures
 them along ``mesh.bridged_edge_graph`` instead, where every vertex of such a part is one step
@@ -30,6 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from .._checks import check_points
+from .._threads import blocking_single_threaded_blas
 from ..mesh import bridged_edge_graph
 from ._layout import (
     DENSE,
@@ -40,6 +45,7 @@ from ._layout import (
     influence_reach,
     vertex_blocks,
 )
+from ._local_fit import LocalFitRig, local_fit_deform
 from ._masks import check_handle_parameters, edge_graph, influence_mask, weighted_geodesic_distance
 from ._model import AbstractCANRig, Trace
 
@@ -131,30 +137,25 @@ def deform(
     """The shape of ``edit``: the one jitted forward pass (no validation; build ``edit``
     with ``NeuralRig.edit``). ``layout`` (``NeuralRig.layout``) only changes where the
     attention runs, not the result; ``local_queries`` may cache
-    ``layout.vertices(queries, axis=-2)``. Batch over edits with ``jax.vmap``."""
+    ``layout.vertices(queries, axis=-2)``. Batch over edits with ``jax.vmap``. A
+    ``LocalFitRig`` (no network) has no queries and no layout: its own pass."""
+    if isinstance(model, LocalFitRig):
+        return local_fit_deform(model, edit)
     return trace_edit(model, queries, canonical, edit, layout, local_queries).shape
 
 
-def check_points(name: str, value, n_vertices: int, *, frames: bool = False) -> np.ndarray:
-    """``value`` as float32 points of the mesh, (V, 3) or with ``frames`` (F >= 1, V, 3):
-    real, finite, the mesh's vertex count; else TypeError/ValueError naming ``name``."""
-    array = np.asarray(value)
-    if not np.issubdtype(array.dtype, np.floating) and not np.issubdtype(array.dtype, np.integer):
-        raise TypeError(f"{name}: expected real numbers, got dtype {array.dtype}")
-    expected = "(F, V, 3) with F >= 1 frames" if frames else "(V, 3)"
-    if array.shape[-2:] != (n_vertices, 3) or array.ndim != (3 if frames else 2) or not len(array):
-        raise ValueError(
-            f"{name}: expected shape {expected}, V = {n_vertices} (the mesh's vertex count), "
-            f"got {array.shape}"
-        )
-    array = array.astype(np.float32)
-    if not np.all(np.isfinite(array)):
-        raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
-    return array
+def call_blas_safe(model, fn, *args):
+    """``fn(*args)``, with one BLAS thread when ``model`` is a ``LocalFitRig``: its forward
+    pass factors every patch's normal matrix in LAPACK, whose threads fight XLA's
+    (``canrig_jax._threads``); a network's pass runs none."""
+    if isinstance(model, LocalFitRig):
+        return blocking_single_threaded_blas(fn, *args)
+    return fn(*args)
 
 
 class NeuralRig:
-    """A CANRig model on a mesh with its cached queries (see the module docstring)."""
+    """A CANRig model (or a ``LocalFitRig``) on a mesh with its cached queries (see the
+    module docstring)."""
 
     def __init__(
         self,
@@ -166,9 +167,16 @@ class NeuralRig:
         block_size: int = 48,
         bridge: bool = False,
     ):
-        if not isinstance(model, AbstractCANRig):
-            raise TypeError(f"model: expected a CANRig model, got {type(model).__name__}")
+        if not isinstance(model, AbstractCANRig | LocalFitRig):
+            raise TypeError(
+                f"model: expected a CANRig model or a LocalFitRig, got {type(model).__name__}"
+            )
         canonical = np.asarray(canonical, np.float32)
+        if isinstance(model, LocalFitRig) and model.layout.n_vertices != len(canonical):
+            raise ValueError(
+                f"canonical: {len(canonical)} vertices, the LocalFitRig's layout has "
+                f"{model.layout.n_vertices}"
+            )
         self.model = model
         if bridge:
             # exit edges lead out of the floating parts (teeth, eyelashes): reversed, the paths
@@ -178,7 +186,9 @@ class NeuralRig:
             self.graph = edge_graph(canonical, np.asarray(faces), edge_factor)
         self.canonical = jnp.asarray(canonical)
         self.faces = np.asarray(faces)
-        self.queries = eqx.filter_jit(type(model).encode_queries)(model, self.canonical)
+        self.queries = None  # a LocalFitRig attends to nothing
+        if isinstance(model, AbstractCANRig):
+            self.queries = eqx.filter_jit(type(model).encode_queries)(model, self.canonical)
         blocks = vertex_blocks(canonical, block_size)
         flat = blocks.ravel()
         position = np.zeros(len(canonical), np.int32)
@@ -188,7 +198,9 @@ class NeuralRig:
         self._device_blocks = (jnp.asarray(self.blocks), jnp.asarray(position))
         # the queries gathered into the blocks once (the layout's first step, cached)
         blocked = BlockLayout(*self._device_blocks, chosen=jnp.zeros((len(blocks), 1), jnp.int32))
-        self.block_queries = blocked.vertices(self.queries, axis=-2)
+        self.block_queries = None
+        if self.queries is not None:
+            self.block_queries = blocked.vertices(self.queries, axis=-2)
 
     @property
     def n_vertices(self) -> int:
@@ -288,9 +300,11 @@ class NeuralRig:
         """The block-sparse layout of these handles at this radius and falloff (host-side:
         which handles reach which vertex block). One layout serves any displacements and base
         shapes, e.g. every frame of a clip. ``width``/``multiple``/``parts``: see
-        ``block_layout``."""
+        ``block_layout``. A ``LocalFitRig`` has no attention to lay out: ``DENSE``."""
         h = self._check_handles(handles)
         radius, falloff = check_handle_parameters(radius, falloff, h)
+        if isinstance(self.model, LocalFitRig):
+            return DENSE  # no attention to lay out
         reach = influence_reach(radius, falloff, self.model.clamp)
         return block_layout(
             *self._device_blocks,
@@ -307,7 +321,9 @@ class NeuralRig:
         cached = None
         if isinstance(layout, BlockLayout) and layout.blocks is self._device_blocks[0]:
             cached = self.block_queries
-        return deform(self.model, self.queries, self.canonical, edit, layout, cached)
+        return call_blas_safe(
+            self.model, deform, self.model, self.queries, self.canonical, edit, layout, cached
+        )
 
     def __call__(
         self,

@@ -41,14 +41,16 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float, Int
 from scipy.sparse.csgraph import dijkstra
 
+from .._checks import check_points
 from .._threads import blocking_single_threaded_blas
 from ._layout import DENSE, Layout
+from ._local_fit import LocalFitRig, local_fit_lsmr
 from ._model import AbstractCANRig
 from ._rig import (
     HandleEdit,
     Handles,
     NeuralRig,
-    check_points,
+    call_blas_safe,
     deform,
     edit_mask,
     trace_edit,
@@ -199,7 +201,9 @@ class FitOptions:
     ``penalty`` weighs ||d||^2 (cm^2 per cm^2 of mesh error); ``exact_jacobian=True``
     recomputes the Jacobian at every step (slower, a little more accurate). Whatever the
     settings, the answer is never worse than the direct displacements or zero
-    displacements (``fit_displacements`` keeps the best)."""
+    displacements (``fit_displacements`` keeps the best). A ``LocalFitRig`` is linear in d:
+    its fit is ``max_steps`` LSMR iterations and ``penalty``; the other settings do not
+    apply."""
 
     max_steps: int = 3
     rtol: float = 1e-3
@@ -255,7 +259,7 @@ def region_error(
 
 @eqx.filter_jit
 def fit_displacements(
-    model: AbstractCANRig,
+    model: AbstractCANRig | LocalFitRig,
     queries: Float[Array, "heads V d"],
     canonical: Float[Array, "V 3"],
     edit: HandleEdit,
@@ -270,9 +274,25 @@ def fit_displacements(
     steps, see ``FitOptions``), started from ``edit.displacements``; undamped with the
     start's Jacobian, the first step is taken in closed form from the trace's residual. Use a
     ``PartsLayout`` (``FIT_PARTS``) for speed. Pure and jit/vmap-able; validate with
-    ``NeuralRig.edit``.
+    ``NeuralRig.edit``. For a ``LocalFitRig`` (linear in d) the solve is ``max_steps`` LSMR
+    iterations on the same objective (``local_fit_lsmr``; queries and layout unused).
     Its Cholesky runs in SciPy's OpenBLAS: call it inside ``canrig_jax.single_threaded_blas()``
     (as ``pose_a_to_b`` does) or it may be several times slower next to XLA's threads."""
+    if isinstance(model, LocalFitRig):
+        fitted, *rest, linear_result, steps = local_fit_lsmr(
+            model, edit, target, region, options.penalty, options.max_steps
+        )
+        result = optx.RESULTS.promote(linear_result)
+    else:
+        fitted, *rest, result, steps = _gauss_newton(
+            model, queries, canonical, edit, target, region, layout, options
+        )
+    return _best_of(edit, target, region, fitted, *rest, result, steps)
+
+
+def _gauss_newton(model, queries, canonical, edit, target, region, layout, options):
+    """The network's solve (see ``fit_displacements``): (fitted displacements, their shape,
+    the direct shape, the solver's result, its steps)."""
     weight = jnp.sqrt(region)[:, None]
     root_penalty = jnp.sqrt(jnp.asarray(options.penalty, target.dtype))
     start = edit.displacements
@@ -330,12 +350,19 @@ def fit_displacements(
     value = unwhiten(solution.value)
     # the shape at ``solution.value``: the Gauss-Newton state's aux (``solution.aux`` is the
     # previous accepted point's; tested against ``deform``)
-    accepted_shape = solution.state.aux
-    finite = jnp.all(jnp.isfinite(value)) & jnp.all(jnp.isfinite(accepted_shape))
-    fitted = jnp.where(finite, value, start)
-    # the candidates' shapes: the fitted one from the solver, the direct one the Jacobian's
-    # trace, and zero displacements reproduce the base exactly (zero-preserving MLPs)
-    fitted_shape = jnp.where(finite, accepted_shape, direct_shape)
+    steps = solution.stats["num_steps"] + (options.max_steps - max_steps)
+    return value, solution.state.aux, direct_shape, solution.result, steps
+
+
+def _best_of(edit, target, region, fitted, fitted_shape, direct_shape, result, steps):
+    """The ``FitSolution`` of the best of {fitted, direct, zero} displacements by the
+    reported error; a non-finite fit falls back to the direct displacements."""
+    start = edit.displacements
+    finite = jnp.all(jnp.isfinite(fitted)) & jnp.all(jnp.isfinite(fitted_shape))
+    fitted = jnp.where(finite, fitted, start)
+    # the candidates' shapes: the fitted one from the solver, the direct one the start's
+    # pass, and zero displacements reproduce the base exactly (zero-preserving MLPs)
+    fitted_shape = jnp.where(finite, fitted_shape, direct_shape)
     candidates = jnp.stack([fitted, start, jnp.zeros_like(start)])
     shapes = jnp.stack([fitted_shape, direct_shape, edit.base])
     errors = jax.vmap(region_error, (0, None, None))(shapes, target, region)
@@ -348,8 +375,8 @@ def fit_displacements(
         direct_error=errors[1],
         base_error=errors[2],
         chosen=chosen,
-        result=solution.result,
-        steps=solution.stats["num_steps"] + (options.max_steps - max_steps),
+        result=result,
+        steps=steps,
     )
 
 
@@ -446,7 +473,7 @@ def pose_a_to_b(
             layout,
             options,
         )
-    return _direct_solution(rig, edit, target, region, layout)
+    return call_blas_safe(rig.model, _direct_solution, rig, edit, target, region, layout)
 
 
 @eqx.filter_jit
@@ -592,7 +619,9 @@ def clip_edit(
     fade = smoothstep_fade(n, frame, half_window)
     lo, hi = frame - half_window, frame + half_window + 1
     scaled = fade[lo:hi, None, None] * np.asarray(edit.displacements)[None]
-    edited = _edit_frames(
+    edited = call_blas_safe(
+        rig.model,
+        _edit_frames,
         rig.model,
         rig.queries,
         rig.canonical,
@@ -664,7 +693,9 @@ def dialogue_replacement(
         )
         return np.asarray(solutions.shape)
     layout = rig.layout(handles, radius, falloff)
-    out = _edit_frames(
+    out = call_blas_safe(
+        rig.model,
+        _edit_frames,
         rig.model,
         rig.queries,
         rig.canonical,
