@@ -2,6 +2,7 @@
 Voronoi cells grown by rings, rows summing to 1), the basis, the per-patch fit, the gather
 form against the sparse W_layout, and the global-blendshape baseline."""
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -18,6 +19,7 @@ from canrig_jax.canrig import (
     pbs_basis,
     pbs_shape,
 )
+from canrig_jax.canrig._pbs import local_fit_factor, local_fit_solve
 from canrig_jax.mesh import vertex_adjacency
 from canrig_jax.rig import evaluate_batch, random_sparse_poses
 
@@ -199,6 +201,14 @@ def test_local_fit_is_a_masked_ridge_solve_per_patch(face, basis, shapes):
     full = np.ones((3, 50), np.float32)
     recovered = local_pbs_fit(a.astype(np.float32), np.einsum("b,bhk->hk", x, a), full, 1e-6)
     np.testing.assert_allclose(np.asarray(recovered), np.tile(x, (3, 1)), atol=5e-3)
+    # a normal matrix that is not positive definite (here a negative ridge, the stand-in for
+    # rounding) fails its Cholesky: that patch gets zero weights, not NaN; the others solve
+    a32, m32 = jnp.asarray(a, jnp.float32), jnp.asarray(mask, jnp.float32)
+    factors = local_fit_factor(a32, m32, -1e-3)
+    failed = ~np.asarray(factors[1])
+    assert failed[2] and not failed.all()  # the unreached patch: gram 0 + negative ridge
+    weights = np.asarray(local_fit_solve(factors, a32, m32, jnp.asarray(d)))
+    assert np.all(weights[failed] == 0.0) and np.all(np.isfinite(weights))
 
 
 @pytest.mark.parametrize(

@@ -67,11 +67,11 @@ def _linear_map(rig: LocalFitRig, edit):
     largest = jnp.max(influence_mask(edit.distance, edit.radius, edit.falloff, rig.clamp), axis=1)
     gate = jnp.minimum(1.0, 2.0 * largest)
     handle_basis = rig.basis[:, edit.index]
-    factor = local_fit_factor(handle_basis, mask, rig.ridge)
+    factors = local_fit_factor(handle_basis, mask, rig.ridge)
     zero = jnp.zeros(rig.basis.shape[1:], rig.basis.dtype)
 
     def offset(d):
-        weights = local_fit_solve(factor, handle_basis, mask, d)
+        weights = local_fit_solve(factors, handle_basis, mask, d)
         return gate[:, None] * _pbs_shape(rig.layout, zero, rig.basis, weights)
 
     return offset

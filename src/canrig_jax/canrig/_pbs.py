@@ -428,23 +428,31 @@ def local_fit_factor(
     handle_basis: Float[Array, "Bm1 H 3"],
     mask: Float[Array, "P H"],
     ridge: float | Float[Array, ""],
-) -> Float[Array, "P Bm1 Bm1"]:
+) -> tuple[Float[Array, "P Bm1 Bm1"], Bool[Array, " P"]]:
     """The Cholesky factors of ``_local_pbs_fit``'s normal matrices (they do not depend on
-    the displacements: factor once, solve for many)."""
+    the displacements: factor once, solve for many) and which of them succeeded. A float32
+    factorisation can fail on a normal matrix that rounding left not positive definite (not
+    seen on real edits); that patch gets the identity and ``ok`` False, and
+    ``local_fit_solve`` gives it zero weights, never NaN."""
     gram = jnp.einsum("ph,bhk,chk->pbc", mask, handle_basis, handle_basis)
     scale = jnp.mean(handle_basis**2) * 3.0 + 1e-12
     eye = jnp.eye(gram.shape[1], dtype=gram.dtype)
-    return jnp.linalg.cholesky(gram + (ridge * scale) * eye)
+    factor = jnp.linalg.cholesky(gram + (ridge * scale) * eye)
+    ok = jnp.all(jnp.isfinite(factor), axis=(1, 2))
+    return jnp.where(ok[:, None, None], factor, eye), ok
 
 
 def local_fit_solve(
-    factor: Float[Array, "P Bm1 Bm1"],
+    factors: tuple[Float[Array, "P Bm1 Bm1"], Bool[Array, " P"]],
     handle_basis: Float[Array, "Bm1 H 3"],
     mask: Float[Array, "P H"],
     displacements: Float[Array, "H 3"],
 ) -> Float[Array, "P Bm1"]:
-    """``_local_pbs_fit`` with the factors of ``local_fit_factor``: linear in d."""
-    return _solve_each(factor, jnp.einsum("ph,bhk,hk->pb", mask, handle_basis, displacements))
+    """``_local_pbs_fit`` with the factors of ``local_fit_factor``: linear in d (zero for a
+    patch whose factorisation failed)."""
+    factor, ok = factors
+    weighted = mask * ok[:, None]
+    return _solve_each(factor, jnp.einsum("ph,bhk,hk->pb", weighted, handle_basis, displacements))
 
 
 def check_handle_index(handle_index: Int[ArrayLike, " H"], n_vertices: int) -> np.ndarray:
