@@ -28,7 +28,6 @@ import time
 import warnings
 from pathlib import Path
 
-import jax.numpy as jnp
 import matplotlib.pyplot as plt
 import numpy as np
 
@@ -589,9 +588,7 @@ def select_local_fit(quartic, capture, args):
                 if handles is None:  # the same placements (geodesic distances) for every rig
                     handles = [rig.handles(h, limit=DISTANCE_LIMIT_CM) for h in select_sets]
                 errors = [
-                    pose_a_to_b(
-                        rig, h, train_shapes[a], train_shapes[b], 2.0, FALLOFF_PER_CM
-                    ).error
+                    pose_a_to_b(rig, h, train_shapes[a], train_shapes[b], 2.0, FALLOFF_PER_CM).error
                     for (a, b), h in zip(select_pairs, handles, strict=True)
                 ]
                 row = {

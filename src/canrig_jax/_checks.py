@@ -40,8 +40,6 @@ def native(x: np.ndarray) -> np.ndarray:
     return x
 
 
-
-
 def check_points(name: str, value, n_vertices: int, *, frames: bool = False) -> np.ndarray:
     """``value`` as float32 points of the mesh, (V, 3) or with ``frames`` (F >= 1, V, 3):
     real, finite, the mesh's vertex count; else TypeError/ValueError naming ``name``."""

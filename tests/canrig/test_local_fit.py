@@ -1,8 +1,8 @@
 """The rig with no network (``LocalFitRig``) bound to the real ICT face by ``NeuralRig``: its
-shape against an independent NumPy computation (per-patch ridge solves, the layout blend, the
-gate of the largest clamped mask per vertex), the exact zeros (zero displacements, vertices outside every
-clamped mask), the fitted pose A to B against a dense NumPy least-squares solve, the
-workflows' guarantees on it, and bad input."""
+shape against an independent NumPy computation (per-patch ridge solves, the layout blend,
+the gate of the largest clamped mask per vertex), the exact zeros (zero displacements,
+vertices outside every clamped mask), the fitted pose A to B against a dense NumPy
+least-squares solve, the workflows' guarantees on it, and bad input."""
 
 import jax.numpy as jnp
 import numpy as np

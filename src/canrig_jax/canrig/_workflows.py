@@ -24,7 +24,9 @@
   the mouth move to the target clip's positions, base shape the source frame, ``jax.vmap``
   over frames.
 
-Units follow the rig (ICT: cm). Inputs are validated in plain Python before any jit work.
+The rig's model may be a trained CANRig or a ``LocalFitRig`` (no network, ``_local_fit.py``):
+every workflow runs on either. Units follow the rig (ICT: cm). Inputs are validated in plain
+Python before any jit work.
 """
 
 from __future__ import annotations
@@ -361,7 +363,8 @@ def _best_of(edit, target, region, fitted, fitted_shape, direct_shape, result, s
     finite = jnp.all(jnp.isfinite(fitted)) & jnp.all(jnp.isfinite(fitted_shape))
     fitted = jnp.where(finite, fitted, start)
     # the candidates' shapes: the fitted one from the solver, the direct one the start's
-    # pass, and zero displacements reproduce the base exactly (zero-preserving MLPs)
+    # pass, and zero displacements reproduce the base exactly (zero-preserving MLPs; a
+    # LocalFitRig is linear in d)
     fitted_shape = jnp.where(finite, fitted_shape, direct_shape)
     candidates = jnp.stack([fitted, start, jnp.zeros_like(start)])
     shapes = jnp.stack([fitted_shape, direct_shape, edit.base])
