@@ -238,6 +238,8 @@ def main(argv=None):
         "no handle reaches) into --out/results.json and table.md (the rest is kept)",
     )
     args = parser.parse_args(argv)
+    if args.rig == "network" and args.checkpoint is None:
+        parser.error("--checkpoint: required with --rig network")
     if args.quick:
         args.pairs, args.fit_pairs, args.layer_pairs = 4, 2, 2
     options = FitOptions(max_steps=args.fit_steps, lsmr_steps=args.lsmr_steps)
@@ -253,8 +255,6 @@ def main(argv=None):
     neutral = np.asarray(quartic.neutral, np.float32)
     if args.rig == "local-fit":
         rig, model_protocol = select_local_fit(quartic, capture, args)
-    elif args.checkpoint is None:
-        parser.error("--checkpoint: required with --rig network")
     else:
         model, state = load_model(args.checkpoint, neutral)
         rig = NeuralRig(model, neutral, np.asarray(quartic.faces))
@@ -605,8 +605,9 @@ def select_local_fit(quartic, capture, args):
     protocol = {
         "rig": "canrig.LocalFitRig (no network): per patch a ridge fit of the basis offsets "
         "to the handle displacements its clamped masks see (at the patch seed), blended by the "
-        "layout, each vertex scaled by its largest clamped mask; basis: pbs_basis (farthest "
-        "points in shape space) of the network's training shapes; fitted: FitOptions.max_steps "
+        "layout, each vertex scaled by min(1, 2 x its largest clamped mask); basis: pbs_basis "
+        "(farthest points in shape space) of the network's training shapes; fitted: "
+        "FitOptions.max_steps "
         "LSMR iterations from the direct displacements",
         "selected": chosen,
         "selection_on_training_pairs": selection,

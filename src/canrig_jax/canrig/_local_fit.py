@@ -63,9 +63,9 @@ def local_fit_rig(
 def _linear_map(rig: LocalFitRig, edit):
     """d -> g * W_layout X(d) S_basis (the offset from the base) for a ``HandleEdit``, its
     factors computed once: the patch masks at the seeds, the gate g at every vertex."""
-    mask = influence_mask(edit.distance[rig.layout.seeds], edit.radius, edit.falloff, rig.clamp)
-    largest = jnp.max(influence_mask(edit.distance, edit.radius, edit.falloff, rig.clamp), axis=1)
-    gate = jnp.minimum(1.0, 2.0 * largest)
+    masks = influence_mask(edit.distance, edit.radius, edit.falloff, rig.clamp)  # (V, H)
+    mask = masks[rig.layout.seeds]  # (P, H), at each patch's seed
+    gate = jnp.minimum(1.0, 2.0 * jnp.max(masks, axis=1))
     handle_basis = rig.basis[:, edit.index]
     factors = local_fit_factor(handle_basis, mask, rig.ridge)
     zero = jnp.zeros(rig.basis.shape[1:], rig.basis.dtype)

@@ -186,9 +186,6 @@ class NeuralRig:
             self.graph = edge_graph(canonical, np.asarray(faces), edge_factor)
         self.canonical = jnp.asarray(canonical)
         self.faces = np.asarray(faces)
-        self.queries = None  # a LocalFitRig attends to nothing
-        if isinstance(model, AbstractCANRig):
-            self.queries = eqx.filter_jit(type(model).encode_queries)(model, self.canonical)
         blocks = vertex_blocks(canonical, block_size)
         flat = blocks.ravel()
         position = np.zeros(len(canonical), np.int32)
@@ -196,10 +193,12 @@ class NeuralRig:
         self.blocks = np.where(blocks < 0, len(canonical), blocks).astype(np.int32)
         self.block_position = position
         self._device_blocks = (jnp.asarray(self.blocks), jnp.asarray(position))
-        # the queries gathered into the blocks once (the layout's first step, cached)
-        blocked = BlockLayout(*self._device_blocks, chosen=jnp.zeros((len(blocks), 1), jnp.int32))
-        self.block_queries = None
-        if self.queries is not None:
+        self.queries = self.block_queries = None  # a LocalFitRig attends to nothing
+        if isinstance(model, AbstractCANRig):
+            self.queries = eqx.filter_jit(type(model).encode_queries)(model, self.canonical)
+            # the queries gathered into the blocks once (the layout's first step, cached)
+            chosen = jnp.zeros((len(blocks), 1), jnp.int32)
+            blocked = BlockLayout(*self._device_blocks, chosen=chosen)
             self.block_queries = blocked.vertices(self.queries, axis=-2)
 
     @property
