@@ -931,10 +931,19 @@ def main(argv=None):
             f"W_layout application: gather form {gather_ms:.2f} ms, "
             f"scipy.sparse {sparse_ms:.2f} ms (one shape).",
             "",
-            "Figure 8 (each variant 1,000 steps of the same 2,000-step cosine schedule; "
-            "Table 5's protocol):",
-            "",
-            *fig8,
+            *(
+                [
+                    "Figure 8 (each variant 1,000 steps of the same 2,000-step cosine "
+                    "schedule; Table 5's protocol):",
+                    "",
+                    *fig8,
+                ]
+                if figure8
+                else [
+                    "Figure 8: no variant trained in this folder "
+                    f"(`--train NAME --tag {FIGURE8_TAG}`)."
+                ]
+            ),
             "",
             "Table 6 (dialogue replacement on the whole head; " + table6.get("protocol", "") + "):",
             "",
@@ -966,9 +975,13 @@ def main(argv=None):
         args.out / "COMMAND",
         "# training, one model each (resumable; the same command continues a run)\n"
         + "".join(c + "\n" for c in trained_commands)
-        + "# (per_patch_fig8 is the per_patch run's checkpoint at step 1,000, copied while it\n"
-        "# trained; its command reproduces it bit-identically. Its 21 MB checkpoint is not\n"
-        "# committed: run that command before the evaluation to regenerate Figure 8's row.)\n"
+        + (
+            "# (per_patch_fig8 is the per_patch run's checkpoint at step 1,000, copied while it\n"
+            "# trained; its command reproduces it bit-identically. Its 21 MB checkpoint is not\n"
+            "# committed: run that command before the evaluation to regenerate Figure 8's row.)\n"
+            if "per_patch" in figure8
+            else ""
+        )
         + "# evaluation (Table 5, Figure 8, Table 6, timing, figures)\n"
         + command
         + "\n",
