@@ -94,6 +94,28 @@ STANDARD_EXPERIMENTS = (
         *("--pairs", "1000", "--fit-pairs", "100", "--fit-pairs-main", "1000"),
         *("--layer-pairs", "30"),
     ),
+    (
+        "canrig_pbs.py",
+        *("--out", "experiments/results/canrig_pbs_attached_local_prior", "--train", "per_patch"),
+        *("--local-prior", "--learning-rate", "1e-4", "--steps", "4000", "--decay-steps", "4000"),
+        *("--minutes", "150", "--no-progress", "--graph", "attached"),
+    ),
+    (
+        "canrig_pbs.py",
+        *("--out", "experiments/results/canrig_pbs_attached_local_prior"),
+        *("--train", "shape_transformer", "--steps", "4000", "--decay-steps", "4000"),
+        *("--minutes", "150", "--no-progress", "--graph", "attached"),
+    ),
+    (
+        "canrig_pbs.py",
+        *("--out", "experiments/results/canrig_pbs_attached_local_prior"),
+        *("--no-progress", "--graph", "attached"),
+    ),
+    (
+        "canrig_pbs.py",
+        *("--out", "experiments/results/canrig_pbs_attached_local_prior"),
+        *("--no-progress", "--graph", "attached", "--table6-sweep", "60", "120", "200", "400"),
+    ),
 )
 """The standard configurations whose outputs are committed under experiments/results/ (the
 same commands as each folder's COMMAND file)."""
@@ -101,7 +123,7 @@ same commands as each folder's COMMAND file)."""
 
 @nox.session
 def experiments(session):
-    """Standard-configuration experiments (long: about two hours on 2 cores); pass script
+    """Standard-configuration experiments (long: about three hours on 2 cores); pass script
     names to run a subset, e.g. ``nox -s experiments -- inverse_rig.py``."""
     session.install("-e", ".")
     for script, *arguments in STANDARD_EXPERIMENTS:
