@@ -82,23 +82,14 @@ def _head():
     model = load_ict(parts=None)
     rig = ict_linear_rig(parts=None)
     neutral, faces = np.asarray(rig.neutral, np.float32), np.asarray(rig.faces)
-    ranges = dict(zip(model.part_names, model.part_vertex_range, strict=True))
-
-    def part(names):
-        mask = np.zeros(len(neutral), bool)
-        for name in names:
-            mask[slice(*ranges[name])] = True
-        return mask
-
     moving = np.linalg.norm(np.asarray(rig.deltas), axis=-1).max(axis=0) > 0
     layout = patch_layout(neutral, faces, 457, rings=3, active=moving)
     poses = random_sparse_poses(np.random.default_rng(0), 60, rig.names)
     shapes = np.asarray(evaluate_batch(rig, poses), np.float32)
     basis, _ = pbs_basis(neutral, shapes, 19)
-    graph = attached_edge_graph(
-        bridged_edge_graph(neutral, faces), neutral, part(MOUTH_INTERIOR), part(("Face",))
-    )
-    skin = np.flatnonzero(part(("Face", "Head and Neck")))
+    interior, face = model.part_mask(MOUTH_INTERIOR), model.part_mask("Face")
+    graph = attached_edge_graph(bridged_edge_graph(neutral, faces), neutral, interior, face)
+    skin = np.flatnonzero(model.part_mask(["Face", "Head and Neck"]))
     return neutral, shapes, layout, basis, graph, skin
 
 

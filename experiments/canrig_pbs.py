@@ -216,7 +216,7 @@ def _whole_head(args):
     train_shapes = np.asarray(evaluate_batch(rig, train, chunk=32), np.float32)
     test_shapes = np.asarray(evaluate_batch(rig, test, chunk=32), np.float32)
     basis, picked = pbs_basis(neutral, train_shapes, args.basis)
-    skin = _part_mask(model, SKIN)
+    skin = model.part_mask(SKIN)
     return dict(
         model=model,
         rig=rig,
@@ -240,19 +240,6 @@ def _whole_head(args):
     )
 
 
-def _part_mask(model, names, flag: str = "parts") -> np.ndarray:
-    """(N,) the vertices of the named ICT parts; ValueError naming ``flag`` for an unknown
-    name."""
-    ranges = dict(zip(model.part_names, model.part_vertex_range, strict=True))
-    unknown = [name for name in names if name not in ranges]
-    if unknown:
-        raise ValueError(f"{flag}: unknown ICT parts {unknown}; parts: {list(ranges)}")
-    mask = np.zeros(model.neutral.shape[0], bool)
-    for name in names:
-        mask[slice(*ranges[name])] = True
-    return mask
-
-
 def _graph(args, model, neutral, faces):
     """The masks' edge graph (--graph)."""
     if args.graph == "mesh":
@@ -262,8 +249,8 @@ def _graph(args, model, neutral, faces):
         graph = attached_edge_graph(
             graph,
             neutral,
-            _part_mask(model, args.attach, "--attach"),
-            _part_mask(model, args.attach_onto, "--attach-onto"),
+            model.part_mask(args.attach, "--attach"),
+            model.part_mask(args.attach_onto, "--attach-onto"),
         )
     return graph
 
@@ -285,7 +272,7 @@ def _region_errors(head, error_mm: np.ndarray) -> dict:
     n = error_mm.shape[1]
     out = {}
     for region, parts in REGIONS.items():
-        index = np.flatnonzero(_part_mask(head["model"], parts))
+        index = np.flatnonzero(head["model"].part_mask(parts))
         part = error_mm[:, index]
         out[region] = {
             "mean_mm": float(part.mean()),
@@ -304,7 +291,7 @@ def _handle_reach(head, handle_distance: np.ndarray) -> dict:
     reach = float(influence_reach(EVAL_RADIUS_CM, EVAL_FALLOFF_PER_CM, CLAMP))
     out = {"radius_cm": EVAL_RADIUS_CM, "reach_cm": reach, "regions": {}}
     for region, parts in REGIONS.items():
-        inside = _part_mask(head["model"], parts)[seeds]
+        inside = head["model"].part_mask(parts)[seeds]
         d = nearest[inside]
         if not len(d):  # no patch seeded there (--quick's 60 patches)
             out["regions"][region] = {"patches": 0}

@@ -38,20 +38,9 @@ def test_quick_train_and_eval_write_the_issue_keys(tmp_path):
         assert (tmp_path / name).exists()
 
 
-def test_pbs_graph_options_name_parts_and_refuse_another_attachment(tmp_path):
-    from types import SimpleNamespace
-
-    import numpy as np
-
+def test_pbs_graph_option_refuses_another_attachment(tmp_path):
+    # (the --attach / --attach-onto part names: ICTFaceModel.part_mask, tests/data/test_ict.py)
     pbs = _load("canrig_pbs")
-    model = SimpleNamespace(
-        part_names=["Face", "Teeth"], part_vertex_range=[(0, 3), (3, 5)], neutral=np.zeros((5, 3))
-    )
-    np.testing.assert_array_equal(
-        pbs._part_mask(model, ["Teeth"], "--attach"), [False, False, False, True, True]
-    )
-    with pytest.raises(ValueError, match="--attach-onto: unknown ICT parts"):
-        pbs._part_mask(model, ["Lips"], "--attach-onto")
     folder = tmp_path / "per_patch"
     folder.mkdir()
     meta = {"graph": "attached", "attach": ["Teeth"], "attach_onto": ["Face"]}

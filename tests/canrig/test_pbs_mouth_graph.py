@@ -29,15 +29,7 @@ def whole(data_dir):
     model = load_ict(data_dir, parts=None)
     rig = ict_linear_rig(data_dir, parts=None)
     neutral, faces = np.asarray(rig.neutral, np.float32), np.asarray(rig.faces)
-    ranges = dict(zip(model.part_names, model.part_vertex_range, strict=True))
-
-    def part_mask(names):
-        mask = np.zeros(len(neutral), bool)
-        for name in names:
-            mask[slice(*ranges[name])] = True
-        return mask
-
-    interior, skin = part_mask(MOUTH_INTERIOR), part_mask(SKIN)
+    interior, skin = model.part_mask(MOUTH_INTERIOR), model.part_mask(SKIN)
     moving = np.linalg.norm(np.asarray(rig.deltas), axis=-1).max(axis=0) > 0
     layout = patch_layout(neutral, faces, 120, rings=3, active=moving)
     rng = np.random.default_rng(3)
@@ -55,7 +47,7 @@ def whole(data_dir):
     skin_index = np.flatnonzero(skin)
     handles = skin_index[farthest_point_vertices(neutral[skin_index], 150)]
     bridged = bridged_edge_graph(neutral, faces)
-    attached = attached_edge_graph(bridged, neutral, interior, part_mask(("Face",)))
+    attached = attached_edge_graph(bridged, neutral, interior, model.part_mask("Face"))
     graphs = {"bridged": bridged, "attached": attached}
     return dict(
         neutral=neutral,

@@ -144,6 +144,17 @@ def test_unknown_part_raises(data_dir):
         load_ict(data_dir, parts=["Face", "Nose"])
 
 
+def test_part_mask_is_the_parts_vertex_ranges(data_dir, head):
+    mask = head.part_mask(["Teeth", "Face"])
+    selected = load_ict(data_dir, parts=["Face", "Teeth"])
+    np.testing.assert_array_equal(np.flatnonzero(mask), selected.vertex_ids)
+    np.testing.assert_array_equal(head.part_mask("Face"), np.arange(head.n_vertices) < 9409)
+    with pytest.raises(ValueError, match="--attach: unknown part name.*Nose"):
+        head.part_mask(["Face", "Nose"], argument="--attach")
+    with pytest.raises(ValueError, match="parts: expected at least one"):
+        head.part_mask([])
+
+
 # --- ict_identity ----------------------------------------------------------------------
 
 

@@ -66,12 +66,7 @@ def attached(head, data_dir):
     """The bridged head with the mouth interior made one-way exits onto the Face part."""
     vertices, _, _, bridged, _ = head
     model = load_ict(data_dir, parts=None)
-    ranges = dict(zip(model.part_names, model.part_vertex_range, strict=True))
-    interior = np.zeros(len(vertices), bool)
-    for name in MOUTH_INTERIOR:
-        interior[slice(*ranges[name])] = True
-    face = np.zeros(len(vertices), bool)
-    face[slice(*ranges["Face"])] = True
+    interior, face = model.part_mask(MOUTH_INTERIOR), model.part_mask("Face")
     return attached_edge_graph(bridged, vertices, interior, face), interior, face
 
 

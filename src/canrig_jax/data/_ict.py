@@ -92,6 +92,28 @@ class ICTFaceModel:
     def n_vertices(self) -> int:
         return int(self.neutral.shape[0])
 
+    def part_mask(self, parts: Sequence[str] | str, argument: str = "parts") -> np.ndarray:
+        """(V,) bool: the vertices of the named parts (ValueError naming ``argument`` for an
+        empty list or an unknown name)."""
+        if isinstance(parts, str):
+            parts = (parts,)
+        self._check_part_names(parts, argument)
+        mask = np.zeros(self.n_vertices, bool)
+        for i, name in enumerate(self.part_names):
+            if name in parts:
+                mask[slice(*self.part_vertex_range[i])] = True
+        return mask
+
+    def _check_part_names(self, parts: Sequence[str], argument: str) -> None:
+        if not parts:
+            raise ValueError(f"{argument}: expected at least one part name")
+        unknown = [p for p in parts if p not in self.part_names]
+        if unknown:
+            raise ValueError(
+                f"{argument}: unknown part name(s) {unknown}; known parts are "
+                f"{list(self.part_names)}"
+            )
+
     def select(self, parts: Sequence[str] | str | None = FACE) -> ICTFaceModel:
         """Restrict to a list of part names (``None`` or ``"head"`` keeps all 17 parts).
 
@@ -103,13 +125,7 @@ class ICTFaceModel:
             parts = (parts,)
         if not isinstance(parts, Sequence) or not all(isinstance(p, str) for p in parts):
             raise TypeError(f"parts: expected part names (str or a sequence of str), got {parts!r}")
-        if not parts:
-            raise ValueError("parts: expected at least one part name")
-        unknown = [p for p in parts if p not in self.part_names]
-        if unknown:
-            raise ValueError(
-                f"parts: unknown part name(s) {unknown}; known parts are {list(self.part_names)}"
-            )
+        self._check_part_names(parts, "parts")
         order = [i for i, name in enumerate(self.part_names) if name in set(parts)]
         keep = np.concatenate([np.arange(*self.part_vertex_range[i]) for i in order]).astype(
             np.int64
