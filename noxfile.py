@@ -106,6 +106,16 @@ STANDARD_EXPERIMENTS = (
         *("--train", "shape_transformer", "--steps", "4000", "--decay-steps", "4000"),
         *("--minutes", "150", "--no-progress", "--graph", "attached"),
     ),
+    *(
+        (
+            "canrig_pbs.py",
+            *("--out", "experiments/results/canrig_pbs_attached_local_prior", "--train", variant),
+            *("--local-prior", "--learning-rate", "1e-4", "--steps", "1000"),
+            *("--decay-steps", "2000", "--minutes", "60", "--tag", "_fig8"),
+            *("--no-progress", "--graph", "attached"),
+        )
+        for variant in ("per_patch", "base_multiplied", "no_modulation")
+    ),
     (
         "canrig_pbs.py",
         *("--out", "experiments/results/canrig_pbs_attached_local_prior"),
