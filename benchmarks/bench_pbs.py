@@ -149,8 +149,7 @@ def main(argv=None):
         batched = eqx.filter_jit(jax.vmap(one, in_axes=(None, 0)))
         return lambda d: one(model, d), lambda ds: batched(model, ds)
 
-    mask = influence_mask(distance, RADIUS_CM, FALLOFF_PER_CM)
-    mask = jnp.where(mask < CLAMP, 0.0, mask)
+    mask = influence_mask(distance, RADIUS_CM, FALLOFF_PER_CM, CLAMP)  # clamped, as the prior's
     handle_basis = basis_j[:, index]
     factors = local_fit_factor(handle_basis, mask, RIDGE)  # once per handle placement
 

@@ -65,7 +65,6 @@ def _local_fit(whole, graph):
     handles, basis, neutral = whole["handles"], whole["basis"], whole["neutral"]
     distance = seed_distances(whole["layout"], graph)[:, handles]
     mask = np.asarray(influence_mask(distance, RADIUS_CM, FALLOFF_PER_CM, CLAMP))
-    mask = np.where(mask < CLAMP, 0.0, mask)
     offsets = whole["held_out"][:, handles] - neutral[handles]
     weights = np.asarray(local_pbs_fit(basis[:, handles], offsets, mask, RIDGE))
     shapes = np.stack([np.asarray(pbs_shape(whole["layout"], neutral, basis, w)) for w in weights])
