@@ -100,15 +100,17 @@ def _models(checkpoint_dir: Path, neutral, n_patches: int, n_weights: int):
         "CANRig-PBS (the paper's per-patch model)": ("per_patch", False),
         "Shape Transformer": ("shape_transformer", False),
     }
+    checkpoints = {}  # kind -> the trained model, each checkpoint read once
+    for kind in {kind for kind, _ in rows.values()}:
+        path = checkpoint_dir / "models" / kind / "checkpoint.eqx"
+        if path.exists():
+            checkpoints[kind] = load_pbs_model(path, neutral, n_patches, n_weights)[0]
     models, trained = {}, []
     for name, (kind, prior) in rows.items():
-        path = checkpoint_dir / "models" / kind / "checkpoint.eqx"
-        model = None
-        if path.exists():
-            loaded, _ = load_pbs_model(path, neutral, n_patches, n_weights)
-            if getattr(loaded, "local_prior", False) == prior:
-                model, _ = loaded, trained.append(name)
-        if model is None:
+        model = checkpoints.get(kind)
+        if model is not None and getattr(model, "local_prior", False) == prior:
+            trained.append(name)
+        else:
             options = PBSTrainOptions(model=kind, local_prior=prior)
             model = make_pbs_model(options, neutral, n_patches, n_weights, 1.0)
         models[name] = model
