@@ -25,7 +25,10 @@ models with the per-vertex Euclidean loss plus the static-vertex term (issue 19;
 experiments/results/autorig_retrain) instead of the issue-7 squared loss. ``--anchor MODE``
 adds a second anchored-DT base (``transfer_poses(anchor=)``: "part", or "skin_vertex": per
 vertex on the skin, per part elsewhere) and, with ``--anchored-residual``, its residual model
-``raf_anchored_<mode>_dt_residual``; ``--validation-anchors`` compares the bases on validation.
+``raf_anchored_<mode>_dt_residual``; ``--validation-anchors`` compares the bases on validation. ``--raf-width`` and
+``--raf-conditional-blocks`` size the pure models; ``--evaluate-only CKPT...`` evaluates
+checkpoints trained outside the standard folder (chosen beforehand on validation) on the
+held-out identities and the MakeHuman head next to the baselines, training nothing.
 
 Writes DIR/results.json, DIR/table.md, DIR/training_loss.png, DIR/poses_<head>.png and
 DIR/makehuman.png (predicted poses with 0-5 mm error maps next to the ground truth),
@@ -246,6 +249,20 @@ def main(argv=None):
         "checkpoints' recipe)",
     )
     parser.add_argument(
+        "--raf-width",
+        type=int,
+        default=TrainOptions.width,
+        help="feature width of raf and raf_no_global_encoder (default: %(default)s, the "
+        "standard checkpoints')",
+    )
+    parser.add_argument(
+        "--raf-conditional-blocks",
+        type=int,
+        default=TrainOptions.n_conditional,
+        help="pose-conditioned diffusion blocks of raf and raf_no_global_encoder (default: "
+        "%(default)s)",
+    )
+    parser.add_argument(
         "--validation-only",
         type=Path,
         nargs="+",
@@ -256,6 +273,17 @@ def main(argv=None):
         "held-out resolution, into --out/validation.json; how models are chosen",
     )
     parser.add_argument("--validation-identities", type=int, default=4)
+    parser.add_argument(
+        "--evaluate-only",
+        type=Path,
+        nargs="+",
+        default=None,
+        metavar="CHECKPOINT",
+        help="evaluate only: these checkpoints (chosen beforehand with --validation-only) next "
+        "to no motion, copied deltas and DT on the held-out test identities and the MakeHuman "
+        "head, into --out/results.json and table.md (a model trained outside the standard "
+        "folder)",
+    )
     parser.add_argument(
         "--validation-anchors",
         nargs="+",
@@ -306,6 +334,8 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if args.validation_only:
         return validate(args, argv)
+    if args.evaluate_only:
+        return evaluate_checkpoints(args, argv)
     if args.placement_only:
         return refresh_placement(args, argv)
     if args.timing_only:
@@ -347,7 +377,13 @@ def main(argv=None):
     for name, overrides in MODELS.items():
         if args.train_only not in (None, name):
             continue
-        model_options = dataclasses.replace(options, **RAF_LOSSES[args.raf_loss], **overrides)
+        model_options = dataclasses.replace(
+            options,
+            **RAF_LOSSES[args.raf_loss],
+            width=args.raf_width,
+            n_conditional=args.raf_conditional_blocks,
+            **overrides,
+        )
         models[name], trained[name] = _train_one(args, name, data, poses, model_options)
     if args.train_only in MODELS:
         return None
@@ -698,15 +734,62 @@ VALIDATION_SEED_OFFSET = 1000
 [seed, 0]) and no held-out test identity (stream [seed, 1]) is among them."""
 
 
+def _load_checkpoints(paths, flag: str) -> dict:
+    """Row name ("<folder>/<file stem>") -> model of each checkpoint in ``paths``."""
+    models = {}
+    for path in paths:
+        if not path.exists():
+            raise ValueError(f"{flag}: no checkpoint {path}")
+        models[f"{path.parent.name}/{path.stem}"] = load_model(path)[0]
+    return models
+
+
+def _checkpoint_predictions(dataset, models: dict, anchors, copy: bool = False):
+    """Every unseen-topology held-out head of ``dataset``: (row -> predictions per head,
+    ground truth per head) for no motion, (copied ICT deltas,) DT plain and anchored per each
+    mode of ``anchors``, and each checkpoint (a residual one on every base)."""
+    anchored = [_anchored_key(mode) for mode in anchors]
+    rows = {}
+    for name, model in models.items():
+        for base in ("plain", *anchored) if model.residual else (None,):
+            rows[name if base in (None, "plain") else f"{name}+{base}_base"] = (name, base)
+    dt = {"deformation_transfer": "plain"}
+    dt.update({f"deformation_transfer_{key}": key for key in anchored})
+    baselines = ("no_motion", "copy_deltas") if copy else ("no_motion",)
+    predicted = {name: [] for name in (*baselines, *dt, *rows)}
+    truth = []
+    for head in dataset.test[HELDOUT_SPLIT]:
+        correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
+        bases = _transfer_bases(dataset, head, correspondence, anchors=tuple(anchors))
+        truth.append(head.displacements)
+        predicted["no_motion"].append(np.zeros_like(head.displacements))
+        if copy:
+            predicted["copy_deltas"].append(copy_poses(dataset, head, correspondence))
+        for name, key in dt.items():
+            predicted[name].append(bases[key])
+        for name, generated in _generated(models, rows, dataset.poses, head, bases).items():
+            predicted[name].append(generated.displacements)
+        print(f"predicted {head.name}")
+    return predicted, truth
+
+
+def _print_class_errors(errors: dict) -> None:
+    for name, classes in errors.items():
+        print(
+            name,
+            " ".join(
+                f"{c}: mae {v['mae_mm']:.4f} static {v['static_mae_mm']:.4f} "
+                f"moving {v['moving_mae_mm']:.4f}"
+                for c, v in classes.items()
+            ),
+        )
+
+
 def validate(args, argv=None) -> dict:
     """Errors by pose and vertex class (``class_errors``) of ``args.validation_only``'s
     checkpoints, no motion and DT on validation identities at the held-out resolution;
     written to ``args.out``/validation.json. Evaluation only: nothing is trained."""
-    models = {}
-    for path in args.validation_only:
-        if not path.exists():
-            raise ValueError(f"--validation-only: no checkpoint {path}")
-        models[f"{path.parent.name}/{path.stem}"] = load_model(path)[0]
+    models = _load_checkpoints(args.validation_only, "--validation-only")
     dataset = ict_autorig_dataset(
         args.data_dir,
         n_train=1,
@@ -714,31 +797,11 @@ def validate(args, argv=None) -> dict:
         seed=args.seed + VALIDATION_SEED_OFFSET,
         progress=not args.no_progress,
     )
-    poses = dataset.poses
-    # residual models on every base: plain and anchored deformation transfer
-    anchored = [_anchored_key(mode) for mode in args.validation_anchors]
-    rows = {}
-    for name, model in models.items():
-        for base in ("plain", *anchored) if model.residual else (None,):
-            rows[name if base in (None, "plain") else f"{name}+{base}_base"] = (name, base)
-    dt = {"deformation_transfer": "plain"}
-    dt.update({f"deformation_transfer_{key}": key for key in anchored})
-    predicted = {name: [] for name in ("no_motion", *dt, *rows)}
-    truth = []
-    for head in dataset.test[HELDOUT_SPLIT]:
-        correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
-        bases = _transfer_bases(
-            dataset, head, correspondence, anchors=tuple(args.validation_anchors)
-        )
-        truth.append(head.displacements)
-        predicted["no_motion"].append(np.zeros_like(head.displacements))
-        for name, key in dt.items():
-            predicted[name].append(bases[key])
-        for name, generated in _generated(models, rows, poses, head, bases).items():
-            predicted[name].append(generated.displacements)
-        print(f"validated {head.name}")
+    predicted, truth = _checkpoint_predictions(dataset, models, args.validation_anchors)
     results = {
-        "validation": {name: class_errors(p, truth, poses) for name, p in predicted.items()},
+        "validation": {
+            name: class_errors(p, truth, dataset.poses) for name, p in predicted.items()
+        },
         "protocol": {
             "identities": f"held-out stream of seed {args.seed + VALIDATION_SEED_OFFSET} "
             f"(not training, not test), {len(truth)} heads",
@@ -755,15 +818,82 @@ def validate(args, argv=None) -> dict:
     }
     args.out.mkdir(parents=True, exist_ok=True)
     save_json(args.out / "validation.json", results)
-    for name, classes in results["validation"].items():
-        print(
-            name,
-            " ".join(
-                f"{c}: mae {v['mae_mm']:.4f} static {v['static_mae_mm']:.4f} "
-                f"moving {v['moving_mae_mm']:.4f}"
-                for c, v in classes.items()
-            ),
-        )
+    _print_class_errors(results["validation"])
+    return results
+
+
+def evaluate_checkpoints(args, argv=None) -> dict:
+    """``args.evaluate_only``'s checkpoints (chosen beforehand, on validation identities)
+    against no motion, copied ICT deltas and DT (plain and anchored) on the standard held-out
+    test identities (unseen topology) and on the MakeHuman head: results.json (``heldout``,
+    ``worst_poses``, ``makehuman``, ``training``), table.md, training_loss.png,
+    poses_unseen_topology.png and makehuman.png in ``args.out``. Nothing is trained."""
+    models = _load_checkpoints(args.evaluate_only, "--evaluate-only")
+    training = {}
+    for path, name in zip(args.evaluate_only, models, strict=True):
+        state = load_model(path)[2]
+        training[name] = {
+            "steps": state["step"],
+            "minutes": state["seconds"] / 60,
+            "parameters": parameter_count(models[name]),
+            "final_train_error_mm": state["history"][-1]["error_mm"],
+            "history": state["history"],
+            "options": state["options"],
+        }
+    start = time.perf_counter()
+    dataset = _held_out_dataset(
+        args, {"test_identities": args.test_identities, "options": {"seed": args.seed}}
+    )
+    poses = dataset.poses
+    predicted, truth = _checkpoint_predictions(dataset, models, ("vertex",), copy=True)
+    makehuman, makehuman_info, makehuman_example = evaluate_makehuman(
+        dataset, models, args.data_dir
+    )
+    results = {
+        "heldout": {name: class_errors(p, truth, poses) for name, p in predicted.items()},
+        "heldout_protocol": {
+            "identities": f"the standard run's held-out test identities (seed {args.seed})",
+            "split": HELDOUT_SPLIT,
+            "heads": len(truth),
+            "static_mm": STATIC_MM,
+            "static": "a (pose, vertex) pair whose ground-truth displacement is < static_mm",
+            "anchored": f"deformation transfer with static_below = {ANCHOR_CM} cm",
+        },
+        "worst_poses": {name: worst_poses(p, truth, poses, 5) for name, p in predicted.items()},
+        "makehuman": makehuman,
+        "makehuman_protocol": makehuman_info,
+        "parameters": {name: t["parameters"] for name, t in training.items()},
+        "training": {
+            name: {k: v for k, v in t.items() if k != "history"} for name, t in training.items()
+        },
+        "total_minutes": (time.perf_counter() - start) / 60,
+        "provenance": provenance(experiment_command(__file__, argv)),
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    save_json(args.out / "results.json", results)
+    training_header = ["## Training", "", "| quantity | value |", "|---|---|"]
+    text = "\n".join(heldout_table(results) + training_header + training_rows(results)) + "\n"
+    save_text(args.out / "table.md", text)
+    print(text)
+    plot_history(training, args.out / "training_loss.png")
+    head = dataset.test[HELDOUT_SPLIT][0]
+    plot_poses(
+        head.vertices,
+        head.faces[(head.parts <= 1)[head.faces].all(axis=1)],
+        head.displacements,
+        {name: p[0] for name, p in predicted.items() if name != "no_motion"},
+        poses.labels,
+        args.out / f"poses_{HELDOUT_SPLIT}.png",
+    )
+    mh, mh_truth, mh_predictions, labels = makehuman_example
+    plot_poses(
+        mh.neutral,
+        mh.faces[mh.skin[mh.faces].all(axis=1)],
+        mh_truth,
+        mh_predictions,
+        labels,
+        args.out / "makehuman.png",
+    )
     return results
 
 
@@ -1013,18 +1143,22 @@ def table(r: dict) -> str:
     if "warm_orientation" in t:
         rows.append(f"| of which the orientation check (s) | {t['warm_orientation']:.3f} |")
     rows += []
-    rows += [f"| parameters {name} | {n:,} |" for name, n in r["parameters"].items()]
-    rows += [
-        f"| training {name}: steps / minutes / final batch error (mm) | {t['steps']} / "
-        f"{t['minutes']:.1f} / {t['final_train_error_mm']:.3f} |"
-        for name, t in r["training"].items()
-    ]
+    rows += training_rows(r)
     g = r["gltf"]
     rows += [
         f"| glTF export: morph targets / max abs difference after reload (cm) | "
         f"{g['morph_targets']} / {g['max_abs_difference_cm']:.2e} |"
     ]
     return "\n".join(rows) + "\n"
+
+
+def training_rows(r: dict) -> list[str]:
+    """Table rows: parameters, steps, minutes and final training-batch error of each model."""
+    return [f"| parameters {name} | {n:,} |" for name, n in r["parameters"].items()] + [
+        f"| training {name}: steps / minutes / final batch error (mm) | {t['steps']} / "
+        f"{t['minutes']:.1f} / {t['final_train_error_mm']:.3f} |"
+        for name, t in r["training"].items()
+    ]
 
 
 def heldout_table(r: dict) -> list[str]:

@@ -8,6 +8,9 @@ from pathlib import Path
 
 import pytest
 
+from canrig_jax.autorig import TrainOptions, make_model
+from canrig_jax.canrig import parameter_count
+
 SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "autorig.py"
 
 
@@ -101,3 +104,60 @@ def test_quick_experiment_writes_the_issue_keys(tmp_path):
         "makehuman.png",
     ):
         assert (tmp_path / name).exists()
+
+
+@pytest.mark.slow
+def test_wider_model_trained_alone_then_evaluated_on_heldout_and_makehuman(tmp_path):
+    """``--raf-width`` / ``--raf-conditional-blocks`` size the pure model; ``--evaluate-only``
+    evaluates a checkpoint trained outside the standard folder on the held-out identities and
+    the MakeHuman head, next to the baselines, training nothing."""
+    spec = importlib.util.spec_from_file_location("autorig_experiment", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    sizes = {}
+    for width in (16, 24):
+        out = tmp_path / f"w{width}"
+        module.main(
+            [
+                *("--quick", "--no-progress", "--out", str(out), "--train-only", "raf"),
+                *("--raf-width", str(width), "--raf-conditional-blocks", "3"),
+            ]
+        )
+        assert not (out / "results.json").exists()  # --train-only writes no results
+        sizes[width] = out / "checkpoint_raf.eqx"
+    results = module.main(
+        [
+            *("--no-progress", "--out", str(tmp_path / "eval"), "--test-identities", "1"),
+            *("--evaluate-only", str(sizes[16]), str(sizes[24])),
+        ]
+    )
+    rows = ("w16/checkpoint_raf", "w24/checkpoint_raf")
+    assert set(results["heldout"]) == {
+        "no_motion",
+        "copy_deltas",
+        "deformation_transfer",
+        "deformation_transfer_anchored",
+        *rows,
+    }
+    assert set(results["makehuman"]) == set(results["heldout"])
+    for name in rows:
+        options = results["training"][name]["options"]
+        assert options["n_conditional"] == 3 and results["training"][name]["steps"] == 20
+    assert [results["training"][r]["options"]["width"] for r in rows] == [16, 24]
+    # the checkpoints hold models of the requested size
+    for name in rows:
+        options = TrainOptions(**results["training"][name]["options"])
+        expected = parameter_count(make_model(options, 53, 1.0))
+        assert results["parameters"][name] == expected
+    assert results["parameters"][rows[0]] < results["parameters"][rows[1]]
+    # the baselines reproduce the standard evaluation's definitions
+    assert results["heldout"]["no_motion"]["single"]["static_mae_mm"] < 0.01
+    assert results["makehuman"]["no_motion"]["amplitude_ratio_median"] == 0
+    for subsets in results["heldout"].values():
+        for s in subsets.values():
+            f = s["static_fraction"]
+            assert abs(f * s["static_mae_mm"] + (1 - f) * s["moving_mae_mm"] - s["mae_mm"]) < 1e-6
+    for name in ("table.md", "training_loss.png", "poses_unseen_topology.png", "makehuman.png"):
+        assert (tmp_path / "eval" / name).exists()
+    saved = json.loads((tmp_path / "eval" / "results.json").read_text())
+    assert saved["heldout"] == results["heldout"]
