@@ -25,10 +25,11 @@ models with the per-vertex Euclidean loss plus the static-vertex term (issue 19;
 experiments/results/autorig_retrain) instead of the issue-7 squared loss. ``--anchor MODE``
 adds a second anchored-DT base (``transfer_poses(anchor=)``: "part", or "skin_vertex": per
 vertex on the skin, per part elsewhere) and, with ``--anchored-residual``, its residual model
-``raf_anchored_<mode>_dt_residual``; ``--validation-anchors`` compares the bases on validation. ``--raf-width`` and
-``--raf-conditional-blocks`` size the pure models; ``--evaluate-only CKPT...`` evaluates
-checkpoints trained outside the standard folder (chosen beforehand on validation) on the
-held-out identities and the MakeHuman head next to the baselines, training nothing.
+``raf_anchored_<mode>_dt_residual``; ``--validation-anchors`` compares the bases on
+validation. ``--raf-width`` and ``--raf-conditional-blocks`` size the pure models;
+``--evaluate-only CKPT...`` evaluates checkpoints trained outside the standard folder (chosen
+beforehand on validation) on the held-out identities and the MakeHuman head next to the
+baselines, training nothing.
 
 Writes DIR/results.json, DIR/table.md, DIR/training_loss.png, DIR/poses_<head>.png and
 DIR/makehuman.png (predicted poses with 0-5 mm error maps next to the ground truth),
@@ -558,25 +559,7 @@ def main(argv=None):
     }
     write_results(args.out, results)
     plot_history(trained, args.out / "training_loss.png")
-    for split, (head, predictions) in examples.items():
-        skin = head.parts <= 1
-        plot_poses(
-            head.vertices,
-            head.faces[skin[head.faces].all(axis=1)],
-            head.displacements,
-            predictions,
-            poses.labels,
-            args.out / f"poses_{split}.png",
-        )
-    mh, truth, predictions, labels = makehuman_example
-    plot_poses(
-        mh.neutral,
-        mh.faces[mh.skin[mh.faces].all(axis=1)],
-        truth,
-        predictions,
-        labels,
-        args.out / "makehuman.png",
-    )
+    plot_examples(args.out, poses.labels, examples, makehuman_example)
 
 
 def evaluation_rows(models: dict) -> dict:
@@ -876,24 +859,9 @@ def evaluate_checkpoints(args, argv=None) -> dict:
     save_text(args.out / "table.md", text)
     print(text)
     plot_history(training, args.out / "training_loss.png")
-    head = dataset.test[HELDOUT_SPLIT][0]
-    plot_poses(
-        head.vertices,
-        head.faces[(head.parts <= 1)[head.faces].all(axis=1)],
-        head.displacements,
-        {name: p[0] for name, p in predicted.items() if name != "no_motion"},
-        poses.labels,
-        args.out / f"poses_{HELDOUT_SPLIT}.png",
-    )
-    mh, mh_truth, mh_predictions, labels = makehuman_example
-    plot_poses(
-        mh.neutral,
-        mh.faces[mh.skin[mh.faces].all(axis=1)],
-        mh_truth,
-        mh_predictions,
-        labels,
-        args.out / "makehuman.png",
-    )
+    first = {name: p[0] for name, p in predicted.items() if name != "no_motion"}
+    examples = {HELDOUT_SPLIT: (dataset.test[HELDOUT_SPLIT][0], first)}
+    plot_examples(args.out, poses.labels, examples, makehuman_example)
     return results
 
 
@@ -1219,6 +1187,30 @@ def plot_history(trained: dict, path: Path) -> None:
     ax.set_yscale("log")
     ax.legend()
     save_figure(fig, path)
+
+
+def plot_examples(out: Path, labels, examples: dict, makehuman_example: tuple) -> None:
+    """out/poses_<split>.png of each held-out example head (split -> (head, row ->
+    predictions)) on its skin, and out/makehuman.png (``evaluate_makehuman``'s example)."""
+    for split, (head, predictions) in examples.items():
+        skin = head.parts <= 1
+        plot_poses(
+            head.vertices,
+            head.faces[skin[head.faces].all(axis=1)],
+            head.displacements,
+            predictions,
+            labels,
+            out / f"poses_{split}.png",
+        )
+    mh, truth, predictions, mh_labels = makehuman_example
+    plot_poses(
+        mh.neutral,
+        mh.faces[mh.skin[mh.faces].all(axis=1)],
+        truth,
+        predictions,
+        mh_labels,
+        out / "makehuman.png",
+    )
 
 
 def plot_poses(vertices, faces, truth, predictions: dict, labels, path: Path, n_poses=4):
