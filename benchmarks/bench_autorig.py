@@ -1,7 +1,7 @@
-"""Speed of RigAnyFace rig generation (issue 7, "Targets": <= 0.5 s for a ~1,750-vertex head).
+"""Speed of RigAnyFace rig generation (issue 19: <= 1 s warm for a ~1,750-vertex head and 96
+poses; issue 7: <= 0.5 s, for the width-32 model of its time).
 
-    python benchmarks/bench_autorig.py [--checkpoint experiments/results/autorig/checkpoint_raf.eqx]
-                                       [--repeats 5] [--out FILE]
+    python benchmarks/bench_autorig.py [--checkpoint CKPT [CKPT ...]] [--repeats 5] [--out FILE]
 
 The generic ICT head (all 17 parts) decimated to ~1,750 vertices; all 96 poses. Rows, one
 process, median over ``--repeats``:
@@ -16,8 +16,10 @@ process, median over ``--repeats``:
   DiffusionNet would cost);
 - **generate_rig, warm** (a new head of similar size: operators + network + rig assembly).
 
-Timing does not depend on the weights; without a checkpoint a freshly initialised model of
-the standard configuration is timed. A Markdown table is printed (and written to ``--out``).
+Each checkpoint is a column (default: the default model, ``autorig_wide``'s width 64, and the
+width-32 ``autorig`` one), timed in the same process on the same head. Timing does not depend
+on the weights; a missing checkpoint is replaced by a freshly initialised width-32 model.
+A Markdown table is printed (and written to ``--out``).
 """
 
 from __future__ import annotations
@@ -44,12 +46,17 @@ from canrig_jax.autorig import (
     predict_displacements,
     quartic_pose_set,
 )
+from canrig_jax.canrig import parameter_count
 from canrig_jax.data import load_ict
 from canrig_jax.mesh import decimate
 from canrig_jax.rig import ict_quartic_rig
 
-DEFAULT_CHECKPOINT = Path(__file__).parents[1] / "experiments/results/autorig/checkpoint_raf.eqx"
-TARGET_S = 0.5
+RESULTS = Path(__file__).parents[1] / "experiments" / "results"
+DEFAULT_CHECKPOINTS = (
+    RESULTS / "autorig_wide" / "checkpoint_raf.eqx",  # the default model (issue 19)
+    RESULTS / "autorig" / "checkpoint_raf.eqx",  # the width-32 model of issue 7
+)
+TARGETS_S = {"issue 19": 1.0, "issue 7, for the width-32 model": 0.5}
 
 
 def median_seconds(function, repeats: int) -> float:
@@ -61,77 +68,100 @@ def median_seconds(function, repeats: int) -> float:
     return statistics.median(times)
 
 
+def time_model(model, poses, mesh, other, repeats: int) -> dict:
+    """Seconds of each network row and of the warm ``generate_rig`` on ``mesh`` (``other``:
+    a second triangulation of similar size, which compiles the padding bucket)."""
+    vectors = jnp.asarray(poses.vectors())
+    unit, operators, _, _ = head_inputs(mesh.vertices, mesh.faces, k=128, cache=False)
+    padded = pad_to_bucket(operators, 256)
+    unit_padded = jnp.zeros((padded.n_vertices, 3)).at[: unit.shape[0]].set(unit)
+    chunk = DEFAULT_POSE_CHUNK
+    predict_displacements(model, vectors, unit_padded, padded, chunk).block_until_ready()
+    chunked = median_seconds(
+        lambda: predict_displacements(model, vectors, unit_padded, padded, chunk), repeats
+    )
+    predict_displacements(model, vectors, unit_padded, padded).block_until_ready()
+    batched = median_seconds(
+        lambda: predict_displacements(model, vectors, unit_padded, padded), repeats
+    )
+    predict_displacements(model, vectors[:1], unit_padded, padded).block_until_ready()
+    per_pose = median_seconds(
+        lambda: [
+            predict_displacements(model, vectors[p : p + 1], unit_padded, padded)
+            for p in range(len(vectors))
+        ][-1],
+        max(1, repeats // 2),
+    )
+    generate_rig(model, poses, other.vertices, other.faces)  # compile this bucket
+    warm = median_seconds(
+        lambda: generate_rig(model, poses, mesh.vertices, mesh.faces).displacements, repeats
+    )
+    return {"chunked": chunked, "batched": batched, "per_pose": per_pose, "warm": warm}
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--checkpoint", type=Path, default=DEFAULT_CHECKPOINT)
+    parser.add_argument(
+        "--checkpoint",
+        type=Path,
+        nargs="+",
+        default=list(DEFAULT_CHECKPOINTS),
+        help="checkpoints to time, side by side (default: the default model and the small one)",
+    )
     parser.add_argument("--data-dir", default=None)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
 
     head = load_ict(args.data_dir, parts=None)
-    if args.checkpoint.exists():
-        model, poses, _ = load_model(args.checkpoint)
-        source = f"trained ({args.checkpoint.name})"
-    else:
-        face_rig, _ = ict_quartic_rig(args.data_dir, progress=False)
-        poses = quartic_pose_set(face_rig)
-        model = make_model(TrainOptions(), poses.n_basis, 0.01)
-        source = "untrained (no checkpoint; timing does not depend on weights)"
-    meshes = [decimate(head.neutral, head.faces, n) for n in (1600, 1620)]
-    mesh = meshes[0]
-    vectors = jnp.asarray(poses.vectors())
-
+    models = {}
+    for path in args.checkpoint:
+        if path.exists():
+            model, poses, _ = load_model(path)
+            name = f"{path.parent.name}/{path.name}"
+        else:
+            face_rig, _ = ict_quartic_rig(args.data_dir, progress=False)
+            poses = quartic_pose_set(face_rig)
+            model = make_model(TrainOptions(), poses.n_basis, 0.01)
+            name = f"untrained width 32 ({path} missing; timing does not depend on weights)"
+        models[f"{name}, {parameter_count(model):,} parameters"] = (model, poses)
+    mesh, other = (decimate(head.neutral, head.faces, n) for n in (1600, 1620))
     operators_s = median_seconds(
         lambda: head_inputs(mesh.vertices, mesh.faces, k=128, cache=False)[1].mass,
         args.repeats,
     )
-    unit, operators, _, _ = head_inputs(mesh.vertices, mesh.faces, k=128, cache=False)
-    padded = pad_to_bucket(operators, 256)
-    unit_padded = jnp.zeros((padded.n_vertices, 3)).at[: unit.shape[0]].set(unit)
-    chunk = DEFAULT_POSE_CHUNK
-    predict_displacements(model, vectors, unit_padded, padded, chunk).block_until_ready()
-    chunked_s = median_seconds(
-        lambda: predict_displacements(model, vectors, unit_padded, padded, chunk), args.repeats
-    )
-    predict_displacements(model, vectors, unit_padded, padded).block_until_ready()
-    batched_s = median_seconds(
-        lambda: predict_displacements(model, vectors, unit_padded, padded), args.repeats
-    )
-    predict_displacements(model, vectors[:1], unit_padded, padded).block_until_ready()
-    per_pose_s = median_seconds(
-        lambda: [
-            predict_displacements(model, vectors[p : p + 1], unit_padded, padded)
-            for p in range(len(vectors))
-        ][-1],
-        max(1, args.repeats // 2),
-    )
-    generate_rig(model, poses, meshes[1].vertices, meshes[1].faces)  # compile this bucket
-    warm_s = median_seconds(
-        lambda: generate_rig(model, poses, mesh.vertices, mesh.faces).displacements,
-        args.repeats,
-    )
+    times = {name: time_model(*mp, mesh, other, args.repeats) for name, mp in models.items()}
+
+    def cells(key, ratio=True):
+        return " | ".join(
+            f"{t[key]:.3f}" + (f" ({t['per_pose'] / t[key]:.1f}x faster)" if ratio else "")
+            for t in times.values()
+        )
 
     rows = [
         f"# RigAnyFace rig generation: {mesh.n_vertices} vertices, {poses.n_poses} poses",
         "",
-        f"model: {source}; {platform.processor() or platform.machine()}, "
-        f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}; median of "
-        f"{args.repeats}",
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, load average "
+        f"{os.getloadavg()[0]:.1f}; median of {args.repeats}; seconds (in brackets: against "
+        "the same model called once per pose)",
         "",
-        "| step | seconds | vs reference |",
-        "|---|---|---|",
-        f"| operators (L, M, 128 eigenpairs, gradients) | {operators_s:.3f} | |",
-        f"| network, all poses, chunks of {chunk} | {chunked_s:.3f} | "
-        f"{per_pose_s / chunked_s:.1f}x faster |",
-        f"| network, all poses in one pass | {batched_s:.3f} | "
-        f"{per_pose_s / batched_s:.1f}x faster |",
-        f"| reference: network, one pose per call | {per_pose_s:.3f} | 1.0x |",
-        f"| generate_rig (operators + network + rig), warm | {warm_s:.3f} | |",
+        "| step | " + " | ".join(times) + " |",
+        "|---|" + "---|" * len(times),
+        "| operators (L, M, 128 eigenpairs, gradients) | "
+        + " | ".join(f"{operators_s:.3f}" for _ in times)
+        + " |",
+        f"| network, all poses, chunks of {DEFAULT_POSE_CHUNK} | {cells('chunked')} |",
+        f"| network, all poses in one pass | {cells('batched')} |",
+        f"| reference: network, one pose per call | {cells('per_pose', ratio=False)} |",
+        f"| generate_rig (operators + network + rig), warm | {cells('warm', ratio=False)} |",
         "",
-        f"Target <= {TARGET_S} s: {'met' if warm_s <= TARGET_S else 'NOT met'} "
-        f"(operators are {operators_s / warm_s:.0%} of it).",
     ]
+    for name, t in times.items():
+        verdicts = ", ".join(
+            f"<= {target} s ({issue}): {'met' if t['warm'] <= target else 'NOT met'}"
+            for issue, target in TARGETS_S.items()
+        )
+        rows.append(f"- {name}: {verdicts} (operators are {operators_s / t['warm']:.0%} of it).")
     text = "\n".join(rows) + "\n"
     print(text)
     if args.out is not None:

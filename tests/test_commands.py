@@ -38,7 +38,7 @@ from canrig_jax.rig import (
 
 SUBCOMMANDS = ("autorig", "animate", "invert", "correct")
 DEFAULT_MODEL = (
-    Path(__file__).resolve().parents[1] / "experiments/results/autorig" / "checkpoint_raf.eqx"
+    Path(__file__).resolve().parents[1] / "experiments/results/autorig_wide" / "checkpoint_raf.eqx"
 )
 """The checkpoint ``canrig autorig`` loads by default."""
 

@@ -32,10 +32,11 @@ DEFAULT_MODEL = (
     Path(__file__).resolve().parents[2]
     / "experiments"
     / "results"
-    / "autorig"
+    / "autorig_wide"
     / "checkpoint_raf.eqx"
 )
-"""The committed RigAnyFace checkpoint (present in a source checkout)."""
+"""The committed default RigAnyFace checkpoint (present in a source checkout): width 64, chosen
+on validation identities over the width-32 ``autorig/checkpoint_raf.eqx`` (issue 19)."""
 
 INVERSE_METHODS = {
     "quartic": "QuarticCD",
