@@ -808,8 +808,9 @@ def validate(args, argv=None) -> dict:
 def evaluate_checkpoints(args, argv=None) -> dict:
     """``args.evaluate_only``'s checkpoints (chosen beforehand, on validation identities)
     against no motion, copied ICT deltas and DT (plain and anchored) on the standard held-out
-    test identities (unseen topology) and on the MakeHuman head: results.json (``heldout``,
-    ``worst_poses``, ``makehuman``, ``training``), table.md, training_loss.png,
+    test identities (unseen topology) and on the MakeHuman head, with penetration where the
+    ground truth has none (``clean_penetration``): results.json (``heldout``, ``worst_poses``,
+    ``makehuman``, ``penetration_clean``, ``training``), table.md, training_loss.png,
     poses_unseen_topology.png and makehuman.png in ``args.out``. Nothing is trained."""
     models = _load_checkpoints(args.evaluate_only, "--evaluate-only")
     training = {}
@@ -832,6 +833,7 @@ def evaluate_checkpoints(args, argv=None) -> dict:
     makehuman, makehuman_info, makehuman_example = evaluate_makehuman(
         dataset, models, args.data_dir
     )
+    heads, part_names = dataset.test[HELDOUT_SPLIT], dataset.head.part_names
     results = {
         "heldout": {name: class_errors(p, truth, poses) for name, p in predicted.items()},
         "heldout_protocol": {
@@ -845,6 +847,7 @@ def evaluate_checkpoints(args, argv=None) -> dict:
         "worst_poses": {name: worst_poses(p, truth, poses, 5) for name, p in predicted.items()},
         "makehuman": makehuman,
         "makehuman_protocol": makehuman_info,
+        **clean_penetration(heads, predicted, poses, part_names),
         "parameters": {name: t["parameters"] for name, t in training.items()},
         "training": {
             name: {k: v for k, v in t.items() if k != "history"} for name, t in training.items()
@@ -855,14 +858,61 @@ def evaluate_checkpoints(args, argv=None) -> dict:
     args.out.mkdir(parents=True, exist_ok=True)
     save_json(args.out / "results.json", results)
     training_header = ["## Training", "", "| quantity | value |", "|---|---|"]
-    text = "\n".join(heldout_table(results) + training_header + training_rows(results)) + "\n"
+    penetration_header = ["## Penetration (Table 2 analog)"]
+    text = heldout_table(results) + penetration_header + penetration_clean_rows(results)
+    text = "\n".join([*text, "", *training_header, *training_rows(results)]) + "\n"
     save_text(args.out / "table.md", text)
     print(text)
     plot_history(training, args.out / "training_loss.png")
     first = {name: p[0] for name, p in predicted.items() if name != "no_motion"}
-    examples = {HELDOUT_SPLIT: (dataset.test[HELDOUT_SPLIT][0], first)}
+    examples = {HELDOUT_SPLIT: (heads[0], first)}
     plot_examples(args.out, poses.labels, examples, makehuman_example)
     return results
+
+
+def clean_penetration(heads, predicted: dict, poses, part_names) -> dict:
+    """Penetration where the ground truth has none (``penetration_free_set``: per head, the
+    inner vertices inside the skin at rest and the poses whose ground truth pushes none of them
+    out) of each row of ``predicted`` (row -> (P, V, 3) per head) and of the ground truth, and
+    the plain penetration re-measured: results.json's ``penetration_clean``,
+    ``penetration_clean_protocol`` and ``penetration_remeasured``."""
+    predicted = {**predicted, "ground_truth": [head.displacements for head in heads]}
+    clean = {name: [] for name in predicted}
+    plain = {name: [] for name in predicted}
+    chosen, kept_vertices = [], []
+    for i, head in enumerate(heads):
+        pose_index, vertices = penetration_free_set(head, part_names)
+        chosen.append(pose_index)
+        kept_vertices.append(int(vertices.sum()))
+        for name, displacements in predicted.items():
+            outside = inner_outside(head, displacements[i], part_names)
+            plain[name].append(float(outside.mean()))
+            clean[name].append(outside[pose_index][:, vertices])
+        print(f"{head.name}: {pose_index.size} of {poses.n_poses} poses without penetration")
+    counts = np.bincount(np.concatenate(chosen), minlength=poses.n_poses)
+    return {
+        "penetration_clean": {
+            name: {
+                "fraction": float(np.mean(np.concatenate([o.ravel() for o in outs]))),
+                "poses_with_any": float(np.mean(np.concatenate([o.any(axis=1) for o in outs]))),
+            }
+            for name, outs in clean.items()
+        },
+        "penetration_clean_protocol": {
+            "split": HELDOUT_SPLIT,
+            "heads": len(chosen),
+            "selection": "per head: inner vertices (teeth, gums, eyeballs) inside the skin at "
+            "rest; poses whose ground truth pushes none of them outside (threshold 0)",
+            "fraction": "outside fraction over the selected (pose, vertex) pairs of all heads",
+            "poses_with_any": "fraction of selected (head, pose) pairs with any vertex outside",
+            "poses_per_head": [int(c.size) for c in chosen],
+            "inner_vertices_per_head": kept_vertices,
+            "poses_selected_on_every_head": [
+                poses.labels[i] for i in np.flatnonzero(counts == len(chosen))
+            ],
+        },
+        "penetration_remeasured": {n: float(np.mean(v)) for n, v in plain.items()},
+    }
 
 
 def refresh_penetration(args, argv=None) -> dict:
@@ -890,51 +940,18 @@ def refresh_penetration(args, argv=None) -> dict:
     rows = evaluation_rows(models)
     dataset = _held_out_dataset(args, config)
     poses, part_names = dataset.poses, dataset.head.part_names
-    methods = ("no_motion", "deformation_transfer", *anchored_dt, *rows)
-    clean = {name: [] for name in (*methods, "ground_truth")}
-    plain = {name: [] for name in (*methods, "ground_truth")}
-    chosen, kept_vertices = [], []
-    for head in dataset.test[HELDOUT_SPLIT]:
+    heads = dataset.test[HELDOUT_SPLIT]
+    predicted = {name: [] for name in ("no_motion", "deformation_transfer", *anchored_dt, *rows)}
+    for head in heads:
         correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
         bases = _transfer_bases(dataset, head, correspondence, anchors=tuple(anchors))
-        predicted = {
-            "no_motion": np.zeros_like(head.displacements),
-            "deformation_transfer": bases["plain"],
-            **{name: bases[key] for name, key in anchored_dt.items()},
-            "ground_truth": head.displacements,
-        }
+        predicted["no_motion"].append(np.zeros_like(head.displacements))
+        predicted["deformation_transfer"].append(bases["plain"])
+        for name, key in anchored_dt.items():
+            predicted[name].append(bases[key])
         for name, generated in _generated(models, rows, poses, head, bases).items():
-            predicted[name] = generated.displacements
-        pose_index, vertices = penetration_free_set(head, part_names)
-        chosen.append(pose_index)
-        kept_vertices.append(int(vertices.sum()))
-        for name, displacements in predicted.items():
-            outside = inner_outside(head, displacements, part_names)
-            plain[name].append(float(outside.mean()))
-            clean[name].append(outside[pose_index][:, vertices])
-        print(f"{head.name}: {pose_index.size} of {poses.n_poses} poses without penetration")
-    counts = np.bincount(np.concatenate(chosen), minlength=poses.n_poses)
-    results["penetration_clean"] = {
-        name: {
-            "fraction": float(np.mean(np.concatenate([o.ravel() for o in outs]))),
-            "poses_with_any": float(np.mean(np.concatenate([o.any(axis=1) for o in outs]))),
-        }
-        for name, outs in clean.items()
-    }
-    results["penetration_clean_protocol"] = {
-        "split": HELDOUT_SPLIT,
-        "heads": len(chosen),
-        "selection": "per head: inner vertices (teeth, gums, eyeballs) inside the skin at rest; "
-        "poses whose ground truth pushes none of them outside (threshold 0)",
-        "fraction": "outside fraction over the selected (pose, vertex) pairs of all heads",
-        "poses_with_any": "fraction of selected (head, pose) pairs with any vertex outside",
-        "poses_per_head": [int(c.size) for c in chosen],
-        "inner_vertices_per_head": kept_vertices,
-        "poses_selected_on_every_head": [
-            poses.labels[i] for i in np.flatnonzero(counts == len(chosen))
-        ],
-    }
-    results["penetration_remeasured"] = {n: float(np.mean(v)) for n, v in plain.items()}
+            predicted[name].append(generated.displacements)
+    results.update(clean_penetration(heads, predicted, poses, part_names))
     results["penetration_provenance"] = provenance(experiment_command(__file__, argv))
     write_results(args.out, results)
     print(f"rewrote the penetration of {path} and table.md")
@@ -1058,23 +1075,7 @@ def table(r: dict) -> str:
         "|---|---|",
     ]
     rows += [f"| {name} | {value:.4f} |" for name, value in r["penetration"].items()]
-    if "penetration_clean" in r:
-        p = r["penetration_clean_protocol"]
-        rows += [
-            "",
-            f"Where the ground truth has none ({p['heads']} heads, {p['split']}; "
-            f"{p['selection']}; {min(p['poses_per_head'])}-{max(p['poses_per_head'])} poses "
-            "per head): outside fraction of those (pose, vertex) pairs, and the fraction of "
-            "those poses with any vertex outside. Plain penetration re-measured alongside.",
-            "",
-            "| method | outside fraction | poses with any | plain (re-measured) |",
-            "|---|---|---|---|",
-        ]
-        rows += [
-            f"| {name} | {c['fraction']:.5f} | {c['poses_with_any']:.3f} | "
-            f"{r['penetration_remeasured'][name]:.4f} |"
-            for name, c in r["penetration_clean"].items()
-        ]
+    rows += penetration_clean_rows(r)
     if "placement" in r:
         p, e = r["placement_protocol"], r["placement"]
         sc = p["scale_cm"]
@@ -1118,6 +1119,28 @@ def table(r: dict) -> str:
         f"{g['morph_targets']} / {g['max_abs_difference_cm']:.2e} |"
     ]
     return "\n".join(rows) + "\n"
+
+
+def penetration_clean_rows(r: dict) -> list[str]:
+    """Table of ``penetration_clean`` (none when results.json has no such key)."""
+    if "penetration_clean" not in r:
+        return []
+    p = r["penetration_clean_protocol"]
+    return [
+        "",
+        f"Where the ground truth has none ({p['heads']} heads, {p['split']}; "
+        f"{p['selection']}; {min(p['poses_per_head'])}-{max(p['poses_per_head'])} poses "
+        "per head): outside fraction of those (pose, vertex) pairs, and the fraction of "
+        "those poses with any vertex outside. Plain penetration re-measured alongside.",
+        "",
+        "| method | outside fraction | poses with any | plain (re-measured) |",
+        "|---|---|---|---|",
+        *(
+            f"| {name} | {c['fraction']:.5f} | {c['poses_with_any']:.3f} | "
+            f"{r['penetration_remeasured'][name]:.4f} |"
+            for name, c in r["penetration_clean"].items()
+        ),
+    ]
 
 
 def training_rows(r: dict) -> list[str]:

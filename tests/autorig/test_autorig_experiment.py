@@ -157,6 +157,13 @@ def test_wider_model_trained_alone_then_evaluated_on_heldout_and_makehuman(tmp_p
         for s in subsets.values():
             f = s["static_fraction"]
             assert abs(f * s["static_mae_mm"] + (1 - f) * s["moving_mae_mm"] - s["mae_mm"]) < 1e-6
+    # penetration where the ground truth has none: zero for the truth and no motion
+    clean = results["penetration_clean"]
+    assert set(clean) == set(results["heldout"]) | {"ground_truth"}
+    assert clean["ground_truth"]["fraction"] == clean["no_motion"]["fraction"] == 0
+    for c in clean.values():
+        assert 0 <= c["fraction"] <= 1 and 0 <= c["poses_with_any"] <= 1
+        assert (c["fraction"] > 0) == (c["poses_with_any"] > 0)
     for name in ("table.md", "training_loss.png", "poses_unseen_topology.png", "makehuman.png"):
         assert (tmp_path / "eval" / name).exists()
     saved = json.loads((tmp_path / "eval" / "results.json").read_text())
