@@ -59,6 +59,30 @@ STANDARD_EXPERIMENTS = (
     ("wpse.py", "--out", "experiments/results/wpse"),
     ("mesh_foundations.py", "--out", "experiments/results/mesh_foundations"),
     ("autorig.py", "--out", "experiments/results/autorig", "--no-progress"),
+    # the default RigAnyFace (width 64) and its step-matched ablation, then their evaluation
+    *(
+        (
+            "autorig.py",
+            *("--out", "experiments/results/autorig_wide", "--no-progress"),
+            *("--raf-loss", "euclidean_static", "--raf-width", "64", "--steps", "4000"),
+            *("--train-identities", "40", "--train-only", name),
+        )
+        for name in ("raf", "raf_no_global_encoder")
+    ),
+    (
+        "autorig.py",
+        *("--out", "experiments/results/autorig_wide", "--no-progress", "--evaluate-only"),
+        *(
+            f"experiments/results/{checkpoint}.eqx"
+            for checkpoint in (
+                "autorig/checkpoint_raf",
+                "autorig_retrain/checkpoint_raf",
+                "autorig_retrain/checkpoint_raf_no_global_encoder",
+                "autorig_wide/checkpoint_raf",
+                "autorig_wide/checkpoint_raf_no_global_encoder",
+            )
+        ),
+    ),
     (
         "canrig_train.py",
         *("--out", "experiments/results/canrig", "--minutes", "45", "--steps", "36000"),
@@ -133,7 +157,7 @@ same commands as each folder's COMMAND file)."""
 
 @nox.session
 def experiments(session):
-    """Standard-configuration experiments (long: about three hours on 2 cores); pass script
+    """Standard-configuration experiments (long: about five hours on 2 cores); pass script
     names to run a subset, e.g. ``nox -s experiments -- inverse_rig.py``."""
     session.install("-e", ".")
     for script, *arguments in STANDARD_EXPERIMENTS:
