@@ -128,15 +128,15 @@ SPLITS = ("same_topology", "unseen_topology")
 HELDOUT_SPLIT = "unseen_topology"
 
 
-def _held_out_dataset(args, config):
+def _held_out_dataset(args, n_test: int, seed: int):
     """The standard run's held-out identities, for the evaluation-only paths: they come from
     their own random stream, so one training identity is enough to rebuild them (and no
     training head is used)."""
     return ict_autorig_dataset(
         args.data_dir,
         n_train=1,
-        n_test=config["test_identities"],
-        seed=config["options"]["seed"],
+        n_test=n_test,
+        seed=seed,
         progress=not args.no_progress,
     )
 
@@ -718,24 +718,27 @@ VALIDATION_SEED_OFFSET = 1000
 
 
 def _load_checkpoints(paths, flag: str) -> dict:
-    """Row name ("<folder>/<file stem>") -> model of each checkpoint in ``paths``."""
+    """Row name ("<folder>/<file stem>") -> (model, header) of each checkpoint in ``paths``."""
     models = {}
     for path in paths:
         if not path.exists():
             raise ValueError(f"{flag}: no checkpoint {path}")
-        models[f"{path.parent.name}/{path.stem}"] = load_model(path)[0]
+        model, _, header = load_model(path)
+        models[f"{path.parent.name}/{path.stem}"] = model, header
     return models
 
 
-def _checkpoint_predictions(dataset, models: dict, anchors, copy: bool = False):
+def _checkpoint_predictions(dataset, models: dict, anchors, copy: bool = False, rows=None):
     """Every unseen-topology held-out head of ``dataset``: (row -> predictions per head,
     ground truth per head) for no motion, (copied ICT deltas,) DT plain and anchored per each
-    mode of ``anchors``, and each checkpoint (a residual one on every base)."""
+    mode of ``anchors``, and each of ``rows`` (row -> (model name, base key or None); default:
+    each checkpoint, a residual one on every base)."""
     anchored = [_anchored_key(mode) for mode in anchors]
-    rows = {}
-    for name, model in models.items():
-        for base in ("plain", *anchored) if model.residual else (None,):
-            rows[name if base in (None, "plain") else f"{name}+{base}_base"] = (name, base)
+    if rows is None:
+        rows = {}
+        for name, model in models.items():
+            for base in ("plain", *anchored) if model.residual else (None,):
+                rows[name if base in (None, "plain") else f"{name}+{base}_base"] = (name, base)
     dt = {"deformation_transfer": "plain"}
     dt.update({f"deformation_transfer_{key}": key for key in anchored})
     baselines = ("no_motion", "copy_deltas") if copy else ("no_motion",)
@@ -756,23 +759,14 @@ def _checkpoint_predictions(dataset, models: dict, anchors, copy: bool = False):
     return predicted, truth
 
 
-def _print_class_errors(errors: dict) -> None:
-    for name, classes in errors.items():
-        print(
-            name,
-            " ".join(
-                f"{c}: mae {v['mae_mm']:.4f} static {v['static_mae_mm']:.4f} "
-                f"moving {v['moving_mae_mm']:.4f}"
-                for c, v in classes.items()
-            ),
-        )
-
-
 def validate(args, argv=None) -> dict:
     """Errors by pose and vertex class (``class_errors``) of ``args.validation_only``'s
     checkpoints, no motion and DT on validation identities at the held-out resolution;
     written to ``args.out``/validation.json. Evaluation only: nothing is trained."""
-    models = _load_checkpoints(args.validation_only, "--validation-only")
+    models = {
+        name: model
+        for name, (model, _) in _load_checkpoints(args.validation_only, "--validation-only").items()
+    }
     dataset = ict_autorig_dataset(
         args.data_dir,
         n_train=1,
@@ -801,7 +795,15 @@ def validate(args, argv=None) -> dict:
     }
     args.out.mkdir(parents=True, exist_ok=True)
     save_json(args.out / "validation.json", results)
-    _print_class_errors(results["validation"])
+    for name, classes in results["validation"].items():
+        print(
+            name,
+            " ".join(
+                f"{c}: mae {v['mae_mm']:.4f} static {v['static_mae_mm']:.4f} "
+                f"moving {v['moving_mae_mm']:.4f}"
+                for c, v in classes.items()
+            ),
+        )
     return results
 
 
@@ -812,22 +814,20 @@ def evaluate_checkpoints(args, argv=None) -> dict:
     ground truth has none (``clean_penetration``): results.json (``heldout``, ``worst_poses``,
     ``makehuman``, ``penetration_clean``, ``training``), table.md, training_loss.png,
     poses_unseen_topology.png and makehuman.png in ``args.out``. Nothing is trained."""
-    models = _load_checkpoints(args.evaluate_only, "--evaluate-only")
+    loaded = _load_checkpoints(args.evaluate_only, "--evaluate-only")
+    models = {name: model for name, (model, _) in loaded.items()}
     training = {}
-    for path, name in zip(args.evaluate_only, models, strict=True):
-        state = load_model(path)[2]
+    for name, (model, state) in loaded.items():
         training[name] = {
             "steps": state["step"],
             "minutes": state["seconds"] / 60,
-            "parameters": parameter_count(models[name]),
+            "parameters": parameter_count(model),
             "final_train_error_mm": state["history"][-1]["error_mm"],
             "history": state["history"],
             "options": state["options"],
         }
     start = time.perf_counter()
-    dataset = _held_out_dataset(
-        args, {"test_identities": args.test_identities, "options": {"seed": args.seed}}
-    )
+    dataset = _held_out_dataset(args, args.test_identities, args.seed)
     poses = dataset.poses
     predicted, truth = _checkpoint_predictions(dataset, models, ("vertex",), copy=True)
     makehuman, makehuman_info, makehuman_example = evaluate_makehuman(
@@ -933,25 +933,13 @@ def refresh_penetration(args, argv=None) -> dict:
         if (args.out / f"checkpoint_{name}.eqx").exists():
             names.append(name)
             anchors += [] if mode in anchors else [mode]
-    anchored_dt = {"deformation_transfer_" + _anchored_key(m): _anchored_key(m) for m in anchors}
     results = json.loads(path.read_text())
     config = results["config"]
     models = {n: load_model(args.out / f"checkpoint_{n}.eqx")[0] for n in names}
-    rows = evaluation_rows(models)
-    dataset = _held_out_dataset(args, config)
-    poses, part_names = dataset.poses, dataset.head.part_names
-    heads = dataset.test[HELDOUT_SPLIT]
-    predicted = {name: [] for name in ("no_motion", "deformation_transfer", *anchored_dt, *rows)}
-    for head in heads:
-        correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
-        bases = _transfer_bases(dataset, head, correspondence, anchors=tuple(anchors))
-        predicted["no_motion"].append(np.zeros_like(head.displacements))
-        predicted["deformation_transfer"].append(bases["plain"])
-        for name, key in anchored_dt.items():
-            predicted[name].append(bases[key])
-        for name, generated in _generated(models, rows, poses, head, bases).items():
-            predicted[name].append(generated.displacements)
-    results.update(clean_penetration(heads, predicted, poses, part_names))
+    dataset = _held_out_dataset(args, config["test_identities"], config["options"]["seed"])
+    predicted, _ = _checkpoint_predictions(dataset, models, anchors, rows=evaluation_rows(models))
+    heads, part_names = dataset.test[HELDOUT_SPLIT], dataset.head.part_names
+    results.update(clean_penetration(heads, predicted, dataset.poses, part_names))
     results["penetration_provenance"] = provenance(experiment_command(__file__, argv))
     write_results(args.out, results)
     print(f"rewrote the penetration of {path} and table.md")
@@ -992,7 +980,7 @@ def refresh_placement(args, argv=None) -> dict:
     results = json.loads(path.read_text())
     config = results["config"]
     model, poses, _ = load_model(checkpoint)
-    dataset = _held_out_dataset(args, config)
+    dataset = _held_out_dataset(args, config["test_identities"], config["options"]["seed"])
     errors: dict = {}
     scales: dict = {"whole": [], "cut": []}
     fit_seconds = []
