@@ -30,8 +30,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
-import time
 from pathlib import Path
 
 import equinox as eqx
@@ -39,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from canrig_jax import save_text
+from canrig_jax import median_ms, save_text
 from canrig_jax.canrig import (
     CLAMP,
     PBSTrainOptions,
@@ -66,16 +64,6 @@ RADIUS_CM, FALLOFF_PER_CM = 4.0, 1.0  # Table 5's masks
 RIDGE = 0.011  # the local fit's ridge as canrig_pbs_attached_local_prior trained it
 MOUTH_INTERIOR = ("Mouth socket", "Gums and tongue", "Teeth")
 TARGET_MS = 15.0
-
-
-def _time(fn, repeats):
-    jax.block_until_ready(fn())
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    return statistics.median(times) * 1e3
 
 
 def _head():
@@ -177,7 +165,7 @@ def main(argv=None):
             dense_queries, neutral_j, neutral_j[index], neutral_j[index], d, vertex_mask
         )  # fmt: skip
     )
-    reference_ms = _time(lambda: dense_call(dense, edits[0]), max(3, args.repeats // 4))
+    reference_ms = median_ms(lambda: dense_call(dense, edits[0]), max(3, args.repeats // 4))
 
     rows = []
     for name, (one, batched) in calls.items():
@@ -186,8 +174,8 @@ def main(argv=None):
         if not (np.isfinite(stacked).all() and np.isfinite(single).all()):
             raise RuntimeError(f"{name}: non-finite output")
         same = float(np.abs(stacked[0] - single).max())
-        one_ms = _time(lambda one=one: one(edits[0]), args.repeats)
-        batch_ms = _time(lambda b=batched: b(edits), max(3, args.repeats // 4)) / args.batch
+        one_ms = median_ms(lambda one=one: one(edits[0]), args.repeats)
+        batch_ms = median_ms(lambda b=batched: b(edits), max(3, args.repeats // 4)) / args.batch
         rows.append((name, one_ms, batch_ms, same))
 
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")

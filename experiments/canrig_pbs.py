@@ -31,6 +31,7 @@ import numpy as np  # noqa: E402
 from canrig_jax import (  # noqa: E402
     CM_TO_MM,
     experiment_command,
+    median_ms,
     provenance,
     record_command,
     save_json,
@@ -92,16 +93,6 @@ REGIONS = {  # Table 5 broken down by where the error is (ICT part names)
     ),
     "head_and_neck": ("Head and Neck",),
 }
-
-
-def _timed(fn, repeats=10):
-    jax.block_until_ready(fn())
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    return float(np.median(times) * 1e3)
 
 
 MODELS_DIR = "models"
@@ -458,7 +449,7 @@ def _dense_reference_ms(head, handles):
     d = jnp.asarray(head["test_shapes"][0][handles] - neutral[handles])
     index = jnp.asarray(handles)
     call = eqx.filter_jit(lambda net, q, base, m, d: net(q, base, base[index], base[index], d, m))
-    return _timed(lambda: call(net, queries, base, mask, d))
+    return median_ms(lambda: call(net, queries, base, mask, d))
 
 
 def _dialogue_clips(head, args):
@@ -718,7 +709,7 @@ def main(argv=None):
             # one whole-head forward pass at 200 handles
             # (patch queries cached once per mesh, as the per-vertex reference's queries)
             queries = net.encode_patches(data.seeds)
-            forward[name] = _timed(
+            forward[name] = median_ms(
                 lambda net=net, queries=queries: reconstruct(net, h200, d200, test_j[:1], queries)
             )
     # the local fit alone (no network): CANRig-PBS's local prior at its trained ridge, or at
@@ -758,13 +749,13 @@ def main(argv=None):
     weights0 = jnp.asarray(fitted[0])
     basis_j = jnp.asarray(basis)
     neutral_j = jnp.asarray(neutral)
-    gather_ms = _timed(lambda: pbs_shape(layout, neutral_j, basis_j, weights0))
+    gather_ms = median_ms(lambda: pbs_shape(layout, neutral_j, basis_j, weights0))
 
     def sparse():
         per_vertex = w_layout @ np.asarray(weights0)  # (N, B)
         return neutral + np.einsum("nb,bnk->nk", per_vertex, basis)
 
-    sparse_ms = _timed(sparse)
+    sparse_ms = median_ms(sparse)
     timing = {"pbs_shape_gather_ms": gather_ms, "pbs_shape_scipy_sparse_ms": sparse_ms}
     print(
         f"PBS fit: mean {pbs['fit_mean_mm']:.4f} mm, p95 {pbs['fit_p95_mm']:.4f} mm; "

@@ -1,0 +1,23 @@
+"""Latency of a JAX call as a user waits for it: one warm-up call (compilation), then the
+median wall time of ``repeats`` calls, each waiting for its result (JAX dispatches
+asynchronously)."""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+import jax
+
+
+def median_ms(fn, repeats: int = 10) -> float:
+    """Median milliseconds of ``fn()`` over ``repeats`` calls after one warm-up call."""
+    if repeats < 1:
+        raise ValueError(f"repeats: expected >= 1, got {repeats}")
+    jax.block_until_ready(fn())
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - start)
+    return statistics.median(times) * 1e3
