@@ -36,6 +36,7 @@ import jax.numpy as jnp
 
 from canrig_jax import save_text
 from canrig_jax.autorig import (
+    DEFAULT_CHECKPOINT,
     DEFAULT_POSE_CHUNK,
     TrainOptions,
     generate_rig,
@@ -53,7 +54,7 @@ from canrig_jax.rig import ict_quartic_rig
 
 RESULTS = Path(__file__).parents[1] / "experiments" / "results"
 DEFAULT_CHECKPOINTS = (
-    RESULTS / "autorig_wide" / "checkpoint_raf.eqx",  # the default model (issue 19)
+    DEFAULT_CHECKPOINT,  # the default model (issue 19)
     RESULTS / "autorig" / "checkpoint_raf.eqx",  # the width-32 model of issue 7
 )
 TARGETS_S = {"issue 19": 1.0, "issue 7, for the width-32 model": 0.5}

@@ -1,10 +1,10 @@
 """RigAnyFace's error on the MakeHuman head as a vertex-coloured glb for ``canrig view``.
 
-The committed RigAnyFace checkpoint generates a rig for the MakeHuman hm08 head (evaluation
-only: never trained on); each vertex is coloured by its mean error, in mm, against the
-person-made ARKit targets over the shapes both rigs share (white 0, red at the skin's 95th
-percentile and above). The rig is animated by the Live Link capture, so a user can scrub the
-take and turn the head around the worst vertex:
+The default RigAnyFace checkpoint (``autorig.DEFAULT_CHECKPOINT``) generates a rig for the
+MakeHuman hm08 head (evaluation only: never trained on); each vertex is coloured by its mean
+error, in mm, against the person-made ARKit targets over the shapes both rigs share (white 0,
+red at the skin's 95th percentile and above). The rig is animated by the Live Link capture, so
+a user can scrub the take and turn the head around the worst vertex:
 
     python experiments/view_autorig_error.py --out experiments/results/view_autorig_error
     canrig view experiments/results/view_autorig_error/error.glb
@@ -29,18 +29,27 @@ from canrig_jax import (
     record_command,
     save_json,
 )
-from canrig_jax.autorig import generate_rig, load_makehuman, load_model, shared_shape_matrix
+from canrig_jax.autorig import (
+    DEFAULT_CHECKPOINT,
+    generate_rig,
+    load_makehuman,
+    load_model,
+    shared_shape_matrix,
+)
 from canrig_jax.data import load_livelinkface
 from canrig_jax.rig import export_animated_gltf
 from canrig_jax.viewer import error_colors, find_chromium, screenshot_glb
-
-CHECKPOINT = Path(__file__).resolve().parent / "results" / "autorig" / "checkpoint_raf.eqx"
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--checkpoint", type=Path, default=CHECKPOINT)
+    parser.add_argument(
+        "--checkpoint",
+        type=Path,
+        default=DEFAULT_CHECKPOINT,
+        help="RigAnyFace checkpoint (default: the default model, %(default)s)",
+    )
     parser.add_argument("--data-dir", default=None)
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -82,7 +91,7 @@ def main(argv=None) -> None:
 
     results = {
         "head": "MakeHuman hm08 (evaluation only), 4,920 vertices, cm",
-        "checkpoint": str(args.checkpoint.name),
+        "checkpoint": f"{args.checkpoint.parent.name}/{args.checkpoint.name}",
         "shared_shapes": len(target_index),
         "colour": "mean over shared shapes of the per-vertex error (mm); white 0, red >= vmax",
         "vmax_mm_skin_p95": vmax,

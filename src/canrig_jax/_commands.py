@@ -28,16 +28,6 @@ import numpy as np
 
 from ._cli import add_dataclass_options, from_args
 
-DEFAULT_MODEL = (
-    Path(__file__).resolve().parents[2]
-    / "experiments"
-    / "results"
-    / "autorig_wide"
-    / "checkpoint_raf.eqx"
-)
-"""The committed default RigAnyFace checkpoint (present in a source checkout): width 64, chosen
-on validation identities over the width-32 ``autorig/checkpoint_raf.eqx`` (issue 19)."""
-
 INVERSE_METHODS = {
     "quartic": "QuarticCD",
     "linear": "LinearCD",
@@ -115,7 +105,7 @@ def _autorig(args) -> None:
     from .rig import export_gltf
 
     out = _output(args.output, (".glb",))
-    model_path = Path(args.model) if args.model else DEFAULT_MODEL
+    model_path = Path(args.model) if args.model else autorig.DEFAULT_CHECKPOINT
     if not model_path.is_file():
         raise CommandError(f"--model {model_path}: RigAnyFace checkpoint not found")
     progress = _Progress(args.quiet)
@@ -448,7 +438,11 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("mm", "cm", "dm", "m"),
         help="the head file's length unit (default: inferred from its size)",
     )
-    p.add_argument("--model", help=f"RigAnyFace checkpoint (default: {DEFAULT_MODEL})")
+    p.add_argument(
+        "--model",
+        help="RigAnyFace checkpoint (default: the committed default model, "
+        "canrig_jax.autorig.DEFAULT_CHECKPOINT)",
+    )
     p.add_argument("--k", type=int, default=128, help="Laplacian eigenpairs (default: %(default)s)")
     p.add_argument("--pose-chunk", type=int, help="poses per network pass (default: the library's)")
     p.add_argument(

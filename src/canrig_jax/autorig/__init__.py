@@ -56,6 +56,7 @@ from ._rig import (
     rig_from_poses,
 )
 from ._train import (
+    DEFAULT_CHECKPOINT,
     STATIC_CM,
     TrainOptions,
     TrainResult,
@@ -68,6 +69,7 @@ from ._train import (
 )
 
 __all__ = [
+    "DEFAULT_CHECKPOINT",
     "ACTIVE_MM",
     "ANCHOR_MODES",
     "anchor_parts",

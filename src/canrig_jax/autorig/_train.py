@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -42,6 +43,17 @@ from ._data import PoseSet, RiggedHead
 from ._model import RigAnyFace, normalise
 
 CHECKPOINT_FORMAT = "riganyface-checkpoint-1"
+DEFAULT_CHECKPOINT = (
+    Path(__file__).resolve().parents[3]
+    / "experiments"
+    / "results"
+    / "autorig_wide"
+    / "checkpoint_raf.eqx"
+)
+"""The committed default RigAnyFace checkpoint (present in a source checkout; ``load_model``
+reads it): what ``canrig autorig`` loads unless given ``--model``. Width 64, 159,747
+parameters, chosen on validation identities over the width-32 ``autorig/checkpoint_raf.eqx``
+(issue 19)."""
 LOSSES = ("squared", "euclidean")
 STATIC_CM = 0.001
 """A vertex is static in a pose when its ground-truth displacement is below 0.01 mm."""
