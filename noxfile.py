@@ -59,7 +59,7 @@ STANDARD_EXPERIMENTS = (
     ("wpse.py", "--out", "experiments/results/wpse"),
     ("mesh_foundations.py", "--out", "experiments/results/mesh_foundations"),
     ("autorig.py", "--out", "experiments/results/autorig", "--no-progress"),
-    # the default RigAnyFace (width 64) and its step-matched ablation, then their evaluation
+    # RigAnyFace width 64, 4,000 steps, and its step-matched ablation, then their evaluation
     *(
         (
             "autorig.py",
@@ -82,6 +82,19 @@ STANDARD_EXPERIMENTS = (
                 "autorig_wide/checkpoint_raf_no_global_encoder",
             )
         ),
+    ),
+    # the default RigAnyFace: the same recipe on a 7,000-step schedule, then its evaluation
+    (
+        "autorig.py",
+        *("--out", "experiments/results/autorig_long", "--no-progress"),
+        *("--raf-loss", "euclidean_static", "--raf-width", "64", "--steps", "7000"),
+        *("--train-identities", "40", "--train-only", "raf"),
+    ),
+    (
+        "autorig.py",
+        *("--out", "experiments/results/autorig_long", "--no-progress", "--evaluate-only"),
+        "experiments/results/autorig_wide/checkpoint_raf.eqx",
+        "experiments/results/autorig_long/checkpoint_raf.eqx",
     ),
     (
         "canrig_train.py",
@@ -157,7 +170,7 @@ same commands as each folder's COMMAND file)."""
 
 @nox.session
 def experiments(session):
-    """Standard-configuration experiments (long: about five hours on 2 cores); pass script
+    """Standard-configuration experiments (long: about six hours on 2 cores); pass script
     names to run a subset, e.g. ``nox -s experiments -- inverse_rig.py``."""
     session.install("-e", ".")
     for script, *arguments in STANDARD_EXPERIMENTS:

@@ -16,9 +16,10 @@ process, median over ``--repeats``:
   DiffusionNet would cost);
 - **generate_rig, warm** (a new head of similar size: operators + network + rig assembly).
 
-Each checkpoint is a column (default: the default model, ``autorig_wide``'s width 64, and the
-width-32 ``autorig`` one), timed in the same process on the same head. Timing does not depend
-on the weights; a missing checkpoint is replaced by a freshly initialised width-32 model.
+Each checkpoint is a column (default: the default model, ``autorig.DEFAULT_CHECKPOINT``, width
+64, and the width-32 ``autorig`` one), timed in the same process on the same head. Timing does
+not depend on the weights; a missing checkpoint is replaced by a freshly initialised width-32
+model.
 A Markdown table is printed (and written to ``--out``).
 """
 

@@ -33,6 +33,7 @@ baselines, training nothing.
 
 Writes DIR/results.json, DIR/table.md, DIR/training_loss.png, DIR/poses_<head>.png and
 DIR/makehuman.png (predicted poses with 0-5 mm error maps next to the ground truth),
+DIR/makehuman_shapes.png (each method's amount of motion per shape against the sculpted one),
 DIR/rig.glb (one predicted rig as glTF 2.0 with named morph targets) and the checkpoints
 (rerunning resumes from them). ``--cache DIR`` keeps the training heads' transferred poses
 (the residual model's base) between runs.
@@ -84,6 +85,7 @@ from canrig_jax.autorig import (
     normalise,
     penetration,
     penetration_free_set,
+    sculpted_shape_errors,
     sculpted_target_errors,
     shared_shape_matrix,
     train,
@@ -160,8 +162,9 @@ def _anchored_key(mode: str) -> str:
     return "anchored" if mode == "vertex" else f"anchored_{mode}"
 
 
-def _generated(models, rows, poses, head, bases, operators=None) -> dict:
-    """Each evaluation row's generated rig on ``head`` (row -> (model, base key or None))."""
+def _generated(models, rows, poses, head, bases, operators=None, placement=None) -> dict:
+    """Each evaluation row's generated rig on ``head`` (row -> (model, base key or None));
+    ``placement``: ``generate_rig``'s (default: the head's bounding box)."""
     return {
         name: generate_rig(
             models[model_name],
@@ -170,6 +173,7 @@ def _generated(models, rows, poses, head, bases, operators=None) -> dict:
             head.faces,
             operators=operators,
             base=None if base is None else bases[base],
+            placement=placement,
         )
         for name, (model_name, base) in rows.items()
     }
@@ -546,6 +550,7 @@ def main(argv=None):
         "worst_poses": worst,
         "makehuman": makehuman,
         "makehuman_protocol": makehuman_info,
+        "makehuman_shapes": makehuman_shapes(makehuman_example),
         "test": test,
         "penetration": {name: float(np.mean(v)) for name, v in pen.items()},
         "rig_seconds": rig_seconds,
@@ -608,11 +613,18 @@ def cached_transfer(
     return transferred
 
 
+FACE_PLACED = " + face_placement"
+"""Suffix of a MakeHuman row whose rig was generated with ``face_placement`` (the head placed
+in the unit sphere from its fitted face) instead of the bounding box of the whole head: a
+variant beside the protocol's rows (``evaluate_makehuman(face_placed=True)``)."""
+
+
 def evaluate_makehuman(
-    dataset, models: dict, data_dir, anchors=("vertex",)
+    dataset, models: dict, data_dir, anchors=("vertex",), face_placed: bool = False
 ) -> tuple[dict, dict, tuple]:
     """Every method on the MakeHuman head over the shapes it shares with ICT (anchored DT per
-    each mode of ``anchors``)."""
+    each mode of ``anchors``); with ``face_placed``, each model row once more with
+    ``face_placement`` (rows suffixed ``FACE_PLACED``)."""
     mh = load_makehuman(data_dir)
     poses = dataset.poses
     start = time.perf_counter()
@@ -630,8 +642,14 @@ def evaluate_makehuman(
     }
     for mode in anchors:
         predictions["deformation_transfer_" + _anchored_key(mode)] = bases[_anchored_key(mode)]
-    for name, generated in _generated(models, evaluation_rows(models), poses, mh, bases).items():
+    rows = evaluation_rows(models)
+    for name, generated in _generated(models, rows, poses, mh, bases).items():
         predictions[name] = generated.displacements
+    if face_placed:
+        placement = face_placement(dataset, mh.neutral, mh.faces, fit=fit)
+        placed = _generated(models, rows, poses, mh, bases, placement=placement)
+        for name, generated in placed.items():
+            predictions[name + FACE_PLACED] = generated.displacements
     target_index, matrix = shared_shape_matrix(poses.basis_names, mh.names)
     truth = mh.deltas[target_index]
     singles = {
@@ -668,6 +686,52 @@ def evaluate_makehuman(
     labels = [mh.names[i] for i in target_index]
     example = (mh, truth, {k: v for k, v in singles.items() if k != "no_motion"}, labels)
     return results, info, example
+
+
+UPPER_FACE = ("brow", "eye", "cheekSquint")
+"""ARKit shapes of the upper face (name prefixes), for the per-region MakeHuman summary."""
+
+
+def makehuman_shapes(makehuman_example: tuple) -> dict:
+    """Per shape on the MakeHuman head (``sculpted_shape_errors``) of every method in
+    ``evaluate_makehuman``'s example: {"labels", "target_peak_mm", "upper_face": (S,) bool,
+    "methods": name -> {"skin_mae_mm", "amplitude_ratio", "peak_mm"}}, lists."""
+    mh, truth, predictions, labels = makehuman_example
+    methods, target_peak = {}, None
+    for name, predicted in predictions.items():
+        errors = sculpted_shape_errors(predicted, truth, mh.skin)
+        target_peak = errors.pop("target_peak_mm")
+        methods[name] = {k: v.tolist() for k, v in errors.items()}
+    return {
+        "labels": [str(n) for n in labels],
+        "target_peak_mm": target_peak.tolist(),
+        "upper_face": [str(n).startswith(UPPER_FACE) for n in labels],
+        "methods": methods,
+    }
+
+
+def makehuman_shape_rows(shapes: dict) -> list[str]:
+    """Table rows: each method's median per-shape amplitude ratio and skin MAE on the upper
+    face (brow, eye, cheekSquint shapes) and on the rest."""
+    upper = np.asarray(shapes["upper_face"])
+    rows = [
+        f"Per shape, by region (median over shapes; upper face: {', '.join(UPPER_FACE)}*, "
+        f"{upper.sum()} shapes; lower face: the other {(~upper).sum()}; makehuman_shapes.png):",
+        "",
+        "| method | amplitude ratio upper / lower | peak ratio upper / lower | "
+        "skin MAE upper / lower (mm) |",
+        "|---|---|---|---|",
+    ]
+    target_peak = np.asarray(shapes["target_peak_mm"])
+    for name, e in shapes["methods"].items():
+        ratio, mae = np.asarray(e["amplitude_ratio"]), np.asarray(e["skin_mae_mm"])
+        peak = np.asarray(e["peak_mm"]) / target_peak
+        cells = [
+            f"{np.median(x[upper]):{f}} / {np.median(x[~upper]):{f}}"
+            for x, f in ((ratio, ".2f"), (peak, ".2f"), (mae, ".3f"))
+        ]
+        rows.append(f"| {name} | " + " | ".join(cells) + " |")
+    return [*rows, "", "Amplitude: summed motion on the skin; peak: its largest vertex motion.", ""]
 
 
 def rig_timing(model, poses, head, repeats: int = 9) -> dict:
@@ -812,8 +876,9 @@ def evaluate_checkpoints(args, argv=None) -> dict:
     against no motion, copied ICT deltas and DT (plain and anchored) on the standard held-out
     test identities (unseen topology) and on the MakeHuman head, with penetration where the
     ground truth has none (``clean_penetration``): results.json (``heldout``, ``worst_poses``,
-    ``makehuman``, ``penetration_clean``, ``training``), table.md, training_loss.png,
-    poses_unseen_topology.png and makehuman.png in ``args.out``. Nothing is trained."""
+    ``makehuman``, ``makehuman_shapes``, ``penetration_clean``, ``training``), table.md,
+    training_loss.png, poses_unseen_topology.png, makehuman.png and makehuman_shapes.png in
+    ``args.out``. Nothing is trained."""
     loaded = _load_checkpoints(args.evaluate_only, "--evaluate-only")
     models = {name: model for name, (model, _) in loaded.items()}
     training = {}
@@ -831,7 +896,7 @@ def evaluate_checkpoints(args, argv=None) -> dict:
     poses = dataset.poses
     predicted, truth = _checkpoint_predictions(dataset, models, ("vertex",), copy=True)
     makehuman, makehuman_info, makehuman_example = evaluate_makehuman(
-        dataset, models, args.data_dir
+        dataset, models, args.data_dir, face_placed=True
     )
     heads, part_names = dataset.test[HELDOUT_SPLIT], dataset.head.part_names
     results = {
@@ -847,6 +912,7 @@ def evaluate_checkpoints(args, argv=None) -> dict:
         "worst_poses": {name: worst_poses(p, truth, poses, 5) for name, p in predicted.items()},
         "makehuman": makehuman,
         "makehuman_protocol": makehuman_info,
+        "makehuman_shapes": makehuman_shapes(makehuman_example),
         **clean_penetration(heads, predicted, poses, part_names),
         "parameters": {name: t["parameters"] for name, t in training.items()},
         "training": {
@@ -1185,6 +1251,8 @@ def heldout_table(r: dict) -> list[str]:
         )
     matched = ", ".join(f"{k} -> {v}" for k, v in m["matched_parts"].items())
     rows += ["", f"Part matching (MakeHuman component -> ICT part): {matched}.", ""]
+    if "makehuman_shapes" in r:
+        rows += makehuman_shape_rows(r["makehuman_shapes"])
     return rows
 
 
@@ -1202,7 +1270,8 @@ def plot_history(trained: dict, path: Path) -> None:
 
 def plot_examples(out: Path, labels, examples: dict, makehuman_example: tuple) -> None:
     """out/poses_<split>.png of each held-out example head (split -> (head, row ->
-    predictions)) on its skin, and out/makehuman.png (``evaluate_makehuman``'s example)."""
+    predictions)) on its skin, out/makehuman.png and out/makehuman_shapes.png
+    (``evaluate_makehuman``'s example)."""
     for split, (head, predictions) in examples.items():
         skin = head.parts <= 1
         plot_poses(
@@ -1222,6 +1291,29 @@ def plot_examples(out: Path, labels, examples: dict, makehuman_example: tuple) -
         mh_labels,
         out / "makehuman.png",
     )
+    plot_makehuman_shapes(makehuman_shapes(makehuman_example), out / "makehuman_shapes.png")
+
+
+def plot_makehuman_shapes(shapes: dict, path: Path) -> None:
+    """Each method's per-shape amplitude ratio on the MakeHuman head (log scale; 1: the
+    sculpted amount of motion), shapes in alphabetical order, the upper face shaded."""
+    labels = shapes["labels"]
+    order = np.argsort(labels)
+    upper = np.asarray(shapes["upper_face"])[order]
+    fig, ax = plt.subplots(figsize=(13, 4.2))
+    for x in np.flatnonzero(upper):
+        ax.axvspan(x - 0.5, x + 0.5, color="0.92", lw=0)
+    for name, e in shapes["methods"].items():
+        ratio = np.maximum(np.asarray(e["amplitude_ratio"])[order], 1e-2)
+        ax.plot(np.arange(len(labels)), ratio, "o-", ms=3, lw=0.7, label=name)
+    ax.axhline(1.0, color="k", lw=0.8)
+    ax.set_yscale("log")
+    ax.set_xticks(np.arange(len(labels)), [labels[i] for i in order], rotation=90, fontsize=7)
+    ax.set_xlim(-0.5, len(labels) - 0.5)
+    ax.set_ylabel("generated / sculpted motion on the skin")
+    ax.set_title("MakeHuman hm08, per ARKit shape (grey: upper face)")
+    ax.legend(fontsize=7, ncols=2)
+    save_figure(fig, path)
 
 
 def plot_poses(vertices, faces, truth, predictions: dict, labels, path: Path, n_poses=4):

@@ -267,9 +267,27 @@ def test_end_to_end_makehuman(tmp_path, capsys, data_dir):
         *("--reference", tmp_path / "take.csv"),
     )
     assert status == 0, err
-    print(out)  # the weight error, for the record (-s)
-    mean, rms, worst = (
-        float(x) for x in re.search(r"mean ([\d.]+), RMS ([\d.]+), max ([\d.]+)", out).groups()
+    print(out)  # the mesh and weight errors, for the record (-s)
+    # the meshes are reproduced: the well-posed half of inversion
+    mean_mm, max_mm = (
+        float(x) for x in re.search(r"mean ([\d.]+) mm, max ([\d.]+) mm", out).groups()
     )
-    assert mean < 2e-3 and rms < 5e-3 and worst < 0.05, out
-    assert read_livelink_csv(tmp_path / "back.csv", fps=60).n_frames == 180
+    assert mean_mm < 5e-3 and max_mm < 0.2, out
+    # the weights are recovered where the rig can tell its blendshapes apart: channels whose
+    # delta has no other within |cos| 0.8 (on MakeHuman the generated eye and brow shapes are
+    # about 1 mm and nearly parallel, so their weights trade without changing the mesh)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the capture's known frame gap
+        back = read_livelink_csv(tmp_path / "back.csv", fps=60)
+        take = read_livelink_csv(tmp_path / "take.csv", fps=60)
+    assert back.n_frames == 180
+    deltas = np.asarray(rig.deltas).reshape(rig.n_blendshapes, -1)
+    unit = deltas / np.linalg.norm(deltas, axis=1, keepdims=True)
+    cosine = np.abs(unit @ unit.T) - np.eye(rig.n_blendshapes)
+    separate = cosine.max(axis=1) < 0.8
+    error = np.abs(
+        back.weights_for(rig.names, missing="zero") - take.weights_for(rig.names, missing="zero")
+    )
+    assert separate.sum() >= 10 and error[:, separate].max() < 0.01, (
+        f"{separate.sum()} separate channels, error {error[:, separate].max():.4f}"
+    )

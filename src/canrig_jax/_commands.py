@@ -240,7 +240,9 @@ def _invert(args) -> None:
     from tqdm import tqdm
 
     from . import inverse
+    from ._metrics import CM_TO_MM
     from .data import capture_from_weights, read_livelink_csv, write_livelink_csv
+    from .rig import UNIT_IN_CM, evaluate_batch
 
     out = _output(args.output, (".csv",))
     progress = _Progress(args.quiet)
@@ -265,6 +267,14 @@ def _invert(args) -> None:
     mixing, channels = _arkit_columns(rig)
     write_livelink_csv(out, capture_from_weights(weights @ mixing, channels, fps=args.fps))
     progress(f"wrote {out}: {weights.shape[0]} frames, {len(channels)} Live Link Face channels")
+    # how well the solved weights reproduce the meshes: well posed even where the weights are
+    # not (two nearly parallel blendshapes trade weight without changing the mesh)
+    fitted = np.asarray(evaluate_batch(rig, weights))
+    mesh_mm = np.linalg.norm(fitted - meshes, axis=-1) * UNIT_IN_CM[rig.units] * CM_TO_MM
+    print(
+        f"mesh error of the solved weights over {meshes.shape[0]} frames x "
+        f"{meshes.shape[1]} vertices: mean {mesh_mm.mean():.4f} mm, max {mesh_mm.max():.4f} mm"
+    )
     if args.reference:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")

@@ -6,6 +6,7 @@ import importlib.util
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from canrig_jax.autorig import TrainOptions, make_model
@@ -102,6 +103,7 @@ def test_quick_experiment_writes_the_issue_keys(tmp_path):
         "poses_unseen_topology.png",
         "rig.glb",
         "makehuman.png",
+        "makehuman_shapes.png",
     ):
         assert (tmp_path / name).exists()
 
@@ -139,7 +141,9 @@ def test_wider_model_trained_alone_then_evaluated_on_heldout_and_makehuman(tmp_p
         "deformation_transfer_anchored",
         *rows,
     }
-    assert set(results["makehuman"]) == set(results["heldout"])
+    # MakeHuman: the same rows, and each model once more placed from its fitted face
+    face_rows = {name + module.FACE_PLACED for name in rows}
+    assert set(results["makehuman"]) == set(results["heldout"]) | face_rows
     for name in rows:
         options = results["training"][name]["options"]
         assert options["n_conditional"] == 3 and results["training"][name]["steps"] == 20
@@ -164,7 +168,21 @@ def test_wider_model_trained_alone_then_evaluated_on_heldout_and_makehuman(tmp_p
     for c in clean.values():
         assert 0 <= c["fraction"] <= 1 and 0 <= c["poses_with_any"] <= 1
         assert (c["fraction"] > 0) == (c["poses_with_any"] > 0)
-    for name in ("table.md", "training_loss.png", "poses_unseen_topology.png", "makehuman.png"):
+    # the per-shape MakeHuman record recombines to the summary (same shapes, same skin)
+    shapes = results["makehuman_shapes"]
+    assert set(shapes["methods"]) == set(results["makehuman"]) - {"no_motion"}
+    for name, e in shapes["methods"].items():
+        summary = results["makehuman"][name]
+        assert np.median(e["amplitude_ratio"]) == pytest.approx(summary["amplitude_ratio_median"])
+        assert np.mean(e["skin_mae_mm"]) == pytest.approx(summary["skin_mae_mm"], rel=1e-6)
+    assert any(shapes["upper_face"]) and not all(shapes["upper_face"])
+    for name in (
+        "table.md",
+        "training_loss.png",
+        "poses_unseen_topology.png",
+        "makehuman.png",
+        "makehuman_shapes.png",
+    ):
         assert (tmp_path / "eval" / name).exists()
     saved = json.loads((tmp_path / "eval" / "results.json").read_text())
     assert saved["heldout"] == results["heldout"]

@@ -21,6 +21,7 @@ from canrig_jax.autorig import (
     load_makehuman,
     load_model,
     pose_classes,
+    sculpted_shape_errors,
     sculpted_target_errors,
     shared_shape_matrix,
     static_mask,
@@ -234,6 +235,21 @@ def test_shared_shapes_sum_ict_split_halves(ict_head, data_dir):
     assert perfect["skin_mae_mm"] == 0 and perfect["amplitude_ratio_median"] == pytest.approx(1)
     none = sculpted_target_errors(np.zeros_like(truth), truth, mh.skin)
     assert none["amplitude_ratio_median"] == 0 and none["active_mae_mm"] > 0.5
+    # per shape: half the motion is half the amplitude and peak, its error the other half's
+    # size; the shapes' skin MAEs average to the overall one (same skin in every shape)
+    half = sculpted_shape_errors(0.5 * truth, truth, mh.skin)
+    np.testing.assert_allclose(half["amplitude_ratio"], 0.5, rtol=1e-9)
+    np.testing.assert_allclose(half["peak_mm"], 0.5 * half["target_peak_mm"], rtol=1e-9)
+    lengths = np.linalg.norm(truth[:, mh.skin], axis=-1) * 10.0
+    np.testing.assert_allclose(half["skin_mae_mm"], 0.5 * lengths.mean(axis=1), rtol=1e-6)
+    mixed = truth * np.array([0.0, 1.0, 2.0])[:, None, None]
+    np.testing.assert_allclose(
+        sculpted_shape_errors(mixed, truth, mh.skin)["skin_mae_mm"].mean(),
+        sculpted_target_errors(mixed, truth, mh.skin)["skin_mae_mm"],
+        rtol=1e-9,
+    )
+    with pytest.raises(ValueError, match="predicted, truth"):
+        sculpted_shape_errors(truth[:2], truth, mh.skin)
 
 
 @pytest.mark.slow  # 12-21 s; the default run stays under 10 min on 2 cores

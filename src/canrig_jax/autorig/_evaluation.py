@@ -114,6 +114,37 @@ def shared_shape_matrix(
     return np.asarray(kept, np.int64), np.stack(rows)
 
 
+def sculpted_shape_errors(
+    predicted: np.ndarray, truth: np.ndarray, skin: np.ndarray
+) -> dict[str, np.ndarray]:
+    """Per shape, against person-made targets (each (S, V, 3), cm): where a generated rig
+    fails, shape by shape.
+
+    Returns {"skin_mae_mm": (S,) mean error over the skin vertices; "amplitude_ratio": (S,)
+    the summed predicted displacement length over the summed target length on the skin (0 for
+    no motion, 1 for the sculpted amount of motion); "peak_mm", "target_peak_mm": (S,) the
+    largest skin displacement of the prediction and of the target}."""
+    predicted = np.asarray(predicted, np.float64)
+    truth = np.asarray(truth, np.float64)
+    if predicted.ndim != 3 or predicted.shape != truth.shape or predicted.shape[-1] != 3:
+        raise ValueError(
+            f"predicted, truth: expected two (S, V, 3) arrays of one shape, got "
+            f"{predicted.shape} and {truth.shape}"
+        )
+    skin = np.asarray(skin, bool)
+    if skin.shape != (truth.shape[1],) or not skin.any():
+        raise ValueError(f"skin: expected a non-empty (V,) mask, got shape {skin.shape}")
+    distance = _distances_mm(predicted, truth)[:, skin]
+    truth_mm = np.linalg.norm(truth[:, skin], axis=-1) * CM_TO_MM
+    predicted_mm = np.linalg.norm(predicted[:, skin], axis=-1) * CM_TO_MM
+    return {
+        "skin_mae_mm": distance.mean(axis=1),
+        "amplitude_ratio": predicted_mm.sum(1) / np.maximum(truth_mm.sum(1), 1e-12),
+        "peak_mm": predicted_mm.max(axis=1),
+        "target_peak_mm": truth_mm.max(axis=1),
+    }
+
+
 def sculpted_target_errors(
     predicted: np.ndarray, truth: np.ndarray, skin: np.ndarray
 ) -> dict[str, float]:
@@ -122,18 +153,16 @@ def sculpted_target_errors(
     Returns {"skin_mae_mm", "skin_q95_mm": over the skin vertices of every shape;
     "active_mae_mm": over the (shape, vertex) pairs whose target moves more than
     ``ACTIVE_MM``; "amplitude_ratio_median": the median over shapes of the summed predicted
-    displacement length over the summed target length on the skin (0 for no motion)}."""
+    displacement length over the summed target length on the skin (0 for no motion;
+    ``sculpted_shape_errors`` gives it per shape)}."""
+    per_shape = sculpted_shape_errors(predicted, truth, skin)
     distance = _distances_mm(predicted, truth)
     skin = np.asarray(skin, bool)
-    if skin.shape != (distance.shape[1],) or not skin.any():
-        raise ValueError(f"skin: expected a non-empty (V,) mask, got shape {skin.shape}")
     truth_mm = np.linalg.norm(np.asarray(truth, np.float64), axis=-1) * CM_TO_MM
-    predicted_mm = np.linalg.norm(np.asarray(predicted, np.float64), axis=-1) * CM_TO_MM
     active = truth_mm > ACTIVE_MM
-    ratio = predicted_mm[:, skin].sum(1) / np.maximum(truth_mm[:, skin].sum(1), 1e-12)
     return {
         "skin_mae_mm": float(distance[:, skin].mean()),
         "skin_q95_mm": float(np.percentile(distance[:, skin], 95)),
         "active_mae_mm": float(distance[active].mean()) if active.any() else 0.0,
-        "amplitude_ratio_median": float(np.median(ratio)),
+        "amplitude_ratio_median": float(np.median(per_shape["amplitude_ratio"])),
     }
