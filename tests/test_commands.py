@@ -109,6 +109,11 @@ def test_animate_then_invert_recovers_the_take(workspace, capsys):
     match = re.search(r"mean ([\d.]+), RMS ([\d.]+), max ([\d.]+)", out)
     mean, rms, worst = (float(x) for x in match.groups())
     assert mean < 2e-3 and worst < 0.1, out
+    # the mesh error of the solved weights, against the meshes the weights came from
+    mesh_mean, mesh_max = (
+        float(x) for x in re.search(r"mean ([\d.]+) mm, max ([\d.]+) mm", out).groups()
+    )
+    assert mesh_mean <= mesh_max < 0.5 and mesh_mean < 0.01, out
     back = read_livelink_csv(root / "back.csv", fps=60)
     assert back.n_frames == 180 and len(back.names) == 51  # ICT has no TongueOut
     assert back.names[:2] == ("EyeBlinkLeft", "EyeLookDownLeft")
