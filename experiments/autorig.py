@@ -103,10 +103,13 @@ MODELS = {"raf": {}, "raf_no_global_encoder": {"global_size": 0}}
 RAF_LOSSES = {
     "squared": {"loss": "squared", "static_weight": 0.0},
     "euclidean_static": {"loss": "euclidean", "static_weight": 1.0},
+    "squared_static": {"loss": "squared", "static_weight": 1.0},
+    "euclidean": {"loss": "euclidean", "static_weight": 0.0},
 }
-"""Losses of pure RAF (``--raf-loss``): the issue-7 recipe (the standard checkpoints), and the
+"""Losses of pure RAF (``--raf-loss``): the issue-7 recipe (the standard checkpoints), the
 per-vertex Euclidean loss plus the static-vertex term (issue 19; experiments/results/
-autorig_retrain)."""
+autorig_retrain, autorig_wide, autorig_long), and the other two combinations (the loss
+ablation, experiments/results/autorig_loss)."""
 RESIDUAL = "raf_dt_residual"
 RESIDUAL_ANCHORED = "raf_anchored_dt_residual"
 """The residual model trained on anchored deformation transfer (``--anchored-residual``)."""
@@ -701,6 +704,7 @@ def makehuman_shapes(makehuman_example: tuple) -> dict:
     for name, predicted in predictions.items():
         errors = sculpted_shape_errors(predicted, truth, mh.skin)
         target_peak = errors.pop("target_peak_mm")
+        errors["peak_ratio"] = errors["peak_mm"] / target_peak
         methods[name] = {k: v.tolist() for k, v in errors.items()}
     return {
         "labels": [str(n) for n in labels],
@@ -710,22 +714,49 @@ def makehuman_shapes(makehuman_example: tuple) -> dict:
     }
 
 
-def makehuman_shape_rows(shapes: dict) -> list[str]:
-    """Table rows: each method's median per-shape amplitude ratio and skin MAE on the upper
-    face (brow, eye, cheekSquint shapes) and on the rest."""
+def heldout_shapes(heads, predicted: dict, poses) -> dict:
+    """Per single expression on the held-out ICT heads (``sculpted_shape_errors`` against the
+    ground truth on each head's skin, Face and Head and Neck, then the mean over heads):
+    {"labels", "upper_face", "methods": name -> {"skin_mae_mm", "amplitude_ratio",
+    "peak_ratio"}}, lists. An aggregate MAE can hide a region that never moves: most vertices
+    of an eye or brow shape are static."""
+    n = poses.n_basis
+    methods = {}
+    for name, per_head in predicted.items():
+        if name == "no_motion":
+            continue
+        records = []
+        for head, p in zip(heads, per_head, strict=True):
+            e = sculpted_shape_errors(p[:n], head.displacements[:n], head.parts <= 1)
+            records.append({**e, "peak_ratio": e["peak_mm"] / e["target_peak_mm"]})
+        methods[name] = {
+            k: np.mean([r[k] for r in records], axis=0).tolist()
+            for k in ("skin_mae_mm", "amplitude_ratio", "peak_ratio")
+        }
+    labels = [str(name) for name in poses.basis_names]
+    return {
+        "labels": labels,
+        "upper_face": [name.startswith(UPPER_FACE) for name in labels],
+        "methods": methods,
+    }
+
+
+def shape_region_rows(shapes: dict, figure: str) -> list[str]:
+    """Table rows: each method's median per-shape amplitude ratio, peak ratio and skin MAE on
+    the upper face (brow, eye, cheekSquint shapes) and on the rest (``makehuman_shapes``,
+    ``heldout_shapes``)."""
     upper = np.asarray(shapes["upper_face"])
     rows = [
         f"Per shape, by region (median over shapes; upper face: {', '.join(UPPER_FACE)}*, "
-        f"{upper.sum()} shapes; lower face: the other {(~upper).sum()}; makehuman_shapes.png):",
+        f"{upper.sum()} shapes; lower face: the other {(~upper).sum()}; {figure}):",
         "",
         "| method | amplitude ratio upper / lower | peak ratio upper / lower | "
         "skin MAE upper / lower (mm) |",
         "|---|---|---|---|",
     ]
-    target_peak = np.asarray(shapes["target_peak_mm"])
     for name, e in shapes["methods"].items():
         ratio, mae = np.asarray(e["amplitude_ratio"]), np.asarray(e["skin_mae_mm"])
-        peak = np.asarray(e["peak_mm"]) / target_peak
+        peak = np.asarray(e["peak_ratio"])
         cells = [
             f"{np.median(x[upper]):{f}} / {np.median(x[~upper]):{f}}"
             for x, f in ((ratio, ".2f"), (peak, ".2f"), (mae, ".3f"))
@@ -876,9 +907,9 @@ def evaluate_checkpoints(args, argv=None) -> dict:
     against no motion, copied ICT deltas and DT (plain and anchored) on the standard held-out
     test identities (unseen topology) and on the MakeHuman head, with penetration where the
     ground truth has none (``clean_penetration``): results.json (``heldout``, ``worst_poses``,
-    ``makehuman``, ``makehuman_shapes``, ``penetration_clean``, ``training``), table.md,
-    training_loss.png, poses_unseen_topology.png, makehuman.png and makehuman_shapes.png in
-    ``args.out``. Nothing is trained."""
+    ``heldout_shapes``, ``makehuman``, ``makehuman_shapes``, ``penetration_clean``,
+    ``training``), table.md, training_loss.png, poses_unseen_topology.png, heldout_shapes.png,
+    makehuman.png and makehuman_shapes.png in ``args.out``. Nothing is trained."""
     loaded = _load_checkpoints(args.evaluate_only, "--evaluate-only")
     models = {name: model for name, (model, _) in loaded.items()}
     training = {}
@@ -910,6 +941,7 @@ def evaluate_checkpoints(args, argv=None) -> dict:
             "anchored": f"deformation transfer with static_below = {ANCHOR_CM} cm",
         },
         "worst_poses": {name: worst_poses(p, truth, poses, 5) for name, p in predicted.items()},
+        "heldout_shapes": heldout_shapes(dataset.test[HELDOUT_SPLIT], predicted, poses),
         "makehuman": makehuman,
         "makehuman_protocol": makehuman_info,
         "makehuman_shapes": makehuman_shapes(makehuman_example),
@@ -933,6 +965,11 @@ def evaluate_checkpoints(args, argv=None) -> dict:
     first = {name: p[0] for name, p in predicted.items() if name != "no_motion"}
     examples = {HELDOUT_SPLIT: (heads[0], first)}
     plot_examples(args.out, poses.labels, examples, makehuman_example)
+    plot_shape_ratios(
+        results["heldout_shapes"],
+        f"Held-out ICT identities ({len(heads)} heads, {HELDOUT_SPLIT})",
+        args.out / "heldout_shapes.png",
+    )
     return results
 
 
@@ -1230,6 +1267,8 @@ def heldout_table(r: dict) -> list[str]:
         rows.append(
             f"| {name} | " + ", ".join(f"{w['pose']} {w['mae_mm']:.2f}" for w in worst) + " |"
         )
+    if "heldout_shapes" in r:
+        rows += ["", *shape_region_rows(r["heldout_shapes"], "heldout_shapes.png")]
     m = r["makehuman_protocol"]
     rows += [
         "",
@@ -1252,7 +1291,7 @@ def heldout_table(r: dict) -> list[str]:
     matched = ", ".join(f"{k} -> {v}" for k, v in m["matched_parts"].items())
     rows += ["", f"Part matching (MakeHuman component -> ICT part): {matched}.", ""]
     if "makehuman_shapes" in r:
-        rows += makehuman_shape_rows(r["makehuman_shapes"])
+        rows += shape_region_rows(r["makehuman_shapes"], "makehuman_shapes.png")
     return rows
 
 
@@ -1291,28 +1330,36 @@ def plot_examples(out: Path, labels, examples: dict, makehuman_example: tuple) -
         mh_labels,
         out / "makehuman.png",
     )
-    plot_makehuman_shapes(makehuman_shapes(makehuman_example), out / "makehuman_shapes.png")
+    plot_shape_ratios(
+        makehuman_shapes(makehuman_example),
+        "MakeHuman hm08 against its sculpted targets",
+        out / "makehuman_shapes.png",
+    )
 
 
-def plot_makehuman_shapes(shapes: dict, path: Path) -> None:
-    """Each method's per-shape amplitude ratio on the MakeHuman head (log scale; 1: the
-    sculpted amount of motion), shapes in alphabetical order, the upper face shaded."""
+def plot_shape_ratios(shapes: dict, title: str, path: Path) -> None:
+    """Each method's per-shape amplitude ratio (summed motion on the skin) and peak ratio
+    (largest vertex motion), generated over true (log scale; 1: the true amount), shapes in
+    alphabetical order, the upper face shaded (``makehuman_shapes``, ``heldout_shapes``)."""
     labels = shapes["labels"]
     order = np.argsort(labels)
     upper = np.asarray(shapes["upper_face"])[order]
-    fig, ax = plt.subplots(figsize=(13, 4.2))
-    for x in np.flatnonzero(upper):
-        ax.axvspan(x - 0.5, x + 0.5, color="0.92", lw=0)
-    for name, e in shapes["methods"].items():
-        ratio = np.maximum(np.asarray(e["amplitude_ratio"])[order], 1e-2)
-        ax.plot(np.arange(len(labels)), ratio, "o-", ms=3, lw=0.7, label=name)
-    ax.axhline(1.0, color="k", lw=0.8)
-    ax.set_yscale("log")
-    ax.set_xticks(np.arange(len(labels)), [labels[i] for i in order], rotation=90, fontsize=7)
-    ax.set_xlim(-0.5, len(labels) - 0.5)
-    ax.set_ylabel("generated / sculpted motion on the skin")
-    ax.set_title("MakeHuman hm08, per ARKit shape (grey: upper face)")
-    ax.legend(fontsize=7, ncols=2)
+    fig, axes = plt.subplots(2, 1, figsize=(13, 7.5), sharex=True)
+    for ax, key, what in zip(
+        axes, ("amplitude_ratio", "peak_ratio"), ("summed motion", "peak motion"), strict=True
+    ):
+        for x in np.flatnonzero(upper):
+            ax.axvspan(x - 0.5, x + 0.5, color="0.92", lw=0)
+        for name, e in shapes["methods"].items():
+            ratio = np.maximum(np.asarray(e[key])[order], 1e-2)
+            ax.plot(np.arange(len(labels)), ratio, "o-", ms=3, lw=0.7, label=name)
+        ax.axhline(1.0, color="k", lw=0.8)
+        ax.set_yscale("log")
+        ax.set_ylabel(f"{what} on the skin,\ngenerated / true")
+    axes[1].set_xticks(np.arange(len(labels)), [labels[i] for i in order], rotation=90, fontsize=7)
+    axes[1].set_xlim(-0.5, len(labels) - 0.5)
+    axes[0].set_title(f"{title}, per shape (grey: upper face)")
+    axes[0].legend(fontsize=7, ncols=2)
     save_figure(fig, path)
 
 

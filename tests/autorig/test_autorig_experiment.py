@@ -176,12 +176,20 @@ def test_wider_model_trained_alone_then_evaluated_on_heldout_and_makehuman(tmp_p
         assert np.median(e["amplitude_ratio"]) == pytest.approx(summary["amplitude_ratio_median"])
         assert np.mean(e["skin_mae_mm"]) == pytest.approx(summary["skin_mae_mm"], rel=1e-6)
     assert any(shapes["upper_face"]) and not all(shapes["upper_face"])
+    # per single expression on the held-out heads: copying the ICT deltas (0.05 mm MAE) moves
+    # every shape by its true amount; the rows are the held-out ones but no motion
+    held = results["heldout_shapes"]
+    assert set(held["methods"]) == set(results["heldout"]) - {"no_motion"}
+    assert len(held["labels"]) == len(held["upper_face"]) == 53 and 0 < sum(held["upper_face"]) < 53
+    copied = np.asarray(held["methods"]["copy_deltas"]["peak_ratio"])
+    assert 0.8 < np.median(copied) < 1.25
     for name in (
         "table.md",
         "training_loss.png",
         "poses_unseen_topology.png",
         "makehuman.png",
         "makehuman_shapes.png",
+        "heldout_shapes.png",
     ):
         assert (tmp_path / "eval" / name).exists()
     saved = json.loads((tmp_path / "eval" / "results.json").read_text())
