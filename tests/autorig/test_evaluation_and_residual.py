@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from canrig_jax.autorig import (
+    STATIC_CM,
     STATIC_MM,
     PoseSet,
     RigAnyFace,
@@ -320,6 +321,43 @@ def test_residual_training_improves_on_its_base_and_resumes(small_head, tiny_pos
         np.testing.assert_array_equal(x, y)
     with pytest.raises(ValueError, match="data"):
         train(training_set([head], tiny_poses, k=32, progress=False), tiny_poses, options)
+
+
+def test_static_term_adds_to_either_loss(small_head, tiny_poses):
+    """static_weight adds the static-vertex error over the loss's scale to the squared loss as
+    to the Euclidean one (it used to be dropped silently with loss="squared")."""
+    from canrig_jax.autorig import RiggedHead
+    from canrig_jax.autorig._train import batch_loss, mean_square_displacement
+
+    mesh, *_ = small_head
+    n = mesh.vertices.shape[0]
+    truth = np.zeros((tiny_poses.n_poses, n, 3), np.float32)
+    truth[:, mesh.vertices[:, 1] < np.median(mesh.vertices[:, 1])] = 0.2  # the rest is static
+    head = RiggedHead(
+        "one", mesh.vertices, mesh.faces, truth, np.arange(10), np.zeros(n, np.int32),
+        np.zeros(1), "decimate_500",
+    )  # fmt: skip
+    data = training_set([head], tiny_poses, k=32, progress=False)
+    model = RigAnyFace(
+        tiny_poses.n_basis, width=8, global_size=4, global_width=8, output_scale=0.05,
+        key=jax.random.PRNGKey(1),
+    )  # fmt: skip
+    reference = jnp.asarray(mean_square_displacement(data))
+    heads, poses = jnp.array([0]), jnp.array([[0, 1, 2]])
+    predicted = model(
+        data.poses[poses[0]], data.vertices[0], jax.tree.map(lambda x: x[0], data.operators)
+    )
+    static = static_vertex_error(
+        predicted, data.displacements[0][poses[0]], data.operators.vertex_mask[0],
+        STATIC_CM / data.scale[0],
+    )  # fmt: skip
+    assert static > 0  # a random model moves the static vertices
+    for kind in ("squared", "euclidean"):
+        without, _ = batch_loss(model, data, heads, poses, 1.0, reference, kind, 0.0)
+        with_term, _ = batch_loss(model, data, heads, poses, 1.0, reference, kind, 2.0)
+        np.testing.assert_allclose(
+            with_term - without, 2.0 * static / jnp.sqrt(reference), rtol=1e-4
+        )
 
 
 @pytest.mark.slow  # 12-21 s; the default run stays under 10 min on 2 cores

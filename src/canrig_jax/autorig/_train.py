@@ -4,12 +4,13 @@ Loss on heads normalised to the unit sphere, ``loss="squared"`` (the first recip
 squared vertex error over the poses of a batch plus ``landmark_weight`` times the same on the
 68 landmark vertices, both divided by the training set's mean squared displacement (so the
 loss starts near 1 whatever the units). ``loss="euclidean"``: the same with the per-vertex
-Euclidean distance (divided by the root of that mean square), plus ``static_weight`` times
-``static_vertex_error``, the mean length of the predicted motion of vertices whose ground
-truth does not move (below ``STATIC_CM``) — the term that keeps eyeballs and the back of the
-head still. ``residual=True`` trains the "DT + learned residual" model (``RigAnyFace``): the
-training set then carries each head's deformation-transfer poses as the base;
-``residual_gate`` > 0 gates its correction by the base's motion (``RigAnyFace``).
+Euclidean distance (divided by the root of that mean square). Either loss adds
+``static_weight`` times ``static_vertex_error`` (divided by that root), the mean length of the
+predicted motion of vertices whose ground truth does not move (below ``STATIC_CM``) — the term
+that keeps eyeballs and the back of the head still. ``residual=True`` trains the "DT +
+learned residual" model (``RigAnyFace``): the training set then carries each head's
+deformation-transfer poses as the base; ``residual_gate`` > 0 gates its correction by the
+base's motion (``RigAnyFace``).
 Adam with linear warm-up and cosine decay (optax). Each step draws ``heads_per_step`` heads
 and ``poses_per_step`` of their poses from ``numpy.random.default_rng([seed, step])``, so a
 run resumed from its checkpoint (one file, written atomically) draws the same batches and
@@ -53,7 +54,9 @@ DEFAULT_CHECKPOINT = (
 """The committed default RigAnyFace checkpoint (present in a source checkout; ``load_model``
 reads it): what ``canrig autorig`` loads unless given ``--model``. Width 64, 159,747
 parameters, 7,000 steps; chosen on validation identities over ``autorig_wide`` (the same
-recipe, 4,000 steps), which had been chosen over the width-32 ``autorig`` model (issue 19)."""
+recipe, 4,000 steps), which had been chosen over the width-32 ``autorig`` model (issue 19).
+Known limitation: its eye and brow shapes move about a tenth of the true amount (README,
+"What the MAE hid"); ``autorig/checkpoint_raf_dt_residual.eqx`` moves them."""
 LOSSES = ("squared", "euclidean")
 STATIC_CM = 0.001
 """A vertex is static in a pose when its ground-truth displacement is below 0.01 mm."""
@@ -270,15 +273,17 @@ def batch_loss(
         mask = ops.vertex_mask
         distances = jnp.sqrt(squared + 1e-20)
         distance = jnp.sum(distances * mask) / (jnp.sum(mask) * squared.shape[0])
+        root = jnp.sqrt(reference)
+        # mean predicted motion where the truth is still, over the loss's own scale
+        static = static_vertex_error(predicted, truth, mask, STATIC_CM / data.scale[h]) / root
         if loss_kind == "squared":
             vertex_term = jnp.sum(squared * mask) / (jnp.sum(mask) * squared.shape[0])
             landmark_term = jnp.mean(squared[:, data.landmarks[h]])
-            return (vertex_term + landmark_weight * landmark_term) / reference, distance
-        root = jnp.sqrt(reference)
+            fit = (vertex_term + landmark_weight * landmark_term) / reference
+            return fit + static_weight * static, distance
         landmark_term = jnp.mean(distances[:, data.landmarks[h]])
-        static = static_vertex_error(predicted, truth, mask, STATIC_CM / data.scale[h])
-        total = distance + landmark_weight * landmark_term + static_weight * static
-        return total / root, distance
+        total = (distance + landmark_weight * landmark_term) / root
+        return total + static_weight * static, distance
 
     loss, distance = jax.vmap(one)(heads, poses)
     return jnp.mean(loss), jnp.mean(distance)
