@@ -83,6 +83,29 @@ STANDARD_EXPERIMENTS = (
             )
         ),
     ),
+    # the loss ablation of pure RigAnyFace (width 32, 1,200 steps), then its evaluation
+    *(
+        (
+            "autorig.py",
+            *("--out", f"experiments/results/autorig_loss/{loss}", "--no-progress"),
+            *("--steps", "1200", "--raf-loss", loss, "--train-only", "raf"),
+        )
+        for loss in ("squared", "squared_static", "euclidean")
+    ),
+    (
+        "autorig.py",
+        *("--out", "experiments/results/autorig_loss", "--no-progress", "--evaluate-only"),
+        *(
+            f"experiments/results/{checkpoint}.eqx"
+            for checkpoint in (
+                "autorig_loss/squared/checkpoint_raf",
+                "autorig_loss/squared_static/checkpoint_raf",
+                "autorig_loss/euclidean/checkpoint_raf",
+                "autorig_retrain/checkpoint_raf",
+                "autorig/checkpoint_raf_dt_residual",
+            )
+        ),
+    ),
     # the default RigAnyFace: the same recipe on a 7,000-step schedule, then its evaluation
     (
         "autorig.py",
