@@ -856,8 +856,9 @@ def _checkpoint_predictions(dataset, models: dict, anchors, copy: bool = False, 
 
 def validate(args, argv=None) -> dict:
     """Errors by pose and vertex class (``class_errors``) of ``args.validation_only``'s
-    checkpoints, no motion and DT on validation identities at the held-out resolution;
-    written to ``args.out``/validation.json. Evaluation only: nothing is trained."""
+    checkpoints, no motion and DT on validation identities at the held-out resolution, and
+    their per-shape record (``heldout_shapes``: does the upper face move?); written to
+    ``args.out``/validation.json. Evaluation only: nothing is trained."""
     models = {
         name: model
         for name, (model, _) in _load_checkpoints(args.validation_only, "--validation-only").items()
@@ -874,6 +875,7 @@ def validate(args, argv=None) -> dict:
         "validation": {
             name: class_errors(p, truth, dataset.poses) for name, p in predicted.items()
         },
+        "validation_shapes": heldout_shapes(dataset.test[HELDOUT_SPLIT], predicted, dataset.poses),
         "protocol": {
             "identities": f"held-out stream of seed {args.seed + VALIDATION_SEED_OFFSET} "
             f"(not training, not test), {len(truth)} heads",
@@ -898,6 +900,13 @@ def validate(args, argv=None) -> dict:
                 f"moving {v['moving_mae_mm']:.4f}"
                 for c, v in classes.items()
             ),
+        )
+    upper = np.asarray(results["validation_shapes"]["upper_face"])
+    for name, e in results["validation_shapes"]["methods"].items():
+        peak = np.asarray(e["peak_ratio"])
+        print(
+            f"{name} median peak ratio: upper face {np.median(peak[upper]):.2f}, "
+            f"lower face {np.median(peak[~upper]):.2f}"
         )
     return results
 

@@ -134,6 +134,20 @@ def test_wider_model_trained_alone_then_evaluated_on_heldout_and_makehuman(tmp_p
         ]
     )
     rows = ("w16/checkpoint_raf", "w24/checkpoint_raf")
+    # validation (how models are chosen): class errors and the per-shape record, which shows
+    # whether the upper face moves; deformation transfer moves it
+    checked = module.main(
+        [
+            *("--no-progress", "--out", str(tmp_path / "val"), "--validation-identities", "1"),
+            *("--validation-only", str(sizes[16]), str(sizes[24])),
+        ]
+    )
+    assert set(checked["validation"]) >= {"no_motion", "deformation_transfer", *rows}
+    val_shapes = checked["validation_shapes"]
+    assert set(val_shapes["methods"]) == set(checked["validation"]) - {"no_motion"}
+    dt_peak = np.asarray(val_shapes["methods"]["deformation_transfer"]["peak_ratio"])
+    assert np.median(dt_peak[np.asarray(val_shapes["upper_face"])]) > 0.5
+    assert json.loads((tmp_path / "val" / "validation.json").read_text())["validation_shapes"]
     assert set(results["heldout"]) == {
         "no_motion",
         "copy_deltas",
