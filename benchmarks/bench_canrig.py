@@ -40,7 +40,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from canrig_jax import save_text
+from canrig_jax import call_times_ms, save_text
 from canrig_jax.canrig import (
     DENSE,
     FitOptions,
@@ -70,13 +70,9 @@ def uncached_forward(model, canonical, edit):
 
 
 def _time(fn, repeats):
-    jax.block_until_ready(fn())
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    return statistics.median(times) * 1e3, min(times) * 1e3
+    """(median, minimum) milliseconds after one warm-up call."""
+    times = call_times_ms(fn, repeats)
+    return statistics.median(times), min(times)
 
 
 def main(argv=None):

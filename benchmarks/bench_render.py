@@ -29,15 +29,13 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
-import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from canrig_jax import save_text
+from canrig_jax import median_ms, save_text
 from canrig_jax.data import load_ict
 from canrig_jax.mesh import decimate
 from canrig_jax.render import (
@@ -52,13 +50,8 @@ from canrig_jax.render import (
 
 
 def median_seconds(function, repeats: int) -> float:
-    jax.block_until_ready(function())
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(function())
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    """Median seconds after one warm-up call."""
+    return median_ms(function, repeats) / 1e3
 
 
 def load() -> float:

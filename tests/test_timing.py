@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import time
+
 import pytest
 
-from canrig_jax import median_ms
+from canrig_jax import call_times_ms, median_ms
 
 
 def test_median_ms_warms_up_once_then_times_each_repeat():
@@ -16,3 +18,11 @@ def test_median_ms_warms_up_once_then_times_each_repeat():
 def test_median_ms_refuses_no_repeats():
     with pytest.raises(ValueError, match="^repeats:"):
         median_ms(lambda: None, repeats=0)
+
+
+def test_call_times_ms_lists_each_timed_call_and_median_ms_is_their_median():
+    calls = []
+    times = call_times_ms(lambda: calls.append(1), repeats=4)
+    assert len(times) == 4 and len(calls) == 5 and all(t >= 0 for t in times)
+    slow = median_ms(lambda: time.sleep(0.02), repeats=3)
+    assert 15 < slow < 500  # milliseconds, not seconds

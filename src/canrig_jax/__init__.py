@@ -49,11 +49,12 @@ from ._sharding import (
     shard_batch,
 )
 from ._threads import blocking_single_threaded_blas, single_threaded_blas
-from ._timing import median_ms
+from ._timing import call_times_ms, median_ms
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "call_times_ms",
     "median_ms",
     "BATCH_AXIS",
     "DataParallel",

@@ -10,8 +10,8 @@ import time
 import jax
 
 
-def median_ms(fn, repeats: int = 10) -> float:
-    """Median milliseconds of ``fn()`` over ``repeats`` calls after one warm-up call."""
+def call_times_ms(fn, repeats: int = 10) -> list[float]:
+    """Milliseconds of each of ``repeats`` calls of ``fn()`` after one warm-up call."""
     if repeats < 1:
         raise ValueError(f"repeats: expected >= 1, got {repeats}")
     jax.block_until_ready(fn())
@@ -19,5 +19,10 @@ def median_ms(fn, repeats: int = 10) -> float:
     for _ in range(repeats):
         start = time.perf_counter()
         jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    return statistics.median(times) * 1e3
+        times.append((time.perf_counter() - start) * 1e3)
+    return times
+
+
+def median_ms(fn, repeats: int = 10) -> float:
+    """Median milliseconds of ``fn()`` over ``repeats`` calls after one warm-up call."""
+    return statistics.median(call_times_ms(fn, repeats))

@@ -114,16 +114,9 @@ def shared_shape_matrix(
     return np.asarray(kept, np.int64), np.stack(rows)
 
 
-def sculpted_shape_errors(
-    predicted: np.ndarray, truth: np.ndarray, skin: np.ndarray
-) -> dict[str, np.ndarray]:
-    """Per shape, against person-made targets (each (S, V, 3), cm): where a generated rig
-    fails, shape by shape.
-
-    Returns {"skin_mae_mm": (S,) mean error over the skin vertices; "amplitude_ratio": (S,)
-    the summed predicted displacement length over the summed target length on the skin (0 for
-    no motion, 1 for the sculpted amount of motion); "peak_mm", "target_peak_mm": (S,) the
-    largest skin displacement of the prediction and of the target}."""
+def _sculpted(predicted, truth, skin) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """(S, V) error and target length in mm, and the per-shape record, computed once for
+    ``sculpted_shape_errors`` and ``sculpted_target_errors``."""
     predicted = np.asarray(predicted, np.float64)
     truth = np.asarray(truth, np.float64)
     if predicted.ndim != 3 or predicted.shape != truth.shape or predicted.shape[-1] != 3:
@@ -134,15 +127,29 @@ def sculpted_shape_errors(
     skin = np.asarray(skin, bool)
     if skin.shape != (truth.shape[1],) or not skin.any():
         raise ValueError(f"skin: expected a non-empty (V,) mask, got shape {skin.shape}")
-    distance = _distances_mm(predicted, truth)[:, skin]
-    truth_mm = np.linalg.norm(truth[:, skin], axis=-1) * CM_TO_MM
+    distance = _distances_mm(predicted, truth)
+    truth_mm = np.linalg.norm(truth, axis=-1) * CM_TO_MM
     predicted_mm = np.linalg.norm(predicted[:, skin], axis=-1) * CM_TO_MM
-    return {
-        "skin_mae_mm": distance.mean(axis=1),
-        "amplitude_ratio": predicted_mm.sum(1) / np.maximum(truth_mm.sum(1), 1e-12),
+    per_shape = {
+        "skin_mae_mm": distance[:, skin].mean(axis=1),
+        "amplitude_ratio": predicted_mm.sum(1) / np.maximum(truth_mm[:, skin].sum(1), 1e-12),
         "peak_mm": predicted_mm.max(axis=1),
-        "target_peak_mm": truth_mm.max(axis=1),
+        "target_peak_mm": truth_mm[:, skin].max(axis=1),
     }
+    return distance, truth_mm, per_shape
+
+
+def sculpted_shape_errors(
+    predicted: np.ndarray, truth: np.ndarray, skin: np.ndarray
+) -> dict[str, np.ndarray]:
+    """Per shape, against person-made targets (each (S, V, 3), cm): where a generated rig
+    fails, shape by shape.
+
+    Returns {"skin_mae_mm": (S,) mean error over the skin vertices; "amplitude_ratio": (S,)
+    the summed predicted displacement length over the summed target length on the skin (0 for
+    no motion, 1 for the sculpted amount of motion); "peak_mm", "target_peak_mm": (S,) the
+    largest skin displacement of the prediction and of the target}."""
+    return _sculpted(predicted, truth, skin)[2]
 
 
 def sculpted_target_errors(
@@ -155,10 +162,8 @@ def sculpted_target_errors(
     ``ACTIVE_MM``; "amplitude_ratio_median": the median over shapes of the summed predicted
     displacement length over the summed target length on the skin (0 for no motion;
     ``sculpted_shape_errors`` gives it per shape)}."""
-    per_shape = sculpted_shape_errors(predicted, truth, skin)
-    distance = _distances_mm(predicted, truth)
+    distance, truth_mm, per_shape = _sculpted(predicted, truth, skin)
     skin = np.asarray(skin, bool)
-    truth_mm = np.linalg.norm(np.asarray(truth, np.float64), axis=-1) * CM_TO_MM
     active = truth_mm > ACTIVE_MM
     return {
         "skin_mae_mm": float(distance[:, skin].mean()),
