@@ -503,3 +503,52 @@ def test_transfer_poses_needs_only_the_head(data_dir):
     assert not held[:, skin].any() and not np.all(anchored[:, skin] == 0, axis=-1).all()
     with pytest.raises(ValueError, match="head: .*faces"):
         transfer_poses(source, SimpleNamespace(vertices=truth.vertices))
+
+
+def test_balanced_loss_weighs_each_pose_against_its_own_no_motion_error(small_head, tiny_poses):
+    """balance_poses divides each pose's error by what predicting no motion scores on it:
+    checked against numpy, and a pose 100x larger does not outweigh a small one."""
+    from canrig_jax.autorig import RiggedHead
+    from canrig_jax.autorig._train import BALANCE_FLOOR, batch_loss, mean_square_displacement
+
+    mesh, *_ = small_head
+    n = mesh.vertices.shape[0]
+    rng = np.random.default_rng(3)
+    truth = np.zeros((tiny_poses.n_poses, n, 3), np.float32)
+    truth[:, : n // 2] = rng.normal(0, 0.1, (tiny_poses.n_poses, n // 2, 3))
+    truth[1] *= 100.0  # one pose moves 100x more than the others
+    head = RiggedHead(
+        "one", mesh.vertices, mesh.faces, truth, np.arange(10), np.zeros(n, np.int32),
+        np.zeros(1), "decimate_500",
+    )  # fmt: skip
+    data = training_set([head], tiny_poses, k=32, progress=False)
+    model = RigAnyFace(
+        tiny_poses.n_basis, width=8, global_size=4, global_width=8, output_scale=0.05,
+        key=jax.random.PRNGKey(1),
+    )  # fmt: skip
+    reference = float(mean_square_displacement(data))
+    heads, poses = jnp.array([0]), jnp.array([[0, 1, 2]])
+    ops = jax.tree.map(lambda x: x[0], data.operators)
+    predicted = np.asarray(model(data.poses[poses[0]], data.vertices[0], ops))
+    t = np.asarray(data.displacements[0][poses[0]])
+    mask = np.asarray(ops.vertex_mask, bool)
+    marks = np.asarray(data.landmarks[0])
+
+    def terms(x):  # (Q, V) -> (Q,)
+        return x[:, mask].mean(axis=1) + 0.5 * x[:, marks].mean(axis=1)
+
+    error = terms(np.sum((predicted - t) ** 2, -1))
+    still = np.maximum(terms(np.sum(t**2, -1)), BALANCE_FLOOR * reference)
+    for weight in (0.0, 2.0):
+        balanced, _ = batch_loss(
+            model, data, heads, poses, 0.5, jnp.asarray(reference), "squared", weight, True
+        )
+        plain, _ = batch_loss(
+            model, data, heads, poses, 0.5, jnp.asarray(reference), "squared", weight, False
+        )
+        static = float(plain) - np.mean(error) / reference
+        np.testing.assert_allclose(balanced, np.mean(error / still) + static, rtol=1e-4)
+    np.testing.assert_allclose(plain, np.mean(error) / reference + static, rtol=1e-4)
+    # the plain loss is dominated by the large pose, the balanced one weighs poses alike
+    assert error[1] / error.sum() > 0.9
+    assert (error / still)[1] / (error / still).sum() < 0.9

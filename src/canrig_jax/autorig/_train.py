@@ -7,7 +7,10 @@ loss starts near 1 whatever the units). ``loss="euclidean"``: the same with the 
 Euclidean distance (divided by the root of that mean square). Either loss adds
 ``static_weight`` times ``static_vertex_error`` (divided by that root), the mean length of the
 predicted motion of vertices whose ground truth does not move (below ``STATIC_CM``) — the term
-that keeps eyeballs and the back of the head still. ``residual=True`` trains the "DT +
+that keeps eyeballs and the back of the head still. ``balance_poses=True`` divides each pose's
+fit term by that of predicting no motion for it (its own mean squared, or mean Euclidean,
+displacement; floored at ``BALANCE_FLOOR`` of the training set's), so that a blink, which moves
+a few eyelid vertices, weighs as much as jawOpen, which moves half the head. ``residual=True`` trains the "DT +
 learned residual" model (``RigAnyFace``): the training set then carries each head's
 deformation-transfer poses as the base; ``residual_gate`` > 0 gates its correction by the
 base's motion (``RigAnyFace``).
@@ -58,6 +61,8 @@ recipe, 4,000 steps), which had been chosen over the width-32 ``autorig`` model 
 Known limitation: its eye and brow shapes move about a tenth of the true amount (README,
 "What the MAE hid"); ``autorig/checkpoint_raf_dt_residual.eqx`` moves them."""
 LOSSES = ("squared", "euclidean")
+BALANCE_FLOOR = 1e-3
+"""With ``balance_poses``: a pose's divisor is at least this fraction of the training set's."""
 STATIC_CM = 0.001
 """A vertex is static in a pose when its ground-truth displacement is below 0.01 mm."""
 
@@ -84,6 +89,7 @@ class TrainOptions:
     log_every: int = 20
     loss: str = "squared"
     static_weight: float = 0.0
+    balance_poses: bool = False
     residual: bool = False
     residual_gate: float = 0.0
 
@@ -260,6 +266,7 @@ def batch_loss(
     reference,
     loss_kind: str = "squared",
     static_weight=0.0,
+    balance_poses: bool = False,
 ):
     """Loss and mean vertex error (unit-sphere units) of ``heads`` (B,) x ``poses`` (B, Q)."""
 
@@ -277,13 +284,24 @@ def batch_loss(
         # mean predicted motion where the truth is still, over the loss's own scale
         static = static_vertex_error(predicted, truth, mask, STATIC_CM / data.scale[h]) / root
         if loss_kind == "squared":
-            vertex_term = jnp.sum(squared * mask) / (jnp.sum(mask) * squared.shape[0])
-            landmark_term = jnp.mean(squared[:, data.landmarks[h]])
-            fit = (vertex_term + landmark_weight * landmark_term) / reference
-            return fit + static_weight * static, distance
-        landmark_term = jnp.mean(distances[:, data.landmarks[h]])
-        total = (distance + landmark_weight * landmark_term) / root
-        return total + static_weight * static, distance
+            per_vertex, scale = squared, reference
+        else:
+            per_vertex, scale = distances, root
+        if balance_poses:  # per pose (Q,), each over what predicting no motion scores
+            size = jnp.sum(truth**2, axis=-1)
+            size = size if loss_kind == "squared" else jnp.sqrt(size + 1e-20)
+
+            def terms(x):
+                return jnp.sum(x * mask, axis=1) / jnp.sum(mask) + landmark_weight * jnp.mean(
+                    x[:, data.landmarks[h]], axis=1
+                )
+
+            divisor = jnp.maximum(terms(size), BALANCE_FLOOR * scale)
+            return jnp.mean(terms(per_vertex) / divisor) + static_weight * static, distance
+        vertex_term = jnp.sum(per_vertex * mask) / (jnp.sum(mask) * squared.shape[0])
+        landmark_term = jnp.mean(per_vertex[:, data.landmarks[h]])
+        fit = (vertex_term + landmark_weight * landmark_term) / scale
+        return fit + static_weight * static, distance
 
     loss, distance = jax.vmap(one)(heads, poses)
     return jnp.mean(loss), jnp.mean(distance)
@@ -301,9 +319,18 @@ def train_step(
     reference,
     loss_kind="squared",
     static_weight=0.0,
+    balance_poses=False,
 ):
     (loss, distance), grads = eqx.filter_value_and_grad(batch_loss, has_aux=True)(
-        model, data, heads, poses, landmark_weight, reference, loss_kind, static_weight
+        model,
+        data,
+        heads,
+        poses,
+        landmark_weight,
+        reference,
+        loss_kind,
+        static_weight,
+        balance_poses,
     )
     updates, opt_state = optim.update(grads, opt_state, eqx.filter(model, eqx.is_array))
     return eqx.apply_updates(model, updates), opt_state, loss, distance
@@ -417,6 +444,7 @@ def train(
             reference_j,
             options.loss,
             static_weight,
+            options.balance_poses,
         )
         return {"loss": loss, "error_unit": distance, "error_mm": distance * mm_per_unit}
 
