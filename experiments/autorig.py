@@ -106,12 +106,18 @@ RAF_LOSSES = {
     "squared_static": {"loss": "squared", "static_weight": 1.0},
     "euclidean": {"loss": "euclidean", "static_weight": 0.0},
     "squared_static_balanced": {"loss": "squared", "static_weight": 1.0, "balance_poses": True},
+    "squared_static_half_balanced": {
+        "loss": "squared",
+        "static_weight": 1.0,
+        "balance_poses": 0.5,
+    },
 }
 """Losses of pure RAF (``--raf-loss``): the issue-7 recipe (the standard checkpoints), the
 per-vertex Euclidean loss plus the static-vertex term (issue 19; experiments/results/
 autorig_retrain, autorig_wide, autorig_long), and the other two combinations (the loss
 ablation, experiments/results/autorig_loss), and squared + static with every pose weighed
-against its own no-motion error (``TrainOptions.balance_poses``; autorig_balanced)."""
+against its own no-motion error (``TrainOptions.balance_poses``; autorig_balanced), or halfway
+(balance_poses=0.5; autorig_half_balanced)."""
 RESIDUAL = "raf_dt_residual"
 RESIDUAL_ANCHORED = "raf_anchored_dt_residual"
 """The residual model trained on anchored deformation transfer (``--anchored-residual``)."""

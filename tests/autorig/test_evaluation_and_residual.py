@@ -506,8 +506,9 @@ def test_transfer_poses_needs_only_the_head(data_dir):
 
 
 def test_balanced_loss_weighs_each_pose_against_its_own_no_motion_error(small_head, tiny_poses):
-    """balance_poses divides each pose's error by what predicting no motion scores on it:
-    checked against numpy, and a pose 100x larger does not outweigh a small one."""
+    """balance_poses divides each pose's error by what predicting no motion scores on it (0.5:
+    by the geometric mean of that and the training set's scale): checked against numpy, and a
+    pose 100x larger does not outweigh a small one."""
     from canrig_jax.autorig import RiggedHead
     from canrig_jax.autorig._train import BALANCE_FLOOR, batch_loss, mean_square_displacement
 
@@ -548,6 +549,11 @@ def test_balanced_loss_weighs_each_pose_against_its_own_no_motion_error(small_he
         )
         static = float(plain) - np.mean(error) / reference
         np.testing.assert_allclose(balanced, np.mean(error / still) + static, rtol=1e-4)
+        half, _ = batch_loss(
+            model, data, heads, poses, 0.5, jnp.asarray(reference), "squared", weight, 0.5
+        )
+        divisor = np.sqrt(reference * still)  # halfway between the plain and balanced scales
+        np.testing.assert_allclose(half, np.mean(error / divisor) + static, rtol=1e-4)
     np.testing.assert_allclose(plain, np.mean(error) / reference + static, rtol=1e-4)
     # the plain loss is dominated by the large pose, the balanced one weighs poses alike
     assert error[1] / error.sum() > 0.9

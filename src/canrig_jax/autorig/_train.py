@@ -7,10 +7,11 @@ loss starts near 1 whatever the units). ``loss="euclidean"``: the same with the 
 Euclidean distance (divided by the root of that mean square). Either loss adds
 ``static_weight`` times ``static_vertex_error`` (divided by that root), the mean length of the
 predicted motion of vertices whose ground truth does not move (below ``STATIC_CM``) — the term
-that keeps eyeballs and the back of the head still. ``balance_poses=True`` divides each pose's
-fit term by that of predicting no motion for it (its own mean squared, or mean Euclidean,
-displacement; floored at ``BALANCE_FLOOR`` of the training set's), so that a blink, which moves
-a few eyelid vertices, weighs as much as jawOpen, which moves half the head. ``residual=True`` trains the "DT +
+that keeps eyeballs and the back of the head still. ``balance_poses=True`` (or 1.0) divides
+each pose's fit term by that of predicting no motion for it (its own mean squared, or mean
+Euclidean, displacement; floored at ``BALANCE_FLOOR`` of the training set's), so that a blink,
+which moves a few eyelid vertices, weighs as much as jawOpen, which moves half the head; a value
+``p`` in (0, 1) divides by ``training set's ** (1 - p) * the pose's ** p``, between the two. ``residual=True`` trains the "DT +
 learned residual" model (``RigAnyFace``): the training set then carries each head's
 deformation-transfer poses as the base; ``residual_gate`` > 0 gates its correction by the
 base's motion (``RigAnyFace``).
@@ -89,7 +90,7 @@ class TrainOptions:
     log_every: int = 20
     loss: str = "squared"
     static_weight: float = 0.0
-    balance_poses: bool = False
+    balance_poses: float = 0.0
     residual: bool = False
     residual_gate: float = 0.0
 
@@ -98,6 +99,8 @@ class TrainOptions:
             raise ValueError(f"loss: expected one of {LOSSES}, got {self.loss!r}")
         if not self.static_weight >= 0:
             raise ValueError(f"static_weight: expected >= 0, got {self.static_weight}")
+        if not 0 <= self.balance_poses <= 1:
+            raise ValueError(f"balance_poses: expected in [0, 1], got {self.balance_poses}")
         if not self.residual_gate >= 0 or (self.residual_gate > 0 and not self.residual):
             raise ValueError(
                 f"residual_gate: expected 0, or > 0 with residual=True; got {self.residual_gate}"
@@ -266,7 +269,7 @@ def batch_loss(
     reference,
     loss_kind: str = "squared",
     static_weight=0.0,
-    balance_poses: bool = False,
+    balance_poses: float = 0.0,
 ):
     """Loss and mean vertex error (unit-sphere units) of ``heads`` (B,) x ``poses`` (B, Q)."""
 
@@ -297,6 +300,8 @@ def batch_loss(
                 )
 
             divisor = jnp.maximum(terms(size), BALANCE_FLOOR * scale)
+            if balance_poses != 1:
+                divisor = scale ** (1 - balance_poses) * divisor**balance_poses
             return jnp.mean(terms(per_vertex) / divisor) + static_weight * static, distance
         vertex_term = jnp.sum(per_vertex * mask) / (jnp.sum(mask) * squared.shape[0])
         landmark_term = jnp.mean(per_vertex[:, data.landmarks[h]])
@@ -319,7 +324,7 @@ def train_step(
     reference,
     loss_kind="squared",
     static_weight=0.0,
-    balance_poses=False,
+    balance_poses=0.0,
 ):
     (loss, distance), grads = eqx.filter_value_and_grad(batch_loss, has_aux=True)(
         model,
