@@ -53,6 +53,11 @@ def demo(session):
     session.run("python", "-m", "canrig_jax.demo", *session.posargs)
 
 
+SQUARED_RUNS = (
+    ("autorig_squared", "squared_static"),
+    ("autorig_balanced", "squared_static_balanced"),
+    ("autorig_half_balanced", "squared_static_half_balanced"),
+)
 STANDARD_EXPERIMENTS = (
     ("build_quartic_rig.py", "--out", "experiments/results/build_quartic_rig"),
     ("inverse_rig.py", "--out", "experiments/results/inverse_rig"),
@@ -118,6 +123,28 @@ STANDARD_EXPERIMENTS = (
         *("--out", "experiments/results/autorig_long", "--no-progress", "--evaluate-only"),
         "experiments/results/autorig_wide/checkpoint_raf.eqx",
         "experiments/results/autorig_long/checkpoint_raf.eqx",
+    ),
+    # the default recipe with the squared loss, unbalanced, balanced per pose and halfway; each
+    # evaluated next to the default and the runs before it
+    *(
+        (
+            "autorig.py",
+            *("--out", f"experiments/results/{folder}", "--no-progress"),
+            *("--raf-loss", loss, "--raf-width", "64", "--steps", "7000"),
+            *("--train-identities", "40", "--train-only", "raf"),
+        )
+        for folder, loss in SQUARED_RUNS
+    ),
+    *(
+        (
+            "autorig.py",
+            *("--out", f"experiments/results/{folder}", "--no-progress", "--evaluate-only"),
+            *(
+                f"experiments/results/{run}/checkpoint_raf.eqx"
+                for run in ("autorig_long", *(f for f, _ in SQUARED_RUNS[: i + 1]))
+            ),
+        )
+        for i, (folder, _) in enumerate(SQUARED_RUNS)
     ),
     (
         "canrig_train.py",
@@ -193,7 +220,7 @@ same commands as each folder's COMMAND file)."""
 
 @nox.session
 def experiments(session):
-    """Standard-configuration experiments (long: about six hours on 2 cores); pass script
+    """Standard-configuration experiments (long: about eight hours on 2 cores); pass script
     names to run a subset, e.g. ``nox -s experiments -- inverse_rig.py``."""
     session.install("-e", ".")
     for script, *arguments in STANDARD_EXPERIMENTS:
