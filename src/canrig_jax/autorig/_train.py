@@ -13,8 +13,8 @@ Euclidean, displacement; floored at ``BALANCE_FLOOR`` of the training set's), so
 which moves a few eyelid vertices, weighs as much as jawOpen, which moves half the head; a value
 ``p`` in (0, 1) divides by ``training set's ** (1 - p) * the pose's ** p``, between the two.
 ``residual=True`` trains the "DT + learned residual" model (``RigAnyFace``): the training set
-then carries each head's deformation-transfer poses as the base; ``residual_gate`` > 0 gates its correction by the
-base's motion (``RigAnyFace``).
+then carries each head's deformation-transfer poses as the base; ``residual_gate`` > 0 gates
+its correction by the base's motion (``RigAnyFace``).
 Adam with linear warm-up and cosine decay (optax). Each step draws ``heads_per_step`` heads
 and ``poses_per_step`` of their poses from ``numpy.random.default_rng([seed, step])``, so a
 run resumed from its checkpoint (one file, written atomically) draws the same batches and
