@@ -60,7 +60,8 @@ reads it): what ``canrig autorig`` loads unless given ``--model``. Width 64, 159
 parameters, 7,000 steps; chosen on validation identities over ``autorig_wide`` (the same
 recipe, 4,000 steps), which had been chosen over the width-32 ``autorig`` model (issue 19).
 Known limitation: its eye and brow shapes move about a tenth of the true amount (README,
-"What the MAE hid"); ``autorig/checkpoint_raf_dt_residual.eqx`` moves them."""
+"What the MAE hid"); ``autorig/checkpoint_raf_dt_residual.eqx`` and
+``autorig_half_balanced/checkpoint_raf.eqx`` (trained with ``balance_poses=0.5``) move them."""
 LOSSES = ("squared", "euclidean")
 BALANCE_FLOOR = 1e-3
 """With ``balance_poses``: a pose's divisor is at least this fraction of the training set's."""
