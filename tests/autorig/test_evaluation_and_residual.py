@@ -323,25 +323,34 @@ def test_residual_training_improves_on_its_base_and_resumes(small_head, tiny_pos
         train(training_set([head], tiny_poses, k=32, progress=False), tiny_poses, options)
 
 
+def _one_head_and_small_model(mesh, truth, poses):
+    """The training set of one head with ground truth ``truth`` (P, V, 3), and a small random
+    model: what the loss tests evaluate ``batch_loss`` on."""
+    from canrig_jax.autorig import RiggedHead
+
+    n = mesh.vertices.shape[0]
+    head = RiggedHead(
+        "one", mesh.vertices, mesh.faces, truth, np.arange(10), np.zeros(n, np.int32),
+        np.zeros(1), "decimate_500",
+    )  # fmt: skip
+    data = training_set([head], poses, k=32, progress=False)
+    model = RigAnyFace(
+        poses.n_basis, width=8, global_size=4, global_width=8, output_scale=0.05,
+        key=jax.random.PRNGKey(1),
+    )  # fmt: skip
+    return data, model
+
+
 def test_static_term_adds_to_either_loss(small_head, tiny_poses):
     """static_weight adds the static-vertex error over the loss's scale to the squared loss as
     to the Euclidean one (it used to be dropped silently with loss="squared")."""
-    from canrig_jax.autorig import RiggedHead
     from canrig_jax.autorig._train import batch_loss, mean_square_displacement
 
     mesh, *_ = small_head
     n = mesh.vertices.shape[0]
     truth = np.zeros((tiny_poses.n_poses, n, 3), np.float32)
     truth[:, mesh.vertices[:, 1] < np.median(mesh.vertices[:, 1])] = 0.2  # the rest is static
-    head = RiggedHead(
-        "one", mesh.vertices, mesh.faces, truth, np.arange(10), np.zeros(n, np.int32),
-        np.zeros(1), "decimate_500",
-    )  # fmt: skip
-    data = training_set([head], tiny_poses, k=32, progress=False)
-    model = RigAnyFace(
-        tiny_poses.n_basis, width=8, global_size=4, global_width=8, output_scale=0.05,
-        key=jax.random.PRNGKey(1),
-    )  # fmt: skip
+    data, model = _one_head_and_small_model(mesh, truth, tiny_poses)
     reference = jnp.asarray(mean_square_displacement(data))
     heads, poses = jnp.array([0]), jnp.array([[0, 1, 2]])
     predicted = model(
@@ -509,7 +518,6 @@ def test_balanced_loss_weighs_each_pose_against_its_own_no_motion_error(small_he
     """balance_poses divides each pose's error by what predicting no motion scores on it (0.5:
     by the geometric mean of that and the training set's scale): checked against numpy, and a
     pose 100x larger does not outweigh a small one."""
-    from canrig_jax.autorig import RiggedHead
     from canrig_jax.autorig._train import BALANCE_FLOOR, batch_loss, mean_square_displacement
 
     mesh, *_ = small_head
@@ -518,15 +526,7 @@ def test_balanced_loss_weighs_each_pose_against_its_own_no_motion_error(small_he
     truth = np.zeros((tiny_poses.n_poses, n, 3), np.float32)
     truth[:, : n // 2] = rng.normal(0, 0.1, (tiny_poses.n_poses, n // 2, 3))
     truth[1] *= 100.0  # one pose moves 100x more than the others
-    head = RiggedHead(
-        "one", mesh.vertices, mesh.faces, truth, np.arange(10), np.zeros(n, np.int32),
-        np.zeros(1), "decimate_500",
-    )  # fmt: skip
-    data = training_set([head], tiny_poses, k=32, progress=False)
-    model = RigAnyFace(
-        tiny_poses.n_basis, width=8, global_size=4, global_width=8, output_scale=0.05,
-        key=jax.random.PRNGKey(1),
-    )  # fmt: skip
+    data, model = _one_head_and_small_model(mesh, truth, tiny_poses)
     reference = float(mean_square_displacement(data))
     heads, poses = jnp.array([0]), jnp.array([[0, 1, 2]])
     ops = jax.tree.map(lambda x: x[0], data.operators)
@@ -540,6 +540,7 @@ def test_balanced_loss_weighs_each_pose_against_its_own_no_motion_error(small_he
 
     error = terms(np.sum((predicted - t) ** 2, -1))
     still = np.maximum(terms(np.sum(t**2, -1)), BALANCE_FLOOR * reference)
+    drift = float(static_vertex_error(predicted, t, mask, STATIC_CM / data.scale[0]))
     for weight in (0.0, 2.0):
         balanced, _ = batch_loss(
             model, data, heads, poses, 0.5, jnp.asarray(reference), "squared", weight, True
@@ -547,7 +548,7 @@ def test_balanced_loss_weighs_each_pose_against_its_own_no_motion_error(small_he
         plain, _ = batch_loss(
             model, data, heads, poses, 0.5, jnp.asarray(reference), "squared", weight, False
         )
-        static = float(plain) - np.mean(error) / reference
+        static = weight * drift / np.sqrt(reference)
         np.testing.assert_allclose(balanced, np.mean(error / still) + static, rtol=1e-4)
         half, _ = batch_loss(
             model, data, heads, poses, 0.5, jnp.asarray(reference), "squared", weight, 0.5
