@@ -304,8 +304,8 @@ def batch_loss(
             if balance_poses != 1:
                 divisor = scale ** (1 - balance_poses) * divisor**balance_poses
             return jnp.mean(terms(per_vertex) / divisor) + static_weight * static, distance
-        # the same mean as balance_poses=0 above, summed in the order the committed checkpoints
-        # were trained with, so their commands regenerate them bit for bit
+        # the balanced branch's mean with every divisor = scale, summed in the order the committed
+        # checkpoints were trained with, so their commands regenerate them bit for bit
         vertex_term = jnp.sum(per_vertex * mask) / (jnp.sum(mask) * squared.shape[0])
         landmark_term = jnp.mean(per_vertex[:, data.landmarks[h]])
         fit = (vertex_term + landmark_weight * landmark_term) / scale
