@@ -1355,6 +1355,11 @@ def plot_examples(out: Path, labels, examples: dict, makehuman_example: tuple) -
     )
 
 
+def _wrapped(name: str) -> str:
+    """A method's name broken at its folder and placement so that figure columns do not overlap."""
+    return name.replace("/", "/\n").replace(" + ", "\n+ ")
+
+
 def plot_shape_ratios(shapes: dict, title: str, path: Path) -> None:
     """Each method's per-shape amplitude ratio (summed motion on the skin) and peak ratio
     (largest vertex motion), generated over true (log scale; 1: the true amount), shapes in
@@ -1377,7 +1382,7 @@ def plot_shape_ratios(shapes: dict, title: str, path: Path) -> None:
     axes[1].set_xticks(np.arange(len(labels)), [labels[i] for i in order], rotation=90, fontsize=7)
     axes[1].set_xlim(-0.5, len(labels) - 0.5)
     axes[0].set_title(f"{title}, per shape (grey: upper face)")
-    axes[0].legend(fontsize=7, ncols=2)
+    axes[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the data
     save_figure(fig, path)
 
 
@@ -1401,7 +1406,7 @@ def plot_poses(vertices, faces, truth, predictions: dict, labels, path: Path, n_
                 faces,
                 values,
                 vmax=5.0,
-                title=f"{name}\n{labels[p]}" if row == 0 or col == 0 else None,
+                title=f"{_wrapped(name)}\n{labels[p]}" if row == 0 or col == 0 else None,
             )
     fig.colorbar(
         mappable, ax=axes, shrink=0.5, label="mm (ground truth: displacement; others: error)"
