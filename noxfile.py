@@ -54,10 +54,24 @@ def demo(session):
 
 
 SQUARED_RUNS = (
-    ("autorig_squared", "squared_static"),
-    ("autorig_balanced", "squared_static_balanced"),
-    ("autorig_half_balanced", "squared_static_half_balanced"),
+    ("autorig_squared", "squared_static", "7000", ()),
+    ("autorig_balanced", "squared_static_balanced", "7000", ("autorig_squared",)),
+    (
+        "autorig_half_balanced",
+        "squared_static_half_balanced",
+        "7000",
+        ("autorig_squared", "autorig_balanced"),
+    ),
+    ("autorig_balanced_03", "squared_static_balanced_0.3", "7000", ("autorig_half_balanced",)),
+    (
+        "autorig_half_balanced_long",
+        "squared_static_half_balanced",
+        "12000",
+        ("autorig_half_balanced",),
+    ),
 )
+"""The default recipe with the squared loss: (folder, --raf-loss, --steps, the runs evaluated
+next to it besides the default ``autorig_long``)."""
 STANDARD_EXPERIMENTS = (
     ("build_quartic_rig.py", "--out", "experiments/results/build_quartic_rig"),
     ("inverse_rig.py", "--out", "experiments/results/inverse_rig"),
@@ -124,16 +138,16 @@ STANDARD_EXPERIMENTS = (
         "experiments/results/autorig_wide/checkpoint_raf.eqx",
         "experiments/results/autorig_long/checkpoint_raf.eqx",
     ),
-    # the default recipe with the squared loss, unbalanced, balanced per pose and halfway; each
-    # evaluated next to the default and the runs before it
+    # the default recipe with the squared loss, unbalanced, balanced per pose, part of the way
+    # and on a longer schedule; each evaluated next to the default and the runs it is compared with
     *(
         (
             "autorig.py",
             *("--out", f"experiments/results/{folder}", "--no-progress"),
-            *("--raf-loss", loss, "--raf-width", "64", "--steps", "7000"),
+            *("--raf-loss", loss, "--raf-width", "64", "--steps", steps),
             *("--train-identities", "40", "--train-only", "raf"),
         )
-        for folder, loss in SQUARED_RUNS
+        for folder, loss, steps, _ in SQUARED_RUNS
     ),
     *(
         (
@@ -141,10 +155,18 @@ STANDARD_EXPERIMENTS = (
             *("--out", f"experiments/results/{folder}", "--no-progress", "--evaluate-only"),
             *(
                 f"experiments/results/{run}/checkpoint_raf.eqx"
-                for run in ("autorig_long", *(f for f, _ in SQUARED_RUNS[: i + 1]))
+                for run in ("autorig_long", *compared, folder)
             ),
         )
-        for i, (folder, _) in enumerate(SQUARED_RUNS)
+        for folder, _, _, compared in SQUARED_RUNS
+    ),
+    # the residual models with face placement on MakeHuman
+    (
+        "autorig.py",
+        *("--out", "experiments/results/autorig_residual_face", "--no-progress"),
+        "--evaluate-only",
+        "experiments/results/autorig/checkpoint_raf_anchored_dt_residual.eqx",
+        "experiments/results/autorig/checkpoint_raf_dt_residual.eqx",
     ),
     (
         "canrig_train.py",
@@ -220,7 +242,7 @@ same commands as each folder's COMMAND file)."""
 
 @nox.session
 def experiments(session):
-    """Standard-configuration experiments (long: about eight hours on 2 cores); pass script
+    """Standard-configuration experiments (long: about ten hours on 2 cores); pass script
     names to run a subset, e.g. ``nox -s experiments -- inverse_rig.py``."""
     session.install("-e", ".")
     for script, *arguments in STANDARD_EXPERIMENTS:
