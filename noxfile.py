@@ -70,8 +70,9 @@ SQUARED_RUNS = (
         ("autorig_half_balanced",),
     ),
 )
-"""The default recipe with the squared loss: (folder, --raf-loss, --steps, the runs evaluated
-next to it besides the default ``autorig_long``)."""
+"""The ``autorig_long`` recipe with the squared loss: (folder, --raf-loss, --steps, the runs
+evaluated next to it besides ``autorig_long``). The last, ``autorig_half_balanced_long``, is the
+default RigAnyFace (``canrig_jax.autorig.DEFAULT_CHECKPOINT``) since 2026-12-04."""
 STANDARD_EXPERIMENTS = (
     ("build_quartic_rig.py", "--out", "experiments/results/build_quartic_rig"),
     ("inverse_rig.py", "--out", "experiments/results/inverse_rig"),
@@ -125,7 +126,7 @@ STANDARD_EXPERIMENTS = (
             )
         ),
     ),
-    # the default RigAnyFace: the same recipe on a 7,000-step schedule, then its evaluation
+    # the default RigAnyFace of 2026-12-03: the same recipe on 7,000 steps, then its evaluation
     (
         "autorig.py",
         *("--out", "experiments/results/autorig_long", "--no-progress"),
@@ -138,8 +139,9 @@ STANDARD_EXPERIMENTS = (
         "experiments/results/autorig_wide/checkpoint_raf.eqx",
         "experiments/results/autorig_long/checkpoint_raf.eqx",
     ),
-    # the default recipe with the squared loss, unbalanced, balanced per pose, part of the way
-    # and on a longer schedule; each evaluated next to the default and the runs it is compared with
+    # that recipe with the squared loss, unbalanced, balanced per pose, part of the way and on a
+    # longer schedule (the default since 2026-12-04); each evaluated next to autorig_long and the
+    # runs it is compared with
     *(
         (
             "autorig.py",

@@ -118,7 +118,8 @@ per-vertex Euclidean loss plus the static-vertex term (issue 19; experiments/res
 autorig_retrain, autorig_wide, autorig_long), and the other two combinations (the loss
 ablation, experiments/results/autorig_loss), and squared + static with every pose weighed
 against its own no-motion error (``TrainOptions.balance_poses``; autorig_balanced), or halfway
-(balance_poses=0.5; autorig_half_balanced), or 0.3 of the way (autorig_balanced_03)."""
+(balance_poses=0.5; autorig_half_balanced, and on 12,000 steps autorig_half_balanced_long, the
+default model), or 0.3 of the way (autorig_balanced_03)."""
 RESIDUAL = "raf_dt_residual"
 RESIDUAL_ANCHORED = "raf_anchored_dt_residual"
 """The residual model trained on anchored deformation transfer (``--anchored-residual``)."""

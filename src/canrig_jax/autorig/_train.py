@@ -52,16 +52,16 @@ DEFAULT_CHECKPOINT = (
     Path(__file__).resolve().parents[3]
     / "experiments"
     / "results"
-    / "autorig_long"
+    / "autorig_half_balanced_long"
     / "checkpoint_raf.eqx"
 )
 """The committed default RigAnyFace checkpoint (present in a source checkout; ``load_model``
 reads it): what ``canrig autorig`` loads unless given ``--model``. Width 64, 159,747
-parameters, 7,000 steps; chosen on validation identities over ``autorig_wide`` (the same
-recipe, 4,000 steps), which had been chosen over the width-32 ``autorig`` model (issue 19).
-Known limitation: its eye and brow shapes move about a tenth of the true amount (README,
-"What the MAE hid"); ``autorig/checkpoint_raf_dt_residual.eqx`` and
-``autorig_half_balanced/checkpoint_raf.eqx`` (trained with ``balance_poses=0.5``) move them."""
+parameters, 80 training heads, squared + static loss with ``balance_poses=0.5``, 12,000 steps
+(cosine completed). Chosen on validation identities by a rule written before it trained
+(upper-face peak ratio >= 0.5, lower face >= 0.8, MAE on both pose classes <= 1.1x the
+previous default's) over ``autorig_long`` (Euclidean + static, 7,000 steps), whose eye and
+brow shapes moved about a tenth of the true amount (issue 19; README, "What the MAE hid")."""
 LOSSES = ("squared", "euclidean")
 BALANCE_FLOOR = 1e-3
 """With ``balance_poses``: a pose's divisor is at least this fraction of the training set's."""
