@@ -27,13 +27,13 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
 import scipy.sparse as sp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from scipy.sparse.csgraph import dijkstra
 
 from .._checks import check_finite, check_points, check_real
+from .._linalg import cho_solve, cholesky, spd_solve
 from ..mesh import check_mesh, edge_graph, farthest_point_vertices, vertex_adjacency
 
 
@@ -369,12 +369,7 @@ def _fit_pbs(
     scale = jnp.mean(jnp.diagonal(gram, axis1=1, axis2=2), axis=1)  # (P,)
     eye = jnp.eye(gram.shape[1], dtype=gram.dtype)
     regular = gram + (ridge * scale + 1e-12)[:, None, None] * eye
-    return _solve_each(jnp.linalg.cholesky(regular), rhs)
-
-
-def _solve_each(factor: Float[Array, "P B B"], rhs: Float[Array, "P B"]) -> Float[Array, "P B"]:
-    """One Cholesky solve per patch (``factor``: lower-triangular factors)."""
-    return jax.vmap(lambda f, r: jax.scipy.linalg.cho_solve((f, True), r))(factor, rhs)
+    return cho_solve(cholesky(regular), rhs)
 
 
 def local_pbs_fit(
@@ -437,7 +432,7 @@ def local_fit_factor(
     gram = jnp.einsum("ph,bhk,chk->pbc", mask, handle_basis, handle_basis)
     scale = jnp.mean(handle_basis**2) * 3.0 + 1e-12
     eye = jnp.eye(gram.shape[1], dtype=gram.dtype)
-    factor = jnp.linalg.cholesky(gram + (ridge * scale) * eye)
+    factor = cholesky(gram + (ridge * scale) * eye)
     ok = jnp.all(jnp.isfinite(factor), axis=(1, 2))
     return jnp.where(ok[:, None, None], factor, eye), ok
 
@@ -452,7 +447,7 @@ def local_fit_solve(
     patch whose factorisation failed)."""
     factor, ok = factors
     weighted = mask * ok[:, None]
-    return _solve_each(factor, jnp.einsum("ph,bhk,hk->pb", weighted, handle_basis, displacements))
+    return cho_solve(factor, jnp.einsum("ph,bhk,hk->pb", weighted, handle_basis, displacements))
 
 
 def check_handle_index(handle_index: Int[ArrayLike, " H"], n_vertices: int) -> np.ndarray:
@@ -503,8 +498,7 @@ def _global_blendshape_fit(
     gram = at_handles @ at_handles.T
     scale = jnp.mean(jnp.diagonal(gram)) + 1e-12
     matrix = gram + ridge * scale * jnp.eye(gram.shape[0], dtype=gram.dtype)
-    operator = lx.MatrixLinearOperator(matrix, lx.positive_semidefinite_tag)
-    return lx.linear_solve(operator, at_handles @ displacements.reshape(-1), lx.Cholesky()).value
+    return spd_solve(matrix, at_handles @ displacements.reshape(-1))
 
 
 def global_blendshape_dialogue(

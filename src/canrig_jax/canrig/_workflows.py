@@ -44,6 +44,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from scipy.sparse.csgraph import dijkstra
 
 from .._checks import check_points
+from .._linalg import cho_solve, cholesky, solve_triangular
 from .._threads import blocking_single_threaded_blas
 from ._layout import DENSE, Layout
 from ._local_fit import LocalFitRig, local_fit_lsmr
@@ -314,12 +315,12 @@ def _gauss_newton(model, queries, canonical, edit, target, region, layout, optio
     identity = jnp.eye(3 * n_handles, dtype=normal.dtype)
     scaled = (normal + (options.penalty + eps) * identity) / (root[:, None] * root[None, :])
     scaled = jnp.where(jnp.abs(scaled) < 1e-12, 0.0, scaled)
-    cholesky = root[:, None] * jnp.linalg.cholesky(scaled)
+    factor = root[:, None] * cholesky(scaled)
     frozen = None if options.exact_jacobian else blocks
     shape_of = _differentiable_shape(model, queries, canonical, edit, layout, frozen)
 
     def unwhiten(z):
-        d = jax.scipy.linalg.solve_triangular(cholesky, z.reshape(-1), lower=True, trans="T")
+        d = solve_triangular(factor, z.reshape(-1), transpose=True)
         return d.reshape(n_handles, 3)
 
     def residual(z, args):
@@ -343,9 +344,9 @@ def _gauss_newton(model, queries, canonical, edit, target, region, layout, optio
             jax.linear_transpose(lambda t: apply_jacobian(blocks, t, layout), start)(weighted)[0]
             + options.penalty * start
         )
-        step = jax.scipy.linalg.cho_solve((cholesky, True), gradient.reshape(-1))
+        step = cho_solve(factor, gradient.reshape(-1))
         first, max_steps = start - step.reshape(n_handles, 3), max_steps - 1
-    z0 = (cholesky.T @ first.reshape(-1)).reshape(n_handles, 3)
+    z0 = (factor.T @ first.reshape(-1)).reshape(n_handles, 3)
     solution = optx.least_squares(
         residual, solver, z0, has_aux=True, max_steps=max_steps, throw=False
     )

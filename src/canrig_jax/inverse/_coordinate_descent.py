@@ -44,11 +44,11 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 from equinox import AbstractVar
 from jax.custom_batching import custom_vmap
 from jaxtyping import Array, Float, Int
 
+from .._linalg import spd_solve
 from ._base import AbstractInverseMethod, Iterate, check_alpha, check_count, check_upper
 from ._problem import InverseProblem
 
@@ -262,10 +262,7 @@ class AbstractCoordinateDescent(AbstractInverseMethod):
             pair = free[:, None] & free[None, :]
             ridge = 1e-6 * jnp.max(jnp.abs(jnp.diag(hessian)))
             system = jnp.where(pair, hessian, 0.0) + jnp.diag(jnp.where(free, ridge, 1.0))
-            operator = lx.MatrixLinearOperator(system, lx.positive_semidefinite_tag)
-            step = lx.linear_solve(
-                operator, -jnp.where(free, grad, 0.0), lx.Cholesky(), throw=False
-            ).value
+            step = spd_solve(system, -jnp.where(free, grad, 0.0))
             step = jnp.where(free & jnp.isfinite(step), step, 0.0)
             # two candidates: the full step projected onto the box, and the longest step
             # <= 1 that keeps every free weight inside it (the ratio test of active-set

@@ -7,6 +7,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax.numpy as jnp
 import jaxopt
+from jax.custom_batching import sequential_vmap
 
 from ..rig import evaluate
 from ._base import AbstractInverseMethod, Iterate, check_alpha, check_count, check_upper
@@ -43,24 +44,43 @@ class JaxoptLBFGSB(AbstractInverseMethod):
             raise ValueError(f"objective: expected 'gram' or 'evaluate', got {self.objective!r}")
 
     def __call__(self, problem: InverseProblem, offset, init, key) -> Iterate:
-        rig = problem.rig
-        target = problem.neutral + offset.reshape(-1, 3)
         projection, offset_sq = problem.projection(offset), offset @ offset
-
-        def fun(weights):
-            if self.objective == "gram":
-                return problem.objective(weights, projection, offset_sq, self.alpha)
-            residual = evaluate(rig, weights) - target
-            return 0.5 * jnp.sum(residual**2) + self.alpha * jnp.sum(weights)
-
-        solver = jaxopt.LBFGSB(
-            fun=fun, maxiter=self.maxiter, tol=self.tol, stop_if_linesearch_fails=True
-        )
-        bounds = (jnp.zeros_like(init), jnp.full_like(init, self.upper))
-        params, state = solver.run(init, bounds=bounds)
+        params, steps, error = _run_lbfgsb(self, problem, offset, init)
+        fun = _objective(self, problem, offset)
         value = problem.objective(params, projection, offset_sq, self.alpha)
         finite = jnp.all(jnp.isfinite(params)) & jnp.isfinite(value)
         weights = jnp.where(finite, jnp.clip(params, 0.0, self.upper), init)  # box round-off
         history = jnp.where(finite, value, fun(init))[None]
-        converged = finite & (state.error <= self.tol)
-        return Iterate(weights, history, state.iter_num, converged)
+        converged = finite & (error <= self.tol)
+        return Iterate(weights, history, steps, converged)
+
+
+def _objective(method: JaxoptLBFGSB, problem: InverseProblem, offset):
+    """The function L-BFGS-B minimises over the weights (``method.objective``)."""
+    projection, offset_sq = problem.projection(offset), offset @ offset
+    target = problem.neutral + offset.reshape(-1, 3)
+
+    def fun(weights):
+        if method.objective == "gram":
+            return problem.objective(weights, projection, offset_sq, method.alpha)
+        residual = evaluate(problem.rig, weights) - target
+        return 0.5 * jnp.sum(residual**2) + method.alpha * jnp.sum(weights)
+
+    return fun
+
+
+@sequential_vmap
+def _run_lbfgsb(method: JaxoptLBFGSB, problem: InverseProblem, offset, init):
+    """(weights, iterations, error) of one frame. jaxopt's L-BFGS-B inverts its small
+    compact-representation matrices with LAPACK: under ``vmap`` the frames run one after
+    another (``sequential_vmap``), so that no LAPACK call ever holds a batch (see
+    ``canrig_jax._linalg``)."""
+    solver = jaxopt.LBFGSB(
+        fun=_objective(method, problem, offset),
+        maxiter=method.maxiter,
+        tol=method.tol,
+        stop_if_linesearch_fails=True,
+    )
+    bounds = (jnp.zeros_like(init), jnp.full_like(init, method.upper))
+    params, state = solver.run(init, bounds=bounds)
+    return params, state.iter_num, state.error

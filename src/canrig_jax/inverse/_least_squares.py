@@ -5,8 +5,8 @@ from __future__ import annotations
 from typing import ClassVar
 
 import jax.numpy as jnp
-import lineax as lx
 
+from .._linalg import spd_solve
 from ._base import AbstractInverseMethod, Iterate, check_alpha
 
 
@@ -50,11 +50,10 @@ class Cetinaslan(AbstractInverseMethod):
 def ridge_weights(problem, offset, alpha):
     """(K,) clip((B^T B + 2 alpha I)^-1 B^T (b - b0), 0, 1); ``alpha`` may be traced.
 
-    A K x K Cholesky solve through ``lineax`` (batched by ``vmap``); the linear Gram matrix is
-    positive definite for any rig ``prepare`` accepts (no zero blendshape)."""
+    A K x K Cholesky solve (``canrig_jax._linalg``: one matrix per LAPACK call under ``vmap``);
+    the linear Gram matrix is positive definite for any rig ``prepare`` accepts (no zero
+    blendshape)."""
     k = problem.n_blendshapes
     system = problem.gram[:k, :k] + 2.0 * alpha * jnp.eye(k, dtype=problem.gram.dtype)
-    operator = lx.MatrixLinearOperator(system, lx.positive_semidefinite_tag)
-    rhs = problem.columns[:k] @ offset
-    weights = lx.linear_solve(operator, rhs, lx.Cholesky(), throw=False).value
+    weights = spd_solve(system, problem.columns[:k] @ offset)
     return jnp.clip(weights, 0.0, 1.0)

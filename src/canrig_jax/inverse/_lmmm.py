@@ -27,6 +27,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._linalg import eigvalsh
 from ._base import AbstractInverseMethod, Iterate, check_alpha, check_count, check_upper
 from ._least_squares import ridge_weights
 from ._problem import InverseProblem
@@ -90,7 +91,7 @@ class LMMM(AbstractInverseMethod):
             high = jax.vmap(model.coefficients)(weights * (1 - eye) + eye)
             g = high - low  # (K, P): q = M g^T
             linear = g @ (model.gram @ a - projection) + self.alpha
-            sigma_sq = jnp.linalg.eigvalsh(g @ model.gram @ g.T)[-1]
+            sigma_sq = eigvalsh(g @ model.gram @ g.T)[-1]
             residual = a @ model.columns - offset
             split = jnp.sum(
                 jnp.maximum(residual, 0) * bounds[:, 1] + jnp.minimum(residual, 0) * bounds[:, 0]

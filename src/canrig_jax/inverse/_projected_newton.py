@@ -37,8 +37,8 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 
+from .._linalg import spd_solve
 from ._base import AbstractInverseMethod, Iterate, check_alpha, check_count, check_upper
 
 
@@ -91,10 +91,7 @@ class QuarticNewton(AbstractInverseMethod):
             ridge = 1e-6 * jnp.max(jnp.abs(jnp.diag(hessian)))
             system = jnp.where(free[:, None] & free[None, :], hessian, 0.0)
             system = system + jnp.diag(jnp.where(free, ridge, 1.0))
-            operator = lx.MatrixLinearOperator(system, lx.positive_semidefinite_tag)
-            step = lx.linear_solve(
-                operator, -jnp.where(free, grad, 0.0), lx.Cholesky(), throw=False
-            ).value
+            step = spd_solve(system, -jnp.where(free, grad, 0.0))
             step = jnp.where(free & jnp.isfinite(step), step, 0.0)
             trials = jnp.clip(weights + lengths[:, None] * step, 0.0, upper)  # (L, K)
             # E(trial) - E(w) in coefficient space: no cancellation against ||b - b0||^2

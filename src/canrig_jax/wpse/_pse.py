@@ -29,6 +29,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._checks import check_finite as _check_finite
+from .._linalg import cho_solve, cholesky
 from ..rig import BlendshapeRig, evaluate
 from ._frames import LocalFrames, frame_matrices, local_frames, local_to_world, to_local
 from ._metric import (
@@ -320,13 +321,13 @@ def solve_coefficients(
 ) -> Float[Array, "S P 3"]:
     """X_v = Phi_v^{-1} D_v by a batched Cholesky factorisation (one Phi when shared)."""
     phi = basis_matrices(metric, poses, sigma, ridge)
-    factor = jnp.linalg.cholesky(phi)
+    factor = cholesky(phi)
     if metric.shape[0] == 1:  # PSE: one system, every vertex a right-hand side
         s, p = edits.shape[0], edits.shape[1]
         rhs = jnp.moveaxis(edits, 1, 0).reshape(p, s * 3)
-        x = jax.scipy.linalg.cho_solve((factor[0], True), rhs)
+        x = cho_solve(factor[0], rhs)
         return jnp.moveaxis(x.reshape(p, s, 3), 0, 1)
-    return jax.vmap(lambda c, d: jax.scipy.linalg.cho_solve((c, True), d))(factor, edits)
+    return cho_solve(factor, edits)
 
 
 def correction(

@@ -24,6 +24,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float
 
+from .._linalg import inv
 from ._pse import EditData, basis_matrices
 
 _LOW, _HIGH = 0.01, 0.99
@@ -71,7 +72,7 @@ def loo_residuals(
 ) -> Float[Array, "S P 3"]:
     """Leave-one-out errors X_{v,i} / (Phi_v^-1)_{ii} of every edit at every vertex."""
     phi = basis_matrices(metric, poses, sigma, ridge)
-    inverse = jnp.linalg.inv(phi)  # (S or 1, P, P)
+    inverse = inv(phi)  # (S or 1, P, P)
     coefficients = jnp.einsum(
         "spq,sqc->spc",
         jnp.broadcast_to(inverse, (displacements.shape[0],) + inverse.shape[1:]),
