@@ -98,6 +98,7 @@ from canrig_jax.data import load_ict
 from canrig_jax.mesh import decimate
 from canrig_jax.render import plot_vertex_scalar, save_figure
 from canrig_jax.rig import export_gltf, load_gltf_rig
+from canrig_jax.watchdog import run_watched
 
 MODELS = {"raf": {}, "raf_no_global_encoder": {"global_size": 0}}
 RAF_LOSSES = {
@@ -1416,4 +1417,4 @@ def plot_poses(vertices, faces, truth, predictions: dict, labels, path: Path, n_
 
 
 if __name__ == "__main__":
-    main()
+    run_watched(main, Path(__file__).name)

@@ -62,6 +62,7 @@ from canrig_jax.render import (
     save_figure,
     silhouette,
 )
+from canrig_jax.watchdog import run_watched
 
 RUNS = ("3d_only", "2d_unrigged_plus_3d")
 
@@ -588,4 +589,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    run_watched(main, Path(__file__).name)

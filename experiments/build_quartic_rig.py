@@ -27,6 +27,7 @@ from canrig_jax.data import load_livelinkface
 from canrig_jax.mesh import DeformationGradientBlend
 from canrig_jax.render import plot_vertex_scalar, save_figure
 from canrig_jax.rig import evaluate_batch, ict_quartic_rig, random_sparse_poses
+from canrig_jax.watchdog import run_watched
 
 
 def main(argv=None):
@@ -175,4 +176,4 @@ def _plot_largest_correctives(rig, path: Path, per_order=(4, 2, 2)):
 
 
 if __name__ == "__main__":
-    main()
+    run_watched(main, Path(__file__).name)

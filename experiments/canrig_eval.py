@@ -37,6 +37,7 @@ from canrig_jax.canrig import (
 from canrig_jax.data import load_livelinkface
 from canrig_jax.render import plot_vertex_scalar, save_figure
 from canrig_jax.rig import ict_quartic_rig
+from canrig_jax.watchdog import run_watched
 
 FALLOFF_PER_CM = EVAL_FALLOFF_PER_CM
 HANDLE_COUNTS = (20, 75, 200)
@@ -307,4 +308,4 @@ def _figure_error(per_vertex, out, targets, faces, path):
 
 
 if __name__ == "__main__":
-    main()
+    run_watched(main, Path(__file__).name)

@@ -73,6 +73,7 @@ from canrig_jax.mesh import (  # noqa: E402
 )
 from canrig_jax.render import plot_vertex_scalar, save_figure  # noqa: E402
 from canrig_jax.rig import evaluate_batch, ict_quartic_rig, random_sparse_poses  # noqa: E402
+from canrig_jax.watchdog import run_watched
 
 SKIN = ("Face", "Head and Neck")
 MOUTH_INTERIOR = ("Mouth socket", "Gums and tongue", "Teeth")
@@ -1057,4 +1058,4 @@ def _figure_dialogue(head, run, path):
 
 
 if __name__ == "__main__":
-    main()
+    run_watched(main, Path(__file__).name)

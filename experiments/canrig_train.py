@@ -34,6 +34,7 @@ from canrig_jax.canrig import (
 from canrig_jax.data import load_livelinkface
 from canrig_jax.render import save_figure
 from canrig_jax.rig import ict_quartic_rig
+from canrig_jax.watchdog import run_watched
 
 OPTION_ALIASES = {"n_heads": ["--heads"], "max_minutes": ["--minutes"]}
 """Short flags kept from the first version of this script (committed commands use them)."""
@@ -153,4 +154,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    run_watched(main, Path(__file__).name)

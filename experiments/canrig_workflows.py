@@ -59,6 +59,7 @@ from canrig_jax.canrig import (
 from canrig_jax.data import load_livelinkface
 from canrig_jax.render import plot_vertex_scalar, save_figure
 from canrig_jax.rig import ict_quartic_rig, random_sparse_poses
+from canrig_jax.watchdog import run_watched
 
 FALLOFF_PER_CM = EVAL_FALLOFF_PER_CM
 HANDLE_COUNTS = (20, 75, 200)
@@ -885,4 +886,4 @@ def _figure_dialogue(rig, source, target, out, mouth, handles, path):
 
 
 if __name__ == "__main__":
-    main()
+    run_watched(main, Path(__file__).name)

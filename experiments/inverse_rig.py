@@ -48,6 +48,7 @@ from canrig_jax.rig import (
     random_sparse_poses,
     synthesize_correctives,
 )
+from canrig_jax.watchdog import run_watched
 
 NOISE_VARIANCE_CM2 = 0.03  # as in the paper
 
@@ -400,4 +401,4 @@ def _error_maps(case, path):
 
 
 if __name__ == "__main__":
-    main()
+    run_watched(main, Path(__file__).name)

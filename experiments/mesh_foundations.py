@@ -41,6 +41,7 @@ from canrig_jax.mesh import (
 )
 from canrig_jax.render import plot_vertex_scalar, save_figure
 from canrig_jax.rig import BlendshapeRig, deformation_transfer
+from canrig_jax.watchdog import run_watched
 
 
 def smooth_field(vertices: np.ndarray) -> np.ndarray:
@@ -315,4 +316,4 @@ def _plot_agreement(maps: dict, path: Path) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_watched(main, Path(__file__).name)

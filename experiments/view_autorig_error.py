@@ -39,6 +39,7 @@ from canrig_jax.autorig import (
 from canrig_jax.data import load_livelinkface
 from canrig_jax.rig import export_animated_gltf
 from canrig_jax.viewer import error_colors, find_chromium, screenshot_glb
+from canrig_jax.watchdog import run_watched
 
 
 def main(argv=None) -> None:
@@ -114,4 +115,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_watched(main, Path(__file__).name)

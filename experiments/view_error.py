@@ -73,6 +73,7 @@ from canrig_jax.rig import (
     random_sparse_poses,
 )
 from canrig_jax.viewer import export_error_glb, find_chromium, save_error_legend, screenshot_glb
+from canrig_jax.watchdog import run_watched
 
 RESULTS = Path(__file__).resolve().parent / "results"
 WPSE_EDITS = 50
@@ -332,4 +333,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_watched(main, Path(__file__).name)

@@ -44,6 +44,7 @@ from canrig_jax.rig import (
     ict_quartic_rig,
     random_sparse_poses,
 )
+from canrig_jax.watchdog import run_watched
 from canrig_jax.wpse import time_runtime
 
 BUDGETS = (10, 50)
@@ -788,4 +789,4 @@ def _table(results):
 
 
 if __name__ == "__main__":
-    main()
+    run_watched(main, Path(__file__).name)

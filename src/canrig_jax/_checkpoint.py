@@ -22,6 +22,7 @@ from pathlib import Path
 import equinox as eqx
 import jax
 
+from . import watchdog
 from ._io import CorruptFileError, atomic_path
 
 _HASH_SUFFIX = re.compile(rb', "sha256": "([0-9a-f]{64})"\}$')
@@ -153,6 +154,7 @@ def run_training(
         seconds += time.perf_counter() - start
         step += 1
         done_here += 1
+        watchdog.progress(f"{desc} step {step}")
         if bar is not None:
             bar.update(1)
         if step % checkpoint_every == 0:

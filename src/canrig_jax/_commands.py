@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import watchdog
 from ._cli import add_dataclass_options, from_args
 
 INVERSE_METHODS = {
@@ -45,12 +46,14 @@ class CommandError(Exception):
 
 
 class _Progress:
-    """Stage messages with elapsed seconds on stderr (silenced by ``--quiet``)."""
+    """Stage messages with elapsed seconds on stderr (silenced by ``--quiet``); each is
+    progress for the watchdog."""
 
     def __init__(self, quiet: bool):
         self.quiet, self.start = quiet, time.perf_counter()
 
     def __call__(self, message: str) -> None:
+        watchdog.progress(message)
         if not self.quiet:
             print(f"[{time.perf_counter() - self.start:6.1f} s] {message}", file=sys.stderr)
 
@@ -263,6 +266,7 @@ def _invert(args) -> None:
         block = np.concatenate([block, np.repeat(block[-1:], pad, axis=0)])
         solution = inverse.solve_sequence(problem, block, method, key=jax.random.key(start))
         solved.append(np.asarray(solution.weights)[: chunk - pad])
+        watchdog.progress(f"frames {start}-{start + block.shape[0] - pad - 1}")
     weights = np.concatenate(solved)
     mixing, channels = _arkit_columns(rig)
     write_livelink_csv(out, capture_from_weights(weights @ mixing, channels, fps=args.fps))
@@ -575,7 +579,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        args.run(args)
+        watchdog.run_watched(args.run, f"canrig {args.command}", args)
     except CommandError as error:
         print(f"canrig {args.command}: error: {error}", file=sys.stderr)
         return 2

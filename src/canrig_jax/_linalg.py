@@ -26,11 +26,19 @@ a NaN factor, which the callers test with ``jnp.isfinite``.
 
 from __future__ import annotations
 
+import os
+import re
+
 import jax
 import jax.numpy as jnp
 from jax import lax
 from jax.custom_batching import sequential_vmap
 from jaxtyping import Array, Float
+
+BATCHED_REFERENCE = os.environ.get("CANRIG_BENCH_BATCHED_LAPACK") == "1"
+"""For ``benchmarks/bench_linalg.py`` only: ``CANRIG_BENCH_BATCHED_LAPACK=1`` (read at import)
+restores the previous lowering, ``jnp.linalg`` with whole batches per LAPACK call, to time
+against. It can deadlock; never set it otherwise."""
 
 
 @sequential_vmap
@@ -79,6 +87,8 @@ def solve_triangular(
     signature = "(n,n),(n)->(n)" if vector else "(n,n),(n,m)->(n,m)"
 
     def one(lower, rhs):
+        if BATCHED_REFERENCE:
+            return jax.scipy.linalg.solve_triangular(lower, rhs, lower=True, trans=int(transpose))
         x = _solve_lower(lower, _columns(rhs, vector), transpose)
         return x[:, 0] if vector else x
 
@@ -120,6 +130,8 @@ def _cholesky_jvp(primals, tangents):
 def cholesky(matrix: Float[Array, "*batch n n"]) -> Float[Array, "*batch n n"]:
     """Lower Cholesky factor L (L L^T = A) of symmetric positive definite matrices (only
     A's lower triangle is read); NaN for a matrix that is not positive definite."""
+    if BATCHED_REFERENCE:
+        return jnp.linalg.cholesky(matrix)
     return jnp.vectorize(_cholesky, signature="(n,n)->(n,n)")(jnp.asarray(matrix))
 
 
@@ -135,12 +147,28 @@ def spd_solve(
 
 
 @sequential_vmap
+def _eigh(matrix):
+    return jnp.linalg.eigh(matrix)
+
+
+@jax.custom_jvp
 def _eigvalsh(matrix):
-    return jnp.linalg.eigvalsh(matrix)
+    return _eigh(matrix)[0]
+
+
+@_eigvalsh.defjvp
+def _eigvalsh_jvp(primals, tangents):
+    # d lambda_i = v_i^T dA v_i (distinct eigenvalues)
+    (matrix,), (tangent,) = primals, tangents
+    values, vectors = _eigh(matrix)
+    return values, jnp.einsum("ji,jk,ki->i", vectors, 0.5 * (tangent + tangent.T), vectors)
 
 
 def eigvalsh(matrix: Float[Array, "*batch n n"]) -> Float[Array, "*batch n"]:
-    """Eigenvalues of symmetric matrices in ascending order (not differentiable here)."""
+    """Eigenvalues of symmetric matrices in ascending order (derivative valid where they are
+    distinct)."""
+    if BATCHED_REFERENCE:
+        return jnp.linalg.eigvalsh(matrix)
     return jnp.vectorize(_eigvalsh, signature="(n,n)->(n)")(jnp.asarray(matrix))
 
 
@@ -165,4 +193,21 @@ def _inv_jvp(primals, tangents):
 def inv(matrix: Float[Array, "*batch n n"]) -> Float[Array, "*batch n n"]:
     """Inverses of square matrices by LU with partial pivoting (for systems that rounding
     may leave indefinite, where ``cholesky`` would give NaN); jit/vmap/grad-safe."""
+    if BATCHED_REFERENCE:
+        return jnp.linalg.inv(matrix)
     return jnp.vectorize(_inv, signature="(n,n)->(n,n)")(jnp.asarray(matrix))
+
+
+_LAPACK_CALL = re.compile(
+    r'custom_call_target="(lapack_\w+)", operand_layout_constraints=\{\w+\[([0-9,]*)\]'
+)
+
+
+def lapack_calls(hlo_text: str) -> list[tuple[str, tuple[int, ...]]]:
+    """(kernel, shape of its first operand) of every LAPACK custom call in a compiled
+    program's HLO text (``jax.jit(f).lower(...).compile().as_text()``, or XLA's dumps). A
+    shape of more than two dimensions is a batched call, the kind that can deadlock."""
+    return [
+        (name, tuple(int(d) for d in dims.split(",") if d))
+        for name, dims in _LAPACK_CALL.findall(hlo_text)
+    ]
