@@ -32,6 +32,14 @@ def slow(session):
 
 
 @nox.session
+def stress(session):
+    """The compiled fits that once deadlocked, 200 calls each, idle and beside a CPU hog, in
+    subprocesses with timeouts (``tests/test_deadlock.py``'s slow tests)."""
+    session.install("-e", ".[dev]")
+    session.run("python", "-m", "pytest", "-m", "slow", "tests/test_deadlock.py", *session.posargs)
+
+
+@nox.session
 def lint(session):
     session.install("ruff")
     session.run("ruff", "check", "src", "tests", "experiments", "benchmarks", "noxfile.py")

@@ -102,3 +102,21 @@ def test_readme_python_blocks_run_in_order_in_a_fresh_process(tmp_path):
         f"{done.stderr[-6000:]}",
         pytrace=False,
     )
+
+
+@pytest.mark.parametrize("page", sorted((ROOT / "docs").glob("*.md")), ids=lambda p: p.name)
+def test_docs_python_blocks_run(page, tmp_path):
+    """Each docs page's python blocks run as written, in order, in one fresh process."""
+    text = page.read_text()
+    script = tmp_path / "page_blocks.py"
+    script.write_text(readme_script(text, python_blocks(text)))
+    env = dict(os.environ, MPLBACKEND="Agg")
+    done = subprocess.run(
+        [sys.executable, str(script)],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert done.returncode == 0, f"{page.name} (line numbers are the page's):\n{done.stderr}"
