@@ -59,6 +59,22 @@ def readme_script(text: str, blocks: list[Block]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def run_blocks(text: str, blocks: list[Block], folder: Path, timeout: float):
+    """The blocks of ``text`` run as one script (``readme_script``) in a fresh process from
+    the project root; the finished process."""
+    script = folder / "blocks.py"
+    script.write_text(readme_script(text, blocks))
+    env = dict(os.environ, MPLBACKEND="Agg", PYTHONUNBUFFERED="1")
+    return subprocess.run(
+        [sys.executable, str(script)],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
 def test_python_blocks_are_found_with_their_headings():
     text = "# A\n```python\nx = 1\n```\n## B\n```bash\nls\n```\n```python\ny = x\n```\n"
     blocks = python_blocks(text)
@@ -77,17 +93,7 @@ def test_readme_python_blocks_run_in_order_in_a_fresh_process(tmp_path):
     text = README.read_text()
     blocks = python_blocks(text)
     assert blocks, "README.md has no ```python blocks"
-    script = tmp_path / "readme_blocks.py"
-    script.write_text(readme_script(text, blocks))
-    env = dict(os.environ, MPLBACKEND="Agg", PYTHONUNBUFFERED="1")
-    done = subprocess.run(
-        [sys.executable, str(script)],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=3600,
-    )
+    done = run_blocks(text, blocks, tmp_path, timeout=3600)
     if done.returncode == 0:
         return
     reached = [int(m) for m in re.findall(rf"^{MARKER} (\d+)$", done.stdout, flags=re.M)]
@@ -108,15 +114,5 @@ def test_readme_python_blocks_run_in_order_in_a_fresh_process(tmp_path):
 def test_docs_python_blocks_run(page, tmp_path):
     """Each docs page's python blocks run as written, in order, in one fresh process."""
     text = page.read_text()
-    script = tmp_path / "page_blocks.py"
-    script.write_text(readme_script(text, python_blocks(text)))
-    env = dict(os.environ, MPLBACKEND="Agg")
-    done = subprocess.run(
-        [sys.executable, str(script)],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    done = run_blocks(text, python_blocks(text), tmp_path, timeout=600)
     assert done.returncode == 0, f"{page.name} (line numbers are the page's):\n{done.stderr}"
