@@ -80,9 +80,10 @@ def test_derivatives_match_jax_linalg():
     np.testing.assert_allclose(transposed, np.linalg.solve(lower.T, tangent), rtol=1e-4, atol=1e-6)
 
 
-def test_every_lapack_call_holds_one_matrix_however_batched():
+@pytest.mark.parametrize("n", [9, la.SMALL + 8])
+def test_every_lapack_call_holds_one_matrix_however_batched(n):
     rng = np.random.default_rng(2)
-    a, b = _spd(rng, 4, 3, 9, 9), rng.standard_normal((4, 3, 9)).astype(np.float32)
+    a, b = _spd(rng, 4, 3, n, n), rng.standard_normal((4, 3, n)).astype(np.float32)
 
     def loss(a, b):
         lower = la.cholesky(a)
@@ -92,11 +93,30 @@ def test_every_lapack_call_holds_one_matrix_however_batched():
     program = jax.jit(jax.vmap(jax.vmap(jax.value_and_grad(loss, (0, 1)))))
     calls = la.lapack_calls(program.lower(a, b).compile().as_text())
     kernels = {name for name, _ in calls}
-    assert {"lapack_spotrf_ffi", "lapack_strsm_ffi", "lapack_sgetrf_ffi"} <= kernels
+    # small factors are batched in lax, larger ones go to LAPACK one at a time
+    assert ("lapack_spotrf_ffi" in kernels) == (n > la.SMALL)
+    assert {"lapack_sgetrf_ffi", "lapack_ssyevd_ffi"} <= kernels
     assert all(len(shape) == 2 for _, shape in calls), calls
     # the same program in jnp.linalg batches them: what the scan must catch
     batched = jax.jit(jax.vmap(lambda a: jnp.linalg.cholesky(a)))
     assert any(len(s) > 2 for _, s in la.lapack_calls(batched.lower(a[0]).compile().as_text()))
-    values = program(a, b)[0]
-    reference = jax.vmap(jax.vmap(loss))(a, b)
-    np.testing.assert_allclose(values, reference, rtol=1e-5)
+    values, (grad_a, grad_b) = program(a, b)
+    np.testing.assert_allclose(values, jax.vmap(jax.vmap(loss))(a, b), rtol=1e-5)
+    one = jax.value_and_grad(loss, (0, 1))(a[1, 2], b[1, 2])  # unbatched: LAPACK
+    np.testing.assert_allclose(grad_a[1, 2], one[1][0], rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(grad_b[1, 2], one[1][1], rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("n", [9, la.SMALL + 8])
+def test_one_matrix_many_right_hand_sides(n):
+    """A shared matrix under ``vmap`` of the right-hand side: one call with the batch as
+    columns, the same solutions as NumPy's."""
+    rng = np.random.default_rng(3)
+    a, b = _spd(rng, n, n), rng.standard_normal((5, 4, n)).astype(np.float32)
+    lower = la.cholesky(a)
+    x = jax.jit(jax.vmap(jax.vmap(lambda b: la.cho_solve(lower, b))))(b)
+    want = np.linalg.solve(a.astype(np.float64), b.reshape(-1, n).T).T.reshape(b.shape)
+    np.testing.assert_allclose(x, want, atol=1e-5 * np.abs(want).max())
+    program = jax.jit(jax.vmap(lambda b: la.cho_solve(lower, b))).lower(b[0]).compile()
+    calls = la.lapack_calls(program.as_text())
+    assert len(calls) == 2 and all(len(shape) == 2 for _, shape in calls)  # forward, back

@@ -1,27 +1,27 @@
-"""Dense linear algebra that cannot deadlock XLA's CPU thread pool: LAPACK one matrix at a time.
+"""Dense linear algebra that cannot deadlock XLA's CPU thread pool: LAPACK one matrix per call.
 
 jaxlib 0.10's CPU LAPACK kernels (Cholesky, triangular solves, eigh, LU) split a *batch* of
 matrices across XLA's intra-op thread pool and block until the pieces are done. When XLA runs
 as many such calls at once as the pool has threads (two on a 2-core machine, e.g. two
 independent batched triangular solves in one program), every pool thread waits for work that
 only another, equally blocked, thread could run, and the call never returns: the fitted pose
-A-to-B on a ``LocalFitRig`` hung on its second call. A call on *one* matrix (no batch
-dimensions) runs inline on the calling thread and never waits (jaxlib's ``ParallelBatchMap``
-runs a batch no larger than its chunk in place), so this module gives every LAPACK call exactly
-one matrix:
+A-to-B on a ``LocalFitRig`` hung on its second call. A call on *one* matrix never waits
+(jaxlib's ``ParallelBatchMap`` runs a batch no larger than its chunk in place, on the calling
+thread), so no LAPACK call made here holds more than one matrix. Under ``vmap`` (ours or a
+caller's, nested or not; ``jax.custom_batching``):
 
-- ``jax.custom_batching.sequential_vmap``: under ``vmap`` (ours or a caller's, nested or not)
-  the matrices are visited by a ``lax.map`` loop, one LAPACK call each;
-- ``lax.custom_linear_solve`` makes the triangular solves linear operators JAX can transpose
-  (``grad``, ``linear_transpose``, ``lineax``'s LSMR), whose derivative in the matrix is exact;
-- ``cholesky`` has the analytic derivative dL = L Phi(L^-1 dA L^-T) (Murray 2016) in terms of
-  those solves.
+- one matrix, many right-hand sides: a single call, the batch as extra columns;
+- many small matrices (order <= ``SMALL``): Cholesky-Crout and substitution unrolled in
+  elementwise ``jnp`` operations over the whole batch (no LAPACK at all);
+- many larger matrices: one LAPACK call each, in a ``lax.map`` loop (``sequential_vmap`` for
+  ``inv`` and ``eigh``).
 
-The batched kernels were faster only where one program held many matrices of one size; a
-benchmark (``benchmarks/bench_linalg.py``) prints the ratio. ``tests/test_linalg.py`` checks
-that no compiled solve of the library keeps a batched LAPACK call, and the stress test runs the
-fits that hung. Conventions follow ``jnp.linalg``: a matrix that is not positive definite gives
-a NaN factor, which the callers test with ``jnp.isfinite``.
+``lax.custom_linear_solve`` keeps the triangular solves transposable (reverse mode, lineax's
+LSMR), and ``cholesky``, ``inv`` and ``eigvalsh`` carry their analytic derivatives (Murray
+2016 for the Cholesky factor). ``benchmarks/bench_linalg.py`` times the fits against the batched
+calls; ``tests/test_linalg.py`` and ``tests/test_deadlock.py`` check that no compiled solve of
+the library keeps a batched LAPACK call. Conventions follow ``jnp.linalg``: a matrix that is
+not positive definite gives a NaN factor, which the callers test with ``jnp.isfinite``.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ import re
 import jax
 import jax.numpy as jnp
 from jax import lax
-from jax.custom_batching import sequential_vmap
+from jax.custom_batching import custom_vmap, sequential_vmap
 from jaxtyping import Array, Float
 
 BATCHED_REFERENCE = os.environ.get("CANRIG_BENCH_BATCHED_LAPACK") == "1"
@@ -41,19 +41,85 @@ restores the previous lowering, ``jnp.linalg`` with whole batches per LAPACK cal
 against. It can deadlock; never set it otherwise."""
 
 
-@sequential_vmap
-def _potrf(matrix):
-    return lax.linalg.cholesky(matrix, symmetrize_input=False)
+SMALL = 32
+"""Matrices of at most this order are batched in ``lax`` (a loop over their columns, every
+matrix of the batch at once); larger ones take one LAPACK call each in a loop over the batch.
+Chosen by ``benchmarks/bench_linalg.py``: a loop iteration per matrix costs more than a small
+factorisation (12,800 Cholesky factors of order 17 in CANRig-PBS's local prior)."""
 
 
-@sequential_vmap
-def _forward(lower, rhs):
-    return lax.linalg.triangular_solve(lower, rhs, left_side=True, lower=True)
+def _cholesky_columns(matrix):
+    """Cholesky-Crout of one small matrix, unrolled entry by entry (elementwise operations that
+    XLA fuses across a batch): L_jj = sqrt(a_jj - sum_k L_jk^2), then
+    L_ij = (a_ij - sum_k L_ik L_jk) / L_jj below it, k < j."""
+    n = matrix.shape[0]
+    entry = {}
+    for j in range(n):
+        pivot = matrix[j, j] - sum(
+            (entry[j, k] ** 2 for k in range(j)), jnp.zeros((), matrix.dtype)
+        )
+        entry[j, j] = jnp.sqrt(pivot)
+        for i in range(j + 1, n):
+            coupling = sum(
+                (entry[i, k] * entry[j, k] for k in range(j)), jnp.zeros((), matrix.dtype)
+            )
+            entry[i, j] = (matrix[i, j] - coupling) / entry[j, j]
+    zero = jnp.zeros((), matrix.dtype)
+    lower = jnp.stack([jnp.stack([entry.get((i, j), zero) for j in range(n)]) for i in range(n)])
+    return jnp.where(jnp.all(jnp.isfinite(lower)), lower, jnp.nan)  # as LAPACK's: all NaN
 
 
-@sequential_vmap
-def _backward(lower, rhs):
-    return lax.linalg.triangular_solve(lower, rhs, left_side=True, lower=True, transpose_a=True)
+def _substitution(lower, rhs, transpose):
+    """L x = b (L^T x = b with ``transpose``) of one small matrix, unrolled over its rows."""
+    n = lower.shape[0]
+    matrix = lower.T if transpose else lower
+    order = range(n - 1, -1, -1) if transpose else range(n)
+    rows = {}
+    for i in order:
+        coupling = sum((matrix[i, k] * rows[k] for k in rows), jnp.zeros_like(rhs[i]))
+        rows[i] = (rhs[i] - coupling) / matrix[i, i]
+    return jnp.stack([rows[i] for i in range(n)])
+
+
+def _one_matrix_per_call(lapack, small):
+    """``lapack`` (one matrix, then right-hand sides) under ``vmap``: where only the
+    right-hand sides are batched, one call with the batch as extra columns; else ``small``
+    over the whole batch where the matrices have order <= ``SMALL``, or one ``lapack`` call
+    per matrix in a loop."""
+    fn = custom_vmap(lapack)
+
+    @fn.def_vmap
+    def rule(axis_size, in_batched, matrix, *rhs):
+        if rhs and not in_batched[0]:  # (B, n, m) right-hand sides: (n, B m) columns
+            (rhs,) = rhs
+            columns = jnp.moveaxis(rhs, 0, 1).reshape(rhs.shape[1], -1)
+            x = fn(matrix, columns).reshape(rhs.shape[1], axis_size, rhs.shape[2])
+            return jnp.moveaxis(x, 1, 0), True
+        if matrix.shape[-1] <= SMALL:
+            axes = [0 if batched else None for batched in in_batched]
+            return jax.vmap(small, in_axes=axes)(matrix, *rhs), True
+        args = [
+            arg if batched else jnp.broadcast_to(arg, (axis_size, *arg.shape))
+            for arg, batched in zip((matrix, *rhs), in_batched, strict=True)
+        ]
+        return lax.map(lambda one: fn(*one), tuple(args)), True
+
+    return fn
+
+
+_potrf = _one_matrix_per_call(
+    lambda matrix: lax.linalg.cholesky(matrix, symmetrize_input=False), _cholesky_columns
+)
+_forward = _one_matrix_per_call(
+    lambda lower, rhs: lax.linalg.triangular_solve(lower, rhs, left_side=True, lower=True),
+    lambda lower, rhs: _substitution(lower, rhs, False),
+)
+_backward = _one_matrix_per_call(
+    lambda lower, rhs: lax.linalg.triangular_solve(
+        lower, rhs, left_side=True, lower=True, transpose_a=True
+    ),
+    lambda lower, rhs: _substitution(lower, rhs, True),
+)
 
 
 def _solve_lower(lower, rhs, transpose: bool):
