@@ -42,29 +42,23 @@ against. It can deadlock; never set it otherwise."""
 
 
 SMALL = 32
-"""Matrices of at most this order are batched in ``lax`` (a loop over their columns, every
-matrix of the batch at once); larger ones take one LAPACK call each in a loop over the batch.
-Chosen by ``benchmarks/bench_linalg.py``: a loop iteration per matrix costs more than a small
-factorisation (12,800 Cholesky factors of order 17 in CANRig-PBS's local prior)."""
+"""A batch of matrices of at most this order is factorised and solved in unrolled elementwise
+operations over the whole batch (their size grows with the cube of the order); larger ones take
+one LAPACK call each in a loop over the batch, whose per-iteration cost would dominate for
+small matrices (CANRig-PBS's local prior factorises 200 of order 17 per edit)."""
 
 
 def _cholesky_columns(matrix):
     """Cholesky-Crout of one small matrix, unrolled entry by entry (elementwise operations that
     XLA fuses across a batch): L_jj = sqrt(a_jj - sum_k L_jk^2), then
     L_ij = (a_ij - sum_k L_ik L_jk) / L_jj below it, k < j."""
-    n = matrix.shape[0]
+    n, zero = matrix.shape[0], jnp.zeros((), matrix.dtype)
     entry = {}
     for j in range(n):
-        pivot = matrix[j, j] - sum(
-            (entry[j, k] ** 2 for k in range(j)), jnp.zeros((), matrix.dtype)
-        )
-        entry[j, j] = jnp.sqrt(pivot)
+        entry[j, j] = jnp.sqrt(matrix[j, j] - sum((entry[j, k] ** 2 for k in range(j)), zero))
         for i in range(j + 1, n):
-            coupling = sum(
-                (entry[i, k] * entry[j, k] for k in range(j)), jnp.zeros((), matrix.dtype)
-            )
+            coupling = sum((entry[i, k] * entry[j, k] for k in range(j)), zero)
             entry[i, j] = (matrix[i, j] - coupling) / entry[j, j]
-    zero = jnp.zeros((), matrix.dtype)
     lower = jnp.stack([jnp.stack([entry.get((i, j), zero) for j in range(n)]) for i in range(n)])
     return jnp.where(jnp.all(jnp.isfinite(lower)), lower, jnp.nan)  # as LAPACK's: all NaN
 
