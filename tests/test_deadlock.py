@@ -57,7 +57,9 @@ def test_fits_complete_under_load(data_dir):
 
 def test_no_compiled_program_holds_a_batched_lapack_call(data_dir, tmp_path):
     env = dict(os.environ, XLA_FLAGS=f"--xla_dump_to={tmp_path} --xla_dump_hlo_as_text")
-    run_workload("--calls", "1", "--data-dir", str(data_dir), timeout=900, env=env)
+    run_workload(
+        "--calls", "1", "--data-dir", str(data_dir), "--watchdog", "600", timeout=900, env=env
+    )
     programs = sorted(tmp_path.glob("*after_optimizations.txt"))
     assert len(programs) > 50  # every phase compiled something
     calls = {path.name: lapack_calls(path.read_text()) for path in programs}
