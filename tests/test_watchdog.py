@@ -51,3 +51,14 @@ def test_limit_from_environment(monkeypatch):
             limit_from_environment(600.0)
     with pytest.raises(ValueError, match="seconds"):
         watchdog(float("nan"))
+
+
+def test_runs_where_standard_error_has_no_file_descriptor(capsys, monkeypatch):
+    """Under a capturing runner (no ``fileno``) the watchdog still arms and disarms."""
+    import io
+
+    monkeypatch.setattr(sys, "stderr", io.StringIO())
+    monkeypatch.setattr(sys, "__stderr__", io.StringIO())
+    with watchdog(5.0, "captured") as dog:
+        dog.progress("a step")
+    assert dog.last == "a step"

@@ -27,6 +27,7 @@ import os
 import sys
 import threading
 import time
+import traceback
 
 EXIT_STATUS = 70
 """The process's exit status when the watchdog fires (EX_SOFTWARE)."""
@@ -56,7 +57,9 @@ class Watchdog:
         with self._lock:
             self._deadline = time.monotonic() + self.seconds
             self.last = step or self.last
-        faulthandler.dump_traceback_later(self.seconds + GRACE, exit=True)
+        native = _native_stderr()
+        if native is not None:  # none under a capturing test runner: the Python timer remains
+            faulthandler.dump_traceback_later(self.seconds + GRACE, exit=True, file=native)
 
     def _watch(self) -> None:
         while not self._stop.wait(min(1.0, self.seconds / 4)):
@@ -70,8 +73,7 @@ class Watchdog:
                     file=sys.stderr,
                     flush=True,
                 )
-                faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
-                sys.stderr.flush()
+                _dump_stacks()
                 os._exit(EXIT_STATUS)
 
     def __enter__(self) -> Watchdog:
@@ -87,6 +89,30 @@ class Watchdog:
         faulthandler.cancel_dump_traceback_later()
         if _active:  # an enclosing watchdog keeps watching
             _active[-1].progress()
+
+
+def _native_stderr():
+    """Standard error as a file with a descriptor (what ``faulthandler`` writes to), or None."""
+    for stream in (sys.stderr, sys.__stderr__):
+        try:
+            stream.fileno()
+            return stream
+        except (AttributeError, OSError, ValueError):
+            continue
+    return None
+
+
+def _dump_stacks() -> None:
+    """Every thread's stack on standard error."""
+    native = _native_stderr()
+    if native is not None:
+        native.flush()
+        faulthandler.dump_traceback(file=native, all_threads=True)
+        native.flush()
+        return
+    for ident, frame in sys._current_frames().items():
+        print(f"Thread {ident:#x}:", "".join(traceback.format_stack(frame)), file=sys.stderr)
+    sys.stderr.flush()
 
 
 def watchdog(seconds: float | None, what: str = "this run"):
