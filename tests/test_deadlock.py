@@ -16,8 +16,9 @@ import pytest
 from canrig_jax._linalg import lapack_calls
 
 WORKLOAD = Path(__file__).with_name("stress_workload.py")
-CALLS = 20
-"""Fitted A-to-B calls per rig in the default run (the hang came on the second)."""
+CALLS = 10
+"""Fitted A-to-B calls per rig in the default run (the hang came on the second; nox -s
+stress runs 200)."""
 
 
 @contextmanager
@@ -49,7 +50,9 @@ def run_workload(*args: str, timeout: float, env: dict | None = None) -> str:
 def test_fits_complete_under_load(data_dir):
     with cpu_hog():
         out = run_workload(
-            "--calls", str(CALLS), "--data-dir", str(data_dir), "--watchdog", "300", timeout=900
+            *("--calls", str(CALLS), "--data-dir", str(data_dir), "--watchdog", "300"),
+            *("--phases", "local,network,dialogue,newton,pbs,wpse"),  # the scan covers the rest
+            timeout=900,
         )
     assert f"LocalFitRig: {CALLS} fitted A-to-B calls" in out
     assert f"CANRig: {CALLS} fitted A-to-B calls" in out
