@@ -127,10 +127,6 @@ def _solve_lower(lower, rhs, transpose: bool):
     )
 
 
-def _columns(rhs, vector):
-    return rhs[..., None] if vector else rhs
-
-
 def solve_triangular(
     lower: Float[Array, "*batch n n"],
     rhs: Float[Array, "*batch n"] | Float[Array, "*batch n m"],
@@ -149,8 +145,9 @@ def solve_triangular(
     def one(lower, rhs):
         if BATCHED_REFERENCE:
             return jax.scipy.linalg.solve_triangular(lower, rhs, lower=True, trans=int(transpose))
-        x = _solve_lower(lower, _columns(rhs, vector), transpose)
-        return x[:, 0] if vector else x
+        if vector:
+            return _solve_lower(lower, rhs[:, None], transpose)[:, 0]
+        return _solve_lower(lower, rhs, transpose)
 
     return jnp.vectorize(one, signature=signature)(lower, rhs)
 
@@ -163,9 +160,6 @@ def cho_solve(
 ) -> Array:
     """x with ``L L^T x = b``, L a lower Cholesky factor (``cholesky``); shapes as
     ``solve_triangular``."""
-    lower, rhs = jnp.asarray(lower), jnp.asarray(rhs)
-    if vector is None:
-        vector = rhs.ndim == lower.ndim - 1
     forward = solve_triangular(lower, rhs, vector=vector)
     return solve_triangular(lower, forward, transpose=True, vector=vector)
 

@@ -35,6 +35,10 @@ EXIT_STATUS = 70
 GRACE = 30.0
 """Seconds after the limit at which the native timer ends a process whose interpreter is stuck."""
 
+REARM = 1.0
+"""Seconds between two re-armings of the native timer (it fires up to this much early,
+well inside ``GRACE``)."""
+
 _active: list[Watchdog] = []
 
 
@@ -49,16 +53,23 @@ class Watchdog:
         self.last = "start"
         self._lock = threading.Lock()
         self._deadline = time.monotonic() + self.seconds
+        self._armed: float | None = None  # when the native timer was last armed
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._watch, name="canrig-watchdog", daemon=True)
 
     def progress(self, step: str = "") -> None:
         """Reset the timer; ``step`` names what was last done (shown if it fires)."""
+        now = time.monotonic()
         with self._lock:
-            self._deadline = time.monotonic() + self.seconds
+            self._deadline = now + self.seconds
             self.last = step or self.last
+            rearm = self._armed is None or now - self._armed > REARM
+            if rearm:
+                self._armed = now
         native = _native_stderr()
-        if native is not None:  # none under a capturing test runner: the Python timer remains
+        # re-arming restarts faulthandler's thread: at most once a REARM (a training loop
+        # reports every step); none under a capturing test runner (the Python timer remains)
+        if rearm and native is not None:
             faulthandler.dump_traceback_later(self.seconds + GRACE, exit=True, file=native)
 
     def _watch(self) -> None:
@@ -87,7 +98,8 @@ class Watchdog:
         self._thread.join()
         _active.remove(self)
         faulthandler.cancel_dump_traceback_later()
-        if _active:  # an enclosing watchdog keeps watching
+        if _active:  # an enclosing watchdog keeps watching: its native timer was cancelled
+            _active[-1]._armed = None
             _active[-1].progress()
 
 
