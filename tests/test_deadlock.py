@@ -51,7 +51,8 @@ def test_fits_complete_under_load(data_dir):
     with cpu_hog():
         out = run_workload(
             *("--calls", str(CALLS), "--data-dir", str(data_dir), "--watchdog", "300"),
-            *("--phases", "local,network,dialogue,newton,pbs,wpse"),  # the scan covers the rest
+            # the fitted A-to-B calls that hung; the dump scan covers every other phase
+            *("--phases", "local,network"),
             timeout=900,
         )
     assert f"LocalFitRig: {CALLS} fitted A-to-B calls" in out
