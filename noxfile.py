@@ -294,3 +294,12 @@ def gltf(session):
         "tests/test_commands.py",
         *session.posargs,
     )
+
+
+@nox.session
+def docs(session):
+    """The documentation site (mkdocs-material; API reference from the docstrings, the CLI
+    reference and the results pages generated at build time) built with ``--strict`` into
+    ``build/site/`` (git-ignored); ``-- --site-dir DIR`` builds elsewhere."""
+    session.install("-e", ".[docs]")
+    session.run("mkdocs", "build", "--strict", *session.posargs)
