@@ -35,14 +35,14 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-from canrig_jax import save_text
+from canrig_jax._io import save_text
 from canrig_jax.autorig import (
     DEFAULT_CHECKPOINT,
     DEFAULT_POSE_CHUNK,
-    TrainOptions,
+    RigAnyFaceTrainOptions,
     generate_rig,
     head_inputs,
-    load_model,
+    load_riganyface,
     make_model,
     pad_to_bucket,
     predict_displacements,
@@ -119,12 +119,12 @@ def main(argv=None):
     models = {}
     for path in args.checkpoint:
         if path.exists():
-            model, poses, _ = load_model(path)
+            model, poses, _ = load_riganyface(path)
             name = f"{path.parent.name}/{path.name}"
         else:
             face_rig, _ = ict_quartic_rig(args.data_dir, progress=False)
             poses = quartic_pose_set(face_rig)
-            model = make_model(TrainOptions(), poses.n_basis, 0.01)
+            model = make_model(RigAnyFaceTrainOptions(), poses.n_basis, 0.01)
             name = f"untrained width 32 ({path} missing; timing does not depend on weights)"
         models[f"{name}, {parameter_count(model):,} parameters"] = (model, poses)
     mesh, other = (decimate(head.neutral, head.faces, n) for n in (1600, 1620))

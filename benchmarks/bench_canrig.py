@@ -40,7 +40,8 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from canrig_jax import call_times_ms, save_text
+from canrig_jax._io import save_text
+from canrig_jax._timing import call_times_ms
 from canrig_jax.canrig import (
     DENSE,
     FitOptions,

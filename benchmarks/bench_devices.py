@@ -2,7 +2,7 @@
 
     python benchmarks/bench_devices.py [--steps 40] [--batch 256] [--out FILE.md]
 
-The step is ``canrig_jax.data_parallel_step`` on an MLP (52 ARKit weights -> 3 x 512 ICT
+The step is ``canrig_jax._sharding.data_parallel_step`` on an MLP (52 ARKit weights -> 3 x 512 ICT
 face-vertex displacements, width 256, depth 3) with batches drawn from the real Live Link
 capture and the linear ICT rig; the batch is split over the devices, parameters replicated.
 It runs in a subprocess with ``XLA_FLAGS=--xla_force_host_platform_device_count=2``: on CPU
@@ -20,14 +20,14 @@ import subprocess
 import sys
 from pathlib import Path
 
-from canrig_jax import save_text
+from canrig_jax._io import save_text
 
 DEFAULT_OUT = Path(__file__).parent / "results" / "bench_devices.md"
 
 WORKER = r"""
 import json, sys, time
 import equinox as eqx, jax, jax.numpy as jnp, numpy as np, optax
-from canrig_jax import data_parallel_step, device_mesh, replicate, shard_batch
+from canrig_jax._sharding import data_parallel_step, device_mesh, replicate, shard_batch
 from canrig_jax.data import FACE, load_ict, load_livelinkface
 
 steps, batch_size = int(sys.argv[1]), int(sys.argv[2])

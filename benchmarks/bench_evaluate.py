@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from canrig_jax import save_text
+from canrig_jax._io import save_text
 from canrig_jax.data import FACE, load_ict, load_livelinkface
 from canrig_jax.rig import (
     BlendshapeRig,

@@ -13,7 +13,7 @@ and the pieces of one frame: the projection M^T (b - b0) (the one 3V-sized produ
 row-major layout the library uses and in the transposed layout it used before), and Joshi
 (a closed form, i.e. the fixed cost of one compiled call); QuarticNewton (projected
 Gauss-Newton on the same objective) batched and one frame per call, cold and warm-started.
-One frame per call is also timed inside ``canrig_jax.single_threaded_blas()`` (the Newton
+One frame per call is also timed inside ``canrig_jax._threads.single_threaded_blas()`` (the Newton
 step's Cholesky runs in SciPy's OpenBLAS) and in a subprocess whose XLA runs every op on one
 thread (``XLA_FLAGS``, which a library cannot set for its caller). Issue 22's targets:
 converged <= 0.5 ms/frame batched and <= 2 ms/frame one frame per call. A Markdown table is
@@ -36,7 +36,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from canrig_jax import inverse, save_text, single_threaded_blas
+from canrig_jax import inverse
+from canrig_jax._io import save_text
+from canrig_jax._threads import single_threaded_blas
 from canrig_jax.data import load_livelinkface
 from canrig_jax.inverse import (
     NumpyDenseRig,
@@ -182,7 +184,7 @@ def main(argv=None) -> str:
         ("JAX QuarticCD converged, one frame per call (Stream, median of 60)", single_s * 1e3),
         ("JAX QuarticCD converged, one frame per call, warm-started", warm_s * 1e3),
         (
-            "JAX QuarticCD converged, one frame per call, inside canrig_jax.single_threaded_blas()",
+            "JAX QuarticCD converged, one frame per call, inside single_threaded_blas()",
             blas_s * 1e3,
         ),
         (

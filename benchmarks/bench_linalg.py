@@ -223,7 +223,7 @@ def main(argv=None) -> None:
     ]
     text = "\n".join(lines) + "\n"
     print(text)
-    from canrig_jax import save_text
+    from canrig_jax._io import save_text
 
     save_text(OUT, text)
 

@@ -37,7 +37,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from canrig_jax import median_ms, save_text
+from canrig_jax._io import save_text
+from canrig_jax._timing import median_ms
 from canrig_jax.canrig import (
     CLAMP,
     PBSTrainOptions,

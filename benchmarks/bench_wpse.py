@@ -25,7 +25,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from canrig_jax import save_text, wpse
+from canrig_jax import wpse
+from canrig_jax._io import save_text
 from canrig_jax.rig import evaluate_batch, ict_linear_rig, random_sparse_poses
 from canrig_jax.wpse import time_runtime
 

@@ -57,19 +57,14 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from canrig_jax import (
-    CM_TO_MM,
-    experiment_command,
-    provenance,
-    record_command,
-    save_json,
-    save_text,
-)
+from canrig_jax._io import save_json, save_text
+from canrig_jax._metrics import CM_TO_MM
+from canrig_jax._provenance import experiment_command, provenance, record_command
 from canrig_jax.autorig import (
     ACTIVE_MM,
     ANCHOR_MODES,
     STATIC_MM,
-    TrainOptions,
+    RigAnyFaceTrainOptions,
     class_errors,
     copy_poses,
     error_stats,
@@ -81,14 +76,14 @@ from canrig_jax.autorig import (
     ict_autorig_dataset,
     inner_outside,
     load_makehuman,
-    load_model,
+    load_riganyface,
     normalise,
     penetration,
     penetration_free_set,
     sculpted_shape_errors,
     sculpted_target_errors,
     shared_shape_matrix,
-    train,
+    train_riganyface,
     training_set,
     transfer_poses,
     worst_poses,
@@ -118,9 +113,9 @@ RAF_LOSSES = {
 per-vertex Euclidean loss plus the static-vertex term (issue 19; experiments/results/
 autorig_retrain, autorig_wide, autorig_long), and the other two combinations (the loss
 ablation, experiments/results/autorig_loss), and squared + static with every pose weighed
-against its own no-motion error (``TrainOptions.balance_poses``; autorig_balanced), or halfway
-(balance_poses=0.5; autorig_half_balanced, and on 12,000 steps autorig_half_balanced_long, the
-default model), or 0.3 of the way (autorig_balanced_03)."""
+against its own no-motion error (``RigAnyFaceTrainOptions.balance_poses``; autorig_balanced),
+or halfway (balance_poses=0.5; autorig_half_balanced, and on 12,000 steps
+autorig_half_balanced_long, the default model), or 0.3 of the way (autorig_balanced_03)."""
 RESIDUAL = "raf_dt_residual"
 RESIDUAL_ANCHORED = "raf_anchored_dt_residual"
 """The residual model trained on anchored deformation transfer (``--anchored-residual``)."""
@@ -196,10 +191,10 @@ def _generated(models, rows, poses, head, bases, operators=None, placement=None)
 def _train_one(args, name, data, poses, options):
     """Train (or resume) ``checkpoint_{name}.eqx`` in ``args.out``; (model, its record)."""
     path = args.out / f"checkpoint_{name}.eqx"
-    result = train(
+    result = train_riganyface(
         data, poses, options, checkpoint=path, progress=not args.no_progress, devices=args.devices
     )
-    model, _, state = load_model(path)
+    model, _, state = load_riganyface(path)
     print(f"{name}: {result.step} steps in {result.seconds / 60:.1f} min")
     return model, {
         "steps": result.step,
@@ -240,7 +235,7 @@ def main(argv=None):
         "--devices",
         type=int,
         default=None,
-        help="data-parallel training over N devices (default: all; see canrig_jax.data_parallel)",
+        help="data-parallel training over N devices (default: all; see canrig_jax._sharding)",
     )
     parser.add_argument(
         "--timing-only",
@@ -270,14 +265,14 @@ def main(argv=None):
     parser.add_argument(
         "--raf-width",
         type=int,
-        default=TrainOptions.width,
+        default=RigAnyFaceTrainOptions.width,
         help="feature width of raf and raf_no_global_encoder (default: %(default)s, the "
         "standard checkpoints')",
     )
     parser.add_argument(
         "--raf-conditional-blocks",
         type=int,
-        default=TrainOptions.n_conditional,
+        default=RigAnyFaceTrainOptions.n_conditional,
         help="pose-conditioned diffusion blocks of raf and raf_no_global_encoder (default: "
         "%(default)s)",
     )
@@ -376,7 +371,7 @@ def main(argv=None):
         progress=progress,
     )
     poses = dataset.poses
-    options = TrainOptions(
+    options = RigAnyFaceTrainOptions(
         steps=20 if args.quick else args.steps,
         warmup_steps=5 if args.quick else 200,
         max_minutes=None if args.quick else args.minutes,
@@ -810,7 +805,7 @@ def refresh_timing(args, argv=None) -> dict:
             "run without --timing-only first"
         )
     results = json.loads(path.read_text())
-    model, poses, _ = load_model(checkpoint)
+    model, poses, _ = load_riganyface(checkpoint)
     results["rig_seconds"] = rig_timing(model, poses, load_ict(args.data_dir, parts=None))
     results["timing_provenance"] = provenance(experiment_command(__file__, argv))
     write_results(args.out, results)
@@ -829,7 +824,7 @@ def _load_checkpoints(paths, flag: str) -> dict:
     for path in paths:
         if not path.exists():
             raise ValueError(f"{flag}: no checkpoint {path}")
-        model, _, header = load_model(path)
+        model, _, header = load_riganyface(path)
         models[f"{path.parent.name}/{path.stem}"] = model, header
     return models
 
@@ -1058,7 +1053,7 @@ def refresh_penetration(args, argv=None) -> dict:
             anchors += [] if mode in anchors else [mode]
     results = json.loads(path.read_text())
     config = results["config"]
-    models = {n: load_model(args.out / f"checkpoint_{n}.eqx")[0] for n in names}
+    models = {n: load_riganyface(args.out / f"checkpoint_{n}.eqx")[0] for n in names}
     dataset = _held_out_dataset(args, config["test_identities"], config["options"]["seed"])
     predicted, _ = _checkpoint_predictions(dataset, models, anchors, rows=evaluation_rows(models))
     heads, part_names = dataset.test[HELDOUT_SPLIT], dataset.head.part_names
@@ -1102,7 +1097,7 @@ def refresh_placement(args, argv=None) -> dict:
         )
     results = json.loads(path.read_text())
     config = results["config"]
-    model, poses, _ = load_model(checkpoint)
+    model, poses, _ = load_riganyface(checkpoint)
     dataset = _held_out_dataset(args, config["test_identities"], config["options"]["seed"])
     errors: dict = {}
     scales: dict = {"whole": [], "cut": []}

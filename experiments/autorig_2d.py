@@ -34,10 +34,11 @@ import jax.numpy as jnp
 import matplotlib.pyplot as plt
 import numpy as np
 
-from canrig_jax import experiment_command, provenance, record_command, save_json, save_text
+from canrig_jax._io import save_json, save_text
+from canrig_jax._provenance import experiment_command, provenance, record_command
 from canrig_jax.autorig import (
+    RigAnyFaceTrainOptions,
     Supervision2DOptions,
-    TrainOptions,
     error_stats,
     generate_rig,
     head_inputs,
@@ -243,8 +244,8 @@ def build_data(args):
     return dataset, heads, rigged
 
 
-def options_for(args, steps: int) -> TrainOptions:
-    return TrainOptions(
+def options_for(args, steps: int) -> RigAnyFaceTrainOptions:
+    return RigAnyFaceTrainOptions(
         steps=steps,
         warmup_steps=max(1, min(50, steps // 5)),
         max_minutes=args.minutes,

@@ -28,15 +28,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from canrig_jax import (  # noqa: E402
-    CM_TO_MM,
-    experiment_command,
-    median_ms,
-    provenance,
-    record_command,
-    save_json,
-    save_text,
-)
+from canrig_jax._io import save_json, save_text  # noqa: E402
+from canrig_jax._metrics import CM_TO_MM  # noqa: E402
+from canrig_jax._provenance import experiment_command, provenance, record_command  # noqa: E402
+from canrig_jax._timing import median_ms  # noqa: E402
 from canrig_jax.autorig import head_rig  # noqa: E402
 from canrig_jax.canrig import (  # noqa: E402
     CLAMP,

@@ -20,7 +20,9 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from canrig_jax import add_dataclass_options, experiment_command, from_args, provenance, save_json
+from canrig_jax._cli import add_dataclass_options, from_args
+from canrig_jax._io import save_json
+from canrig_jax._provenance import experiment_command, provenance
 from canrig_jax.canrig import (
     FARTHEST_METRICS,
     LOSSES,
@@ -77,7 +79,7 @@ def parser() -> argparse.ArgumentParser:
         "--devices",
         type=int,
         default=None,
-        help="data-parallel training over N devices (default: all; see canrig_jax.data_parallel)",
+        help="data-parallel training over N devices (default: all; see canrig_jax._sharding)",
     )
     for cls in (TrainOptions, DataOptions):
         add_dataclass_options(

@@ -31,7 +31,9 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from canrig_jax import CM_TO_MM, experiment_command, provenance, save_json, save_text
+from canrig_jax._io import save_json, save_text
+from canrig_jax._metrics import CM_TO_MM
+from canrig_jax._provenance import experiment_command, provenance
 from canrig_jax.canrig import (
     EVAL_FALLOFF_PER_CM,
     RADII_CM,

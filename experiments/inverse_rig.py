@@ -17,15 +17,10 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from canrig_jax import (
-    experiment_command,
-    inverse,
-    per_vertex_distance,
-    provenance,
-    record_command,
-    save_json,
-    save_text,
-)
+from canrig_jax import inverse
+from canrig_jax._io import save_json, save_text
+from canrig_jax._metrics import per_vertex_distance
+from canrig_jax._provenance import experiment_command, provenance, record_command
 from canrig_jax.data import data_file, load_livelinkface
 from canrig_jax.inverse import (
     measure_reference,

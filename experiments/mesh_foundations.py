@@ -21,14 +21,9 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from canrig_jax import (
-    CM_TO_MM,
-    experiment_command,
-    provenance,
-    record_command,
-    save_json,
-    save_text,
-)
+from canrig_jax._io import save_json, save_text
+from canrig_jax._metrics import CM_TO_MM
+from canrig_jax._provenance import experiment_command, provenance, record_command
 from canrig_jax.autorig import LearnedDiffusion
 from canrig_jax.data import ict_identity, load_ict, load_mediapipe_face
 from canrig_jax.mesh import (

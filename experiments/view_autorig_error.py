@@ -22,18 +22,14 @@ from pathlib import Path
 
 import numpy as np
 
-from canrig_jax import (
-    CM_TO_MM,
-    experiment_command,
-    provenance,
-    record_command,
-    save_json,
-)
+from canrig_jax._io import save_json
+from canrig_jax._metrics import CM_TO_MM
+from canrig_jax._provenance import experiment_command, provenance, record_command
 from canrig_jax.autorig import (
     DEFAULT_CHECKPOINT,
     generate_rig,
     load_makehuman,
-    load_model,
+    load_riganyface,
     shared_shape_matrix,
 )
 from canrig_jax.data import load_livelinkface
@@ -58,7 +54,7 @@ def main(argv=None) -> None:
     record_command(args.out, command)
 
     head = load_makehuman(args.data_dir)
-    model, poses, _ = load_model(args.checkpoint)
+    model, poses, _ = load_riganyface(args.checkpoint)
     rig = generate_rig(model, poses, head.neutral, head.faces).rig
     target_index, matrix = shared_shape_matrix(rig.names, head.names)
     predicted = np.einsum("sk,kvd->svd", matrix, np.asarray(rig.deltas))

@@ -42,16 +42,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from canrig_jax import (
-    CM_TO_MM,
-    experiment_command,
-    inverse,
-    per_vertex_distance,
-    provenance,
-    record_command,
-    save_json,
-    wpse,
-)
+from canrig_jax import inverse, wpse
+from canrig_jax._io import save_json
+from canrig_jax._metrics import CM_TO_MM, per_vertex_distance
+from canrig_jax._provenance import experiment_command, provenance, record_command
 from canrig_jax.canrig import (
     NeuralRig,
     dialogue_replacement,

@@ -25,15 +25,10 @@ import jax.numpy as jnp
 import matplotlib.pyplot as plt
 import numpy as np
 
-from canrig_jax import (
-    CM_TO_MM,
-    experiment_command,
-    per_vertex_distance,
-    provenance,
-    save_json,
-    save_text,
-    wpse,
-)
+from canrig_jax import wpse
+from canrig_jax._io import save_json, save_text
+from canrig_jax._metrics import CM_TO_MM, per_vertex_distance
+from canrig_jax._provenance import experiment_command, provenance
 from canrig_jax.data import load_livelinkface
 from canrig_jax.mesh import DeformationGradientBlend
 from canrig_jax.render import plot_vertex_scalar, save_figure

@@ -212,7 +212,7 @@ def test_autorig_orientation_option(tmp_path, capsys, data_dir):
     """A real ICT identity stored z up (turned 90 degrees about x): the default check refuses
     it naming HEAD and the option, --orientation fix gives the upright head's rig turned into
     the file's frame, --orientation trust runs the model on the head as stored (another rig)."""
-    from canrig_jax.autorig import DEFAULT_CHECKPOINT, generate_rig, load_model
+    from canrig_jax.autorig import DEFAULT_CHECKPOINT, generate_rig, load_riganyface
     from canrig_jax.data import ict_identity, load_ict
     from canrig_jax.mesh import decimate
 
@@ -231,7 +231,7 @@ def test_autorig_orientation_option(tmp_path, capsys, data_dir):
     assert status == 0 and "turned the head" in err and "up +z" in err, err
     fixed = load_gltf_rig(tmp_path / "fixed.glb")
     np.testing.assert_allclose(fixed.neutral, turned, atol=1e-4)
-    model, poses, _ = load_model(DEFAULT_CHECKPOINT)
+    model, poses, _ = load_riganyface(DEFAULT_CHECKPOINT)
     upright = generate_rig(model, poses, mesh.vertices.astype(np.float32), mesh.faces).rig
     np.testing.assert_allclose(fixed.deltas, np.asarray(upright.deltas) @ turn.T, atol=1e-4)
 

@@ -6,7 +6,7 @@ import stat
 
 import pytest
 
-from canrig_jax import atomic_path, save_json, save_text
+from canrig_jax._io import atomic_path, save_json, save_text
 
 
 def _mode(path) -> int:

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from canrig_jax import COMMAND_FILE, experiment_command, provenance
+from canrig_jax._provenance import COMMAND_FILE, experiment_command, provenance
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "experiments" / "results"
@@ -64,7 +64,7 @@ def test_every_results_writer_records_provenance(script):
 
 def test_record_command_keeps_what_the_command_file_already_holds(tmp_path):
     """A re-run appends its command instead of overwriting the log of earlier refreshes."""
-    from canrig_jax import record_command
+    from canrig_jax._provenance import record_command
 
     first = "python experiments/x.py --out results/x"
     path = record_command(tmp_path, first)

@@ -15,7 +15,7 @@ import pytest
 SCRIPT = r"""
 import json, sys
 import equinox as eqx, jax, jax.numpy as jnp, numpy as np, optax
-from canrig_jax import data_parallel_step, device_mesh, replicate, shard_batch
+from canrig_jax._sharding import data_parallel_step, device_mesh, replicate, shard_batch
 from canrig_jax.data import load_ict, load_livelinkface, FACE
 
 capture = load_livelinkface()
@@ -83,7 +83,7 @@ def test_two_devices_match_one():
 
 
 def test_bad_batch_and_device_count():
-    from canrig_jax import device_mesh, shard_batch
+    from canrig_jax._sharding import device_mesh, shard_batch
 
     mesh = device_mesh(1)
     with pytest.raises(ValueError, match="devices"):
@@ -123,12 +123,12 @@ head = autorig.make_head(
     name="decimate_600",
 )
 head_data = autorig.training_set([head], poses, k=32, progress=False)
-raf = autorig.TrainOptions(
+raf = autorig.RigAnyFaceTrainOptions(
     width=8, global_size=4, global_width=8, k=32, steps=3, warmup_steps=1,
     poses_per_step=4, heads_per_step=2, log_every=1,
 )
 for n in (1, 2):
-    result = autorig.train(head_data, poses, raf, progress=False, devices=n)
+    result = autorig.train_riganyface(head_data, poses, raf, progress=False, devices=n)
     out["riganyface"][str(n)] = [h["loss"] for h in result.history]
 try:
     odd = dataclasses.replace(options, examples=dataclasses.replace(examples, batch=3))

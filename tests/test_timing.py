@@ -1,4 +1,4 @@
-"""canrig_jax.median_ms: one warm-up call not counted, then the median of the timed calls."""
+"""canrig_jax._timing.median_ms: one warm-up call not counted, then the timed calls' median."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import time
 
 import pytest
 
-from canrig_jax import call_times_ms, median_ms
+from canrig_jax._timing import call_times_ms, median_ms
 
 
 def test_median_ms_warms_up_once_then_times_each_repeat():

@@ -1,101 +1,95 @@
 """canrig_jax: differentiable face rigs in JAX on real assets.
 
-The package's one door: every subpackage (``rig``, ``mesh``, ``inverse``, ``wpse``,
-``canrig``, ``autorig``, ``data``, ``render``) keeps its implementation in private ``_x.py``
-modules and re-exports its public names from its ``__init__``. The shared utilities below
-(cache, input checks, checkpoints, atomic files, metrics, provenance, command-line
-options from dataclasses) are re-exported here, with ``run_command(argv)``, the ``canrig``
-console script's entry point, and data-parallel training over devices (``device_mesh``,
-``shard_batch``, ``replicate``, ``data_parallel_step``).
+The package is its subpackages, each imported on first use (``import canrig_jax`` itself
+loads neither JAX nor any of them):
+
+- ``canrig_jax.data``: loaders for real assets (ICT, Live Link Face, MediaPipe, head files).
+- ``canrig_jax.mesh``: mesh geometry (edges, geodesics, Laplacians, deformation gradients).
+- ``canrig_jax.rig``: the ``BlendshapeRig`` pytree, ``evaluate``, correctives, glTF.
+- ``canrig_jax.inverse``: inverse-rig solvers (``prepare`` -> ``solve``).
+- ``canrig_jax.wpse``: weighted pose-space editing.
+- ``canrig_jax.canrig``: CANRig's masked attention, models, training and workflows.
+- ``canrig_jax.autorig``: RigAnyFace auto-rigging of a new head.
+- ``canrig_jax.render``: figures and a differentiable rasteriser.
+- ``canrig_jax.viewer``: a local web viewer for rigs and takes.
+- ``canrig_jax.watchdog``: turns a run that stops progressing into a clear error.
+
+Also here: ``CanrigWarning`` (every warning the library issues), ``CorruptFileError`` (a
+file that is not what its name says), ``run_command(argv)`` (the ``canrig`` console script)
+and ``__version__``.
 """
 
-from ._cache import CACHE_ENV_VAR, cache_dir, fingerprint, mesh_fingerprint
-from ._checkpoint import (
-    load_checkpoint,
-    read_checkpoint_state,
-    run_training,
-    save_checkpoint,
-    seal_checkpoint,
-)
-from ._checks import check_finite, check_real, is_concrete, native
-from ._cli import add_dataclass_options, from_args
-from ._commands import main as run_command
-from ._io import (
-    CorruptFileError,
-    atomic_path,
-    check_output_path,
-    save_json,
-    save_npz,
-    save_text,
-)
-from ._metrics import CM_TO_MM, distance_percentile_mm, per_vertex_distance
-from ._provenance import (
-    COMMAND_FILE,
-    PACKAGES,
-    experiment_command,
-    git_commit,
-    package_versions,
-    provenance,
-    record_command,
-    with_provenance,
-)
-from ._sharding import (
-    BATCH_AXIS,
-    DataParallel,
-    data_parallel,
-    data_parallel_step,
-    device_mesh,
-    replicate,
-    shard_batch,
-)
-from ._threads import blocking_single_threaded_blas, single_threaded_blas
-from ._timing import call_times_ms, median_ms
+from __future__ import annotations
 
-__version__ = "0.1.0"
+import importlib
+import importlib.metadata
+import re
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from ._io import CorruptFileError
+from ._warnings import CanrigWarning
+
+if TYPE_CHECKING:
+    from . import autorig, canrig, data, inverse, mesh, render, rig, viewer, watchdog, wpse
+
+_SUBPACKAGES = frozenset(
+    ("data", "mesh", "rig", "inverse", "wpse", "canrig", "autorig", "render", "viewer", "watchdog")
+)
+"""The public subpackages, imported on first attribute access."""
+
+
+def _version() -> str:
+    """The installed distribution's version; from a source tree that is not installed, the
+    ``version`` in ``pyproject.toml`` beside ``src/``."""
+    try:
+        return importlib.metadata.version("canrig_jax")
+    except importlib.metadata.PackageNotFoundError:
+        pyproject = Path(__file__).resolve().parents[2] / "pyproject.toml"
+        try:
+            text = pyproject.read_text(encoding="utf-8")
+        except OSError:
+            return "0+unknown"
+        match = re.search(r'^version\s*=\s*"([^"]+)"', text, re.M)
+        return match.group(1) if match else "0+unknown"
+
+
+__version__ = _version()
+
+
+def run_command(argv: Sequence[str] | None = None) -> int:
+    """Run the ``canrig`` command line with ``argv`` (default: ``sys.argv[1:]``); returns the
+    exit status (0, or 2 on bad input, with one ``canrig: error: ...`` line on stderr)."""
+    from ._commands import main
+
+    return main(argv)
+
+
+def __getattr__(name: str):
+    if name in _SUBPACKAGES:
+        module = importlib.import_module(f"{__name__}.{name}")
+        globals()[name] = module
+        return module
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted([*__all__, "__version__"])
+
 
 __all__ = [
-    "call_times_ms",
-    "median_ms",
-    "BATCH_AXIS",
-    "DataParallel",
-    "data_parallel",
-    "data_parallel_step",
-    "device_mesh",
-    "replicate",
-    "shard_batch",
-    "CACHE_ENV_VAR",
-    "COMMAND_FILE",
-    "record_command",
-    "CM_TO_MM",
-    "PACKAGES",
+    "CanrigWarning",
     "CorruptFileError",
-    "atomic_path",
-    "cache_dir",
-    "check_finite",
-    "check_output_path",
-    "check_real",
-    "add_dataclass_options",
-    "from_args",
-    "distance_percentile_mm",
-    "experiment_command",
-    "fingerprint",
-    "git_commit",
-    "is_concrete",
-    "load_checkpoint",
-    "mesh_fingerprint",
-    "native",
-    "package_versions",
-    "per_vertex_distance",
-    "provenance",
-    "read_checkpoint_state",
     "run_command",
-    "run_training",
-    "save_checkpoint",
-    "save_json",
-    "save_npz",
-    "save_text",
-    "seal_checkpoint",
-    "single_threaded_blas",
-    "blocking_single_threaded_blas",
-    "with_provenance",
+    "data",
+    "mesh",
+    "rig",
+    "inverse",
+    "wpse",
+    "canrig",
+    "autorig",
+    "render",
+    "viewer",
+    "watchdog",
 ]

@@ -117,7 +117,7 @@ def _autorig(args) -> None:
         f"read {head.path}: {len(head.vertices)} vertices, {len(head.faces)} triangles, "
         f"units {head.units}{' (inferred)' if head.inferred else ''}, {head.size_cm:.1f} cm tall"
     )
-    model, poses, _ = autorig.load_model(model_path)
+    model, poses, _ = autorig.load_riganyface(model_path)
     progress(f"loaded RigAnyFace from {model_path} ({poses.n_poses} training poses)")
     chunk = {} if args.pose_chunk is None else {"pose_chunk": args.pose_chunk}
     try:

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from canrig_jax.autorig import TrainOptions, make_model
+from canrig_jax.autorig import RigAnyFaceTrainOptions, make_model
 from canrig_jax.canrig import parameter_count
 
 SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "autorig.py"
@@ -164,7 +164,7 @@ def test_wider_model_trained_alone_then_evaluated_on_heldout_and_makehuman(tmp_p
     assert [results["training"][r]["options"]["width"] for r in rows] == [16, 24]
     # the checkpoints hold models of the requested size
     for name in rows:
-        options = TrainOptions(**results["training"][name]["options"])
+        options = RigAnyFaceTrainOptions(**results["training"][name]["options"])
         expected = parameter_count(make_model(options, 53, 1.0))
         assert results["parameters"][name] == expected
     assert results["parameters"][rows[0]] < results["parameters"][rows[1]]

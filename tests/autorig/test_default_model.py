@@ -20,7 +20,7 @@ def test_default_model_beats_no_motion_and_dt_and_moves_the_eyes(data_dir):
         class_errors,
         generate_rig,
         ict_autorig_dataset,
-        load_model,
+        load_riganyface,
         sculpted_shape_errors,
         transfer_poses,
     )
@@ -30,7 +30,7 @@ def test_default_model_beats_no_motion_and_dt_and_moves_the_eyes(data_dir):
     dataset = ict_autorig_dataset(data_dir, n_train=1, n_test=1, progress=False)
     head = dataset.test["unseen_topology"][0]
     poses = dataset.poses
-    model, model_poses, _ = load_model(DEFAULT_CHECKPOINT)
+    model, model_poses, _ = load_riganyface(DEFAULT_CHECKPOINT)
     assert model_poses.labels == poses.labels
     raf = np.asarray(generate_rig(model, model_poses, head.vertices, head.faces).displacements)
     dt = np.asarray(transfer_poses(dataset, head))

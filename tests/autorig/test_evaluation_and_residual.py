@@ -15,19 +15,19 @@ from canrig_jax.autorig import (
     STATIC_MM,
     PoseSet,
     RigAnyFace,
-    TrainOptions,
+    RigAnyFaceTrainOptions,
     class_errors,
     generate_rig,
     head_inputs,
     load_makehuman,
-    load_model,
+    load_riganyface,
     pose_classes,
     sculpted_shape_errors,
     sculpted_target_errors,
     shared_shape_matrix,
     static_mask,
     static_vertex_error,
-    train,
+    train_riganyface,
     training_set,
     worst_poses,
 )
@@ -152,7 +152,7 @@ def test_gated_residual_keeps_what_the_base_leaves_still_exactly_still(small_hea
     with pytest.raises(ValueError, match="residual_gate"):
         RigAnyFace(tiny_poses.n_basis, width=8, residual_gate=tau, key=jax.random.PRNGKey(0))
     with pytest.raises(ValueError, match="residual_gate"):
-        TrainOptions(residual_gate=tau)
+        RigAnyFaceTrainOptions(residual_gate=tau)
 
 
 def test_static_vertex_term_is_zero_on_a_still_head_and_measures_drift():
@@ -304,23 +304,29 @@ def test_residual_training_improves_on_its_base_and_resumes(small_head, tiny_pos
     )  # fmt: skip
     base = 0.7 * truth + 0.01
     data = training_set([head], tiny_poses, k=32, progress=False, base=[base])
-    options = TrainOptions(
+    options = RigAnyFaceTrainOptions(
         width=8, global_size=4, global_width=8, k=32, steps=60, warmup_steps=2,
         learning_rate=1e-2, poses_per_step=4, heads_per_step=1, checkpoint_every=10,
         log_every=1, residual=True, loss="euclidean", static_weight=1.0,
     )  # fmt: skip
-    full = train(data, tiny_poses, options, checkpoint=tmp_path / "a.eqx", progress=False)
+    full = train_riganyface(
+        data, tiny_poses, options, checkpoint=tmp_path / "a.eqx", progress=False
+    )
     first = full.history[0]["error_mm"]  # the base's error: the correction starts at zero
     last = np.mean([h["error_mm"] for h in full.history[-5:]])
     assert last < 0.8 * first, (first, last)
-    train(data, tiny_poses, options, checkpoint=tmp_path / "b.eqx", progress=False, stop_after=7)
-    train(data, tiny_poses, options, checkpoint=tmp_path / "b.eqx", progress=False)
-    a, _, _ = load_model(tmp_path / "a.eqx")
-    b, _, _ = load_model(tmp_path / "b.eqx")
+    train_riganyface(
+        data, tiny_poses, options, checkpoint=tmp_path / "b.eqx", progress=False, stop_after=7
+    )
+    train_riganyface(data, tiny_poses, options, checkpoint=tmp_path / "b.eqx", progress=False)
+    a, _, _ = load_riganyface(tmp_path / "a.eqx")
+    b, _, _ = load_riganyface(tmp_path / "b.eqx")
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
         np.testing.assert_array_equal(x, y)
     with pytest.raises(ValueError, match="data"):
-        train(training_set([head], tiny_poses, k=32, progress=False), tiny_poses, options)
+        train_riganyface(
+            training_set([head], tiny_poses, k=32, progress=False), tiny_poses, options
+        )
 
 
 def _one_head_and_small_model(mesh, truth, poses):

@@ -12,12 +12,12 @@ import trimesh
 from canrig_jax.autorig import (
     PoseSet,
     RigAnyFace,
-    TrainOptions,
+    RigAnyFaceTrainOptions,
     generate_rig,
     head_inputs,
     head_rig,
     inner_outside,
-    load_model,
+    load_riganyface,
     make_head,
     outside_fraction,
     pad_to_bucket,
@@ -28,7 +28,7 @@ from canrig_jax.autorig import (
     rig_from_poses,
     spectral_diffusion,
     spectral_diffusion_and_gradient,
-    train,
+    train_riganyface,
     training_set,
     winding_numbers,
 )
@@ -349,7 +349,7 @@ def test_penetration_free_set_scores_the_truth_zero_and_catches_a_push(heads, ic
 @pytest.mark.slow
 def test_training_lowers_the_error_and_resumes_to_the_same_model(heads, poses, tmp_path):
     data = training_set(heads[:1], poses, k=64, progress=False)
-    options = TrainOptions(
+    options = RigAnyFaceTrainOptions(
         width=8,
         global_size=4,
         global_width=8,
@@ -362,21 +362,23 @@ def test_training_lowers_the_error_and_resumes_to_the_same_model(heads, poses, t
         checkpoint_every=8,
         log_every=1,
     )
-    full = train(data, poses, options, checkpoint=tmp_path / "a.eqx", progress=False)
+    full = train_riganyface(data, poses, options, checkpoint=tmp_path / "a.eqx", progress=False)
     first, last = full.history[0]["error_mm"], np.mean([h["error_mm"] for h in full.history[-4:]])
     assert last < 0.8 * first, (first, last)
-    train(data, poses, options, checkpoint=tmp_path / "b.eqx", progress=False, stop_after=10)
-    resumed = train(data, poses, options, checkpoint=tmp_path / "b.eqx", progress=False)
+    train_riganyface(
+        data, poses, options, checkpoint=tmp_path / "b.eqx", progress=False, stop_after=10
+    )
+    resumed = train_riganyface(data, poses, options, checkpoint=tmp_path / "b.eqx", progress=False)
     assert resumed.step == full.step == 24
-    a, _, _ = load_model(tmp_path / "a.eqx")
-    b, _, _ = load_model(tmp_path / "b.eqx")
+    a, _, _ = load_riganyface(tmp_path / "a.eqx")
+    b, _, _ = load_riganyface(tmp_path / "b.eqx")
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
         np.testing.assert_array_equal(x, y)
     with pytest.raises(ValueError, match="different options"):
-        train(
+        train_riganyface(
             data,
             poses,
-            TrainOptions(**{**options.to_dict(), "learning_rate": 1e-3}),
+            RigAnyFaceTrainOptions(**{**options.to_dict(), "learning_rate": 1e-3}),
             checkpoint=tmp_path / "a.eqx",
             progress=False,
         )

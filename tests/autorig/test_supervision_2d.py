@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from canrig_jax.autorig import (
+    RigAnyFaceTrainOptions,
     Supervision2DOptions,
-    TrainOptions,
     head_rig,
     loss_2d,
     make_head,
@@ -72,7 +72,7 @@ def test_3d_loss_never_sees_an_unrigged_head(setup, tmp_path):
     )
     data = training_set([heads[0], hidden], poses, k=16, cache=False, progress=False)
     faces = padded_faces([heads[0], hidden])
-    options = TrainOptions(
+    options = RigAnyFaceTrainOptions(
         width=8,
         global_size=4,
         global_width=8,
@@ -113,7 +113,7 @@ def test_3d_loss_never_sees_an_unrigged_head(setup, tmp_path):
 def test_bad_input(setup):
     heads, poses = setup
     data = training_set(heads[:1], poses, k=16, cache=False, progress=False)
-    options = TrainOptions(width=8, k=16, steps=2, warmup_steps=1, poses_per_step=2)
+    options = RigAnyFaceTrainOptions(width=8, k=16, steps=2, warmup_steps=1, poses_per_step=2)
     faces = padded_faces(heads[:1])
     with pytest.raises(ValueError, match="stage"):
         train_2d(data, faces, poses, [0], options, OPTS, stage="3d-only")

@@ -11,7 +11,7 @@ import pytest
 from canrig_jax.autorig import (
     AutorigDataset,
     PoseSet,
-    TrainOptions,
+    RigAnyFaceTrainOptions,
     fit_head_landmarks,
     generate_rig,
     heat_kernel_signature,
@@ -37,7 +37,9 @@ def ctx(data_dir):
     pair = Corrective([[0, 1]], [1, 2], np.full((1, 2, 3), 0.125, np.float32))
     rig = BlendshapeRig(NEUTRAL, deltas, (pair,), ("a", "b"), FACES)
     poses = quartic_pose_set(rig, {2: 1})
-    options = TrainOptions(width=8, n_shared=1, n_conditional=1, global_size=8, global_width=8, k=8)
+    options = RigAnyFaceTrainOptions(
+        width=8, n_shared=1, n_conditional=1, global_size=8, global_width=8, k=8
+    )
     model = make_model(options, poses.n_basis, 1.0)
     face = load_mediapipe_face(data_dir)
     operators = mesh_operators(face.neutral, face.faces, k=16, cache=False)
@@ -112,10 +114,10 @@ GENERATE_RIG = [
         ValueError,
         "base",
     ),
-    raises("unknown-loss", lambda c: TrainOptions(loss="l3"), ValueError, "loss"),
+    raises("unknown-loss", lambda c: RigAnyFaceTrainOptions(loss="l3"), ValueError, "loss"),
     raises(
         "negative-static-weight",
-        lambda c: TrainOptions(static_weight=-1.0),
+        lambda c: RigAnyFaceTrainOptions(static_weight=-1.0),
         ValueError,
         "static_weight",
     ),

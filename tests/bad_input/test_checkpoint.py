@@ -10,10 +10,8 @@ import jax
 import numpy as np
 import pytest
 
-from canrig_jax import (
-    CorruptFileError,
-    autorig,
-    canrig,
+from canrig_jax import CorruptFileError, autorig, canrig
+from canrig_jax._checkpoint import (
     load_checkpoint,
     read_checkpoint_state,
     save_checkpoint,
@@ -128,7 +126,7 @@ TRAINED_MODELS = [
     ),
     raises(
         "autorig-truncated",
-        lambda c: autorig.load_model(c.root / "autorig_truncated.eqx"),
+        lambda c: autorig.load_riganyface(c.root / "autorig_truncated.eqx"),
         CorruptFileError,
         "autorig_truncated.eqx",
         compiles=True,

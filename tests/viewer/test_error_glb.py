@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from canrig_jax import CM_TO_MM, per_vertex_distance
+from canrig_jax._metrics import CM_TO_MM, per_vertex_distance
 from canrig_jax.rig import evaluate_batch, find_gltf_validator, load_gltf_rig, validate_gltf
 from canrig_jax.viewer import export_error_glb, inspect_glb, save_error_legend
 

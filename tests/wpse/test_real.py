@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from canrig_jax import CM_TO_MM
+from canrig_jax._metrics import CM_TO_MM
 from canrig_jax.rig import evaluate
 from canrig_jax.wpse import (
     NumpyEditEvaluator,

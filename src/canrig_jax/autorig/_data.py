@@ -23,6 +23,7 @@ import warnings
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .._warnings import warn
 from ..data import ICTFaceModel, ict_identity, load_ict
 from ..mesh import (
     Remeshed,
@@ -357,12 +358,10 @@ def fit_head_landmarks(
     size = float(np.linalg.norm(np.ptp(vertices, axis=0)))
     reference = float(np.linalg.norm(np.ptp(head.neutral, axis=0)))
     if not 0.25 <= size / reference <= 4.0:
-        warnings.warn(
+        warn(
             f"vertices: the head's bounding box is {size:.3g} across, the ICT head's "
             f"{reference:.3g} cm (a human head with neck: ~35-70 cm); is it in centimetres? "
             "(metres or decimetres given as centimetres look like this)",
-            UserWarning,
-            stacklevel=2,
         )
     face = vertex_parts(head) == list(head.part_names).index("Face")
     try:

@@ -50,7 +50,7 @@ from ..render import (
     silhouette,
 )
 from ._data import PoseSet, RiggedHead
-from ._train import TrainingSet, TrainOptions, batch_loss, make_model, optimiser
+from ._train import RigAnyFaceTrainOptions, TrainingSet, batch_loss, make_model, optimiser
 
 CHECKPOINT_FORMAT_2D = "riganyface-2d-checkpoint-1"
 STAGES = ("2d", "3d+2d", "3d")
@@ -260,7 +260,7 @@ def train_2d(
     faces,
     poses: PoseSet,
     rigged,
-    options: TrainOptions,
+    options: RigAnyFaceTrainOptions,
     opts2d: Supervision2DOptions,
     *,
     stage: str,
@@ -295,7 +295,7 @@ def train_2d(
     if checkpoint is not None and os.path.exists(checkpoint):
         state = read_checkpoint_state(checkpoint, CHECKPOINT_FORMAT_2D)
         saved = dataclasses.replace(
-            TrainOptions(**state["options"]), max_minutes=options.max_minutes
+            RigAnyFaceTrainOptions(**state["options"]), max_minutes=options.max_minutes
         )
         same_2d = stage == "3d" or state["options_2d"] == options_2d
         if saved != options or not same_2d or state["stage"] != stage:
@@ -368,7 +368,7 @@ def train_2d(
 def load_model_2d(path, poses: PoseSet | None = None):
     """(model, header) of a ``train_2d`` checkpoint."""
     state = read_checkpoint_state(path, CHECKPOINT_FORMAT_2D)
-    options = TrainOptions(**state["options"])
+    options = RigAnyFaceTrainOptions(**state["options"])
     poses = PoseSet.from_dict(state["poses"]) if poses is None else poses
     like = make_model(options, poses.n_basis, state["output_scale"])
     like_opt = optimiser(options).init(eqx.filter(like, eqx.is_array))

@@ -70,7 +70,7 @@ STATIC_CM = 0.001
 
 
 @dataclasses.dataclass(frozen=True)
-class TrainOptions:
+class RigAnyFaceTrainOptions:
     width: int = 32
     n_shared: int = 2
     n_conditional: int = 2
@@ -120,7 +120,9 @@ class TrainOptions:
         return dataclasses.asdict(self)
 
 
-def make_model(options: TrainOptions, n_pose_inputs: int, output_scale: float) -> RigAnyFace:
+def make_model(
+    options: RigAnyFaceTrainOptions, n_pose_inputs: int, output_scale: float
+) -> RigAnyFace:
     return RigAnyFace(
         n_pose_inputs,
         width=options.width,
@@ -137,7 +139,7 @@ def make_model(options: TrainOptions, n_pose_inputs: int, output_scale: float) -
     )
 
 
-def optimiser(options: TrainOptions) -> optax.GradientTransformation:
+def optimiser(options: RigAnyFaceTrainOptions) -> optax.GradientTransformation:
     """Adam with linear warm-up to ``learning_rate`` and cosine decay to 0 at ``steps``."""
     return _adam_warmup_cosine(options.learning_rate, options.warmup_steps, options.steps)
 
@@ -345,17 +347,17 @@ def train_step(
 
 
 @dataclasses.dataclass
-class TrainResult:
+class RigAnyFaceTrainResult:
     model: RigAnyFace
     step: int
     seconds: float
     history: list
 
 
-def load_model(path) -> tuple[RigAnyFace, PoseSet, dict]:
+def load_riganyface(path) -> tuple[RigAnyFace, PoseSet, dict]:
     """(model, pose set, header) of a training checkpoint."""
     state = read_checkpoint_state(path, CHECKPOINT_FORMAT)
-    options = TrainOptions(**state["options"])
+    options = RigAnyFaceTrainOptions(**state["options"])
     poses = PoseSet.from_dict(state["poses"])
     like = make_model(options, poses.n_basis, state["output_scale"])
     like_opt = optimiser(options).init(eqx.filter(like, eqx.is_array))
@@ -363,21 +365,21 @@ def load_model(path) -> tuple[RigAnyFace, PoseSet, dict]:
     return model, poses, state
 
 
-def train(
+def train_riganyface(
     data: TrainingSet,
     poses: PoseSet,
-    options: TrainOptions,
+    options: RigAnyFaceTrainOptions,
     *,
     checkpoint: str | os.PathLike | None = None,
     progress: bool = True,
     stop_after: int | None = None,
     devices: int | None = None,
-) -> TrainResult:
+) -> RigAnyFaceTrainResult:
     """Train (or resume from ``checkpoint`` when it exists) for ``options.steps`` steps or
     ``options.max_minutes`` of accumulated training time, whichever comes first. A checkpoint
     resumes only with the same options except ``max_minutes``. ``stop_after`` ends this call
     after that many steps (a simulated interruption, for tests). ``devices`` (default: all):
-    data-parallel over that many devices (``canrig_jax.data_parallel``), each step's heads
+    data-parallel over that many devices (``canrig_jax._sharding.data_parallel``), each step's heads
     split over them, parameters and training set replicated."""
     if data.poses.shape[0] != poses.n_poses:
         raise ValueError(f"data: {data.poses.shape[0]} poses, the pose set {poses.n_poses}")
@@ -400,7 +402,7 @@ def train(
     step, seconds, history = 0, 0.0, []
     if checkpoint is not None and os.path.exists(checkpoint):
         state = read_checkpoint_state(checkpoint, CHECKPOINT_FORMAT)
-        saved = TrainOptions(**state["options"])
+        saved = RigAnyFaceTrainOptions(**state["options"])
         if dataclasses.replace(saved, max_minutes=options.max_minutes) != options:
             raise ValueError(f"checkpoint: {checkpoint} was written with different options")
         output_scale = state["output_scale"]
@@ -459,4 +461,4 @@ def train(
     step, seconds = run_training(
         one_step, save, options, step, seconds, history, progress, "riganyface", stop_after
     )
-    return TrainResult(model=model, step=step, seconds=seconds, history=history)
+    return RigAnyFaceTrainResult(model=model, step=step, seconds=seconds, history=history)

@@ -279,8 +279,9 @@ def fit_displacements(
     ``PartsLayout`` (``FIT_PARTS``) for speed. Pure and jit/vmap-able; validate with
     ``NeuralRig.edit``. For a ``LocalFitRig`` (linear in d) the solve is ``max_steps`` LSMR
     iterations on the same objective (``local_fit_lsmr``; queries and layout unused).
-    Its Cholesky runs in SciPy's OpenBLAS: call it inside ``canrig_jax.single_threaded_blas()``
-    (as ``pose_a_to_b`` does) or it may be several times slower next to XLA's threads."""
+    Its Cholesky runs in SciPy's OpenBLAS: call it inside
+    ``canrig_jax._threads.single_threaded_blas()`` (as ``pose_a_to_b`` does) or it may be
+    several times slower next to XLA's threads."""
     if isinstance(model, LocalFitRig):
         fitted, *rest, linear_result, steps = local_fit_lsmr(
             model, edit, target, region, options.penalty, options.max_steps

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from .._io import atomic_path, check_output_path
+from .._warnings import warn
 
 HEAD_FORMATS = (".obj", ".ply", ".gltf", ".glb")
 """File extensions ``load_head`` reads."""
@@ -132,10 +133,9 @@ def load_head(path: str | os.PathLike, units: str | None = None) -> HeadMesh:
             hint = (
                 f"; in {guess} it would be {extent * HEAD_UNITS_CM[guess]:.1f} cm" if guess else ""
             )
-            warnings.warn(
+            warn(
                 f"{path}: the bounding box's longest side is {extent:.4g} {units} = "
                 f"{size_cm:.3g} cm, not a human head's {lo:g}-{hi:g} cm: is the unit right?{hint}",
-                stacklevel=2,
             )
     return HeadMesh(vertices, faces, units, inferred, path)
 

@@ -25,13 +25,13 @@ from __future__ import annotations
 import math
 import os
 import re
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from .._io import check_output_path, save_text
+from .._warnings import warn
 from ._livelinkface import LiveLinkCapture
 from ._names import ARKIT_NAMES, to_arkit
 
@@ -98,10 +98,9 @@ def _infer_fps(stamps: np.ndarray, path) -> int:
     top = int(stamps[:, 3].max()) + 1
     seconds = (stamps[:, 0] * 60 + stamps[:, 1]) * 60 + stamps[:, 2]
     if np.all(seconds == seconds[0]) and top <= 60:
-        warnings.warn(
+        warn(
             f"{path}: the take never crosses a second, so its frame rate cannot be read from "
             "the timecodes; assuming the app's default 60 fps (pass fps= to choose)",
-            stacklevel=3,
         )
         return 60
     for rate in FRAME_RATES:
@@ -119,21 +118,18 @@ def _check_sequence(frame_number: np.ndarray, fps: int, path) -> None:
     backward = np.flatnonzero(step < 0)
     if dropped.size:
         lost = int((step[dropped] - 1).sum())
-        warnings.warn(
+        warn(
             f"{path}: {lost} frames dropped at {fps} fps in {dropped.size} gaps (before lines "
             f"{[line(i) for i in dropped[:10]]}); rows are kept as found, not resampled",
-            stacklevel=3,
         )
     if repeated.size:
-        warnings.warn(
+        warn(
             f"{path}: {repeated.size} repeated timecodes (lines "
             f"{[line(i) for i in repeated[:10]]}); rows are kept as found",
-            stacklevel=3,
         )
     if backward.size:
-        warnings.warn(
+        warn(
             f"{path}: the timecode goes backwards at lines {[line(i) for i in backward[:10]]}",
-            stacklevel=3,
         )
 
 
@@ -257,10 +253,9 @@ def read_livelink_csv(path: str | os.PathLike, fps: int | None = None) -> LiveLi
         len(shapes),
         len(shapes) + len(rotations),
     ):
-        warnings.warn(
+        warn(
             f"{path}: BlendShapeCount {blendshape_count} matches neither the app's 61 nor the "
             f"{len(shapes)} blendshape columns found; the columns are read by name",
-            stacklevel=2,
         )
     if fps is None:
         fps = _infer_fps(stamps, path)

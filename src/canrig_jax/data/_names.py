@@ -20,6 +20,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from .._checks import check_real
+from .._warnings import warn
 
 ARKIT_NAMES: tuple[str, ...] = (
     "eyeBlinkLeft", "eyeLookDownLeft", "eyeLookInLeft", "eyeLookOutLeft", "eyeLookUpLeft",
@@ -159,8 +160,7 @@ def retarget_weights(
         if len(idx) > 1 and name in used
     )
     if unused_source:
-        warnings.warn(
+        warn(
             f"retarget_weights: source channels not used by the target: {list(unused_source)}",
-            stacklevel=2,
         )
     return out, RetargetReport(unused_source, missing_target, averaged)

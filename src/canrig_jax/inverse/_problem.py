@@ -13,13 +13,12 @@ weight, a(w) = a(w with w_i = 0) + w_i g_i(w), and phi_i = M g_i.
 
 from __future__ import annotations
 
-import warnings
-
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .._warnings import warn
 from ..rig import BlendshapeRig, Corrective, combination_coefficients
 
 
@@ -137,11 +136,9 @@ def prepare(rig: BlendshapeRig, *, drop_zero_shapes: bool = False) -> InversePro
             )
         if len(zero) == k:
             raise ValueError("rig: every blendshape has all-zero deltas; nothing to solve for")
-        warnings.warn(
+        warn(
             f"prepare: dropping blendshapes {names} (all-zero deltas); solved weights follow "
             "problem.rig.names",
-            UserWarning,
-            stacklevel=2,
         )
         rig = _without_shapes(rig, zero)
         k = rig.n_blendshapes

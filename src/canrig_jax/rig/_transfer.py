@@ -6,10 +6,9 @@ The geometry (surface maps, deformation transfer of per-vertex offsets) lives in
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 
+from .._warnings import warn
 from ..mesh import Remeshed, TriangleCorrespondence, transfer_deltas
 from ._blendshape import BlendshapeRig, Corrective
 
@@ -69,9 +68,8 @@ def deformation_transfer(
     if source_rig.faces is None:
         raise ValueError("source_rig: deformation transfer needs a rig with faces")
     if source_rig.correctives:
-        warnings.warn(
+        warn(
             "source_rig: correctives are not transferred; the result is the linear rig",
-            stacklevel=2,
         )
     deltas = transfer_deltas(
         np.asarray(source_rig.neutral),

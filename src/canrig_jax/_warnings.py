@@ -1,0 +1,37 @@
+"""The project's one warning class and the one way the library warns.
+
+Every library warning is a ``CanrigWarning`` (a ``UserWarning``), attributed to the first
+caller outside ``canrig_jax``: the line of the user's script that led to it, whichever
+public function of the package found the problem and however deep inside the package.
+Filter them all with ``warnings.filterwarnings("ignore", category=CanrigWarning)``.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import warnings
+
+_PACKAGE_DIR = os.path.dirname(os.path.abspath(__file__)) + os.sep
+
+
+class CanrigWarning(UserWarning):
+    """A warning from canrig_jax: the input is usable but probably not what was meant
+    (a unit that makes a head 3 m tall, dropped frames in a take, a channel the rig ignores)."""
+
+
+def user_stacklevel() -> int:
+    """The ``stacklevel`` of ``warnings.warn`` (called by this function's caller) that points
+    at the first frame outside the ``canrig_jax`` package."""
+    frame = sys._getframe(2)  # the caller of the function that calls warnings.warn
+    level = 2
+    while frame is not None and frame.f_code.co_filename.startswith(_PACKAGE_DIR):
+        frame = frame.f_back
+        level += 1
+    return level
+
+
+def warn(message: str) -> None:
+    """Issue ``message`` as a ``CanrigWarning`` at the user's call (the first frame outside
+    the package)."""
+    warnings.warn(message, CanrigWarning, stacklevel=user_stacklevel())
