@@ -1,0 +1,149 @@
+"""The public API is deliberate: every exported name is in a committed list.
+
+``tests/public_api.txt`` holds one line per public name: ``canrig_jax.NAME`` for the top
+level, ``canrig_jax.SUB.NAME`` for each subpackage's ``__all__`` (``watchdog``, a module
+without ``__all__``: the public names it defines). Adding, renaming or removing a public name
+is a change of that file in the same commit; regenerate it with
+
+    python tests/test_public_api.py > tests/public_api.txt
+
+and review the diff (and add a CHANGELOG line for a rename or a removal).
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.metadata
+import inspect
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+LISTING = Path(__file__).with_name("public_api.txt")
+SUBPACKAGES = (
+    "autorig",
+    "canrig",
+    "data",
+    "inverse",
+    "mesh",
+    "render",
+    "rig",
+    "viewer",
+    "watchdog",
+    "wpse",
+)
+
+
+def exported(module) -> list[str]:
+    """A module's public names: its ``__all__``, else the public names it defines itself."""
+    names = getattr(module, "__all__", None)
+    if names is not None:
+        return list(names)
+    return [
+        name
+        for name, value in vars(module).items()
+        if not name.startswith("_")
+        and (
+            getattr(value, "__module__", None) == module.__name__
+            or (not inspect.ismodule(value) and name.isupper())
+        )
+    ]
+
+
+def public_api() -> list[str]:
+    """Every public name, one ``canrig_jax[.SUB].NAME`` per entry, sorted."""
+    import canrig_jax
+
+    lines = [f"canrig_jax.{n}" for n in canrig_jax.__all__]
+    for sub in SUBPACKAGES:
+        module = importlib.import_module(f"canrig_jax.{sub}")
+        lines += [f"canrig_jax.{sub}.{n}" for n in exported(module)]
+    return sorted(lines)
+
+
+def test_public_api_matches_the_committed_list():
+    committed = [
+        line for line in LISTING.read_text().splitlines() if line and not line.startswith("#")
+    ]
+    current = public_api()
+    added = sorted(set(current) - set(committed))
+    removed = sorted(set(committed) - set(current))
+    assert not added and not removed, (
+        f"public API changed: added {added}, removed {removed}; if deliberate, regenerate "
+        "tests/public_api.txt (python tests/test_public_api.py > tests/public_api.txt)"
+    )
+    assert len(current) == len(set(current)), "a name is listed twice in one __all__"
+
+
+@pytest.mark.parametrize("sub", SUBPACKAGES)
+def test_every_exported_name_exists(sub):
+    module = importlib.import_module(f"canrig_jax.{sub}")
+    missing = [n for n in exported(module) if not hasattr(module, n)]
+    assert not missing, f"canrig_jax.{sub}.__all__ names missing attributes: {missing}"
+
+
+def test_no_name_means_two_things():
+    """A name exported by two subpackages (or a subpackage and the top level) is the same
+    object in both: ``canrig.load_model`` and ``autorig.load_model`` returning different
+    things under one name is what this forbids."""
+    import canrig_jax
+
+    where: dict[str, list[tuple[str, object]]] = {}
+    for n in canrig_jax.__all__:
+        if n not in SUBPACKAGES:
+            where.setdefault(n, []).append(("canrig_jax", getattr(canrig_jax, n)))
+    for sub in SUBPACKAGES:
+        module = importlib.import_module(f"canrig_jax.{sub}")
+        for n in exported(module):
+            where.setdefault(n, []).append((f"canrig_jax.{sub}", getattr(module, n)))
+    clashes = {
+        n: [m for m, _ in owners]
+        for n, owners in where.items()
+        if len({id(obj) for _, obj in owners}) > 1
+    }
+    assert not clashes, f"one name, different objects: {clashes}"
+
+
+def test_top_level_is_the_subpackages_and_a_few_names():
+    import canrig_jax
+
+    for sub in SUBPACKAGES:
+        assert getattr(canrig_jax, sub) is importlib.import_module(f"canrig_jax.{sub}")
+        assert sub in canrig_jax.__all__ and sub in dir(canrig_jax)
+    assert issubclass(canrig_jax.CanrigWarning, UserWarning)
+    with pytest.raises(AttributeError, match="atomic_path"):
+        canrig_jax.atomic_path  # noqa: B018  (plumbing lives in canrig_jax._io)
+
+
+def test_version_is_the_distribution_version():
+    import canrig_jax
+
+    pyproject = (ROOT / "pyproject.toml").read_text()
+    declared = re.search(r'^version\s*=\s*"([^"]+)"', pyproject, re.M).group(1)
+    assert canrig_jax.__version__ == importlib.metadata.version("canrig_jax") == declared
+
+
+def test_importing_the_package_loads_no_subpackage_and_no_jax():
+    """``import canrig_jax`` is cheap: the subpackages (and JAX) load on first use."""
+    code = (
+        "import sys, canrig_jax\n"
+        "print(sorted(m for m in sys.modules if m == 'jax' or m.startswith('canrig_jax.')))\n"
+        "canrig_jax.rig\n"
+        "print('jax' in sys.modules)\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True
+    )
+    before, after = result.stdout.splitlines()
+    assert before == "['canrig_jax._io', 'canrig_jax._warnings']", before
+    assert after == "True"
+
+
+if __name__ == "__main__":
+    print("# The public API of canrig_jax (tests/test_public_api.py); regenerate with")
+    print("#   python tests/test_public_api.py > tests/public_api.txt")
+    print("\n".join(public_api()))
