@@ -6,6 +6,11 @@ leaves of a pytree (model, optimiser state) serialised by ``eqx.tree_serialise_l
 header alone rebuilds the pytree's structure. A file whose bytes no longer match its hash, or
 that is truncated, is reported as a corrupt checkpoint (``CorruptFileError``, with its path);
 checkpoints written before the hash was added load without the check.
+
+A checkpoint may be stored xz-compressed (``save_checkpoint(..., compress=True)``, or ``xz``
+on the file): the reader recognises the xz signature and decompresses it whatever the file's
+name, a damaged compressed stream being a ``CorruptFileError`` too. ``verify_sha256`` checks a
+file against a digest recorded in code (the models that ship inside the package).
 """
 
 from __future__ import annotations
@@ -13,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import lzma
 import os
 import re
 import time
@@ -26,34 +32,58 @@ from . import watchdog
 from ._io import CorruptFileError, atomic_path
 
 _HASH_SUFFIX = re.compile(rb', "sha256": "([0-9a-f]{64})"\}$')
+_XZ_MAGIC = b"\xfd7zXZ\x00"
 
 
 def _digest(header: bytes, leaves: bytes) -> str:
     return hashlib.sha256(header + b"\n" + leaves).hexdigest()
 
 
-def save_checkpoint(path, tree, state: dict, format: str) -> Path:
+def save_checkpoint(path, tree, state: dict, format: str, *, compress: bool = False) -> Path:
     """Write ``state`` (JSON-able) and the array leaves of ``tree`` to ``path`` atomically,
-    with a SHA-256 of the header and the leaves in the header."""
+    with a SHA-256 of the header and the leaves in the header; ``compress``: the file
+    xz-compressed (smaller, slower to write; read back the same way)."""
     buffer = io.BytesIO()
     eqx.tree_serialise_leaves(buffer, tree)
-    return _write(path, {"format": format, **state}, buffer.getvalue())
+    return _write(path, {"format": format, **state}, buffer.getvalue(), compress)
 
 
-def _write(path, header: dict, leaves: bytes) -> Path:
+def _write(path, header: dict, leaves: bytes, compress: bool = False) -> Path:
     text = json.dumps(header).encode()
     sealed = text[:-1] + f', "sha256": "{_digest(text, leaves)}"}}'.encode()
+    data = sealed + b"\n" + leaves
+    if compress:
+        data = lzma.compress(data, preset=9 | lzma.PRESET_EXTREME)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        f.write(sealed + b"\n")
-        f.write(leaves)
+        f.write(data)
     return Path(path)
 
 
 def seal_checkpoint(path, format: str) -> Path:
     """Add the integrity hash to a checkpoint written before it existed (atomically; the
-    state and the arrays are unchanged). A sealed checkpoint is checked, and kept as is."""
+    state and the arrays are unchanged, a compressed file stays compressed). A sealed
+    checkpoint is checked, and kept as is."""
     state, leaves = _read(path, format)
-    return _write(path, state, leaves)
+    return _write(path, state, leaves, compress=_is_compressed(path))
+
+
+def _is_compressed(path) -> bool:
+    with open(path, "rb") as f:
+        return f.read(len(_XZ_MAGIC)) == _XZ_MAGIC
+
+
+def _file_bytes(path) -> bytes:
+    """The checkpoint's bytes, decompressed when the file is xz-compressed."""
+    with open(path, "rb") as f:
+        data = f.read()
+    if not data.startswith(_XZ_MAGIC):
+        return data
+    try:
+        return lzma.decompress(data, format=lzma.FORMAT_XZ)
+    except lzma.LZMAError as error:  # truncated, or bytes changed (xz's own CRC)
+        raise CorruptFileError(
+            f"path: corrupt checkpoint {path} (its xz compression is damaged: {error})"
+        ) from error
 
 
 def _read(path, format: str) -> tuple[dict, bytes]:
@@ -64,16 +94,13 @@ def _read(path, format: str) -> tuple[dict, bytes]:
         raise ValueError(f"path: checkpoint {path} does not exist")
     if os.path.isdir(path):
         raise ValueError(f"path: {path} is a folder, not a checkpoint file")
-    with open(path, "rb") as f:
-        line = f.readline()
-        leaves = f.read()
-    sealed = line.rstrip(b"\n")
+    sealed, newline, leaves = _file_bytes(path).partition(b"\n")
     try:
         state = json.loads(sealed)
     except (json.JSONDecodeError, UnicodeDecodeError):
         state = None
     if not isinstance(state, dict):
-        if format.encode() in sealed or not line.endswith(b"\n"):
+        if format.encode() in sealed or not newline:
             raise CorruptFileError(f"path: corrupt checkpoint {path} (unreadable header)")
         raise ValueError(f"path: {path} is not a {format} checkpoint")
     if state.get("format") != format:
@@ -87,6 +114,20 @@ def _read(path, format: str) -> tuple[dict, bytes]:
             )
         state.pop("sha256")
     return state, leaves
+
+
+def verify_sha256(path, expected: str) -> None:
+    """Check that the file ``path`` has the SHA-256 ``expected`` (hex): ``CorruptFileError``
+    naming the file when it does not (a damaged or replaced file)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    if digest.hexdigest() != expected:
+        raise CorruptFileError(
+            f"{path}: corrupt file (its SHA-256 is {digest.hexdigest()}, expected {expected}); "
+            "reinstall canrig_jax to restore it"
+        )
 
 
 def read_checkpoint_state(path, format: str) -> dict:

@@ -1,12 +1,60 @@
-"""The committed default RigAnyFace against issue 19's ICT claims, on a held-out identity at
-the resolution never trained on (slow: builds one identity, DT and the model's rig)."""
+"""The default RigAnyFace, packaged with the library: the file is the documented model and
+its recorded digest guards it; ``export_riganyface`` (how it was made) keeps a model's weights
+exactly; and against issue 19's ICT claims, on a held-out identity at the resolution never
+trained on (slow: builds one identity, DT and the model's rig)."""
 
 from __future__ import annotations
 
+import hashlib
+import sys
+from pathlib import Path
+
+import equinox as eqx
+import jax
 import numpy as np
 import pytest
 
+from canrig_jax import CorruptFileError, autorig
+
 UPPER_FACE = ("brow", "eye", "cheekSquint")
+COMMITTED = Path(__file__).resolve().parents[2] / "experiments/results/autorig/checkpoint_raf.eqx"
+"""A committed training checkpoint (width 32, with its optimiser state)."""
+
+
+def _arrays(model):
+    return jax.tree.leaves(eqx.filter(model, eqx.is_array))
+
+
+def test_packaged_default_model_is_the_documented_one(monkeypatch):
+    """Inside the package (not experiments/), its SHA-256 the recorded one; width 64, 159,747
+    parameters, 12,000 of 12,000 steps, weights only; a file whose digest differs from the
+    recorded one is refused, naming the file."""
+    path = autorig.DEFAULT_CHECKPOINT
+    assert path.parent.parent == Path(autorig.__file__).parent and path.is_file()
+    assert hashlib.sha256(path.read_bytes()).hexdigest() == autorig.DEFAULT_CHECKPOINT_SHA256
+    assert path.stat().st_size < 1_000_000
+    model, poses, state = autorig.load_riganyface(path)
+    assert sum(a.size for a in _arrays(model)) == 159_747
+    assert state["options"]["width"] == 64 and state["step"] == state["options"]["steps"] == 12000
+    assert state["weights_only"] and poses.n_basis == 53
+    train = sys.modules[autorig.load_riganyface.__module__]
+    monkeypatch.setattr(train, "DEFAULT_CHECKPOINT_SHA256", "0" * 64)
+    with pytest.raises(CorruptFileError, match=path.name):
+        autorig.load_riganyface(path)
+
+
+def test_export_keeps_the_weights_and_drops_the_optimiser_state(tmp_path):
+    """A committed training checkpoint exported: the same arrays, pose set and header (plus
+    ``weights_only``), in under half the bytes, xz-compressed."""
+    out = autorig.export_riganyface(COMMITTED, tmp_path / "model.eqx.xz")
+    model, poses, state = autorig.load_riganyface(COMMITTED)
+    small, small_poses, small_state = autorig.load_riganyface(out)
+    assert out.read_bytes().startswith(b"\xfd7zXZ\x00")
+    assert out.stat().st_size < COMMITTED.stat().st_size / 2
+    for a, b in zip(_arrays(model), _arrays(small), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert small_poses.to_dict() == poses.to_dict()
+    assert small_state == {**state, "weights_only": True}
 
 
 @pytest.mark.slow  # ~1 min: the ICT pose source, one held-out head, DT and generate_rig
@@ -25,8 +73,6 @@ def test_default_model_beats_no_motion_and_dt_and_moves_the_eyes(data_dir):
         transfer_poses,
     )
 
-    if not DEFAULT_CHECKPOINT.is_file():
-        pytest.skip(f"{DEFAULT_CHECKPOINT} not in this checkout")
     dataset = ict_autorig_dataset(data_dir, n_train=1, n_test=1, progress=False)
     head = dataset.test["unseen_topology"][0]
     poses = dataset.poses

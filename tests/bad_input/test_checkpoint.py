@@ -1,4 +1,9 @@
-"""Damaged checkpoints: reported as corrupt, with their path; old ones (no hash) still load."""
+"""Damaged checkpoints: reported as corrupt, with their path; old ones (no hash) still load;
+xz-compressed ones load the same, and damage to their compression is corruption too.
+
+The trained models are the committed ones (``experiments/results/canrig/checkpoint.eqx``, kept
+xz-compressed under 1 MB, and ``autorig/checkpoint_raf.eqx``) and the packaged default
+RigAnyFace."""
 
 from __future__ import annotations
 
@@ -55,6 +60,10 @@ def ctx(tmp_path_factory, data_dir):
     header = json.loads(data[:header_end])
     del header["sha256"]
     (root / "old.eqx").write_bytes(json.dumps(header).encode() + b"\n" + data[header_end:])
+    save_checkpoint(root / "good.eqx.xz", _tree(), {"step": 3}, FORMAT, compress=True)
+    packed = (root / "good.eqx.xz").read_bytes()
+    (root / "xz_truncated.eqx").write_bytes(packed[: len(packed) // 2])
+    (root / "xz_flipped.eqx").write_bytes(_flip(packed, 64, count=20))
     for name, source in (("canrig", CANRIG_CHECKPOINT), ("autorig", AUTORIG_CHECKPOINT)):
         raw = source.read_bytes()
         end = raw.index(b"\n") + 1
@@ -93,6 +102,18 @@ CHECKPOINT = [
         "good.eqx",
         compiles=True,
     ),
+    handled(
+        "xz-compressed",
+        lambda c: _load(c, "good.eqx.xz"),
+        lambda out, c: (
+            (c.root / "good.eqx.xz").read_bytes().startswith(b"\xfd7zXZ\x00")
+            or pytest.fail("not xz"),
+            np.testing.assert_array_equal(out[0].layers[1].weight, _tree().layers[1].weight),
+            out[1]["step"] == 3 or pytest.fail("state changed"),
+        ),
+    ),
+    raises("xz-truncated", lambda c: _load(c, "xz_truncated.eqx"), CorruptFileError, "xz_trunc"),
+    raises("xz-flipped", lambda c: _load(c, "xz_flipped.eqx"), CorruptFileError, "xz_flipped"),
     handled(
         "old-checkpoint-without-hash",
         lambda c: _load(c, "old.eqx"),

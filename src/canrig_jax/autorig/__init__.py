@@ -58,9 +58,11 @@ from ._rig import (
 )
 from ._train import (
     DEFAULT_CHECKPOINT,
+    DEFAULT_CHECKPOINT_SHA256,
     STATIC_CM,
     RigAnyFaceTrainOptions,
     RigAnyFaceTrainResult,
+    export_riganyface,
     head_inputs,
     load_riganyface,
     make_model,
@@ -71,6 +73,8 @@ from ._train import (
 
 __all__ = [
     "DEFAULT_CHECKPOINT",
+    "DEFAULT_CHECKPOINT_SHA256",
+    "export_riganyface",
     "ACTIVE_MM",
     "ANCHOR_MODES",
     "anchor_parts",

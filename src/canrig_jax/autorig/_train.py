@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
+from importlib.resources import files
 from pathlib import Path
 
 import equinox as eqx
@@ -40,6 +41,7 @@ from .._checkpoint import (
     read_checkpoint_state,
     run_training,
     save_checkpoint,
+    verify_sha256,
 )
 from .._metrics import CM_TO_MM
 from .._sharding import data_parallel
@@ -48,20 +50,20 @@ from ._data import PoseSet, RiggedHead
 from ._model import RigAnyFace, normalise
 
 CHECKPOINT_FORMAT = "riganyface-checkpoint-1"
-DEFAULT_CHECKPOINT = (
-    Path(__file__).resolve().parents[3]
-    / "experiments"
-    / "results"
-    / "autorig_half_balanced_long"
-    / "checkpoint_raf.eqx"
-)
-"""The committed default RigAnyFace checkpoint (present in a source checkout; ``load_model``
-reads it): what ``canrig autorig`` loads unless given ``--model``. Width 64, 159,747
+DEFAULT_CHECKPOINT = Path(str(files(__package__) / "models" / "riganyface.eqx.xz"))
+"""The default RigAnyFace model, shipped inside the package (``canrig_jax/autorig/models/``;
+``load_riganyface`` reads it and checks its SHA-256, ``DEFAULT_CHECKPOINT_SHA256``): what
+``canrig autorig`` loads unless given ``--model``. It is ``export_riganyface`` of the training
+checkpoint ``experiments/results/autorig_half_balanced_long/checkpoint_raf.eqx`` (not
+committed; the command in that folder's ``COMMAND`` rebuilds it): the same weights and
+header, without the optimiser state, xz-compressed (0.6 MB instead of 2.0 MB). Width 64, 159,747
 parameters, 80 training heads, squared + static loss with ``balance_poses=0.5``, 12,000 steps
 (cosine completed). Chosen on validation identities by a rule written before it trained
 (upper-face peak ratio >= 0.5, lower face >= 0.8, MAE on both pose classes <= 1.1x the
 previous default's) over ``autorig_long`` (Euclidean + static, 7,000 steps), whose eye and
 brow shapes moved about a tenth of the true amount (issue 19; README, "What the MAE hid")."""
+DEFAULT_CHECKPOINT_SHA256 = "7e894ad4fd0f19962d9643221c3aab5fa48df509e2b1ef92ddc0747177f5b106"
+"""SHA-256 of the file ``DEFAULT_CHECKPOINT`` (a damaged or replaced file is refused)."""
 LOSSES = ("squared", "euclidean")
 BALANCE_FLOOR = 1e-3
 """With ``balance_poses``: a pose's divisor is at least this fraction of the training set's."""
@@ -355,14 +357,43 @@ class RigAnyFaceTrainResult:
 
 
 def load_riganyface(path) -> tuple[RigAnyFace, PoseSet, dict]:
-    """(model, pose set, header) of a training checkpoint."""
+    """(model, pose set, header) of a training checkpoint, or of its weights-only copy
+    (``export_riganyface``). The packaged default (``DEFAULT_CHECKPOINT``) is first checked
+    against its recorded SHA-256 (``CorruptFileError`` naming the file if it differs)."""
+    if _is_default_checkpoint(path):
+        verify_sha256(path, DEFAULT_CHECKPOINT_SHA256)
     state = read_checkpoint_state(path, CHECKPOINT_FORMAT)
     options = RigAnyFaceTrainOptions(**state["options"])
     poses = PoseSet.from_dict(state["poses"])
     like = make_model(options, poses.n_basis, state["output_scale"])
+    if state.get("weights_only"):
+        model, state = load_checkpoint(path, like, CHECKPOINT_FORMAT)
+        return model, poses, state
     like_opt = optimiser(options).init(eqx.filter(like, eqx.is_array))
     (model, _), state = load_checkpoint(path, (like, like_opt), CHECKPOINT_FORMAT)
     return model, poses, state
+
+
+def _is_default_checkpoint(path) -> bool:
+    return (
+        isinstance(path, str | os.PathLike)
+        and os.path.isfile(path)
+        and DEFAULT_CHECKPOINT.is_file()
+        and os.path.samefile(path, DEFAULT_CHECKPOINT)
+    )
+
+
+def export_riganyface(checkpoint: str | os.PathLike, path: str | os.PathLike) -> Path:
+    """A weights-only, xz-compressed copy of the training checkpoint ``checkpoint`` at
+    ``path`` (atomically): the model and the header (options, pose set, training history),
+    without the optimiser state, about a third of the size. ``load_riganyface`` reads it to
+    the same model; training cannot resume from it. The packaged default model
+    (``DEFAULT_CHECKPOINT``) is made this way."""
+    model, _, state = load_riganyface(checkpoint)
+    state = {k: v for k, v in state.items() if k != "format"}
+    return save_checkpoint(
+        path, model, {**state, "weights_only": True}, CHECKPOINT_FORMAT, compress=True
+    )
 
 
 def train_riganyface(
@@ -402,6 +433,11 @@ def train_riganyface(
     step, seconds, history = 0, 0.0, []
     if checkpoint is not None and os.path.exists(checkpoint):
         state = read_checkpoint_state(checkpoint, CHECKPOINT_FORMAT)
+        if state.get("weights_only"):
+            raise ValueError(
+                f"checkpoint: {checkpoint} holds a model's weights only (export_riganyface), "
+                "not a training state to resume from"
+            )
         saved = RigAnyFaceTrainOptions(**state["options"])
         if dataclasses.replace(saved, max_minutes=options.max_minutes) != options:
             raise ValueError(f"checkpoint: {checkpoint} was written with different options")

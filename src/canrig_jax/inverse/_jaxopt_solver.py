@@ -1,4 +1,7 @@
-"""A joint bounded solver through jaxopt on the same objective and the same ``evaluate``."""
+"""A joint bounded solver through jaxopt on the same objective and the same ``evaluate``.
+
+jaxopt is an optional dependency (``pip install canrig_jax[jaxopt]``), imported when a
+``JaxoptLBFGSB`` is made."""
 
 from __future__ import annotations
 
@@ -6,7 +9,6 @@ from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
-import jaxopt
 from jax.custom_batching import sequential_vmap
 
 from ..rig import evaluate
@@ -37,6 +39,7 @@ class JaxoptLBFGSB(AbstractInverseMethod):
     penalises_l1: ClassVar[bool] = True
 
     def __check_init__(self):
+        _jaxopt()
         check_alpha(self.alpha)
         check_count("maxiter", self.maxiter)
         check_upper(self.upper)
@@ -53,6 +56,17 @@ class JaxoptLBFGSB(AbstractInverseMethod):
         history = jnp.where(finite, value, fun(init))[None]
         converged = finite & (error <= self.tol)
         return Iterate(weights, history, steps, converged)
+
+
+def _jaxopt():
+    """The jaxopt module; ImportError naming the extra that installs it when it is missing."""
+    try:
+        import jaxopt
+    except ImportError as error:
+        raise ImportError(
+            "JaxoptLBFGSB needs jaxopt, an optional dependency: pip install canrig_jax[jaxopt]"
+        ) from error
+    return jaxopt
 
 
 def _objective(method: JaxoptLBFGSB, problem: InverseProblem, offset):
@@ -75,7 +89,7 @@ def _run_lbfgsb(method: JaxoptLBFGSB, problem: InverseProblem, offset, init):
     compact-representation matrices with LAPACK: under ``vmap`` the frames run one after
     another (``sequential_vmap``), so that no LAPACK call ever holds a batch (see
     ``canrig_jax._linalg``)."""
-    solver = jaxopt.LBFGSB(
+    solver = _jaxopt().LBFGSB(
         fun=_objective(method, problem, offset),
         maxiter=method.maxiter,
         tol=method.tol,
