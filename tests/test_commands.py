@@ -7,6 +7,7 @@ animate -> validate -> invert) is ``-m slow``.
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -27,6 +28,7 @@ from canrig_jax.data import (
     write_livelink_csv,
 )
 from canrig_jax.rig import (
+    BlendshapeRig,
     evaluate_batch,
     find_gltf_validator,
     ict_linear_rig,
@@ -52,6 +54,28 @@ def _run(capsys, *argv):
     status = run_command([str(a) for a in argv])
     captured = capsys.readouterr()
     return status, captured.out, captured.err
+
+
+PROGRESS = re.compile(r"^\[ *\d+\.\d s\] ")
+"""A progress line: ``[  12.3 s] message``."""
+
+
+def _timecodes(path):
+    return [line.split(",", 1)[0] for line in path.read_text().splitlines()[1:]]
+
+
+def _assert_one_voice(err: str, quiet: bool = False) -> list[str]:
+    """Every stderr line is a progress line (none with ``quiet``), a ``canrig: warning:`` or a
+    ``canrig: error:`` line: no traceback, no source line, no warning class. Returns the
+    warning lines, each message once."""
+    lines = [line for line in err.splitlines() if line.strip()]
+    warns = [line for line in lines if line.startswith("canrig: warning: ")]
+    for line in lines:
+        voiced = line.startswith(("canrig: warning: ", "canrig: error: "))
+        assert voiced or (not quiet and PROGRESS.match(line)), line
+    assert "Traceback" not in err and "CanrigWarning" not in err and ".py:" not in err, err
+    assert len(warns) == len(set(warns)), warns
+    return warns
 
 
 @pytest.mark.parametrize("command", SUBCOMMANDS)
@@ -100,12 +124,15 @@ def test_animate_then_invert_recovers_the_take(workspace, capsys):
     )
     assert load_gltf_rig(root / "anim.glb").n_blendshapes == 53
 
+    _assert_one_voice(err)
     status, out, err = _run(
         capsys,
         *("invert", root / "rig.npz", root / "meshes.npz", "-o", root / "back.csv"),
         *("--method", "linear", "--reference", root / "take.csv", "--quiet"),
+        *("--timecodes", root / "take.csv"),
     )
     assert status == 0, err
+    assert _timecodes(root / "back.csv") == _timecodes(root / "take.csv")  # the gap kept
     match = re.search(r"mean ([\d.]+), RMS ([\d.]+), max ([\d.]+)", out)
     mean, rms, worst = (float(x) for x in match.groups())
     assert mean < 2e-3 and worst < 0.1, out
@@ -114,12 +141,48 @@ def test_animate_then_invert_recovers_the_take(workspace, capsys):
         float(x) for x in re.search(r"mean ([\d.]+) mm, max ([\d.]+) mm", out).groups()
     )
     assert mesh_mean <= mesh_max < 0.5 and mesh_mean < 0.01, out
-    back = read_livelink_csv(root / "back.csv", fps=60)
+    with pytest.warns(UserWarning, match="7 frames dropped"):  # the gap, from --timecodes
+        back = read_livelink_csv(root / "back.csv", fps=60)
     assert back.n_frames == 180 and len(back.names) == 51  # ICT has no TongueOut
     assert back.names[:2] == ("EyeBlinkLeft", "EyeLookDownLeft")
-    take = read_livelink_csv(root / "take.csv")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        take = read_livelink_csv(root / "take.csv")
     jaw = back.names.index("JawOpen")
     assert np.abs(back.weights[:, jaw] - take.weights[:, take.names.index("JawOpen")]).max() < 0.05
+
+    # the take with 20 more rows dropped, and the meshes of the rows kept: the written CSV has
+    # the dropped-row take's timecodes, both gaps included
+    lines = (root / "take.csv").read_text().splitlines()
+    (root / "gap.csv").write_text("\n".join(lines[:101] + lines[121:]) + "\n")
+    kept = np.r_[0:100, 120:180]
+    np.savez(root / "gap_meshes.npz", meshes=meshes["meshes"][kept])
+    status, out, err = _run(
+        capsys,
+        *("invert", root / "rig.npz", root / "gap_meshes.npz", "-o", root / "gap_back.csv"),
+        *("--method", "linear", "--timecodes", root / "gap.csv"),
+    )
+    assert status == 0, err
+    assert "160 frames at 60 fps, 27 frames dropped in 2 gaps (kept)" in err
+    assert _timecodes(root / "gap_back.csv") == _timecodes(root / "gap.csv")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        gap_back = read_livelink_csv(root / "gap_back.csv")
+    np.testing.assert_array_equal(gap_back.frame_number, take.frame_number[kept])
+    np.testing.assert_allclose(gap_back.weights, back.weights[kept], atol=1e-3)
+
+
+def test_invert_refuses_timecodes_of_another_length(workspace, capsys, tmp_path):
+    root, rig = workspace
+    np.savez(tmp_path / "m.npz", meshes=np.repeat(np.asarray(rig.neutral)[None], 5, axis=0))
+    status, _, err = _run(
+        capsys,
+        *("invert", root / "rig.npz", tmp_path / "m.npz", "-o", tmp_path / "t.csv"),
+        *("--timecodes", root / "take.csv"),
+    )
+    assert status == 2 and "--timecodes" in err and "180 frames" in err and "m.npz 5" in err
+    assert not (tmp_path / "t.csv").exists()
+    _assert_one_voice(err)
 
 
 def test_invert_a_folder_of_obj(workspace, capsys, tmp_path):
@@ -202,7 +265,14 @@ def test_errors_name_the_file_and_write_nothing(workspace, capsys, tmp_path):
     for argv, message in cases:
         status, _, err = _run(capsys, *argv)
         assert status == 2 and message in err and "Traceback" not in err, (argv, err)
+        assert err.splitlines()[-1].startswith("canrig: error: "), err
+        _assert_one_voice(err)
     assert sorted(os.listdir(tmp_path)) == before
+    with pytest.raises(SystemExit) as exit_info:  # argparse's errors read the same
+        run_command(["invert", str(root / "rig.npz"), str(tmp_path), "-o", "t.csv", "--fps", "x"])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and err.splitlines()[-1].startswith("canrig: error: ")
+    assert "--fps" in err
     status, _, err = _run(capsys, "autorig", tmp_path / "h.obj", "-o", tmp_path / "r.glb")
     assert status == 2 and "h.obj is empty" in err
 
@@ -296,3 +366,76 @@ def test_end_to_end_makehuman(tmp_path, capsys, data_dir):
     assert separate.sum() >= 10 and error[:, separate].max() < 0.01, (
         f"{separate.sum()} separate channels, error {error[:, separate].max():.4f}"
     )
+
+
+def _last_key_seconds(path) -> float:
+    """The time of an animated glb's last key (its first sampler input's ``max``)."""
+    data = path.read_bytes()
+    length = int.from_bytes(data[12:16], "little")
+    gltf = json.loads(data[20 : 20 + length])
+    sampler = gltf["animations"][0]["samplers"][0]
+    return float(gltf["accessors"][sampler["input"]]["max"][0])
+
+
+def _tiny_rig() -> BlendshapeRig:
+    """Three ARKit-named shapes on a 4 x 4 vertex grid (cm)."""
+    x, y = np.meshgrid(np.arange(4.0), np.arange(4.0), indexing="ij")
+    neutral = np.stack([x.ravel(), y.ravel(), np.zeros(16)], axis=1).astype(np.float32)
+    faces = []
+    for i in range(3):
+        for j in range(3):
+            a, b, c, d = 4 * i + j, 4 * i + j + 4, 4 * i + j + 5, 4 * i + j + 1
+            faces += [(a, b, c), (a, c, d)]
+    deltas = np.random.default_rng(0).normal(0, 0.1, (3, 16, 3)).astype(np.float32)
+    names = ("jawOpen", "eyeBlink_L", "mouthSmile_L")
+    return BlendshapeRig(neutral, deltas, (), names, np.array(faces, np.int32))
+
+
+@pytest.mark.parametrize("quiet", [False, True])
+def test_warnings_are_one_line_each(workspace, capsys, tmp_path, quiet):
+    """``canrig correct --take`` on a take with dropped rows and channels the rig lacks: each
+    warning is one ``canrig: warning:`` line, never a warning class and a source line, and
+    ``--quiet`` keeps them (it silences progress only)."""
+    root, _ = workspace
+    rig = _tiny_rig()
+    save_rig(tmp_path / "tiny.npz", rig)
+    poses = np.eye(3, dtype=np.float32)[:2]
+    sculpted = np.asarray(evaluate_batch(rig, poses)) + 0.05
+    np.savez(tmp_path / "edits.npz", poses=poses, meshes=sculpted)
+    lines = (root / "take.csv").read_text().splitlines()
+    (tmp_path / "gap.csv").write_text("\n".join(lines[:13] + lines[15:70]) + "\n")
+    status, out, err = _run(
+        capsys,
+        *("correct", tmp_path / "tiny.npz", tmp_path / "edits.npz", "-o", tmp_path / "c.glb"),
+        *("--take", tmp_path / "gap.csv", "--sigma", "0.5", *(["--quiet"] if quiet else [])),
+    )
+    assert status == 0, err
+    warns = _assert_one_voice(err, quiet)
+    assert sum("9 frames dropped at 60 fps in 2 gaps" in w for w in warns) == 1, warns
+    assert sum("not used by the target" in w and "TongueOut" in w for w in warns) == 1, warns
+    assert any(PROGRESS.match(line) for line in err.splitlines()) != quiet
+    # the corrected take keeps its timecodes: keys at the frames' own times, gaps included
+    animated = load_gltf_rig(tmp_path / "c.glb")
+    assert animated.n_blendshapes == 3 + 67
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        take = read_livelink_csv(tmp_path / "gap.csv")
+    seconds = (take.frame_number[-1] - take.frame_number[0]) / 60  # 75 frames for 67 rows
+    assert _last_key_seconds(tmp_path / "c.glb") == pytest.approx(seconds, abs=1e-4)
+
+
+def test_autorig_warning_then_error_one_voice(capsys, tmp_path, data_dir):
+    """A head in decimetres given as centimetres warns (one line naming the file and the likely
+    unit); a damaged --model is then one error line naming it."""
+    head = read_arrays(data_file("makehuman/hm08_face.npz", data_dir), ("neutral", "faces"))
+    save_obj(tmp_path / "head.obj", head["neutral"], head["faces"])
+    (tmp_path / "bad.eqx").write_bytes(b"not a checkpoint")
+    status, _, err = _run(
+        capsys,
+        *("autorig", tmp_path / "head.obj", "--units", "cm", "--model", tmp_path / "bad.eqx"),
+        *("-o", tmp_path / "r.glb"),
+    )
+    assert status == 2 and not (tmp_path / "r.glb").exists()
+    warns = _assert_one_voice(err)
+    assert len(warns) == 1 and "head.obj" in warns[0] and "in dm it would be 37.6 cm" in warns[0]
+    assert err.splitlines()[-1].startswith("canrig: error: ") and "bad.eqx" in err

@@ -10,8 +10,10 @@ Subcommands (``canrig SUBCOMMAND --help`` for each):
 - ``canrig view FILE.glb [--port N]``: a local web viewer (127.0.0.1 only) for a rig or take;
   ``--screenshot OUT.png --time T`` renders one frame in headless Chromium instead.
 
-Errors in the inputs are reported as one line naming the file (exit status 2); nothing
-partial is written (every output is written atomically, after the work is done).
+Errors in the inputs are reported as one ``canrig: error: ...`` line naming the file (exit
+status 2); nothing partial is written (every output is written atomically, after the work is
+done). Warnings are ``canrig: warning: ...`` lines, each message once; progress lines
+(``[  12.3 s] ...``) go to standard error too, and ``--quiet`` silences only those.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import numpy as np
 
 from . import watchdog
 from ._cli import add_dataclass_options, from_args
+from ._warnings import CanrigWarning
 
 INVERSE_METHODS = {
     "quartic": "QuarticCD",
@@ -43,6 +46,37 @@ INVERSE_METHODS = {
 
 class CommandError(Exception):
     """A user-facing error: printed as one line, exit status 2."""
+
+
+def _warn(message: str) -> None:
+    """A warning of the command itself: one ``canrig: warning: ...`` line (see ``main``)."""
+    warnings.warn(message, CanrigWarning, stacklevel=2)
+
+
+class _WarningLines:
+    """``warnings.showwarning`` for the command's duration: one ``canrig: warning: ...``
+    line per distinct message on stderr, without the source file and line (a user of the
+    command did not write them)."""
+
+    def __init__(self):
+        self.seen: set[str] = set()
+
+    def __call__(self, message, category, filename, lineno, file=None, line=None) -> None:
+        text = str(message)
+        if not issubclass(category, CanrigWarning):
+            text = f"{category.__name__}: {text}"
+        if text in self.seen:
+            return
+        self.seen.add(text)
+        print(f"canrig: warning: {text}", file=sys.stderr, flush=True)
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with the command's error line: usage, then ``canrig: error: ...``."""
+
+    def error(self, message: str):
+        self.print_usage(sys.stderr)
+        self.exit(2, f"canrig: error: {message}\n")
 
 
 class _Progress:
@@ -154,6 +188,16 @@ def _autorig(args) -> None:
 
 
 # ---------------------------------------------------------------------------------- animate
+def _key_times(take, name: str) -> np.ndarray:
+    """(T,) seconds of a take's keys from its timecodes (dropped frames leave their gap);
+    one frame apart, with a warning, when the timecodes repeat or go back."""
+    times = (take.frame_number - take.frame_number[0]) / take.fps
+    if take.n_frames > 1 and np.any(np.diff(times) <= 0):
+        _warn(f"{name}: timecodes repeat or go back; keys placed one frame apart instead")
+        times = np.arange(take.n_frames) / take.fps
+    return times
+
+
 def _animate(args) -> None:
     from ._io import save_npz
     from .data import read_livelink_csv
@@ -163,25 +207,15 @@ def _animate(args) -> None:
     meshes_out = _output(args.meshes, (".npz",)) if args.meshes else None
     progress = _Progress(args.quiet)
     rig = _load_rig(args.rig)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        take = read_livelink_csv(_input(args.take, "TAKE"), fps=args.fps)
-    for w in caught:
-        progress(f"note: {w.message}")
+    progress(f"read {args.rig}: {rig.n_blendshapes} blendshapes, {rig.n_vertices} vertices")
+    take = read_livelink_csv(_input(args.take, "TAKE"), fps=args.fps)
     progress(
         f"read {args.take}: {take.n_frames} frames at {take.fps:g} fps "
         f"({'given' if args.fps else 'from the timecodes'}), {len(take.names)} channels, "
         f"rotations {list(take.rotation_names) or 'none'}"
     )
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        weights = take.weights_for(rig.names, missing=args.missing)
-    for w in caught:
-        progress(f"note: {w.message}")
-    times = (take.frame_number - take.frame_number[0]) / take.fps
-    if take.n_frames > 1 and np.any(np.diff(times) <= 0):
-        progress("note: timecodes repeat or go back; keys placed one frame apart instead")
-        times = np.arange(take.n_frames) / take.fps
+    weights = take.weights_for(rig.names, missing=args.missing)
+    times = _key_times(take, args.take)
     head = None
     if args.head_rotation:
         have = [n for n in ("HeadYaw", "HeadPitch", "HeadRoll") if n in take.rotation_names]
@@ -189,14 +223,17 @@ def _animate(args) -> None:
             index = [take.rotation_names.index(n) for n in have]
             head = take.head_eye_rotations[:, index] * args.rotation_scale
         else:
-            progress("note: no HeadYaw/HeadPitch/HeadRoll columns; no head rotation")
+            _warn(f"{args.take}: no HeadYaw/HeadPitch/HeadRoll columns; no head rotation")
+    progress(f"writing {out}: {take.n_frames} keys x {rig.n_blendshapes} morph targets")
     export_animated_gltf(rig, weights, out, fps=take.fps, times=times, head_rotation=head)
-    progress(f"wrote {out}: {take.n_frames} keys, {rig.n_blendshapes} channels")
+    progress(f"wrote {out}")
     if meshes_out is not None:
+        progress(f"evaluating the rig at {take.n_frames} frames")
         meshes = np.asarray(evaluate_batch(rig, weights, chunk=64), np.float32)
         save_npz(meshes_out, meshes=meshes, weights=weights, names=np.asarray(rig.names))
         progress(f"wrote {meshes_out}: the rig's meshes at every frame ({meshes.shape})")
     if args.validate:
+        progress("running the Khronos glTF validator")
         report = validate_gltf(out)
         issues = report["issues"]
         progress(
@@ -250,14 +287,49 @@ def _invert(args) -> None:
     out = _output(args.output, (".csv",))
     progress = _Progress(args.quiet)
     rig = _load_rig(args.rig)
+    progress(f"read {args.rig}: {rig.n_blendshapes} blendshapes, {rig.n_vertices} vertices")
     meshes = _read_meshes(_input(args.meshes, "MESHES"), rig.n_vertices, rig.units)
-    progress(f"read {meshes.shape[0]} meshes of {meshes.shape[1]} vertices")
+    n_frames = meshes.shape[0]
+    progress(f"read {n_frames} meshes of {meshes.shape[1]} vertices")
+    timecodes = None
+    if args.timecodes:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # its gaps are what is copied
+            timecodes = read_livelink_csv(_input(args.timecodes, "--timecodes"), fps=args.fps)
+        if timecodes.n_frames != n_frames:
+            raise CommandError(
+                f"--timecodes {args.timecodes}: {timecodes.n_frames} frames, MESHES "
+                f"{args.meshes} {n_frames}; the timecodes are copied frame by frame"
+            )
+        steps = np.diff(timecodes.frame_number)
+        progress(
+            f"timecodes from {args.timecodes}: {n_frames} frames at {timecodes.fps:g} fps, "
+            f"{int(np.maximum(steps - 1, 0).sum())} frames dropped in "
+            f"{int((steps > 1).sum())} gaps (kept)"
+        )
+    expected = None
+    if args.reference:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            reference = read_livelink_csv(_input(args.reference, "--reference"))
+            expected = reference.weights_for(rig.names, missing="zero")
+        if expected.shape[0] != n_frames:
+            raise CommandError(
+                f"--reference {args.reference}: {expected.shape[0]} frames, MESHES "
+                f"{args.meshes} {n_frames}"
+            )
+        if timecodes is None:
+            progress(
+                "note: the CSV's timecodes start at 00:00:00:00; --timecodes "
+                f"{args.reference} would copy the reference take's"
+            )
     cls = getattr(inverse, INVERSE_METHODS[args.method])
     fields = {f.name for f in dataclasses.fields(cls)}
     options = from_args(inverse.QuarticCD, args)
     method = cls(**{k: getattr(options, k) for k in fields if hasattr(options, k)})
+    progress(f"preparing the inverse problem ({rig.n_blendshapes} blendshapes)")
     problem = inverse.prepare(rig)
-    progress(f"prepared the inverse problem; solving with {method}")
+    progress(f"solving {n_frames} frames with {method}")
     chunk = min(args.chunk, meshes.shape[0])
     solved = []
     for start in tqdm(range(0, meshes.shape[0], chunk), disable=args.quiet, desc="frames"):
@@ -269,7 +341,9 @@ def _invert(args) -> None:
         watchdog.progress(f"frames {start}-{start + block.shape[0] - pad - 1}")
     weights = np.concatenate(solved)
     mixing, channels = _arkit_columns(rig)
-    write_livelink_csv(out, capture_from_weights(weights @ mixing, channels, fps=args.fps))
+    fps = None if timecodes is not None else (args.fps or 60)
+    take = capture_from_weights(weights @ mixing, channels, fps=fps, timecodes=timecodes)
+    write_livelink_csv(out, take)
     progress(f"wrote {out}: {weights.shape[0]} frames, {len(channels)} Live Link Face channels")
     # how well the solved weights reproduce the meshes: well posed even where the weights are
     # not (two nearly parallel blendshapes trade weight without changing the mesh)
@@ -279,16 +353,7 @@ def _invert(args) -> None:
         f"mesh error of the solved weights over {meshes.shape[0]} frames x "
         f"{meshes.shape[1]} vertices: mean {mesh_mm.mean():.4f} mm, max {mesh_mm.max():.4f} mm"
     )
-    if args.reference:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            reference = read_livelink_csv(_input(args.reference, "--reference"))
-            expected = reference.weights_for(rig.names, missing="zero")
-        if expected.shape != weights.shape:
-            raise CommandError(
-                f"--reference {args.reference}: {expected.shape[0]} frames, the meshes "
-                f"{weights.shape[0]}"
-            )
+    if expected is not None:
         error = np.abs(weights - expected)
         print(
             f"weight error against {args.reference} over {weights.shape[0]} frames x "
@@ -306,6 +371,7 @@ def _correct(args) -> None:
     out = _output(args.output, (".glb",))
     progress = _Progress(args.quiet)
     rig = _load_rig(args.rig)
+    progress(f"read {args.rig}: {rig.n_blendshapes} blendshapes, {rig.n_vertices} vertices")
     edits_path = _input(args.edits, "EDITS")
     data = read_arrays(edits_path, ("poses", "meshes"))
     poses, sculpted = np.asarray(data["poses"], np.float32), np.asarray(data["meshes"], np.float32)
@@ -318,23 +384,28 @@ def _correct(args) -> None:
             f"EDITS {edits_path}: meshes of shape {sculpted.shape}, expected "
             f"({poses.shape[0]}, {rig.n_vertices}, 3)"
         )
+    take = None
+    if args.take:
+        take = read_livelink_csv(_input(args.take, "--take"))
+        frame_weights = take.weights_for(rig.names, missing="zero")
+        progress(f"read {args.take}: {take.n_frames} frames at {take.fps:g} fps")
+    else:
+        frame_weights = poses
     edits = sculpted - np.asarray(evaluate_batch(rig, poses))
+    progress(
+        f"fitting WPSE on {poses.shape[0]} sculpted frames"
+        + ("" if args.sigma is not None else " (leave-one-out width)")
+    )
     prepared = wpse.prepare_edits(rig, poses, edits)
     sigma = args.sigma if args.sigma is not None else float(wpse.fit_sigma(prepared).sigma)
     model = wpse.fit_prepared(prepared, sigma)
-    progress(f"fitted WPSE on {poses.shape[0]} sculpted frames, sigma {sigma:.4g}")
-    if args.take:
-        take = read_livelink_csv(_input(args.take, "--take"))
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            frame_weights = take.weights_for(rig.names, missing="zero")
-    else:
-        frame_weights = poses
+    progress(f"fitted WPSE, sigma {sigma:.4g}; correcting {frame_weights.shape[0]} frames")
     posed = np.asarray(evaluate_batch(rig, frame_weights), np.float32)
-    corrected = np.stack(
-        [np.asarray(wpse.apply(model, w, p)) for w, p in zip(frame_weights, posed, strict=True)]
-    )
-    corrections = corrected - posed
+    corrected = []
+    for i, (w, p) in enumerate(zip(frame_weights, posed, strict=True)):
+        corrected.append(np.asarray(wpse.apply(model, w, p)))
+        watchdog.progress(f"frame {i}")
+    corrections = np.stack(corrected) - posed
     # the correction baked: one morph target per frame, switched on at its own key only
     t = frame_weights.shape[0]
     baked = BlendshapeRig(
@@ -345,9 +416,11 @@ def _correct(args) -> None:
         rig.faces,
         units=rig.units,
     )
-    if args.take:
+    progress(f"writing {out}: {baked.n_blendshapes} morph targets")
+    if take is not None:
         weights = np.concatenate([frame_weights, np.eye(t, dtype=np.float32)], axis=1)
-        export_animated_gltf(baked, weights, out, fps=take.fps)
+        times = _key_times(take, args.take)
+        export_animated_gltf(baked, weights, out, fps=take.fps, times=times)
         where = f"animated over the {t} frames of {args.take}"
     else:
         export_gltf(baked, out)
@@ -427,7 +500,7 @@ def _view(args) -> None:
 def build_parser() -> argparse.ArgumentParser:
     from .inverse import ORDERS, QuarticCD
 
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="canrig",
         description="From a head file and a phone capture to an animated rig (canrig_jax).",
     )
@@ -529,8 +602,18 @@ def build_parser() -> argparse.ArgumentParser:
             "order": "coordinate order",
         },
     )
-    p.add_argument("--fps", type=int, default=60, help="frame rate written (default: 60)")
+    p.add_argument(
+        "--fps",
+        type=int,
+        help="frame rate written (default: the --timecodes take's, else 60)",
+    )
     p.add_argument("--chunk", type=int, default=32, help="frames per solve (default: 32)")
+    p.add_argument(
+        "--timecodes",
+        metavar="TAKE.csv",
+        help="copy this Live Link Face take's timecodes, gaps included (one per mesh; "
+        "default: consecutive frames from 00:00:00:00)",
+    )
     p.add_argument("--reference", help="a .csv take to report the weight error against")
     p.set_defaults(run=_invert)
 
@@ -578,14 +661,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``canrig`` console script; returns the exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    try:
-        watchdog.run_watched(args.run, f"canrig {args.command}", args)
-    except CommandError as error:
-        print(f"canrig {args.command}: error: {error}", file=sys.stderr)
-        return 2
-    except (ValueError, OSError, RuntimeError) as error:
-        print(f"canrig {args.command}: error: {error}", file=sys.stderr)
-        return 2
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", CanrigWarning)  # each reaches _WarningLines once
+        warnings.showwarning = _WarningLines()
+        try:
+            watchdog.run_watched(args.run, f"canrig {args.command}", args)
+        except (CommandError, ValueError, OSError, RuntimeError) as error:
+            print(f"canrig: error: {error}", file=sys.stderr)
+            return 2
     return 0
 
 

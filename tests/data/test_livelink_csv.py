@@ -238,3 +238,43 @@ def test_solved_weights_to_csv(tmp_path, data_dir):
         write_livelink_csv(
             tmp_path / "x.csv", capture_from_weights(weights[:, :2], ["cheekPuff_L", "cheekPuff_R"])
         )
+
+
+def _timecodes(path):
+    return [line.split(",", 1)[0] for line in path.read_text().splitlines()[1:]]
+
+
+def test_timecodes_and_gaps_survive_every_csv_written_from_a_take(take_csv, tmp_path):
+    """The real capture with 20 more rows dropped (a second gap, besides its own 7-frame
+    one): read -> write -> read keeps every timecode, and solved weights given the take's
+    timecodes (``capture_from_weights(..., timecodes=take)``) are written with them."""
+    lines = take_csv.read_text().splitlines()
+    (tmp_path / "gap.csv").write_text("\n".join(lines[:101] + lines[121:]) + "\n")
+    with pytest.warns(UserWarning, match="27 frames dropped at 60 fps in 2 gaps"):
+        take = read_livelink_csv(tmp_path / "gap.csv")
+    assert take.n_frames == 160 and sorted(np.diff(take.frame_number))[-2:] == [8, 21]
+    write_livelink_csv(tmp_path / "again.csv", take)
+    assert _timecodes(tmp_path / "again.csv") == _timecodes(tmp_path / "gap.csv")
+    np.testing.assert_array_equal(_read(tmp_path / "again.csv").frame_number, take.frame_number)
+
+    solved = capture_from_weights(take.weights[:, :3], take.names[:3], timecodes=take)
+    write_livelink_csv(tmp_path / "solved.csv", solved)
+    assert _timecodes(tmp_path / "solved.csv") == _timecodes(tmp_path / "gap.csv")
+    back = _read(tmp_path / "solved.csv")
+    assert back.fps == 60.0
+    np.testing.assert_array_equal(back.frame_number, take.frame_number)
+    np.testing.assert_array_equal(back.sub_frame, take.sub_frame)
+    # without timecodes: consecutive frames from 00:00:00:00
+    plain = capture_from_weights(take.weights[:, :3], take.names[:3])
+    write_livelink_csv(tmp_path / "plain.csv", plain)
+    assert _timecodes(tmp_path / "plain.csv")[:2] == ["00:00:00:00.000", "00:00:00:01.000"]
+
+
+def test_timecodes_must_match_the_weights(take_csv):
+    take = _read(take_csv)
+    with pytest.raises(ValueError, match="timecodes: the take has 180 frames, the weights 179"):
+        capture_from_weights(take.weights[1:], take.names, timecodes=take)
+    with pytest.raises(ValueError, match="fps: 30 differs"):
+        capture_from_weights(take.weights, take.names, fps=30, timecodes=take)
+    with pytest.raises(TypeError, match="timecodes: expected a LiveLinkCapture"):
+        capture_from_weights(take.weights, take.names, timecodes=take.frame_number)

@@ -17,7 +17,10 @@ The app writes one header line and one row per captured frame::
 ``read_livelink_csv`` accepts the columns in any order (matched by name in any of the ARKit,
 Unreal or ICT spellings), a subset of the channels, and missing rotation columns; it infers
 the frame rate from the timecodes and warns about dropped and repeated frames.
-``write_livelink_csv`` writes the app's layout; its output reads back identically.
+``write_livelink_csv`` writes the app's layout; its output reads back identically, timecodes
+included: a take read from a CSV keeps every timecode (and every dropped-frame gap) through
+any CSV written from it, and ``capture_from_weights(..., timecodes=take)`` gives solved
+weights the timecodes of the take they came from.
 """
 
 from __future__ import annotations
@@ -371,18 +374,56 @@ def write_livelink_csv(
 def capture_from_weights(
     weights: np.ndarray,
     names: Sequence[str],
-    fps: float = 60.0,
+    fps: float | None = None,
     *,
     head_eye_rotations: np.ndarray | None = None,
     rotation_names: Sequence[str] = (),
     start_frame: int = 0,
+    timecodes: LiveLinkCapture | None = None,
 ) -> LiveLinkCapture:
-    """A ``LiveLinkCapture`` of consecutive frames from (T, K) weights over ``names`` (any
-    ARKit spelling), e.g. solved rig weights to be written with ``write_livelink_csv``."""
+    """A ``LiveLinkCapture`` from (T, K) weights over ``names`` (any ARKit spelling), e.g.
+    solved rig weights to be written with ``write_livelink_csv``.
+
+    Args:
+        weights: (T, K) weights, unitless.
+        names: the K channel names.
+        fps: the frame rate (default: the ``timecodes`` take's, else 60).
+        head_eye_rotations: (T, R) rotations over ``rotation_names`` (default: none).
+        start_frame: with no ``timecodes``, the frames are consecutive from this frame number
+            (frames since midnight; 0 writes ``00:00:00:00``).
+        timecodes: a take (e.g. ``read_livelink_csv`` of the capture the weights were solved
+            from) whose ``frame_number``, ``sub_frame`` and ``fps`` are copied, gaps
+            included; it must have T frames.
+    """
     weights = np.asarray(weights, np.float32)
     if weights.ndim != 2 or weights.shape[1] != len(names):
         raise ValueError(f"weights: expected shape (T, {len(names)}), got {weights.shape}")
     t = weights.shape[0]
+    if timecodes is not None:
+        if not isinstance(timecodes, LiveLinkCapture):
+            raise TypeError(
+                f"timecodes: expected a LiveLinkCapture, got {type(timecodes).__name__}"
+            )
+        if timecodes.n_frames != t:
+            raise ValueError(
+                f"timecodes: the take has {timecodes.n_frames} frames, the weights {t}; "
+                "timecodes are copied frame by frame"
+            )
+        if fps is not None and float(fps) != float(timecodes.fps):
+            raise ValueError(
+                f"fps: {fps} differs from the timecodes take's {timecodes.fps:g} fps; "
+                "leave fps out to use the take's"
+            )
+        fps = timecodes.fps
+        frame_number = np.asarray(timecodes.frame_number, np.int64).copy()
+        sub_frame = (
+            np.zeros(t)
+            if timecodes.sub_frame is None
+            else np.asarray(timecodes.sub_frame, np.float64).copy()
+        )
+    else:
+        frame_number = start_frame + np.arange(t, dtype=np.int64)
+        sub_frame = np.zeros(t)
     if head_eye_rotations is None:
         head_eye_rotations = np.zeros((t, len(rotation_names)), np.float32)
     return LiveLinkCapture(
@@ -390,7 +431,7 @@ def capture_from_weights(
         names=tuple(str(n) for n in names),
         head_eye_rotations=np.asarray(head_eye_rotations, np.float32),
         rotation_names=tuple(rotation_names),
-        frame_number=start_frame + np.arange(t, dtype=np.int64),
-        fps=float(fps),
-        sub_frame=np.zeros(t),
+        frame_number=frame_number,
+        fps=60.0 if fps is None else float(fps),
+        sub_frame=sub_frame,
     )
