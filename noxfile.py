@@ -303,3 +303,13 @@ def docs(session):
     ``build/site/`` (git-ignored); ``-- --site-dir DIR`` builds elsewhere."""
     session.install("-e", ".[docs]")
     session.run("mkdocs", "build", "--strict", *session.posargs)
+
+
+@nox.session
+def wheel(session):
+    """The wheel as a user gets it: built, installed in a fresh virtualenv outside the
+    repository (dependencies from the package index, no extras), then ``canrig autorig`` with
+    the packaged default model and ``canrig animate`` run from a folder of their own
+    (``tests/test_wheel.py``, a few minutes)."""
+    session.install("-e", ".[dev]")
+    session.run("python", "-m", "pytest", "-m", "slow", "-n", "0", "tests/test_wheel.py")
