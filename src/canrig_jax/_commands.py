@@ -30,7 +30,7 @@ import numpy as np
 
 from . import watchdog
 from ._cli import add_dataclass_options, from_args
-from ._warnings import CanrigWarning
+from ._warnings import CanrigWarning, print_warnings
 
 INVERSE_METHODS = {
     "quartic": "QuarticCD",
@@ -51,24 +51,6 @@ class CommandError(Exception):
 def _warn(message: str) -> None:
     """A warning of the command itself: one ``canrig: warning: ...`` line (see ``main``)."""
     warnings.warn(message, CanrigWarning, stacklevel=2)
-
-
-class _WarningLines:
-    """``warnings.showwarning`` for the command's duration: one ``canrig: warning: ...``
-    line per distinct message on stderr, without the source file and line (a user of the
-    command did not write them)."""
-
-    def __init__(self):
-        self.seen: set[str] = set()
-
-    def __call__(self, message, category, filename, lineno, file=None, line=None) -> None:
-        text = str(message)
-        if not issubclass(category, CanrigWarning):
-            text = f"{category.__name__}: {text}"
-        if text in self.seen:
-            return
-        self.seen.add(text)
-        print(f"canrig: warning: {text}", file=sys.stderr, flush=True)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -661,9 +643,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``canrig`` console script; returns the exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    with warnings.catch_warnings():
-        warnings.simplefilter("always", CanrigWarning)  # each reaches _WarningLines once
-        warnings.showwarning = _WarningLines()
+    with print_warnings("canrig"):
         try:
             watchdog.run_watched(args.run, f"canrig {args.command}", args)
         except (CommandError, ValueError, OSError, RuntimeError) as error:

@@ -8,9 +8,11 @@ Filter them all with ``warnings.filterwarnings("ignore", category=CanrigWarning)
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import warnings
+from collections.abc import Iterator
 
 _PACKAGE_DIR = os.path.dirname(os.path.abspath(__file__)) + os.sep
 
@@ -35,3 +37,25 @@ def warn(message: str) -> None:
     """Issue ``message`` as a ``CanrigWarning`` at the user's call (the first frame outside
     the package)."""
     warnings.warn(message, CanrigWarning, stacklevel=user_stacklevel())
+
+
+@contextlib.contextmanager
+def print_warnings(prog: str) -> Iterator[None]:
+    """For a command's duration, every warning shown is one ``PROG: warning: MESSAGE`` line on
+    stderr, each message once, without the source file and line (a user of the command did
+    not write them); a warning of another class than ``CanrigWarning`` is prefixed with its
+    class name."""
+    seen: set[str] = set()
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        text = str(message)
+        if not issubclass(category, CanrigWarning):
+            text = f"{category.__name__}: {text}"
+        if text not in seen:
+            seen.add(text)
+            print(f"{prog}: warning: {text}", file=sys.stderr, flush=True)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", CanrigWarning)  # each reaches show(), printed once
+        warnings.showwarning = show
+        yield

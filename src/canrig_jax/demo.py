@@ -4,6 +4,8 @@ nonlinear deformation-gradient blend; then invert the rig (Racković et al. 2023
 capture's weights from noisy meshes with quartic coordinate descent, batched over the take.
 
     python -m canrig_jax.demo [--out DIR] [--data-dir DIR]
+
+Progress lines (``[  12.3 s] ...``) and warnings go to stderr, results to stdout.
 """
 
 from __future__ import annotations
@@ -11,16 +13,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import matplotlib.pyplot as plt
-import numpy as np
+from ._commands import _Progress
+from ._warnings import print_warnings
 
-from . import inverse
-from ._metrics import CM_TO_MM, per_vertex_distance
-from .data import load_livelinkface
-from .inverse import summarize
-from .mesh import DeformationGradientBlend
-from .render import plot_vertex_scalar, save_figure
-from .rig import evaluate_batch, ict_quartic_rig
+BLEND_CHUNK = 60
+"""Frames of the deformation-gradient blend between two progress lines."""
 
 
 def main(argv=None) -> None:
@@ -28,7 +25,24 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=Path, default=Path("out/demo"))
     parser.add_argument("--data-dir", default=None)
     args = parser.parse_args(argv)
+    with print_warnings("canrig_jax.demo"):
+        _demo(args, _Progress(quiet=False))
 
+
+def _demo(args, progress) -> None:
+    progress("loading JAX and the library")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from . import inverse
+    from ._metrics import CM_TO_MM, per_vertex_distance
+    from .data import load_livelinkface
+    from .inverse import summarize
+    from .mesh import DeformationGradientBlend
+    from .render import plot_vertex_scalar, save_figure
+    from .rig import evaluate_batch, ict_quartic_rig
+
+    progress("the ict-quartic rig (built once, then read from the cache)")
     rig, report = ict_quartic_rig(args.data_dir)
     print(
         f"ict-quartic rig: {rig.n_vertices} vertices, {rig.n_blendshapes} blendshapes, "
@@ -37,9 +51,17 @@ def main(argv=None) -> None:
         f"{report.corner_max_error * CM_TO_MM:.1e} mm"
     )
     capture = load_livelinkface(args.data_dir).weights_for(rig.names, missing="zero")
+    progress(f"the linear and quartic rigs at the capture's {len(capture)} frames")
     quartic = np.asarray(evaluate_batch(rig, capture))
     linear = np.asarray(evaluate_batch(rig.linear(), capture))
-    nonlinear = DeformationGradientBlend(rig.neutral, rig.deltas, np.asarray(rig.faces))(capture)
+    progress("the nonlinear deformation-gradient blend: factorising its Poisson system")
+    blend = DeformationGradientBlend(rig.neutral, rig.deltas, np.asarray(rig.faces))
+    nonlinear = []
+    for start in range(0, len(capture), BLEND_CHUNK):
+        stop = min(start + BLEND_CHUNK, len(capture))
+        progress(f"the nonlinear deformation-gradient blend, frames {start}-{stop - 1}")
+        nonlinear.append(blend(capture[start:stop]))
+    nonlinear = np.concatenate(nonlinear)
     for name, mesh in (("linear", linear), ("quartic", quartic)):
         err = per_vertex_distance(mesh, nonlinear) * CM_TO_MM
         print(
@@ -59,8 +81,10 @@ def main(argv=None) -> None:
     print(f"wrote {args.out / 'demo_live_link.png'}")
 
     noise = np.random.default_rng(0).normal(0.0, np.sqrt(0.03), quartic.shape)
+    progress("preparing the inverse rig (the quartic objective's M and Q)")
     problem = inverse.prepare(rig)
     for method in (inverse.QuarticCD(alpha=5.0, passes=5), inverse.Cetinaslan(alpha=1.0)):
+        progress(f"inverting {len(capture)} noisy frames with {method}")
         solution = inverse.solve_sequence(problem, (quartic + noise).astype(np.float32), method)
         scores = summarize(rig, np.asarray(solution.weights), quartic)
         print(
