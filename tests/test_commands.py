@@ -424,9 +424,9 @@ def test_warnings_are_one_line_each(workspace, capsys, tmp_path, quiet):
     assert _last_key_seconds(tmp_path / "c.glb") == pytest.approx(seconds, abs=1e-4)
 
 
-def test_autorig_warning_then_error_one_voice(capsys, tmp_path, data_dir):
-    """A head in decimetres given as centimetres warns (one line naming the file and the likely
-    unit); a damaged --model is then one error line naming it."""
+def test_autorig_unit_mistake_is_one_error_line(capsys, tmp_path, data_dir):
+    """A head in decimetres given as centimetres (3.76 cm tall): one error line naming the
+    file, the unit and the likely one, before any model is read (the --model is damaged)."""
     head = read_arrays(data_file("makehuman/hm08_face.npz", data_dir), ("neutral", "faces"))
     save_obj(tmp_path / "head.obj", head["neutral"], head["faces"])
     (tmp_path / "bad.eqx").write_bytes(b"not a checkpoint")
@@ -436,6 +436,7 @@ def test_autorig_warning_then_error_one_voice(capsys, tmp_path, data_dir):
         *("-o", tmp_path / "r.glb"),
     )
     assert status == 2 and not (tmp_path / "r.glb").exists()
-    warns = _assert_one_voice(err)
-    assert len(warns) == 1 and "head.obj" in warns[0] and "in dm it would be 37.6 cm" in warns[0]
-    assert err.splitlines()[-1].startswith("canrig: error: ") and "bad.eqx" in err
+    assert not _assert_one_voice(err)  # no warning: the unit mistake is an error
+    last = err.splitlines()[-1]
+    assert last.startswith("canrig: error: ") and "head.obj" in last and "units" in last, err
+    assert "bad.eqx" not in err

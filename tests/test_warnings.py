@@ -14,9 +14,7 @@ import numpy as np
 from canrig_jax import CanrigWarning
 from canrig_jax.data import (
     capture_from_weights,
-    load_head,
     read_livelink_csv,
-    save_obj,
     write_livelink_csv,
 )
 from canrig_jax.inverse import prepare
@@ -56,12 +54,13 @@ def test_channels_a_rig_does_not_read(tmp_path):
     np.testing.assert_array_equal(weights, np.ones((2, 1)))
 
 
-def test_head_units_that_make_no_head(tmp_path):
-    vertices = np.array([[0, 0, 0], [0.25, 0, 0], [0, 0.25, 0]], np.float32)  # 25 cm in m
-    save_obj(tmp_path / "head.obj", vertices, np.array([[0, 1, 2]]))
-    head, caught = _caught(lambda: load_head(tmp_path / "head.obj", units="mm"))
-    _assert_at_this_file(caught, "is the unit right?")
-    assert head.units == "mm"
+def test_a_take_too_short_to_show_its_frame_rate(tmp_path):
+    """Two calls deep inside ``read_livelink_csv``: still this file's line."""
+    capture = capture_from_weights(np.zeros((5, 1), np.float32), ["JawOpen"], fps=60)
+    write_livelink_csv(tmp_path / "t.csv", capture)
+    take, caught = _caught(lambda: read_livelink_csv(tmp_path / "t.csv"))
+    _assert_at_this_file(caught, "never crosses a second")
+    assert take.fps == 60.0
 
 
 def test_dropped_zero_shapes():
