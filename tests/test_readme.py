@@ -1,8 +1,11 @@
-"""Every Python block of README.md runs as written, in order, in one fresh process.
+"""Every Python block of README.md, and of every page of docs/, runs as written, in order, in
+one fresh process per file.
 
-The blocks are concatenated into one script whose line numbers are README.md's own (every
+The blocks are concatenated into one script whose line numbers are the file's own (every
 line outside a ```python block is blank, and each block's opening fence becomes a marker
-print), so a traceback points at the README line, and the last marker names the block.
+print), so a traceback points at the file's line, and the last marker names the block.
+Docs pages whose blocks train, build whole-head operators or compile large programs run
+under ``-m slow`` (``SLOW_PAGES``); the others run by default.
 """
 
 from __future__ import annotations
@@ -18,7 +21,21 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
+DOCS = ROOT / "docs"
 MARKER = "@@README-BLOCK"
+
+SLOW_PAGES = {
+    "getting-started.md": "builds or reads the ict-quartic rig; compiles its batched evaluation",
+    "guides/inverse-rig.md": "compiles every inverse-rig path on the 180-frame take",
+    "guides/wpse.md": "the nonlinear blend, a width fit, the fix-shape rig",
+    "guides/canrig.md": "trains a CANRig network; fitted workflows",
+    "guides/pbs.md": "whole-head patch layout and graphs",
+    "guides/autorig.md": "remeshed ICT identities, RigAnyFace, landmark fitting",
+    "guides/rendering.md": "compiles the soft and fast rasterisers and a gradient",
+    "guides/mesh.md": "whole-head operators and a DiffusionNet",
+    "guides/rig.md": "corrective synthesis through the nonlinear blend (about 10 s)",
+}
+"""Docs pages (relative to docs/) whose blocks run under ``-m slow``, and why."""
 
 
 @dataclass(frozen=True)
@@ -88,12 +105,8 @@ def test_python_blocks_are_found_with_their_headings():
         python_blocks("```python\nx = 1\n")
 
 
-@pytest.mark.slow
-def test_readme_python_blocks_run_in_order_in_a_fresh_process(tmp_path):
-    text = README.read_text()
-    blocks = python_blocks(text)
-    assert blocks, "README.md has no ```python blocks"
-    done = run_blocks(text, blocks, tmp_path, timeout=3600)
+def fail_unless_ran(name: str, blocks: list[Block], done) -> None:
+    """Fail naming the block of ``name`` that raised (from the last marker printed)."""
     if done.returncode == 0:
         return
     reached = [int(m) for m in re.findall(rf"^{MARKER} (\d+)$", done.stdout, flags=re.M)]
@@ -102,17 +115,42 @@ def test_readme_python_blocks_run_in_order_in_a_fresh_process(tmp_path):
     else:
         block = blocks[reached[-1]]
         where = f"block {reached[-1] + 1} of {len(blocks)}, under '{block.heading}'"
-        where += f" (README line {block.start})"
+        where += f" ({name} line {block.start})"
     pytest.fail(
-        f"README.md python {where} failed (traceback line numbers are README.md lines):\n"
+        f"{name} python {where} failed (traceback line numbers are {name} lines):\n"
         f"{done.stderr[-6000:]}",
         pytrace=False,
     )
 
 
-@pytest.mark.parametrize("page", sorted((ROOT / "docs").glob("*.md")), ids=lambda p: p.name)
+def docs_pages_with_python() -> list[str]:
+    """Markdown pages under docs/ (relative paths) that hold at least one ```python block."""
+    pages = sorted(p.relative_to(DOCS).as_posix() for p in DOCS.rglob("*.md"))
+    return [p for p in pages if python_blocks((DOCS / p).read_text())]
+
+
+def _page_param(page: str):
+    marks = (pytest.mark.slow,) if page in SLOW_PAGES else ()
+    return pytest.param(page, marks=marks, id=page)
+
+
+@pytest.mark.slow
+def test_readme_python_blocks_run_in_order_in_a_fresh_process(tmp_path):
+    text = README.read_text()
+    blocks = python_blocks(text)
+    assert blocks, "README.md has no ```python blocks"
+    fail_unless_ran("README.md", blocks, run_blocks(text, blocks, tmp_path, timeout=3600))
+
+
+@pytest.mark.parametrize("page", [_page_param(p) for p in docs_pages_with_python()])
 def test_docs_python_blocks_run(page, tmp_path):
     """Each docs page's python blocks run as written, in order, in one fresh process."""
-    text = page.read_text()
-    done = run_blocks(text, python_blocks(text), tmp_path, timeout=600)
-    assert done.returncode == 0, f"{page.name} (line numbers are the page's):\n{done.stderr}"
+    text = (DOCS / page).read_text()
+    blocks = python_blocks(text)
+    fail_unless_ran(f"docs/{page}", blocks, run_blocks(text, blocks, tmp_path, timeout=1200))
+
+
+def test_slow_pages_are_docs_pages_with_python_blocks():
+    """A page renamed or emptied must leave SLOW_PAGES too (else its marker protects nothing)."""
+    stale = sorted(set(SLOW_PAGES) - set(docs_pages_with_python()))
+    assert not stale, f"SLOW_PAGES names pages without python blocks under docs/: {stale}"

@@ -169,7 +169,7 @@ def standard_scripts(folder: Path) -> list[str]:
 
 def _demote(markdown: str, top: int) -> str:
     """Headings of an included table shifted so that its highest becomes level ``top``
-    (at most h6); the order of levels is kept."""
+    (at most h6; the order of levels is kept), and a blank line before each list."""
     out, fence, levels = [], False, []
     for line in markdown.splitlines():
         if line.lstrip().startswith("```"):
@@ -177,11 +177,22 @@ def _demote(markdown: str, top: int) -> str:
         match = None if fence else re.match(r"^(#{1,6}) ", line)
         levels.append(len(match.group(1)) if match else 0)
     shift = top - min((n for n in levels if n), default=top)
+    previous, fence = "", False
     for line, level in zip(markdown.splitlines(), levels, strict=True):
+        if line.lstrip().startswith("```"):
+            fence = not fence
         if level:
             line = "#" * min(6, level + shift) + line[level:]
+        list_start = not fence and _starts_list(line)
+        if list_start and previous.strip() and not _starts_list(previous):
+            out.append("")  # Markdown starts a list only after a blank line
         out.append(line)
+        previous = line
     return "\n".join(out)
+
+
+def _starts_list(line: str) -> bool:
+    return bool(re.match(r"\s*(?:[-*+]|\d+\.) ", line))
 
 
 def figures(folder: Path) -> tuple[list[Path], list[Path]]:
