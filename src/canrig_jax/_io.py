@@ -47,8 +47,13 @@ def atomic_path(path: str | os.PathLike):
     The result keeps the permissions of the file it replaces, or gets those of a newly
     created file (not ``mkstemp``'s owner-only 0o600)."""
     path = check_output_path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as error:  # a folder that cannot be made or written in (/proc, read-only)
+        named = type(error)(f"path: cannot write {path} ({error.strerror or error})")
+        named.errno = error.errno
+        raise named from error
     os.close(fd)
     try:
         yield Path(tmp)

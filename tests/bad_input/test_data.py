@@ -180,6 +180,18 @@ def _obj_copy(c, names=("jawOpen",)):
     return folder
 
 
+def _cut_obj(c, fraction: float) -> Path:
+    """A copy of the raw ICT folder whose jawOpen.obj keeps only its first ``fraction``."""
+    folder = c.root / f"obj_cut_{fraction}"
+    if not folder.exists():
+        shutil.copytree(c.data_dir / "ict-facekit" / "raw", folder)
+        obj = folder / "jawOpen.obj"
+        obj.chmod(0o644)
+        data = obj.read_bytes()
+        obj.write_bytes(data[: int(len(data) * fraction)])
+    return folder
+
+
 LOAD_ICT_OBJ_FOLDER = [
     raises(
         "folder-missing", lambda c: load_ict_obj_folder(c.root / "no"), FileNotFoundError, "folder"
@@ -190,6 +202,15 @@ LOAD_ICT_OBJ_FOLDER = [
         lambda c: load_ict_obj_folder(_obj_copy(c), names=["notAShape"]),
         FileNotFoundError,
         "names",
+    ),
+    *(
+        raises(
+            f"truncated-obj-{fraction}",
+            lambda c, fraction=fraction: load_ict_obj_folder(_cut_obj(c, fraction)),
+            CorruptFileError,
+            "jawOpen.obj is truncated",
+        )
+        for fraction in (0.0, 0.5, 0.9)  # empty; no faces (trimesh: KeyError); faces cut
     ),
 ]
 

@@ -19,6 +19,7 @@ from canrig_jax.mesh import (
     identity_correspondence,
     mesh_edges,
     mesh_geometry,
+    pad_vertices,
     subdivide,
     transfer_deltas,
     weighted_geodesic_distance,
@@ -95,8 +96,10 @@ MESH_ENTRY_POINTS = {
 def _mesh_cases():
     for entry, call in MESH_ENTRY_POINTS.items():
         for name, (make, error, names) in MESHES.items():
-            if entry == "DeformationGradientBlend" and name in ("2-d-vertices", "no-vertices"):
-                continue  # the deltas built from the bad vertices fail first, naming deltas
+            if entry == "DeformationGradientBlend":
+                if name in ("2-d-vertices", "no-vertices"):
+                    continue  # the deltas built from the bad vertices fail first, naming deltas
+                names = "neutral:" if names == "vertices" else names  # its argument's name
             yield raises(
                 f"{entry}-{name}", lambda c, call=call, make=make: call(*make(c)), error, names
             )
@@ -296,6 +299,43 @@ DEFORMATION_GRADIENT_BLEND = [
 
 @pytest.mark.parametrize("case", DEFORMATION_GRADIENT_BLEND)
 def test_deformation_gradient_blend(case, ctx):
+    run_case(case, ctx)
+
+
+def _padded_by_numpy(values, n_vertices):
+    out = np.zeros((len(values), n_vertices, *np.shape(values[0])[1:]))
+    for i, v in enumerate(values):
+        out[i, : len(v)] = v
+    return out
+
+
+PAD_VERTICES = [
+    raises("empty-list", lambda c: pad_vertices([]), ValueError, "values: no arrays"),
+    raises(
+        "different-trailing-shapes",
+        lambda c: pad_vertices([np.zeros((3, 3)), np.zeros((2, 2))]),
+        ValueError,
+        "values: arrays differ",
+    ),
+    raises("scalars", lambda c: pad_vertices([1.0, 2.0]), ValueError, "values: every array"),
+    raises(
+        "n-vertices-too-short",
+        lambda c: pad_vertices([np.zeros((3, 3)), np.zeros((5, 3))], 4),
+        ValueError,
+        "n_vertices: 4",
+    ),
+    handled(
+        "tuple-of-lengths-2-and-4",
+        lambda c: pad_vertices((c.square[:2], c.square), 6),
+        lambda out, c: np.testing.assert_array_equal(
+            out, _padded_by_numpy([c.square[:2], c.square], 6)
+        ),
+    ),
+]
+
+
+@pytest.mark.parametrize("case", PAD_VERTICES)
+def test_pad_vertices(case, ctx):
     run_case(case, ctx)
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -30,6 +31,15 @@ DELTAS = np.zeros((2, 4, 3), np.float32)
 DELTAS[0, 2, 2], DELTAS[1, 1, 1] = 0.5, -0.25
 FACES = np.array([[0, 1, 2], [0, 2, 3]], np.int32)
 PAIR = Corrective(np.array([[0, 1]]), np.array([1, 2]), np.full((1, 2, 3), 0.125, np.float32))
+
+
+UNMAKEABLE = Path("/proc/canrig-no-such-folder")
+"""A folder that cannot be created, even by root (procfs)."""
+
+
+def _round_trip(c, rig):
+    export_gltf(rig, c.root / "round_trip.glb")
+    return load_gltf_rig(c.root / "round_trip.glb")
 
 
 def _rig(**kw):
@@ -292,6 +302,24 @@ GLTF = [
         "rig",
     ),
     raises("export-not-a-rig", lambda c: export_gltf(NEUTRAL, c.root / "x.glb"), TypeError, "rig"),
+    raises(  # a folder even root cannot make: the temporary file's error names the output
+        "export-to-a-folder-that-cannot-be-made",
+        lambda c: export_gltf(c.rig, UNMAKEABLE / "x.glb"),
+        FileNotFoundError,
+        f"path: cannot write {UNMAKEABLE / 'x.glb'}",
+    ),
+    handled(
+        "no-blendshapes-round-trip",
+        lambda c: _round_trip(
+            c, _rig(deltas=np.zeros((0, 4, 3), np.float32), names=(), correctives=())
+        ),
+        lambda back, c: (
+            np.testing.assert_array_equal(back.neutral, NEUTRAL),
+            np.testing.assert_array_equal(back.faces, FACES),
+            np.testing.assert_array_equal(back.deltas, np.zeros((0, 4, 3))),
+            np.testing.assert_array_equal(evaluate(back, np.zeros(0)), NEUTRAL),
+        ),
+    ),
     handled(
         "round-trip",
         lambda c: evaluate(load_gltf_rig(c.root / "rig.glb"), np.array([0.5, 0.5])),
@@ -396,6 +424,16 @@ ANIMATED_GLTF = [
         lambda c: export_animated_gltf(NEUTRAL, np.zeros((3, 2)), c.root / "x.glb"),
         TypeError,
         "rig",
+    ),
+    raises(
+        "no-blendshapes",
+        lambda c: export_animated_gltf(
+            _rig(deltas=np.zeros((0, 4, 3)), names=(), correctives=()),
+            np.zeros((3, 0)),
+            c.root / "x.glb",
+        ),
+        ValueError,
+        "rig: has no blendshapes",
     ),
     handled("weights-over-one", lambda c: _animated(c, np.full((2, 2), 2.0)), _keys_read_back),
 ]

@@ -245,16 +245,23 @@ def _read_obj(path: Path, with_polygons: bool = False) -> tuple[np.ndarray, list
     mixed tri/quad groups in its own order, so polygons are read from the ``f`` lines here.
     """
     text = path.read_text()
-    with warnings.catch_warnings():  # trimesh's UV code warns on the all-NaN material slices
-        warnings.simplefilter("ignore", RuntimeWarning)
-        loaded = trimesh.exchange.obj.load_obj(
-            io.StringIO(text), maintain_order=True, skip_materials=True, group_material=False
-        )
-    vertices = max((g["vertices"] for g in loaded["geometry"].values()), key=len)
+    damaged = f"folder: {path} is truncated or damaged"
+    try:
+        with warnings.catch_warnings():  # trimesh's UV code warns on the all-NaN material slices
+            warnings.simplefilter("ignore", RuntimeWarning)
+            loaded = trimesh.exchange.obj.load_obj(
+                io.StringIO(text), maintain_order=True, skip_materials=True, group_material=False
+            )
+        geometries = loaded.get("geometry", {}) if isinstance(loaded, dict) else {}
+    except (KeyError, IndexError, ValueError) as error:  # trimesh on a cut or damaged file
+        raise CorruptFileError(f"{damaged} ({type(error).__name__}: {error})") from error
+    if not geometries:
+        raise CorruptFileError(f"{damaged}: no faces (an OBJ head has vertices and faces)")
+    vertices = max((g["vertices"] for g in geometries.values()), key=len)
     n_records = sum(1 for line in text.splitlines() if line.startswith("v "))
     if len(vertices) != n_records:
-        raise ValueError(
-            f"{path.name}: trimesh returned {len(vertices)} vertices, the file has {n_records}"
+        raise CorruptFileError(
+            f"{damaged}: its faces reach {len(vertices)} of its {n_records} vertices"
         )
     polygons = []
     if with_polygons:
@@ -307,6 +314,7 @@ def load_ict_obj_folder(
         FileNotFoundError: ``folder``, the neutral, the JSON or a requested OBJ is missing.
         ValueError: an expression OBJ's vertex count differs from the neutral's, or the
             head does not have the vertex count ``ICT_PARTS`` describes.
+        CorruptFileError: (a ValueError) an OBJ is truncated or damaged; names the file.
     """
     folder = Path(folder)
     if not folder.is_dir():

@@ -5,29 +5,30 @@ from __future__ import annotations
 import numpy as np
 
 
-def check_vertices(vertices) -> np.ndarray:
+def check_vertices(vertices, name: str = "vertices") -> np.ndarray:
     """Validate (V, 3) vertex positions, V > 0, real and finite; return them as float64.
 
-    Raises ValueError naming ``vertices``."""
+    Raises ValueError naming the argument ``name`` (the caller's name for the positions,
+    e.g. ``neutral``)."""
     vertices = np.asarray(vertices)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or vertices.shape[0] == 0:
-        raise ValueError(f"vertices: expected shape (V, 3) with V > 0, got {vertices.shape}")
+        raise ValueError(f"{name}: expected shape (V, 3) with V > 0, got {vertices.shape}")
     if not np.issubdtype(vertices.dtype, np.number) or np.iscomplexobj(vertices):
-        raise ValueError(f"vertices: expected real numbers, got dtype {vertices.dtype}")
+        raise ValueError(f"{name}: expected real numbers, got dtype {vertices.dtype}")
     vertices = vertices.astype(np.float64)
     if not np.all(np.isfinite(vertices)):
         bad = np.flatnonzero(~np.all(np.isfinite(vertices), axis=1))[:5]
-        raise ValueError(f"vertices: non-finite positions at vertices {bad.tolist()}")
+        raise ValueError(f"{name}: non-finite positions at vertices {bad.tolist()}")
     return vertices
 
 
-def check_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
+def check_mesh(vertices, faces, *, name: str = "vertices") -> tuple[np.ndarray, np.ndarray]:
     """Validate a triangle mesh; return (V, 3) float64 vertices and (F, 3) int64 faces.
 
-    Raises ValueError naming ``vertices`` or ``faces`` for a wrong shape, non-finite
-    positions, no faces, or face indices outside [0, V).
+    Raises ValueError naming the positions' argument ``name`` or ``faces`` for a wrong
+    shape, non-finite positions, no faces, or face indices outside [0, V).
     """
-    vertices = check_vertices(vertices)
+    vertices = check_vertices(vertices, name)
     faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[1] != 3:
         raise ValueError(f"faces: expected shape (F, 3) triangles, got {faces.shape}")

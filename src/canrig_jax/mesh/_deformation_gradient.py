@@ -148,7 +148,7 @@ class DeformationGradientBlend:
         min_angle_to_pi: float = np.deg2rad(10.0),
         screening: float = 1e-3,
     ):
-        neutral, faces = check_mesh(neutral, faces)
+        neutral, faces = check_mesh(neutral, faces, name="neutral")
         deltas = np.asarray(deltas)
         if deltas.ndim != 3 or deltas.shape[1:] != neutral.shape or deltas.shape[0] == 0:
             raise ValueError(

@@ -556,8 +556,23 @@ def stack_operators(operators: list[MeshOperators]) -> MeshOperators:
 
 
 def pad_vertices(values: list, n_vertices: int | None = None) -> Array:
-    """Stack per-vertex arrays (V_i, ...) of different lengths, zero-padded to (B, V, ...)."""
-    n_vertices = n_vertices or max(np.shape(v)[0] for v in values)
+    """Stack per-vertex arrays (V_i, ...) of different lengths, zero-padded to (B, V, ...).
+
+    ``n_vertices`` (default: the longest V_i) must be at least every V_i. Raises ValueError
+    naming ``values`` for no arrays, arrays without a vertex axis or of different trailing
+    shapes, and ``n_vertices`` when it is shorter than one of them."""
+    values = list(values)
+    if not values:
+        raise ValueError("values: no arrays to stack (an empty list); pass at least one")
+    shapes = [np.shape(v) for v in values]
+    if any(len(s) == 0 for s in shapes):
+        raise ValueError(f"values: every array needs a vertex axis, got shapes {shapes}")
+    if len({s[1:] for s in shapes}) > 1:
+        raise ValueError(f"values: arrays differ beyond the vertex axis: shapes {shapes}")
+    longest = max(s[0] for s in shapes)
+    n_vertices = n_vertices or longest
+    if n_vertices < longest:
+        raise ValueError(f"n_vertices: {n_vertices} is shorter than the longest array ({longest})")
     return jnp.stack(
         [
             jnp.pad(

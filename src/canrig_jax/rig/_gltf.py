@@ -90,6 +90,11 @@ def _rig_document(rig: BlendshapeRig) -> tuple[dict, _Buffer, list[list[int]]]:
     target_accessors = [
         {"POSITION": buffer.add(t, _FLOAT, "VEC3", _ARRAY_BUFFER, True)} for t in targets
     ]
+    primitive = {"attributes": {"POSITION": position}, "indices": indices, "mode": 4}
+    # glTF allows no empty list of targets or weights: a rig without blendshapes has neither
+    morphs = {"weights": [0.0] * len(targets)} if targets else {}
+    if targets:
+        primitive["targets"] = target_accessors
     document = {
         "asset": {"version": "2.0", "generator": "canrig_jax"},
         "scene": 0,
@@ -98,15 +103,8 @@ def _rig_document(rig: BlendshapeRig) -> tuple[dict, _Buffer, list[list[int]]]:
         "meshes": [
             {
                 "name": "rig",
-                "primitives": [
-                    {
-                        "attributes": {"POSITION": position},
-                        "indices": indices,
-                        "mode": 4,
-                        "targets": target_accessors,
-                    }
-                ],
-                "weights": [0.0] * len(targets),
+                "primitives": [primitive],
+                **morphs,
                 "extras": {
                     "targetNames": names,
                     "blendshapes": len(rig.names),
@@ -138,7 +136,9 @@ def _write_glb(path, document: dict, buffer: _Buffer) -> Path:
 
 
 def export_gltf(rig: BlendshapeRig, path: str | os.PathLike) -> Path:
-    """Write ``rig`` as a binary glTF 2.0 file (.glb), atomically. Needs faces.
+    """Write ``rig`` as a binary glTF 2.0 file (.glb), atomically. Needs faces; a rig with
+    no blendshapes is written as a plain mesh (glTF has no empty morph-target list) and
+    ``load_gltf_rig`` reads it back with none.
 
     Positions are in the rig's units (recorded in ``mesh.extras.units``; glTF viewers assume
     metres). A ``path`` that cannot be written (a folder, under a file, no permission)
@@ -199,9 +199,9 @@ def load_gltf_rig(path: str | os.PathLike) -> BlendshapeRig:
     mesh = document["meshes"][0]
     extras = mesh.get("extras", {})
     primitive = mesh["primitives"][0]
-    targets = np.stack(
-        [_accessor(document, blob, t["POSITION"]) for t in primitive.get("targets", [])]
-    )
+    targets = [_accessor(document, blob, t["POSITION"]) for t in primitive.get("targets", [])]
+    vertices = np.asarray(loaded.vertices, np.float32)
+    targets = np.stack(targets) if targets else np.zeros((0, *vertices.shape), np.float32)
     names = extras.get("targetNames", [f"shape{i}" for i in range(len(targets))])
     k = int(extras.get("blendshapes", len(targets)))
     by_order: dict[int, tuple[list, list]] = {}
@@ -216,7 +216,7 @@ def load_gltf_rig(path: str | os.PathLike) -> BlendshapeRig:
         for _, (rows, dense) in sorted(by_order.items())
     )
     return BlendshapeRig(
-        np.asarray(loaded.vertices, np.float32),
+        vertices,
         targets[:k],
         correctives,
         tuple(names[:k]),

@@ -88,6 +88,8 @@ def export_animated_gltf(
     ``extras.fps`` records ``fps``.
     """
     _check_rig(rig, path)
+    if rig.n_blendshapes == 0:
+        raise ValueError("rig: has no blendshapes, nothing to animate (export_gltf writes it)")
     weights = np.asarray(weights)
     if weights.ndim != 2 or weights.shape[1] != rig.n_blendshapes or weights.shape[0] < 1:
         raise ValueError(
