@@ -14,7 +14,6 @@ array from one rig's channel list onto another's through that canonical name.
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from collections.abc import Sequence
 
 import numpy as np
