@@ -12,6 +12,7 @@ import pytest
 from canrig_jax import CorruptFileError
 from canrig_jax.data import (
     ict_identity,
+    load_fbx,
     load_head,
     load_ict,
     load_ict_obj_folder,
@@ -265,6 +266,17 @@ def test_retarget_weights(case, ctx):
     run_case(case, ctx)
 
 
+_TRIANGLE_25CM_IN_M = "v 0 0 0\nv 0.25 0 0\nv 0 0.25 0\nf 1 2 3\n"
+
+
+def _rocketbox(c) -> bytes:
+    """The bytes of a Rocketbox FBX file (skips without it)."""
+    path = c.data_dir / "rocketbox" / "Male_Adult_08_facial.fbx"
+    if not path.is_file():
+        pytest.skip(f"the data folder has no {path.name}")
+    return path.read_bytes()
+
+
 def _file(c, name: str, text: str | bytes) -> Path:
     path = c.root / "issue20" / name
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -330,8 +342,52 @@ LOAD_HEAD = [
     raises(
         "unit", lambda c: load_head(_file(c, "u.obj", "v 0 0 0\n"), units="ft"), ValueError, "units"
     ),
-    raises("extension", lambda c: load_head(_file(c, "h.fbx", "x")), ValueError, "h.fbx"),
+    raises("extension", lambda c: load_head(_file(c, "h.stl", "x")), ValueError, "h.stl"),
+    raises("fbx-not-fbx", lambda c: load_head(_file(c, "h.fbx", "x")), ValueError, "h.fbx"),
+    raises(
+        "unit-makes-no-head",  # 25 cm written in metres, stated as mm: 0.025 cm tall
+        lambda c: load_head(_file(c, "m.obj", _TRIANGLE_25CM_IN_M), units="mm"),
+        ValueError,
+        "m.obj is 0.025 cm tall (longest side) with units='mm'",
+    ),
+    raises(
+        "unit-hint",
+        lambda c: load_head(_file(c, "m.obj", _TRIANGLE_25CM_IN_M), units="cm"),
+        ValueError,
+        "looks like metres: pass units='m'",
+    ),
 ]
+
+LOAD_FBX = [
+    raises("missing", lambda c: load_fbx(c.root / "no.fbx"), FileNotFoundError, "no.fbx"),
+    raises("not-a-path", lambda c: load_fbx(3), TypeError, "path"),
+    raises("folder", lambda c: load_fbx(c.empty), ValueError, "is not a file"),
+    raises("empty", lambda c: load_fbx(_file(c, "e.fbx", b"")), ValueError, "e.fbx is empty"),
+    raises("text", lambda c: load_fbx(_file(c, "t.fbx", "notes\n")), ValueError, "t.fbx"),
+    raises(
+        "truncated-header",
+        lambda c: load_fbx(_file(c, "h.fbx", b"Kaydara FBX Binary  \x00\x1a")),
+        CorruptFileError,
+        "h.fbx",
+    ),
+    raises(
+        "truncated",
+        lambda c: load_fbx(_file(c, "cut.fbx", _rocketbox(c)[: len(_rocketbox(c)) // 2])),
+        CorruptFileError,
+        "cut.fbx",
+    ),
+    raises(
+        "mesh-type",
+        lambda c: load_fbx(_file(c, "m.fbx", b"x"), mesh=3),
+        TypeError,
+        "mesh",
+    ),
+]
+
+
+@pytest.mark.parametrize("case", LOAD_FBX)
+def test_load_fbx(case, ctx):
+    run_case(case, ctx)
 
 
 @pytest.mark.parametrize("case", LOAD_HEAD)

@@ -18,6 +18,7 @@ from canrig_jax.rig import (
     evaluate_batch,
     export_animated_gltf,
     export_gltf,
+    load_fbx_rig,
     load_gltf_rig,
     load_rig,
     remesh_rig,
@@ -441,4 +442,18 @@ ANIMATED_GLTF = [
 
 @pytest.mark.parametrize("case", ANIMATED_GLTF)
 def test_export_animated_gltf(case, ctx):
+    run_case(case, ctx)
+
+
+FBX_RIG = [
+    raises("missing", lambda c: load_fbx_rig(c.root / "no.fbx"), FileNotFoundError, "no.fbx"),
+    raises("names", lambda c: load_fbx_rig(c.root / "no.fbx", names="arkit"), ValueError, "names"),
+    raises("crop", lambda c: load_fbx_rig(c.root / "no.fbx", crop="face"), ValueError, "crop"),
+    raises("crop-type", lambda c: load_fbx_rig(c.root / "no.fbx", crop=[1]), ValueError, "crop"),
+    raises("not-fbx", lambda c: load_fbx_rig(c.root / "rig.npz"), ValueError, "rig.npz"),
+]
+
+
+@pytest.mark.parametrize("case", FBX_RIG)
+def test_load_fbx_rig(case, ctx):
     run_case(case, ctx)

@@ -35,12 +35,37 @@ def test_formats_round_trip_and_units_inferred(makehuman, tmp_path, suffix):
     np.testing.assert_allclose(head.vertices_in("cm"), vertices * 10, rtol=1e-6, atol=1e-5)
 
 
+@pytest.mark.parametrize(("units", "size"), [("mm", "0.376"), ("cm", "3.76"), ("m", "376")])
+def test_a_stated_unit_that_makes_no_head_is_refused(makehuman, tmp_path, units, size):
+    """MakeHuman's head is in decimetres: stated in any other unit it is 0.4 cm to 3.8 m
+    tall, refused (never a rig that size), naming the file, the argument and the unit."""
+    vertices, faces = makehuman
+    path = save_obj(tmp_path / "head.obj", vertices, faces)
+    with pytest.raises(
+        ValueError, match=rf"units: .*head.obj is {size} cm tall .*units='{units}'.*units='dm'"
+    ):
+        load_head(path, units=units)
+    head = load_head(path, units="dm")
+    assert head.units == "dm" and not head.inferred and head.size_cm == pytest.approx(37.6, abs=0.1)
+
+
+def test_the_plausible_range_is_10_to_60_cm(makehuman, tmp_path):
+    """A stated unit is accepted from 10 to 60 cm (wider than inference's 15-45 cm): a face
+    mask 12 cm tall, a head and shoulders 55 cm; 9 and 61 cm are refused."""
+    vertices, faces = makehuman
+    extent = float(np.ptp(vertices, axis=0).max())
+    for size_cm, accepted in ((12.0, True), (55.0, True), (9.0, False), (61.0, False)):
+        path = save_obj(tmp_path / f"h{size_cm:g}.obj", vertices * (size_cm / extent), faces)
+        if accepted:
+            assert load_head(path, units="cm").size_cm == pytest.approx(size_cm, rel=1e-5)
+        else:
+            with pytest.raises(ValueError, match=f"h{size_cm:g}.obj is {size_cm:g} cm tall"):
+                load_head(path, units="cm")
+
+
 def test_stated_units_checked(makehuman, tmp_path):
     vertices, faces = makehuman
     path = save_obj(tmp_path / "head.obj", vertices, faces)
-    with pytest.warns(UserWarning, match="3.76 cm, not a human head's 15-45 cm.*in dm"):
-        head = load_head(path, units="cm")
-    assert head.units == "cm" and not head.inferred
     save_obj(tmp_path / "tiny.obj", vertices * 1e-4, faces)
     with pytest.raises(ValueError, match="tiny.obj spans.*give the units"):
         load_head(tmp_path / "tiny.obj")

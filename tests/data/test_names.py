@@ -9,7 +9,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from canrig_jax.data import ARKIT_NAMES, load_ict, load_livelinkface, retarget_weights, to_arkit
+from canrig_jax.data import (
+    ARKIT_NAMES,
+    arkit_name_of,
+    load_ict,
+    load_livelinkface,
+    retarget_weights,
+    to_arkit,
+)
 
 
 @pytest.fixture(scope="module")
@@ -150,3 +157,21 @@ def test_bad_inputs_raise(kwargs, argument):
     args.update(kwargs)
     with pytest.raises(ValueError, match=argument):
         retarget_weights(**args)
+
+
+def test_arkit_name_of_prefixed_names():
+    """Names from rig files: a numbered ``AK_NN_`` prefix (Rocketbox), a blend-shape node or
+    Maya namespace prefix, in any accepted spelling; other shapes give None."""
+    for i, name in enumerate(ARKIT_NAMES):
+        unreal = name[0].upper() + name[1:]
+        assert arkit_name_of(f"AK_{i + 1:02d}_{unreal}") == name
+        assert arkit_name_of(f"blendShape1.AK_{i + 1:02d}_{unreal}") == name
+        assert arkit_name_of(f"head:{name}") == name
+        assert to_arkit(f"AK_{i + 1:02d}_{unreal}") == name
+    assert arkit_name_of("eyeBlink_L") == "eyeBlinkLeft"  # ICT, as to_arkit
+    for other in ("AA_VI_00_Sil", "AK_JawOpen", "Fcl_ALL_Joy", "", "jawopen", "AK_25_"):
+        assert arkit_name_of(other) is None
+    with pytest.raises(ValueError, match="AK_09_EyeBlinkLeft"):
+        to_arkit("AA_VI_00_Sil")
+    with pytest.raises(TypeError, match="name"):
+        arkit_name_of(3)

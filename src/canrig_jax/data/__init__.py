@@ -1,7 +1,9 @@
 """Loaders for the real assets in the shared data folder (ICT, Live Link Face, MediaPipe)."""
 
+from ._fbx import FbxMesh, load_fbx, load_fbx_meshes
 from ._head_file import (
     HEAD_FORMATS,
+    HEAD_PLAUSIBLE_CM,
     HEAD_SIZE_CM,
     HEAD_UNITS_CM,
     HeadMesh,
@@ -31,11 +33,16 @@ from ._livelink_csv import (
 )
 from ._livelinkface import LiveLinkCapture, load_livelinkface
 from ._mediapipe import MediaPipeFace, load_mediapipe_face
-from ._names import ARKIT_NAMES, RetargetReport, retarget_weights, to_arkit
+from ._names import ARKIT_NAMES, RetargetReport, arkit_name_of, retarget_weights, to_arkit
 from ._paths import ENV_VAR, data_file, read_arrays, resolve_data_dir
 
 __all__ = [
+    "FbxMesh",
+    "load_fbx",
+    "load_fbx_meshes",
+    "arkit_name_of",
     "HEAD_FORMATS",
+    "HEAD_PLAUSIBLE_CM",
     "HEAD_SIZE_CM",
     "HEAD_UNITS_CM",
     "HeadMesh",

@@ -1,9 +1,11 @@
-"""Head meshes from files (OBJ, PLY, glTF/GLB through trimesh), with their length unit.
+"""Head meshes from files (OBJ, PLY, glTF/GLB through trimesh; FBX), with their length unit.
 
-A head file carries no unit. ``load_head`` takes the unit from the caller or infers it from
-the bounding box: a human head with some neck, cropped or whole, spans about 15 to 45 cm
-along its longest side (ICT's head: 33.8 cm, MakeHuman's crop: 3.76 dm). A stated unit that
-puts the box outside that range is warned about (a head 3.76 cm tall is a unit mistake).
+An OBJ, PLY or glTF file carries no unit. ``load_head`` takes the unit from the caller or
+infers it from the bounding box: a human head with some neck, cropped or whole, spans about
+15 to 45 cm along its longest side (ICT's head: 33.8 cm, MakeHuman's crop: 3.76 dm). An FBX
+file states its unit, and ``load_fbx`` converts it to cm, y up. A unit, stated or the
+file's own, that makes the head shorter than 10 cm or taller than 60 cm is refused: a head
+3.76 cm tall is a unit mistake, and a rig built on it would be one too.
 The ICT raw OBJ folder keeps its own loader (``load_ict_obj_folder``).
 """
 
@@ -17,16 +19,23 @@ from pathlib import Path
 import numpy as np
 
 from .._io import atomic_path, check_output_path
-from .._warnings import warn
+from ._fbx import load_fbx_meshes
 
-HEAD_FORMATS = (".obj", ".ply", ".gltf", ".glb")
+HEAD_FORMATS = (".obj", ".ply", ".gltf", ".glb", ".fbx")
 """File extensions ``load_head`` reads."""
 
 HEAD_UNITS_CM = {"mm": 0.1, "cm": 1.0, "dm": 10.0, "m": 100.0}
 """Length of one unit in centimetres (the same table as ``rig.UNIT_IN_CM``)."""
 
 HEAD_SIZE_CM = (15.0, 45.0)
-"""Longest bounding-box side of a human head (with some neck) in centimetres."""
+"""Longest bounding-box side of a human head (with some neck) in centimetres: the range
+``infer_units`` looks for."""
+
+HEAD_PLAUSIBLE_CM = (10.0, 60.0)
+"""Longest bounding-box side a head may have in its stated unit (``load_head`` refuses a
+head outside it: the unit is wrong, or the mesh is not a head)."""
+
+_UNIT_WORDS = {"mm": "millimetres", "cm": "centimetres", "dm": "decimetres", "m": "metres"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -34,8 +43,9 @@ class HeadMesh:
     """A triangle mesh read from a file.
 
     Attributes:
-        vertices: (V, 3) float32 positions in ``units`` (as stored in the file).
-        faces: (F, 3) int32 triangles (polygons fan-split by trimesh).
+        vertices: (V, 3) float32 positions in ``units`` (as stored in the file; an FBX
+            file's are turned y up, facing +z, and in cm unless ``units`` was given).
+        faces: (F, 3) int32 triangles (polygons fan-split by trimesh or ``load_fbx``).
         units: "mm", "cm", "dm" or "m".
         inferred: True when ``units`` was inferred from the bounding box.
         path: the file it came from.
@@ -71,16 +81,20 @@ def infer_units(extent: float) -> str | None:
 
 
 def load_head(path: str | os.PathLike, units: str | None = None) -> HeadMesh:
-    """Read a head mesh (OBJ, PLY, glTF or GLB; a scene's meshes are concatenated).
+    """Read a head mesh (OBJ, PLY, glTF, GLB or FBX; a scene's meshes are concatenated).
 
     Args:
         path: the file.
         units: the file's length unit ("mm", "cm", "dm", "m"); ``None`` infers it from the
-            bounding box (a ValueError when no unit gives a head's size).
+            bounding box (a ValueError when no unit gives a head's size), or for FBX takes
+            the file's own unit (given, it overrides the file's: its numbers are read in
+            ``units``, after the axes and node transforms).
 
     Raises FileNotFoundError for a missing file and ValueError naming the file for an empty
     file, an unknown extension, a file that holds no triangle mesh, or non-finite positions;
-    warns when the box is not a head's size (``HEAD_SIZE_CM``) in the stated ``units``.
+    and a ValueError naming the file and ``units`` when the stated (or the FBX file's) unit
+    makes the longest side shorter than 10 or longer than 60 cm (``HEAD_PLAUSIBLE_CM``),
+    with the unit the numbers look like when there is one.
     """
     import trimesh
 
@@ -99,6 +113,8 @@ def load_head(path: str | os.PathLike, units: str | None = None) -> HeadMesh:
         )
     if path.stat().st_size == 0:
         raise ValueError(f"path: head file {path} is empty")
+    if path.suffix.lower() == ".fbx":
+        return _fbx_head(path, units)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -126,18 +142,60 @@ def load_head(path: str | os.PathLike, units: str | None = None) -> HeadMesh:
                 f"{HEAD_SIZE_CM[1]:g} cm; give the units"
             )
     else:
-        size_cm = extent * HEAD_UNITS_CM[units]
-        lo, hi = HEAD_SIZE_CM
-        if not lo <= size_cm <= hi:
-            guess = infer_units(extent)
-            hint = (
-                f"; in {guess} it would be {extent * HEAD_UNITS_CM[guess]:.1f} cm" if guess else ""
-            )
-            warn(
-                f"{path}: the bounding box's longest side is {extent:.4g} {units} = "
-                f"{size_cm:.3g} cm, not a human head's {lo:g}-{hi:g} cm: is the unit right?{hint}",
-            )
+        _check_head_size(path, extent, units)
     return HeadMesh(vertices, faces, units, inferred, path)
+
+
+def _check_head_size(path: Path, extent: float, units: str) -> None:
+    """ValueError naming ``path`` and ``units`` when ``extent`` (longest side, in ``units``)
+    is not a head's ``HEAD_PLAUSIBLE_CM``."""
+    size_cm = extent * HEAD_UNITS_CM[units]
+    lo, hi = HEAD_PLAUSIBLE_CM
+    if lo <= size_cm <= hi:
+        return
+    guess = infer_units(extent)
+    hint = (
+        f"the file looks like {_UNIT_WORDS[guess]}: pass units={guess!r}"
+        if guess
+        else f"no unit of {tuple(HEAD_UNITS_CM)} makes it a head: is it one (cropped to the "
+        f"head and neck)?"
+    )
+    raise ValueError(
+        f"units: {path} is {size_cm:.3g} cm tall (longest side) with units={units!r}; a head "
+        f"is {lo:g}-{hi:g} cm tall; {hint}"
+    )
+
+
+def _unit_name(unit_cm: float) -> str:
+    """``"cm"`` for 1.0, ... or ``"2.54 cm"`` for a unit outside ``HEAD_UNITS_CM``."""
+    name = next((u for u, cm in HEAD_UNITS_CM.items() if abs(cm - unit_cm) <= 1e-9 * cm), None)
+    return name or f"{unit_cm:g} cm"
+
+
+def _fbx_head(path: Path, units: str | None) -> HeadMesh:
+    """``load_head`` of an FBX file: every mesh, y up, in cm (or in ``units``, overriding
+    the file's unit)."""
+    meshes = [m for m in load_fbx_meshes(path) if len(m.triangles)]
+    if not meshes:
+        raise ValueError(f"path: {path} holds no triangle mesh (no faces)")
+    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
+    vertices = np.concatenate([m.vertices for m in meshes])
+    faces = np.concatenate([m.triangles + o for m, o in zip(meshes, offsets, strict=True)])
+    extent_cm = float((vertices.max(axis=0) - vertices.min(axis=0)).max())
+    if extent_cm <= 0:
+        raise ValueError(f"path: {path} has all its vertices at one point")
+    if units is not None:  # the file's numbers, read in the caller's unit
+        vertices = (vertices.astype(np.float64) / meshes[0].unit_cm).astype(np.float32)
+        _check_head_size(path, extent_cm / meshes[0].unit_cm, units)
+        return HeadMesh(vertices, faces.astype(np.int32), units, False, path)
+    lo, hi = HEAD_PLAUSIBLE_CM
+    if not lo <= extent_cm <= hi:
+        raise ValueError(
+            f"path: {path} is {extent_cm:.3g} cm tall (longest side) in the file's own unit "
+            f"({_unit_name(meshes[0].unit_cm)}); a head is {lo:g}-{hi:g} cm tall: crop the "
+            f"file to the head and neck, or pass units= if the file states the wrong unit"
+        )
+    return HeadMesh(vertices, faces.astype(np.int32), "cm", False, path)
 
 
 def save_obj(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) -> Path:

@@ -14,6 +14,7 @@ array from one rig's channel list onto another's through that canonical name.
 from __future__ import annotations
 
 import dataclasses
+import re
 from collections.abc import Sequence
 
 import numpy as np
@@ -61,20 +62,46 @@ def _canonical(names: Sequence[str], argument: str) -> list[str]:
     """ARKit names of ``names``; a ValueError naming ``argument`` lists every unknown one."""
     if isinstance(names, str):
         raise ValueError(f"{argument}: expected a sequence of names, got the string {names!r}")
-    unknown = [n for n in names if n not in _TO_ARKIT]
+    arkit = [arkit_name_of(n) if isinstance(n, str) else None for n in names]
+    unknown = [n for n, a in zip(names, arkit, strict=True) if a is None]
     if unknown:
         raise ValueError(
             f"{argument}: not ARKit blendshape names (ARKit 'eyeBlinkLeft', Unreal "
-            f"'EyeBlinkLeft' or ICT 'eyeBlink_L' spelling expected): {unknown}"
+            f"'EyeBlinkLeft', ICT 'eyeBlink_L' or numbered 'AK_09_EyeBlinkLeft' spelling "
+            f"expected): {unknown}"
         )
-    return [_TO_ARKIT[n] for n in names]
+    return arkit
+
+
+_NUMBERED = re.compile(r"AK_\d+_", re.IGNORECASE)
+"""The numbered prefix of ARKit shapes in some exported rigs (Rocketbox: ``AK_25_JawOpen``)."""
+
+
+def arkit_name_of(name: str) -> str | None:
+    """ARKit camelCase spelling of a blendshape name from a rig file, or None when it names
+    no ARKit shape.
+
+    Accepts what ``to_arkit`` accepts (ARKit ``eyeBlinkLeft``, Unreal ``EyeBlinkLeft``, ICT
+    ``eyeBlink_L``) behind an optional Maya namespace or blend-shape node prefix
+    (``head:``, ``blendShape1.``) and an optional numbered prefix ``AK_NN_`` (Rocketbox:
+    ``AK_01_BrowDownLeft`` gives ``browDownLeft``). A name such as ``AA_VI_00_Sil`` (a
+    viseme) gives None.
+    """
+    if not isinstance(name, str):
+        raise TypeError(f"name: expected a string, got {type(name).__name__}")
+    bare = name.rsplit(":", 1)[-1].rsplit(".", 1)[-1]
+    numbered = _NUMBERED.match(bare)
+    if numbered:
+        bare = bare[numbered.end() :]
+    return _TO_ARKIT.get(bare)
 
 
 def to_arkit(name: str) -> str:
     """ARKit camelCase spelling of an ARKit, Unreal or ICT blendshape name.
 
     ``EyeBlinkLeft``, ``eyeBlinkLeft`` and ``eyeBlink_L`` all give ``eyeBlinkLeft``;
-    ICT's ``browInnerUp_L``/``_R`` give ``browInnerUp``.
+    ICT's ``browInnerUp_L``/``_R`` give ``browInnerUp``; the prefixes ``arkit_name_of``
+    strips are accepted too (``AK_09_EyeBlinkLeft``). A ValueError for any other name.
     """
     return _canonical([name], "name")[0]
 

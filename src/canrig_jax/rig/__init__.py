@@ -10,6 +10,7 @@ from ._blendshape import (
     evaluate,
     evaluate_batch,
 )
+from ._fbx import load_fbx_rig
 from ._gltf import export_gltf, load_gltf_rig
 from ._gltf_animation import (
     export_animated_gltf,
@@ -40,6 +41,7 @@ __all__ = [
     "head_rotation_quaternions",
     "morph_target_weights",
     "load_gltf_rig",
+    "load_fbx_rig",
     "random_sparse_poses",
     "MUTUALLY_EXCLUSIVE",
     "BlendshapeRig",
