@@ -8,6 +8,8 @@ against positions computed by hand.
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 
@@ -303,3 +305,27 @@ def test_load_head_refuses_a_whole_body_fbx(data_dir):
         pytest.skip(f"the data folder has no {path.name}")
     with pytest.raises(ValueError, match=rf"{path.name} is 1\d\d cm tall .*crop the file"):
         load_head(path)
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX shell scripts stand in for Python")
+@pytest.mark.parametrize(
+    ("script", "error", "match"),
+    [
+        ("kill -SEGV $$", CorruptFileError, r"reader stopped on .*square.fbx \(exit status -11"),
+        ("echo \"No module named 'ufbx'\" >&2; exit 4", ImportError, "pip install ufbx"),
+        ("echo 'UnknownError: Failed to load' >&2; exit 3", CorruptFileError, "Failed to load"),
+    ],
+)
+def test_a_reader_that_dies_is_an_error_naming_the_file(
+    tmp_path, monkeypatch, script, error, match
+):
+    """The ufbx reader runs in a child process: a crash, a missing ufbx or ufbx's refusal
+    there is a Python error here (the caller's process is never the one that crashes)."""
+    path = tmp_path / "square.fbx"
+    path.write_text(ascii_fbx([SQUARE]))
+    fake = tmp_path / "python"
+    fake.write_text(f"#!/bin/sh\n{script}\n")
+    fake.chmod(0o755)
+    monkeypatch.setattr(sys, "executable", str(fake))
+    with pytest.raises(error, match=match):
+        load_fbx(path)

@@ -113,7 +113,8 @@ def _read_raw(path: Path) -> dict[str, np.ndarray]:
         done = subprocess.run(
             [sys.executable, str(child), str(path), str(target)],
             capture_output=True,
-            text=True,
+            encoding="utf-8",
+            errors="replace",
             check=False,
         )
         message = done.stderr.strip().splitlines()[-1] if done.stderr.strip() else ""
@@ -233,8 +234,9 @@ def load_fbx(path: str | os.PathLike, *, mesh: str | None = None) -> FbxMesh:
 
     The file's unit (``UnitScaleFactor``), axes (``UpAxis``/``FrontAxis``/``CoordAxis``) and
     the mesh node's transform are applied: ``p_cm = 100 unit_m R_axes (A p + t)``, deltas
-    without ``t`` (module docstring). Blend shapes are dense at full weight; in-between
-    shapes are not read (a channel's last shape is scaled to weight 1).
+    without ``t`` (module docstring). A mesh instanced by several nodes takes the first
+    node's transform. Blend shapes are dense at full weight, each channel's target shape
+    times its per-vertex weights; in-between shapes are not read.
 
     Args:
         path: a binary or ASCII ``.fbx`` file.

@@ -13,7 +13,8 @@ crash would end only this process, which ``load_fbx`` reports naming the file.
 
 import sys
 
-del sys.path[0]  # the script's folder: nothing in it may shadow numpy or ufbx
+if __name__ == "__main__":
+    del sys.path[0]  # the script's folder: nothing in it may shadow numpy or ufbx
 
 import ctypes  # noqa: E402
 import gc  # noqa: E402
