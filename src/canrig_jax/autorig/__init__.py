@@ -1,5 +1,19 @@
 """RigAnyFace: DiffusionNet in equinox, the FACS-conditioned auto-rigger, its data and metrics."""
 
+from ._any_head import (
+    ANCHOR_CM,
+    DEFAULT_METHOD,
+    EXAMPLE_ORDER,
+    METHODS,
+    STYLE_GRID,
+    AutoRig,
+    Style,
+    Template,
+    auto_rig,
+    fit_style,
+    place_landmarks,
+    skin_of,
+)
 from ._data import (
     ANCHOR_MODES,
     AutorigDataset,
@@ -47,7 +61,16 @@ from ._metrics import (
     winding_numbers,
 )
 from ._model import ConditionalBlock, RigAnyFace, normalise
-from ._orientation import HeadOrientation, head_orientation
+from ._orientation import (
+    HeadOrientation,
+    OrientationDecision,
+    OrientationError,
+    axis_rotations,
+    decide_orientation,
+    head_orientation,
+    inner_face,
+    stated_orientation,
+)
 from ._rig import (
     DEFAULT_POSE_CHUNK,
     GeneratedRig,
@@ -59,6 +82,7 @@ from ._rig import (
 from ._train import (
     DEFAULT_CHECKPOINT,
     DEFAULT_CHECKPOINT_SHA256,
+    RESIDUAL_CHECKPOINT,
     STATIC_CM,
     RigAnyFaceTrainOptions,
     RigAnyFaceTrainResult,
@@ -72,6 +96,25 @@ from ._train import (
 )
 
 __all__ = [
+    "ANCHOR_CM",
+    "DEFAULT_METHOD",
+    "EXAMPLE_ORDER",
+    "METHODS",
+    "STYLE_GRID",
+    "AutoRig",
+    "Style",
+    "Template",
+    "auto_rig",
+    "fit_style",
+    "place_landmarks",
+    "skin_of",
+    "OrientationDecision",
+    "OrientationError",
+    "axis_rotations",
+    "decide_orientation",
+    "inner_face",
+    "stated_orientation",
+    "RESIDUAL_CHECKPOINT",
     "DEFAULT_CHECKPOINT",
     "DEFAULT_CHECKPOINT_SHA256",
     "export_riganyface",

@@ -226,3 +226,228 @@ def _longest_boundary(points: np.ndarray, faces: np.ndarray, index: np.ndarray):
     midpoints = 0.5 * (points[chosen[:, 0]] + points[chosen[:, 1]])
     weights = length[loop_of_edge == best]
     return np.average(midpoints, axis=0, weights=weights)
+
+
+# ------------------------------------------------------------- deciding from the fitted face
+SEARCH_POINTS = 240
+"""Template points of the inner face fitted from each of the 24 starts (a regular subsample)."""
+INNER_FACE_CM = 2.0
+"""The inner face: the ICT face-part vertices within this distance (cm) of an ICT landmark
+(brows, eyes, nose, mouth, jaw line); a face-only mask keeps it, a neck or a crown adds
+nothing to it."""
+FIT_TRIM = 0.7
+"""Fraction of closest-point pairs the trimmed ICP keeps (a crop may miss part of the inner
+face; the wrong starts still leave 30 % of it far away)."""
+FIT_LIMIT = 0.012
+"""The best start's trimmed RMS over the fitted inner face's size must be below this (the
+two Rocketbox heads and their face crops, the validation set: 0.005-0.008; a wrong start
+0.015-0.03)."""
+AGREE_RATIO = 1.5
+"""Every start that fits within this factor of the best must have converged to the same
+rotation (within ``AGREE_DEGREES``) — else two orientations explain the head and it is
+refused."""
+AGREE_DEGREES = 15.0
+SNAP_DEGREES = 20.0
+"""The found rotation must lie this close to one of the 24 axis-aligned orientations (the
+head turned by a multiple of 90 degrees, as files store them); a head turned by another
+angle is refused, naming the angle."""
+
+
+REFINED = 3
+"""The search's best distinct rotations refined onto the surface and compared."""
+SCALE_RANGE = (0.75, 1.33)
+"""The search's scale of the head's face to ICT's (a head in centimetres)."""
+
+
+class OrientationError(ValueError):
+    """The head's orientation could not be decided: the message says why and asks the caller
+    to state it (``up=``/``forward=``; ``canrig autorig --up/--forward``)."""
+
+
+def axis_rotations() -> np.ndarray:
+    """(24, 3, 3) the proper rotations that permute and flip the axes."""
+    import itertools
+
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            rotation = np.zeros((3, 3))
+            rotation[np.arange(3), perm] = signs
+            if np.linalg.det(rotation) > 0:
+                out.append(rotation)
+    return np.stack(out)
+
+
+def parse_axis(text, argument: str) -> np.ndarray:
+    """A signed axis ("+y", "-z", "x") as a unit vector; ValueError naming ``argument``."""
+    spelled = str(text).strip().lower()
+    sign = -1.0 if spelled.startswith("-") else 1.0
+    letter = spelled.lstrip("+-")
+    if letter not in AXES or len(spelled) - len(letter) > 1:
+        raise ValueError(f"{argument}: expected a signed axis such as +y, -z or x, got {text!r}")
+    vector = np.zeros(3)
+    vector[AXES.index(letter)] = sign
+    return vector
+
+
+def _axis_name(vector: np.ndarray) -> str:
+    a = int(np.argmax(np.abs(vector)))
+    return _signed(a, float(np.sign(vector[a])))
+
+
+def _angle_degrees(a: np.ndarray, b: np.ndarray) -> float:
+    cos = (np.trace(a.T @ b) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+@dataclasses.dataclass(frozen=True)
+class OrientationDecision:
+    """How a head is turned into the convention (+y up, +z forward), as decided by
+    ``decide_orientation``.
+
+    Attributes:
+        rotation: (3, 3) proper axis-aligned rotation: ``vertices @ rotation.T`` is the head
+            in the convention.
+        up, forward: the head's own up and forward axes ("+z", "-y", ...).
+        source: "stated" (``up=``/``forward=`` given) or "fitted" (found from the face).
+        fit: {"rms_ratio": the best start's trimmed RMS over the inner face's size,
+            "runner_up_ratio": the best start of another orientation, "off_axis_degrees":
+            the found rotation's angle from ``rotation``} (empty when stated).
+    """
+
+    rotation: np.ndarray
+    up: str
+    forward: str
+    source: str
+    fit: dict
+
+    @property
+    def conventional(self) -> bool:
+        return bool(np.allclose(self.rotation, np.eye(3)))
+
+    def describe(self) -> str:
+        return f"up {self.up}, facing {self.forward} ({self.source})"
+
+
+def stated_orientation(up, forward) -> OrientationDecision:
+    """The decision a caller states: ``up`` and ``forward`` as signed axes of the head."""
+    u, f = parse_axis(up, "up"), parse_axis(forward, "forward")
+    if abs(float(u @ f)) > 0:
+        raise ValueError(f"up, forward: expected two different axes, got {up!r} and {forward!r}")
+    rotation = np.stack([np.cross(u, f), u, f])
+    return OrientationDecision(rotation, _axis_name(u), _axis_name(f), "stated", {})
+
+
+def inner_face(dataset) -> np.ndarray:
+    """(Vs,) bool: the generic ICT head's inner face (see ``INNER_FACE_CM``)."""
+    from ._data import vertex_parts
+
+    head = dataset.head
+    neutral = np.asarray(head.neutral, np.float64)
+    near = cKDTree(neutral[np.asarray(head.landmarks)]).query(neutral)[0] < INNER_FACE_CM
+    return near & (vertex_parts(head) == list(head.part_names).index("Face"))
+
+
+def _coarse_icp(points, tree, start, iterations: int = 25):
+    """Trimmed point-to-vertex ICP of the template ``points`` onto the head's vertices
+    (``tree``) from an axis-aligned start (``start``: head -> convention), the template's
+    nose tip on the head's extreme along the start's forward axis, scale 1 (centimetres):
+    (rotation template -> head, scale, trimmed RMS). Fast (a KD-tree query per iteration)
+    and biased by the vertex spacing alike for every start, which is all the search needs."""
+    from ..mesh import similarity_transform
+
+    target = tree.data
+    rotation, scale = start.T, 1.0
+    tip = target[np.argmax(target @ start[2])]
+    translation = tip - points[np.argmax(points[:, 2])] @ rotation.T
+    keep = max(3, int(round(FIT_TRIM * points.shape[0])))
+    rms = np.inf
+    for _ in range(iterations):
+        moved = scale * points @ rotation.T + translation
+        distance, nearest = tree.query(moved)
+        kept = np.argsort(distance)[:keep]
+        rms = float(np.sqrt(np.mean(distance[kept] ** 2)))
+        found, rotation, _ = similarity_transform(points[kept], target[nearest[kept]])
+        # a trimmed fit may shrink onto a few vertices: faces differ from ICT's by less
+        scale = float(np.clip(found, *SCALE_RANGE))
+        source, goal = points[kept], target[nearest[kept]]
+        translation = goal.mean(0) - scale * source.mean(0) @ rotation.T
+    return rotation, scale, rms
+
+
+def decide_orientation(dataset, vertices, faces, *, up=None, forward=None):
+    """Which way a head (centimetres) faces, decided from a fit of the ICT inner face, or
+    refused — never guessed.
+
+    The ICT inner face (``inner_face``) is fitted to the head by trimmed ICP from each of the
+    24 axis-aligned starts. The head's orientation is the best fit's when (1) it fits
+    (``FIT_LIMIT``), (2) every start that fits nearly as well (``AGREE_RATIO``) found the same
+    rotation, and (3) that rotation is a multiple of 90 degrees about the axes
+    (``SNAP_DEGREES``). A mirrored head is a head: it is turned, not refused.
+
+    Args:
+        dataset: the ICT source (``ict_pose_source()``).
+        vertices: (V, 3) head in centimetres (any orientation); faces: (F, 3) triangles.
+        up, forward: the caller's statement ("+z", "-y", ...): skips the search (both or
+            neither).
+
+    Returns an ``OrientationDecision``. Raises ``OrientationError`` (a ValueError) naming
+    ``up``/``forward`` when the head cannot be decided.
+    """
+    from ..mesh import similarity_icp
+
+    if (up is None) != (forward is None):
+        raise ValueError("up, forward: state both of the head's axes or neither")
+    if up is not None:
+        return stated_orientation(up, forward)
+    vertices, faces = check_mesh(vertices, faces)
+    v = np.asarray(vertices, np.float64)
+    template = np.asarray(dataset.head.neutral, np.float64)[inner_face(dataset)]
+    points = template[:: max(1, int(np.ceil(template.shape[0] / SEARCH_POINTS)))]
+    size = float(np.linalg.norm(np.ptp(points, axis=0)))
+    starts = axis_rotations()
+    tree = cKDTree(v)
+    found, ratios = [], []
+    for start in starts:
+        rotation, scale, rms = _coarse_icp(points, tree, start)
+        found.append(rotation)  # template -> head
+        ratios.append(rms / max(scale * size, 1e-12))
+    # the leading distinct rotations of the search, refined onto the surface (trimmed ICP
+    # from each one's nearest axis-aligned start): the decision is made on these
+    candidates: list[tuple[float, np.ndarray]] = []
+    for i in np.argsort(ratios):
+        if len(candidates) == REFINED:
+            break
+        if any(_angle_degrees(found[i], r) <= AGREE_DEGREES for _, r in candidates):
+            continue
+        start = min(starts, key=lambda r, i=i: _angle_degrees(r, found[i].T))
+        refined = similarity_icp(points, v @ start.T, faces, trim=FIT_TRIM, iterations=30)
+        ratio = refined.rms / max(refined.scale * size, 1e-12)
+        candidates.append((float(ratio), start.T @ refined.rotation))
+    candidates.sort(key=lambda c: c[0])
+    best_ratio, best_rotation = candidates[0]
+    to_convention = best_rotation.T  # head -> template frame
+    snapped = min(starts, key=lambda r: _angle_degrees(r, to_convention))
+    off = _angle_degrees(snapped, to_convention)
+    runner_up = candidates[1][0] if len(candidates) > 1 else float("inf")
+    fit = {"rms_ratio": best_ratio, "runner_up_ratio": runner_up, "off_axis_degrees": off}
+    state = "state it: up='+y', forward='+z' style arguments (canrig autorig --up/--forward)"
+    if not best_ratio <= FIT_LIMIT:
+        raise OrientationError(
+            f"vertices: cannot tell which way the head faces: the ICT face fits it nowhere "
+            f"(best trimmed RMS {best_ratio:.3f} of the face's size > {FIT_LIMIT}); is it a "
+            f"human(-like) face in centimetres? {state}"
+        )
+    if runner_up <= AGREE_RATIO * best_ratio:
+        raise OrientationError(
+            f"vertices: cannot tell which way the head faces: two orientations fit the face "
+            f"almost equally (RMS ratios {best_ratio:.4f} and {runner_up:.4f}); {state}"
+        )
+    if off > SNAP_DEGREES:
+        raise OrientationError(
+            f"vertices: the head is turned {off:.0f} degrees away from every axis-aligned "
+            f"orientation; turn it upright (y up, facing +z) first, or {state}"
+        )
+    return OrientationDecision(
+        snapped, _axis_name(snapped[1]), _axis_name(snapped[2]), "fitted", fit
+    )

@@ -61,9 +61,15 @@ parameters, 80 training heads, squared + static loss with ``balance_poses=0.5``,
 (cosine completed). Chosen on validation identities by a rule written before it trained
 (upper-face peak ratio >= 0.5, lower face >= 0.8, MAE on both pose classes <= 1.1x the
 previous default's) over ``autorig_long`` (Euclidean + static, 7,000 steps), whose eye and
-brow shapes moved about a tenth of the true amount (issue 19; README, "What the MAE hid")."""
+brow shapes moved about a tenth of the true amount."""
 DEFAULT_CHECKPOINT_SHA256 = "7e894ad4fd0f19962d9643221c3aab5fa48df509e2b1ef92ddc0747177f5b106"
 """SHA-256 of the file ``DEFAULT_CHECKPOINT`` (a damaged or replaced file is refused)."""
+RESIDUAL_CHECKPOINT = Path(str(files(__package__) / "models" / "riganyface_residual.eqx.xz"))
+"""The packaged DT + learned residual model (``auto_rig(method="transfer-residual")``):
+``export_riganyface`` of ``experiments/results/autorig/checkpoint_raf_anchored_dt_residual.eqx``
+(a residual on anchored deformation transfer, chosen on validation identities)."""
+RESIDUAL_CHECKPOINT_SHA256 = "4d3cce9bde900d55754d0d4c739b9e77d3b6da0e8fbdd07e4b0dac341be1eaa0"
+"""SHA-256 of the file ``RESIDUAL_CHECKPOINT``."""
 LOSSES = ("squared", "euclidean")
 BALANCE_FLOOR = 1e-3
 """With ``balance_poses``: a pose's divisor is at least this fraction of the training set's."""
@@ -360,8 +366,9 @@ def load_riganyface(path) -> tuple[RigAnyFace, PoseSet, dict]:
     """(model, pose set, header) of a training checkpoint, or of its weights-only copy
     (``export_riganyface``). The packaged default (``DEFAULT_CHECKPOINT``) is first checked
     against its recorded SHA-256 (``CorruptFileError`` naming the file if it differs)."""
-    if _is_default_checkpoint(path):
-        verify_sha256(path, DEFAULT_CHECKPOINT_SHA256)
+    for packaged, digest in PACKAGED_MODELS.items():
+        if _is_same_file(path, packaged):
+            verify_sha256(path, digest)
     state = read_checkpoint_state(path, CHECKPOINT_FORMAT)
     options = RigAnyFaceTrainOptions(**state["options"])
     poses = PoseSet.from_dict(state["poses"])
@@ -374,12 +381,19 @@ def load_riganyface(path) -> tuple[RigAnyFace, PoseSet, dict]:
     return model, poses, state
 
 
-def _is_default_checkpoint(path) -> bool:
+PACKAGED_MODELS = {
+    DEFAULT_CHECKPOINT: DEFAULT_CHECKPOINT_SHA256,
+    RESIDUAL_CHECKPOINT: RESIDUAL_CHECKPOINT_SHA256,
+}
+"""Every model shipped in the package and the SHA-256 it is checked against on load."""
+
+
+def _is_same_file(path, packaged: Path) -> bool:
     return (
         isinstance(path, str | os.PathLike)
         and os.path.isfile(path)
-        and DEFAULT_CHECKPOINT.is_file()
-        and os.path.samefile(path, DEFAULT_CHECKPOINT)
+        and packaged.is_file()
+        and os.path.samefile(path, packaged)
     )
 
 

@@ -1,6 +1,7 @@
 """The blendshape rig of any corrective order, its (batched) evaluation, corrective synthesis,
 the ict-quartic rig, and rigs carried onto other meshes (remeshing, deformation transfer)."""
 
+from ._arkit import arkit_channels, rename_to_arkit
 from ._blendshape import (
     UNIT_IN_CM,
     BlendshapeRig,
@@ -33,6 +34,8 @@ from ._synthesis import (
 from ._transfer import deformation_transfer, remesh_rig
 
 __all__ = [
+    "arkit_channels",
+    "rename_to_arkit",
     "UNIT_IN_CM",
     "export_gltf",
     "export_animated_gltf",

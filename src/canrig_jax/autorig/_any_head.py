@@ -1,0 +1,471 @@
+"""Any head to an ARKit rig, one call: ``auto_rig(vertices, faces, method=...)``.
+
+Three methods share the call and its steps (orientation decided or refused, ICT landmarks
+placed on the head, the rig built in the convention and turned back, the artist's style
+applied, ARKit names):
+
+- ``"transfer"``: template transfer — the template's expressions carried onto the head by
+  anchored deformation transfer (Sumner & Popović 2004; per pose, the vertices whose carried
+  displacement is below ``ANCHOR_CM`` stay still). The template is the ICT rig with its
+  combination poses (correctives) unless a ``Template`` of the user's is given.
+- ``"raf"``: RigAnyFace (Ma et al. 2025), the packaged default network.
+- ``"transfer-residual"``: anchored transfer plus a RigAnyFace residual trained on it.
+
+Few-shot style: given ``examples`` (k of the head's own sculpted ARKit shapes), a ``Style``
+(a gain, a falloff exponent and a relative floor: amplitude and locality) is fitted so the
+generated versions of those k shapes match the artist's, applied to every pose, and the k
+shapes themselves are taken as sculpted.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Mapping
+
+import numpy as np
+
+from .._metrics import CM_TO_MM
+from ..data import to_arkit
+from ..mesh import check_mesh, closest_point_correspondence, connected_components
+from ..rig import UNIT_IN_CM, BlendshapeRig, deformation_transfer, rename_to_arkit
+from ._data import (
+    AutorigDataset,
+    PoseSet,
+    fit_head_landmarks,
+    head_correspondence,
+    transfer_poses,
+)
+from ._evaluation import STATIC_MM
+from ._orientation import OrientationDecision, decide_orientation, inner_face
+from ._rig import rig_from_poses
+
+METHODS = ("transfer", "raf", "transfer-residual")
+DEFAULT_METHOD = "transfer"
+"""What ``auto_rig`` and ``canrig autorig`` use unless told: chosen on validation heads only
+(held-out ICT identities, the two Rocketbox heads) by the rule committed in
+``experiments/results/any_head/COMMAND`` before the comparison ran."""
+ANCHOR_CM = STATIC_MM / CM_TO_MM
+"""Anchored transfer: per pose, target vertices whose carried displacement is shorter than
+this (0.01 mm, the evaluation's static threshold) stay exactly still."""
+EXAMPLE_ORDER = ("jawOpen", "mouthSmileLeft", "eyeBlinkLeft", "browInnerUp", "mouthFunnel")
+"""The order in which few-shot examples are asked for (and measured): the largest motions of
+the jaw, the mouth corners, the lids, the brows and the lips."""
+NAME_STYLES = ("arkit", "source")
+
+
+@dataclasses.dataclass(frozen=True)
+class Style:
+    """An artist's style as amplitude and locality, applied per pose: each vertex's
+    displacement d of length |d| (pose peak p) becomes
+
+        gain * d * (|d| / p) ** falloff * max(0, 1 - floor * p / |d|),
+
+    so ``falloff`` > 0 keeps the peak and thins the tails, ``floor`` zeroes what moves less
+    than that fraction of the peak (soft threshold). ``Style()`` is the identity."""
+
+    gain: float = 1.0
+    falloff: float = 0.0
+    floor: float = 0.0
+
+    def apply(self, displacements: np.ndarray) -> np.ndarray:
+        """(P, V, 3) displacements -> the same, styled (float32)."""
+        d = np.asarray(displacements, np.float64)
+        length = np.linalg.norm(d, axis=-1, keepdims=True)
+        peak = length.max(axis=1, keepdims=True)
+        safe_peak, safe = np.maximum(peak, 1e-12), np.maximum(length, 1e-12)
+        factor = (length / safe_peak) ** self.falloff
+        factor = factor * np.maximum(0.0, 1.0 - self.floor * peak / safe)
+        return (self.gain * d * factor).astype(np.float32)
+
+
+STYLE_GRID = {
+    "falloff": (0.0, 0.5, 1.0, 2.0),
+    "floor": (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7),
+    "gain": tuple(np.round(np.linspace(0.3, 1.5, 25), 3)),
+}
+"""The styles ``fit_style`` chooses among (fixed before any measurement on evaluation
+heads)."""
+
+
+def fit_style(generated, sculpted, skin) -> Style:
+    """The ``STYLE_GRID`` style whose generated shapes best match the artist's.
+
+    Args:
+        generated: (k, V, 3) the method's version of the k example shapes (cm).
+        sculpted: (k, V, 3) the artist's shapes (cm).
+        skin: (V,) bool, the vertices scored (the head's skin).
+
+    The score is the mean over the k shapes of each shape's skin error over what no motion
+    scores on it, so a small shape (a blink) counts as much as a large one (jawOpen)."""
+    generated = np.asarray(generated, np.float64)
+    sculpted = np.asarray(sculpted, np.float64)
+    if generated.shape != sculpted.shape or generated.ndim != 3 or generated.shape[0] < 1:
+        raise ValueError(
+            f"generated, sculpted: expected two (k >= 1, V, 3) arrays, got {generated.shape} "
+            f"and {sculpted.shape}"
+        )
+    skin = np.asarray(skin, bool)
+    still = np.linalg.norm(sculpted, axis=-1)[:, skin].mean(axis=1)
+    if not np.all(still > 0):
+        raise ValueError("sculpted: an example shape does not move the skin")
+    best, best_score = Style(), np.inf
+    for falloff in STYLE_GRID["falloff"]:
+        for floor in STYLE_GRID["floor"]:
+            shaped = Style(1.0, falloff, floor).apply(generated).astype(np.float64)
+            for gain in STYLE_GRID["gain"]:
+                error = np.linalg.norm(gain * shaped - sculpted, axis=-1)[:, skin].mean(axis=1)
+                score = float(np.mean(error / still))
+                if score < best_score:
+                    best, best_score = Style(float(gain), falloff, floor), score
+    return best
+
+
+@dataclasses.dataclass(frozen=True)
+class Template:
+    """A rig to carry onto new heads (``method="transfer"``): in centimetres, +y up, facing
+    +z, with faces.
+
+    Attributes:
+        rig: the ``BlendshapeRig`` (linear: correctives are not carried).
+        landmarks: (68,) its vertices at the ICT Multi-PIE landmarks (``from_rig`` fits them).
+        name: shown in messages and results.
+    """
+
+    rig: BlendshapeRig
+    landmarks: np.ndarray
+    name: str = "template"
+
+    @classmethod
+    def from_rig(cls, dataset: AutorigDataset, rig: BlendshapeRig, name: str = "template"):
+        """A template from any rig with faces (cm, +y up, facing +z): its landmarks are
+        fitted like a head's (``place_landmarks``)."""
+        if not isinstance(rig, BlendshapeRig):
+            raise TypeError(f"rig: expected a BlendshapeRig, got {type(rig).__name__}")
+        if rig.faces is None:
+            raise ValueError("rig: a template needs faces (a mesh), this rig has none")
+        vertices = np.asarray(rig.neutral, np.float64) * UNIT_IN_CM[rig.units]
+        landmarks, _, _ = place_landmarks(dataset, vertices, np.asarray(rig.faces))
+        return cls(rig, landmarks, name)
+
+
+def skin_of(vertices, faces) -> np.ndarray:
+    """(V,) bool: the largest connected component (a head's skin; eyes, teeth, lashes are
+    separate parts)."""
+    labels = connected_components(np.asarray(faces), len(vertices))
+    return labels == np.bincount(labels).argmax()
+
+
+def place_landmarks(dataset: AutorigDataset, vertices, faces, *, region=None):
+    """The ICT landmarks on a head (cm, +y up, facing +z): the ICT face part fitted by
+    trimmed ICP (``fit_head_landmarks``); where that fails (a face-only mask, a stylised
+    head), the inner face (eyes, nose, mouth; ``inner_face``) with a looser trim.
+
+    Returns ((68,) vertex indices, the ``SimilarityFit``, "face" | "inner face"). Raises
+    ValueError saying why and what to try when neither fits."""
+    from ..mesh import fit_landmarks
+    from ._orientation import FIT_TRIM
+
+    if region is None:
+        region = skin_of(vertices, faces)
+    try:
+        landmarks, fit = fit_head_landmarks(dataset, vertices, faces, region=region)
+        return landmarks, fit, "face"
+    except ValueError as first:
+        head = dataset.head
+        try:
+            landmarks, fit = fit_landmarks(
+                head.neutral,
+                head.landmarks,
+                inner_face(dataset),
+                vertices,
+                faces,
+                target_region=region,
+                trim=FIT_TRIM,
+            )
+            return landmarks, fit, "inner face"
+        except ValueError as second:
+            raise ValueError(
+                f"vertices: the ICT face does not fit this head, whole ({first}) or by its "
+                f"inner face ({str(second).replace('target_vertices', 'vertices')}). Is it a "
+                "face in centimetres, y up, facing +z? Otherwise pass its landmarks by hand "
+                "(landmarks=, 68 vertex indices) or carry from a template closer to its style "
+                "(template=, canrig autorig --template)"
+            ) from second
+
+
+@dataclasses.dataclass(frozen=True)
+class AutoRig:
+    """What ``auto_rig`` returns.
+
+    Attributes:
+        rig: the ``BlendshapeRig`` in the head's own frame, centimetres; ARKit names unless
+            ``names="source"``.
+        method: the method run; style: the ``Style`` applied (``Style()`` without examples).
+        orientation: how the head was turned for the method (``OrientationDecision``).
+        landmarks: (68,) the ICT landmarks on the head; fit: "face" or "inner face" and its
+            trimmed RMS (cm).
+        examples: the ARKit names of the example shapes taken as sculpted.
+        seconds: wall time per step.
+    """
+
+    rig: BlendshapeRig
+    method: str
+    style: Style
+    orientation: OrientationDecision
+    landmarks: np.ndarray
+    fit: dict
+    examples: tuple[str, ...]
+    seconds: dict
+
+
+def _progress(progress, message):
+    if progress is not None:
+        progress(message)
+
+
+def _check_examples(examples, n_vertices: int) -> dict[str, np.ndarray]:
+    """{ARKit name: (V, 3) cm}; ValueError naming ``examples`` for unknown names, another
+    topology or non-finite shapes."""
+    if examples is None:
+        return {}
+    if isinstance(examples, BlendshapeRig):
+        scale = UNIT_IN_CM[examples.units]
+        pairs = zip(examples.names, examples.deltas, strict=True)
+        items = [(n, np.asarray(d) * scale) for n, d in pairs]
+    elif isinstance(examples, Mapping):
+        items = list(examples.items())
+    else:
+        raise TypeError(
+            f"examples: expected a BlendshapeRig or a {{name: (V, 3) delta}} mapping, got "
+            f"{type(examples).__name__}"
+        )
+    out = {}
+    from ..data import ARKIT_NAMES
+
+    for name, delta in items:
+        arkit = to_arkit(str(name))
+        if arkit not in ARKIT_NAMES:
+            raise ValueError(
+                f"examples: {name!r} is not an ARKit shape name (e.g. jawOpen, eyeBlinkLeft)"
+            )
+        delta = np.asarray(delta, np.float64)
+        if delta.shape != (n_vertices, 3):
+            raise ValueError(
+                f"examples: {name!r} has shape {delta.shape}; expected the head's topology "
+                f"({n_vertices}, 3) — examples must be sculpted on this head's mesh"
+            )
+        if not np.all(np.isfinite(delta)):
+            raise ValueError(f"examples: {name!r} has non-finite displacements")
+        out[arkit] = delta
+    return out
+
+
+def auto_rig(
+    vertices,
+    faces,
+    *,
+    method: str = DEFAULT_METHOD,
+    dataset: AutorigDataset | None = None,
+    template: Template | None = None,
+    examples=None,
+    model=None,
+    up=None,
+    forward=None,
+    orientation: OrientationDecision | None = None,
+    landmarks=None,
+    names: str = "arkit",
+    progress: Callable[[str], None] | None = None,
+) -> AutoRig:
+    """The blendshape rig of any neutral head.
+
+    Args:
+        vertices: (V, 3) neutral head in **centimetres**, any axis-aligned orientation;
+            faces: (F, 3) triangles.
+        method: one of ``METHODS`` (default ``DEFAULT_METHOD``; see the module docstring).
+        dataset: the ICT source (``ict_pose_source()``; loaded when None: seconds).
+        template: a ``Template`` to carry from instead of ICT (``method="transfer"`` only).
+        examples: k of this head's ARKit shapes as sculpted by its artist (a
+            ``BlendshapeRig`` on the head's mesh or {name: (V, 3) cm}); fits a ``Style``.
+        model: ``(RigAnyFace, PoseSet)`` for "raf"/"transfer-residual" (default: the packaged
+            model of that method).
+        up, forward: the head's up and forward axes ("+z", "-y"); default: decided from the
+            fitted face, or refused (``OrientationError``) — never guessed.
+        orientation: an ``OrientationDecision`` already made (skips the decision).
+        landmarks: (68,) the ICT Multi-PIE landmarks on the head, by hand (skips their fit).
+        names: "arkit" (default; ICT's halves merged, ``rename_to_arkit``) or "source" (the
+            template's own names, e.g. ICT's ``browDown_L``).
+        progress: called with a message before each step.
+
+    Returns an ``AutoRig``. Raises ValueError naming the argument for bad input, before any
+    compiled work.
+    """
+    start = time.perf_counter()
+    if method not in METHODS:
+        raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
+    if names not in NAME_STYLES:
+        raise ValueError(f"names: expected one of {NAME_STYLES}, got {names!r}")
+    if template is not None and method != "transfer":
+        raise ValueError(f"template: only method='transfer' carries a template, not {method!r}")
+    if template is not None and not isinstance(template, Template):
+        raise TypeError(f"template: expected a Template, got {type(template).__name__}")
+    vertices, faces = check_mesh(vertices, faces)
+    v = np.asarray(vertices, np.float64)
+    height = float(np.ptp(v[:, np.argmax(np.ptp(v, axis=0))]))
+    if not 10.0 <= height <= 60.0:
+        raise ValueError(
+            f"vertices: the head is {height:.3g} cm along its longest axis; a head is 10-60 "
+            "cm: give it in centimetres"
+        )
+    sculpted = _check_examples(examples, v.shape[0])
+    if dataset is None:
+        from ._data import ict_pose_source
+
+        _progress(progress, "loading the ICT source rig")
+        dataset = ict_pose_source(progress=False)
+    seconds = {}
+    if orientation is None:
+        _progress(progress, "deciding the head's orientation from its face")
+        t = time.perf_counter()
+        orientation = decide_orientation(dataset, v, faces, up=up, forward=forward)
+        seconds["orientation"] = time.perf_counter() - t
+    rotation = orientation.rotation
+    upright = v @ rotation.T
+    skin = skin_of(upright, faces)
+    t = time.perf_counter()
+    if landmarks is None:
+        _progress(progress, "placing the ICT landmarks on the head")
+        landmarks, fit, fitted_by = place_landmarks(dataset, upright, faces, region=skin)
+        fit_record = {"by": fitted_by, "rms_cm": float(fit.rms)}
+    else:
+        landmarks = np.asarray(landmarks, np.int64)
+        if landmarks.shape != (68,) or landmarks.min() < 0 or landmarks.max() >= v.shape[0]:
+            raise ValueError(f"landmarks: expected 68 vertex indices in [0, {v.shape[0]})")
+        fit_record = {"by": "given", "rms_cm": float("nan")}
+    seconds["landmarks"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    _progress(progress, f"building the rig ({method})")
+    head = _Head(upright, np.asarray(faces), landmarks, skin)
+    if template is not None:
+        rig = _template_rig(template, head)
+        displacements, pose_set = np.asarray(rig.deltas, np.float64), None
+        source_names = tuple(rig.names)
+    else:
+        displacements = _pose_displacements(method, dataset, head, model)
+        pose_set = dataset.poses
+        source_names = tuple(pose_set.basis_names)
+    seconds["method"] = time.perf_counter() - t
+
+    style = Style()
+    if sculpted:
+        kept, generated = _shapes_by_arkit(displacements, source_names, sculpted, rotation)
+        style = fit_style(generated, np.stack([sculpted[n] for n in kept]), skin)
+        _progress(
+            progress,
+            f"fitted the style of {len(sculpted)} example shapes: gain {style.gain:g}, "
+            f"falloff {style.falloff:g}, floor {style.floor:g}",
+        )
+        displacements = style.apply(displacements)
+    # back into the head's own frame
+    displacements = (np.asarray(displacements, np.float64) @ rotation).astype(np.float32)
+    neutral = v.astype(np.float32)
+    if pose_set is not None:
+        rig = rig_from_poses(neutral, faces, displacements, pose_set)
+    else:
+        rig = BlendshapeRig(neutral, displacements, (), source_names, faces)
+    if names == "arkit":
+        rig = rename_to_arkit(rig)
+    if sculpted:
+        rig = _take_sculpted(rig, sculpted)
+    seconds["total"] = time.perf_counter() - start
+    return AutoRig(rig, method, style, orientation, landmarks, fit_record, tuple(sculpted), seconds)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Head:
+    vertices: np.ndarray
+    faces: np.ndarray
+    landmarks: np.ndarray
+    skin: np.ndarray
+
+
+def _pose_displacements(method: str, dataset: AutorigDataset, head: _Head, model) -> np.ndarray:
+    """(P, V, 3) cm of every pose of the ICT pose set on the upright head."""
+    if method in ("transfer", "transfer-residual"):
+        correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
+        base = transfer_poses(dataset, head, correspondence, static_below=ANCHOR_CM)
+        if method == "transfer":
+            return base
+    else:
+        base = None
+    from ._rig import generate_rig
+    from ._train import load_riganyface
+
+    if model is None:
+        model = load_riganyface(default_model(method))[:2]
+    network, poses = model
+    if not isinstance(poses, PoseSet) or poses.labels != dataset.poses.labels:
+        raise ValueError("model: its pose set is not the ICT source's (dataset)")
+    generated = generate_rig(
+        network, poses, head.vertices, head.faces, base=base, orientation="trust"
+    )
+    return np.asarray(generated.displacements, np.float64)
+
+
+def default_model(method: str):
+    """The packaged checkpoint of a network method."""
+    from ._train import DEFAULT_CHECKPOINT, RESIDUAL_CHECKPOINT
+
+    return {"raf": DEFAULT_CHECKPOINT, "transfer-residual": RESIDUAL_CHECKPOINT}[method]
+
+
+def _template_rig(template: Template, head: _Head) -> BlendshapeRig:
+    """The template's shapes carried onto the upright head (anchored deformation transfer),
+    in centimetres."""
+    source = template.rig
+    scale = UNIT_IN_CM[source.units]
+    neutral = np.asarray(source.neutral, np.float64) * scale
+    correspondence = closest_point_correspondence(
+        neutral,
+        np.asarray(source.faces),
+        head.vertices,
+        head.faces,
+        np.asarray(template.landmarks),
+        np.asarray(head.landmarks),
+    )
+    linear = BlendshapeRig(
+        neutral.astype(np.float32),
+        (np.asarray(source.deltas, np.float64) * scale).astype(np.float32),
+        (),
+        source.names,
+        np.asarray(source.faces),
+    )
+    return deformation_transfer(linear, head.vertices, correspondence, static_below=ANCHOR_CM)
+
+
+def _shapes_by_arkit(displacements, source_names, wanted: Mapping, rotation):
+    """The method's version of each wanted ARKit shape in the head's frame (ICT's halves
+    summed): (names, (k, V, 3)); names the method lacks are left out."""
+    channels: dict[str, np.ndarray] = {}
+    for name, delta in zip(source_names, displacements, strict=False):
+        arkit = to_arkit(str(name))
+        channels[arkit] = channels.get(arkit, 0.0) + np.asarray(delta, np.float64)
+    kept = tuple(n for n in wanted if n in channels)
+    if not kept:
+        raise ValueError(
+            f"examples: none of {sorted(wanted)} is a shape of the generated rig "
+            f"({', '.join(sorted(channels)[:6])}, ...)"
+        )
+    return kept, np.stack([channels[n] @ rotation for n in kept])
+
+
+def _take_sculpted(rig: BlendshapeRig, sculpted: Mapping) -> BlendshapeRig:
+    """The rig with each example shape replaced by the artist's (by ARKit name)."""
+    deltas = np.array(rig.deltas, np.float32)
+    scale = 1.0 / UNIT_IN_CM[rig.units]
+    for i, name in enumerate(rig.names):
+        arkit = to_arkit(str(name))
+        if arkit in sculpted and to_arkit(str(name)) == str(name):
+            deltas[i] = np.asarray(sculpted[arkit], np.float32) * scale
+    return BlendshapeRig(rig.neutral, deltas, rig.correctives, rig.names, rig.faces, rig.units)
