@@ -19,6 +19,7 @@ import pytest
 
 from canrig_jax import run_command
 from canrig_jax.data import (
+    ARKIT_NAMES,
     data_file,
     load_livelinkface,
     read_arrays,
@@ -88,7 +89,8 @@ def test_help(command, capsys):
     if command == "invert":
         assert "--method {quartic,linear,seol" in text and "--alpha" in text
     if command == "autorig":
-        assert "--orientation {check,fix,trust}" in text
+        assert "--method {transfer,raf,transfer-residual}" in text and "--examples" in text
+        assert "--names {arkit,ict}" in text and "--up" in text and "--forward" in text
 
 
 def test_console_script_runs_in_a_fresh_process():
@@ -278,11 +280,11 @@ def test_errors_name_the_file_and_write_nothing(workspace, capsys, tmp_path):
 
 
 @pytest.mark.slow
-def test_autorig_orientation_option(tmp_path, capsys, data_dir):
-    """A real ICT identity stored z up (turned 90 degrees about x): the default check refuses
-    it naming HEAD and the option, --orientation fix gives the upright head's rig turned into
-    the file's frame, --orientation trust runs the model on the head as stored (another rig)."""
-    from canrig_jax.autorig import DEFAULT_CHECKPOINT, generate_rig, load_riganyface
+def test_autorig_orientation(tmp_path, capsys, data_dir):
+    """A real ICT identity stored z up (turned 90 degrees about x): canrig autorig finds the
+    orientation from the face and writes the upright head's rig turned into the file's frame;
+    stating it (--up=+z --forward=-y) gives the same rig; a wrong statement gives another."""
+    from canrig_jax.autorig import auto_rig
     from canrig_jax.data import ict_identity, load_ict
     from canrig_jax.mesh import decimate
 
@@ -293,22 +295,23 @@ def test_autorig_orientation_option(tmp_path, capsys, data_dir):
     turned = (mesh.vertices @ turn.T).astype(np.float32)
     save_obj(tmp_path / "zup.obj", turned, mesh.faces)
     argv = ("autorig", tmp_path / "zup.obj", "--units", "cm")
-    status, _, err = _run(capsys, *argv, "-o", tmp_path / "checked.glb")
-    assert status == 2 and "zup.obj" in err and "--orientation fix" in err, err
-    assert not (tmp_path / "checked.glb").exists()
+    status, _, err = _run(capsys, *argv, "-o", tmp_path / "found.glb")
+    assert status == 0 and "up +z, facing -y (fitted)" in err, err
+    found = load_gltf_rig(tmp_path / "found.glb")
+    np.testing.assert_allclose(found.neutral, turned, atol=1e-4)
+    upright = auto_rig(mesh.vertices.astype(np.float32), mesh.faces).rig
+    assert found.names == upright.names
+    np.testing.assert_allclose(found.deltas, np.asarray(upright.deltas) @ turn.T, atol=1e-4)
 
-    status, _, err = _run(capsys, *argv, "--orientation", "fix", "-o", tmp_path / "fixed.glb")
-    assert status == 0 and "turned the head" in err and "up +z" in err, err
-    fixed = load_gltf_rig(tmp_path / "fixed.glb")
-    np.testing.assert_allclose(fixed.neutral, turned, atol=1e-4)
-    model, poses, _ = load_riganyface(DEFAULT_CHECKPOINT)
-    upright = generate_rig(model, poses, mesh.vertices.astype(np.float32), mesh.faces).rig
-    np.testing.assert_allclose(fixed.deltas, np.asarray(upright.deltas) @ turn.T, atol=1e-4)
-
-    status, _, err = _run(capsys, *argv, "--orientation", "trust", "-o", tmp_path / "trust.glb")
-    assert status == 0, err
-    trusted = load_gltf_rig(tmp_path / "trust.glb")
-    assert np.abs(np.asarray(trusted.deltas) - np.asarray(fixed.deltas)).max() > 1e-3
+    stated = (*argv, "--up=+z", "--forward=-y", "-o", tmp_path / "stated.glb")
+    status, _, err = _run(capsys, *stated)
+    assert status == 0 and "(stated)" in err, err
+    stated_rig = load_gltf_rig(tmp_path / "stated.glb")
+    np.testing.assert_allclose(stated_rig.deltas, found.deltas, atol=1e-4)
+    wrong = (*argv, "--up=+y", "--forward=+z", "-o", tmp_path / "w.glb")
+    status, _, err = _run(capsys, *wrong)
+    if status == 0:  # the head as stored, taken as upright: another (wrong) rig
+        assert np.abs(load_gltf_rig(tmp_path / "w.glb").deltas - found.deltas).max() > 1e-2
 
 
 @pytest.mark.slow
@@ -323,7 +326,8 @@ def test_end_to_end_makehuman(tmp_path, capsys, data_dir):
     )
     assert status == 0, err
     rig = load_gltf_rig(tmp_path / "rig.glb")
-    assert rig.n_blendshapes == 53 and rig.n_vertices == 4920 and rig.units == "cm"
+    assert rig.n_blendshapes == 51 and rig.n_vertices == 4920 and rig.units == "cm"
+    assert set(rig.names) <= set(ARKIT_NAMES)
     np.testing.assert_allclose(rig.neutral, head["neutral"] * 10, rtol=1e-5, atol=1e-4)
     status, _, err = _run(
         capsys,

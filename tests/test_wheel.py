@@ -70,15 +70,15 @@ def test_wheel_runs_autorig_and_animate_outside_the_repository(tmp_path, data_di
     installed = tmp_path / "venv" / "lib"
     assert f"loaded RigAnyFace from {installed}" in autorig.stderr + autorig.stdout
     rig = load_gltf_rig(work / "rig.glb")
-    assert rig.n_blendshapes == 53 and rig.n_vertices == 4920 and rig.units == "cm"
+    assert rig.n_blendshapes == 51 and rig.n_vertices == 4920 and rig.units == "cm"
     np.testing.assert_allclose(rig.neutral, head["neutral"] * 10, rtol=1e-5, atol=1e-4)
     assert np.abs(np.asarray(rig.deltas)[rig.names.index("jawOpen")]).max() > 0.1  # cm
 
     _run([bin_dir / "canrig", "animate", "rig.glb", "take.csv", "-o", "anim.glb"], work, env)
     animated = load_gltf_rig(work / "anim.glb")
-    assert animated.n_blendshapes == 53 and animated.n_vertices == 4920
+    assert animated.n_blendshapes == 51 and animated.n_vertices == 4920
     summary = inspect_glb(work / "anim.glb")
-    assert summary.n_vertices == 4920 and summary.animations and len(summary.morph_names) >= 53
+    assert summary.n_vertices == 4920 and summary.animations and len(summary.morph_names) >= 51
 
     # the core install has no jaxopt; the solver that needs it says which extra to install
     probe = subprocess.run(

@@ -93,16 +93,40 @@ def _input(path: str, what: str) -> Path:
     return p
 
 
-def _load_rig(path: str):
-    """A rig from a ``.glb`` written by canrig (``load_gltf_rig``) or a ``.npz`` (``load_rig``)."""
-    from .rig import load_gltf_rig, load_rig
+def _load_rig(path: str, what: str = "RIG", *, crop: str | None = None):
+    """A rig from a ``.glb`` written by canrig (``load_gltf_rig``), a ``.npz`` (a rig of
+    ``save_rig``, or shapes: ``neutral``, ``deltas``, ``names``, optional ``faces`` and
+    ``units``) or an ``.fbx`` (``load_fbx_rig``: its ARKit shapes; ``crop="head"`` cuts a
+    whole body to the head)."""
+    from .data import read_arrays
+    from .rig import BlendshapeRig, load_fbx_rig, load_gltf_rig, load_rig
 
-    p = _input(path, "RIG")
-    if p.suffix.lower() == ".glb":
+    p = _input(path, what)
+    suffix = p.suffix.lower()
+    if suffix == ".glb":
         return load_gltf_rig(p)
-    if p.suffix.lower() == ".npz":
-        return load_rig(p)
-    raise CommandError(f"RIG {p}: expected a .glb (canrig autorig) or a .npz rig")
+    if suffix == ".fbx":
+        return load_fbx_rig(p, crop=crop)
+    if suffix == ".npz":
+        with np.load(p, allow_pickle=False) as z:
+            keys = set(z.files)
+        if "orders" in keys:
+            return load_rig(p)
+        if {"neutral", "deltas", "names"} <= keys:
+            optional = [k for k in ("faces", "units") if k in keys]
+            z = read_arrays(p, ["neutral", "deltas", "names", *optional])
+            return BlendshapeRig(
+                z["neutral"],
+                z["deltas"],
+                (),
+                tuple(str(n) for n in z["names"]),
+                z.get("faces"),
+                str(z["units"]) if "units" in z else "cm",
+            )
+        raise CommandError(
+            f"{what} {p}: an .npz rig needs save_rig's arrays or neutral, deltas and names"
+        )
+    raise CommandError(f"{what} {p}: expected a .glb (canrig autorig), a .npz or an .fbx rig")
 
 
 def _arkit_columns(rig) -> tuple[np.ndarray, list[str]]:
@@ -124,46 +148,73 @@ def _autorig(args) -> None:
     from .rig import export_gltf
 
     out = _output(args.output, (".glb",))
-    model_path = Path(args.model) if args.model else autorig.DEFAULT_CHECKPOINT
-    if not model_path.is_file():
-        raise CommandError(f"--model {model_path}: RigAnyFace checkpoint not found")
+    if args.method == "raf" or args.method == "transfer-residual":
+        model_path = Path(args.model) if args.model else autorig.default_model(args.method)
+        if not model_path.is_file():
+            raise CommandError(f"--model {model_path}: RigAnyFace checkpoint not found")
+    elif args.model:
+        raise CommandError(f"--model: --method {args.method} uses no network")
+    if args.template and args.method != "transfer":
+        raise CommandError("--template: only --method transfer carries a template")
+    if (args.up is None) != (args.forward is None):
+        raise CommandError("--up, --forward: state both of the head's axes or neither")
     progress = _Progress(args.quiet)
     head = load_head(_input(args.head, "HEAD"), units=args.units)
     progress(
         f"read {head.path}: {len(head.vertices)} vertices, {len(head.faces)} triangles, "
         f"units {head.units}{' (inferred)' if head.inferred else ''}, {head.size_cm:.1f} cm tall"
     )
-    model, poses, _ = autorig.load_riganyface(model_path)
-    progress(f"loaded RigAnyFace from {model_path} ({poses.n_poses} training poses)")
-    chunk = {} if args.pose_chunk is None else {"pose_chunk": args.pose_chunk}
+    examples = None
+    if args.examples:
+        examples = _load_rig(args.examples, "--examples")
+        if examples.n_vertices != len(head.vertices):
+            raise CommandError(
+                f"--examples {args.examples}: {examples.n_vertices} vertices, the head has "
+                f"{len(head.vertices)}: examples must be sculpted on the head's own mesh"
+            )
+        progress(f"read {examples.n_blendshapes} example shapes: {', '.join(examples.names)}")
+    progress("loading the ICT source rig")
+    dataset = autorig.ict_pose_source(progress=False)
+    template = None
+    if args.template:
+        rig = _load_rig(args.template, "--template", crop="head")
+        progress(f"fitting the template {args.template} ({rig.n_blendshapes} shapes)")
+        try:
+            template = autorig.Template.from_rig(dataset, rig, Path(args.template).name)
+        except ValueError as error:
+            raise CommandError(f"--template {args.template}: {error}") from error
+    model = None
+    if args.method in ("raf", "transfer-residual"):
+        progress(f"loading the network {model_path}")
+        model = autorig.load_riganyface(model_path)[:2]
     try:
-        generated = autorig.generate_rig(
-            model,
-            poses,
+        result = autorig.auto_rig(
             head.vertices_in("cm"),
             head.faces,
-            k=args.k,
-            orientation=args.orientation,
-            **chunk,
+            method=args.method,
+            dataset=dataset,
+            template=template,
+            examples=examples,
+            model=model,
+            up=args.up,
+            forward=args.forward,
+            names="source" if args.names == "ict" else "arkit",
+            progress=progress,
         )
+    except autorig.OrientationError as error:
+        message = str(error).replace("vertices: ", "", 1)
+        raise CommandError(f"HEAD {head.path}: {message}") from error
     except ValueError as error:
-        if args.orientation == "check" and "seems to face another way" in str(error):
-            raise CommandError(
-                f"HEAD {head.path}: {error} (on the command line: --orientation fix or trust)"
-            ) from error
+        if "examples" in str(error).split(":")[0]:
+            raise CommandError(f"--examples {args.examples}: {error}") from error
         raise
-    seconds = generated.seconds
-    rig = generated.rig
-    if generated.rotated:
-        progress(
-            f"turned the head for the model ({generated.orientation.describe()}) and the "
-            "rig back: the rig is in the head's own frame"
-        )
+    rig = result.rig
+    turned = "" if result.orientation.conventional else " (the rig stays in the head's frame)"
+    progress(f"orientation: {result.orientation.describe()}{turned}")
     progress(
-        f"generated {rig.n_blendshapes} blendshapes and "
-        f"{sum(int(c.indices.shape[0]) for c in rig.correctives)} correctives "
-        f"(operators {seconds.get('operators', float('nan')):.1f} s, "
-        f"network {seconds.get('network', float('nan')):.1f} s)"
+        f"generated {rig.n_blendshapes} blendshapes ({args.names} names) and "
+        f"{sum(int(c.indices.shape[0]) for c in rig.correctives)} correctives with "
+        f"{args.method} in {result.seconds['total']:.1f} s"
     )
     export_gltf(rig, out)
     progress(f"wrote {out} (centimetres)")
@@ -498,29 +549,50 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = command(
         "autorig",
-        "RigAnyFace: generate a blendshape rig (53 ICT/ARKit shapes + correctives) for a head.",
-        [("head", "head mesh: .obj, .ply, .gltf or .glb")],
+        "Generate an ARKit blendshape rig (with correctives) for any neutral head.",
+        [("head", "head mesh: .obj, .ply, .gltf, .glb or .fbx")],
         "the rig, a .glb with named morph targets (centimetres)",
     )
     p.add_argument(
+        "--method",
+        choices=("transfer", "raf", "transfer-residual"),
+        default="transfer",
+        help="transfer: the template's expressions carried onto the head (anchored "
+        "deformation transfer); raf: the RigAnyFace network; transfer-residual: transfer plus "
+        "a learned residual (default: %(default)s)",
+    )
+    p.add_argument(
+        "--template",
+        metavar="RIG",
+        help="carry this rig's shapes instead of ICT's (.glb, .npz or .fbx; cm, y up, facing +z)",
+    )
+    p.add_argument(
+        "--examples",
+        metavar="FILE",
+        help="k of this head's ARKit shapes sculpted by its artist (.glb, .npz or .fbx on the "
+        "head's mesh): the rig takes their amplitude and locality, and them as they are",
+    )
+    p.add_argument(
+        "--names",
+        choices=("arkit", "ict"),
+        default="arkit",
+        help="morph target names: ARKit's (browDownLeft) or the template's own (ict: ICT's "
+        "browDown_L, or your --template's) (default: %(default)s)",
+    )
+    p.add_argument(
+        "--up",
+        help="the head's up axis, e.g. --up=+z (with --forward; default: found from the face)",
+    )
+    p.add_argument("--forward", help="the axis the face looks along, e.g. --forward=-y (with --up)")
+    p.add_argument(
         "--units",
         choices=("mm", "cm", "dm", "m"),
-        help="the head file's length unit (default: inferred from its size)",
+        help="the head file's length unit (default: from the file or its size)",
     )
     p.add_argument(
         "--model",
-        help="RigAnyFace checkpoint (default: the committed default model, "
-        "canrig_jax.autorig.DEFAULT_CHECKPOINT)",
-    )
-    p.add_argument("--k", type=int, default=128, help="Laplacian eigenpairs (default: %(default)s)")
-    p.add_argument("--pose-chunk", type=int, help="poses per network pass (default: the library's)")
-    p.add_argument(
-        "--orientation",
-        choices=("check", "fix", "trust"),
-        default="check",
-        help="the model expects +y up and +z forward: check refuses a head that clearly faces "
-        "elsewhere, fix turns it for the model and the rig back, trust skips the check "
-        "(default: %(default)s)",
+        help="network checkpoint for --method raf or transfer-residual (default: the packaged "
+        "model of that method)",
     )
     p.set_defaults(run=_autorig)
 

@@ -431,7 +431,7 @@ def decide_orientation(dataset, vertices, faces, *, up=None, forward=None):
     off = _angle_degrees(snapped, to_convention)
     runner_up = candidates[1][0] if len(candidates) > 1 else float("inf")
     fit = {"rms_ratio": best_ratio, "runner_up_ratio": runner_up, "off_axis_degrees": off}
-    state = "state it: up='+y', forward='+z' style arguments (canrig autorig --up/--forward)"
+    state = "state it: up= and forward= (canrig autorig --up=+z --forward=-y, for example)"
     if not best_ratio <= FIT_LIMIT:
         raise OrientationError(
             f"vertices: cannot tell which way the head faces: the ICT face fits it nowhere "
