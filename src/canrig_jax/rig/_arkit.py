@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..data import to_arkit
+from ..data import arkit_name_of
 from ._blendshape import BlendshapeRig, Corrective
 
 
@@ -19,7 +19,7 @@ def arkit_channels(names) -> tuple[list[str], np.ndarray]:
     channels: list[str] = []
     index = np.empty(len(names), np.int64)
     for i, name in enumerate(names):
-        arkit = to_arkit(str(name))
+        arkit = arkit_name_of(str(name)) or str(name)  # unknown names are kept
         if arkit not in channels:
             channels.append(arkit)
         index[i] = channels.index(arkit)
