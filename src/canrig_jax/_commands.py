@@ -132,9 +132,9 @@ def _load_rig(path: str, what: str = "RIG", *, crop: str | None = None):
 def _arkit_columns(rig) -> tuple[np.ndarray, list[str]]:
     """(K_rig, K_csv) matrix mapping a rig's weights onto the Live Link Face channels it drives
     (ICT halves averaged) and those channel names."""
-    from .data import LIVELINK_CSV_CHANNELS, retarget_weights, to_arkit
+    from .data import LIVELINK_CSV_CHANNELS, arkit_name_of, retarget_weights, to_arkit
 
-    present = {to_arkit(n) for n in rig.names}
+    present = {arkit_name_of(str(n)) for n in rig.names} - {None}
     channels = [c for c in LIVELINK_CSV_CHANNELS if to_arkit(c) in present]
     eye = np.eye(rig.n_blendshapes, dtype=np.float32)
     mixing, _ = retarget_weights(eye, rig.names, channels)

@@ -26,7 +26,7 @@ from collections.abc import Callable, Mapping
 import numpy as np
 
 from .._metrics import CM_TO_MM
-from ..data import to_arkit
+from ..data import arkit_name_of
 from ..mesh import check_mesh, closest_point_correspondence, connected_components
 from ..rig import UNIT_IN_CM, BlendshapeRig, deformation_transfer, rename_to_arkit
 from ._data import (
@@ -244,7 +244,7 @@ def _check_examples(examples, n_vertices: int) -> dict[str, np.ndarray]:
     from ..data import ARKIT_NAMES
 
     for name, delta in items:
-        arkit = to_arkit(str(name))
+        arkit = arkit_name_of(str(name))
         if arkit not in ARKIT_NAMES:
             raise ValueError(
                 f"examples: {name!r} is not an ARKit shape name (e.g. jawOpen, eyeBlinkLeft)"
@@ -449,7 +449,7 @@ def _shapes_by_arkit(displacements, source_names, wanted: Mapping, rotation):
     summed): (names, (k, V, 3)); names the method lacks are left out."""
     channels: dict[str, np.ndarray] = {}
     for name, delta in zip(source_names, displacements, strict=False):
-        arkit = to_arkit(str(name))
+        arkit = arkit_name_of(str(name)) or str(name)
         channels[arkit] = channels.get(arkit, 0.0) + np.asarray(delta, np.float64)
     kept = tuple(n for n in wanted if n in channels)
     if not kept:
@@ -461,11 +461,12 @@ def _shapes_by_arkit(displacements, source_names, wanted: Mapping, rotation):
 
 
 def _take_sculpted(rig: BlendshapeRig, sculpted: Mapping) -> BlendshapeRig:
-    """The rig with each example shape replaced by the artist's (by ARKit name)."""
+    """The rig with each example shape replaced by the artist's, matched by ARKit name (a
+    channel the rig splits into halves, ICT's ``browInnerUp_L``/``_R``, keeps its halves)."""
     deltas = np.array(rig.deltas, np.float32)
     scale = 1.0 / UNIT_IN_CM[rig.units]
-    for i, name in enumerate(rig.names):
-        arkit = to_arkit(str(name))
-        if arkit in sculpted and to_arkit(str(name)) == str(name):
+    channels = [arkit_name_of(str(name)) for name in rig.names]
+    for i, arkit in enumerate(channels):
+        if arkit in sculpted and channels.count(arkit) == 1:
             deltas[i] = np.asarray(sculpted[arkit], np.float32) * scale
     return BlendshapeRig(rig.neutral, deltas, rig.correctives, rig.names, rig.faces, rig.units)

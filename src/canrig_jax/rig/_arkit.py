@@ -29,7 +29,8 @@ def arkit_channels(names) -> tuple[list[str], np.ndarray]:
 def rename_to_arkit(rig: BlendshapeRig) -> BlendshapeRig:
     """The same rig with one blendshape per ARKit channel, named in ARKit's camelCase.
 
-    Names ``to_arkit`` does not know are kept as they are. Shapes that share a channel (ICT's
+    Names of no ARKit shape (``arkit_name_of`` gives None: visemes, FACS units) are kept
+    as they are. Shapes that share a channel (ICT's
     ``browInnerUp_L``/``_R``) are summed, so weight w on the channel gives what the source
     rig gives with w on each of them. Correctives follow their drivers; two correctives on
     the same channels are summed; a corrective driven by both halves of one channel (w_L w_R
