@@ -153,7 +153,10 @@ def generate_rig(
             symmetry, the nose tip, eyes and neck cut; ~15 ms at 1,700 vertices); ``"fix"``:
             turn such a head into the convention for the model and turn the predictions
             back (the rig stays in the head's frame); ``"trust"``: no check. Heads whose
-            cues are inconclusive (a sphere, a face-only mask's up direction) pass.
+            cues are inconclusive (a sphere, a face-only mask's up direction) pass: this is
+            the network's low-level call; ``auto_rig`` (``canrig autorig``) decides the
+            orientation from a fit of the face, or refuses, and never lets a head through
+            on a guess.
         placement: ``(centre (3,), scale)`` to normalise the head with instead of its
             bounding box (``face_placement``: from a fit of the ICT face, not from where the
             head was cropped); the head's frame, its units.
