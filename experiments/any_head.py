@@ -46,9 +46,9 @@ import numpy as np  # noqa: E402
 from canrig_jax._io import save_json, save_text  # noqa: E402
 from canrig_jax._provenance import experiment_command, provenance, record_command  # noqa: E402
 from canrig_jax.autorig import (  # noqa: E402
+    AUTO_RIG_METHODS,
     DEFAULT_METHOD,
     EXAMPLE_ORDER,
-    METHODS,
     OrientationError,
     Template,
     auto_rig,
@@ -153,7 +153,7 @@ def run_head(head: Head, dataset, log) -> tuple[dict, dict, dict]:
     scored = [n for n in head.names if n in first.rig.names]
     methods = {"no_motion": no_motion(head, scored)}
     few: dict = {}
-    for method in METHODS:
+    for method in AUTO_RIG_METHODS:
         few[method] = {}
         for k in KS:
             given = list(EXAMPLE_ORDER[:k])
@@ -242,7 +242,7 @@ def cli_seconds(head: Head, out_dir: Path, env: dict) -> float:
 def choose_default(heads: dict, few: dict) -> tuple[str, dict]:
     """The rule in COMMAND, on the validation rows only."""
     worst = {}
-    for method in METHODS:
+    for method in AUTO_RIG_METHODS:
         ratios = []
         for head, k in RULE_CASES:
             row = few[head][method][k]
@@ -325,7 +325,7 @@ def main(argv=None):
             }
             for k in per_ict[0][1][method]
         }
-        for method in METHODS
+        for method in AUTO_RIG_METHODS
     }
     results["fit"]["ict_heldout"] = per_ict[0][2]
     results["fit"]["ict_heldout_face_crop"] = crop_fit(ict[0], dataset)

@@ -2,9 +2,9 @@
 
 from ._any_head import (
     ANCHOR_CM,
+    AUTO_RIG_METHODS,
     DEFAULT_METHOD,
     EXAMPLE_ORDER,
-    METHODS,
     STYLE_GRID,
     AutoRig,
     Style,
@@ -100,7 +100,7 @@ __all__ = [
     "ANCHOR_CM",
     "DEFAULT_METHOD",
     "EXAMPLE_ORDER",
-    "METHODS",
+    "AUTO_RIG_METHODS",
     "STYLE_GRID",
     "AutoRig",
     "Style",

@@ -40,7 +40,7 @@ from ._evaluation import STATIC_MM
 from ._orientation import OrientationDecision, decide_orientation, inner_face
 from ._rig import rig_from_poses
 
-METHODS = ("transfer", "raf", "transfer-residual")
+AUTO_RIG_METHODS = ("transfer", "raf", "transfer-residual")
 DEFAULT_METHOD = "transfer"
 """What ``auto_rig`` and ``canrig autorig`` use unless told: chosen on validation heads only
 (held-out ICT identities, the two Rocketbox heads) by the rule committed in
@@ -282,7 +282,7 @@ def auto_rig(
     Args:
         vertices: (V, 3) neutral head in **centimetres**, any axis-aligned orientation;
             faces: (F, 3) triangles.
-        method: one of ``METHODS`` (default ``DEFAULT_METHOD``; see the module docstring).
+        method: one of ``AUTO_RIG_METHODS`` (default ``DEFAULT_METHOD``; see the module docstring).
         dataset: the ICT source (``ict_pose_source()``; loaded when None: seconds).
         template: a ``Template`` to carry from instead of ICT (``method="transfer"`` only).
         examples: k of this head's ARKit shapes as sculpted by its artist (a
@@ -301,8 +301,8 @@ def auto_rig(
     compiled work.
     """
     start = time.perf_counter()
-    if method not in METHODS:
-        raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
+    if method not in AUTO_RIG_METHODS:
+        raise ValueError(f"method: expected one of {AUTO_RIG_METHODS}, got {method!r}")
     if names not in NAME_STYLES:
         raise ValueError(f"names: expected one of {NAME_STYLES}, got {names!r}")
     if template is not None and method != "transfer":
