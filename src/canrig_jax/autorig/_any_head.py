@@ -37,7 +37,12 @@ from ._data import (
     transfer_poses,
 )
 from ._evaluation import STATIC_MM
-from ._orientation import OrientationDecision, decide_orientation, inner_face
+from ._orientation import (
+    OrientationDecision,
+    decide_orientation,
+    inner_face,
+    stated_orientation,
+)
 from ._rig import rig_from_poses
 
 AUTO_RIG_METHODS = ("transfer", "raf", "transfer-residual")
@@ -106,6 +111,10 @@ def fit_style(generated, sculpted, skin) -> Style:
             f"and {sculpted.shape}"
         )
     skin = np.asarray(skin, bool)
+    if skin.shape != generated.shape[1:2] or not skin.any():
+        raise ValueError(
+            f"skin: expected ({generated.shape[1]},) bools with at least one True, got {skin.shape}"
+        )
     still = np.linalg.norm(sculpted, axis=-1)[:, skin].mean(axis=1)
     if not np.all(still > 0):
         raise ValueError("sculpted: an example shape does not move the skin")
@@ -318,6 +327,15 @@ def auto_rig(
             "cm: give it in centimetres"
         )
     sculpted = _check_examples(examples, v.shape[0])
+    # stated axes and given landmarks are checked with the other arguments, before any work
+    if (up is None) != (forward is None):
+        raise ValueError("up, forward: state both of the head's axes or neither")
+    if orientation is None and up is not None:
+        orientation = stated_orientation(up, forward)
+    if landmarks is not None:
+        landmarks = np.asarray(landmarks, np.int64)
+        if landmarks.shape != (68,) or landmarks.min() < 0 or landmarks.max() >= v.shape[0]:
+            raise ValueError(f"landmarks: expected 68 vertex indices in [0, {v.shape[0]})")
     if dataset is None:
         from ._data import ict_pose_source
 
@@ -338,9 +356,6 @@ def auto_rig(
         landmarks, fit, fitted_by = place_landmarks(dataset, upright, faces, region=skin)
         fit_record = {"by": fitted_by, "rms_cm": float(fit.rms)}
     else:
-        landmarks = np.asarray(landmarks, np.int64)
-        if landmarks.shape != (68,) or landmarks.min() < 0 or landmarks.max() >= v.shape[0]:
-            raise ValueError(f"landmarks: expected 68 vertex indices in [0, {v.shape[0]})")
         fit_record = {"by": "given", "rms_cm": float("nan")}
     seconds["landmarks"] = time.perf_counter() - t
 
@@ -426,13 +441,17 @@ def _template_rig(template: Template, head: _Head) -> BlendshapeRig:
     source = template.rig
     scale = UNIT_IN_CM[source.units]
     neutral = np.asarray(source.neutral, np.float64) * scale
+    # a coarse template holds some landmarks on one vertex; the landmark spline needs each
+    # template point once (a repeated point makes its system singular)
+    _, first = np.unique(np.asarray(template.landmarks), return_index=True)
+    once = np.sort(first)
     correspondence = closest_point_correspondence(
         neutral,
         np.asarray(source.faces),
         head.vertices,
         head.faces,
-        np.asarray(template.landmarks),
-        np.asarray(head.landmarks),
+        np.asarray(template.landmarks)[once],
+        np.asarray(head.landmarks)[once],
     )
     linear = BlendshapeRig(
         neutral.astype(np.float32),
