@@ -1,4 +1,5 @@
-"""Bad inputs of the auto-rigger's public entry points: rig generation, pose sets, features."""
+"""Bad inputs of the auto-rigger's public entry points: rig generation, pose sets, features,
+``auto_rig``."""
 
 from __future__ import annotations
 
@@ -8,10 +9,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import canrig_jax.autorig._any_head as any_head_module  # patched: the work after the checks
+import canrig_jax.autorig._data as data_module  # patched: the ICT source
 from canrig_jax.autorig import (
     AutorigDataset,
     PoseSet,
     RigAnyFaceTrainOptions,
+    Template,
+    auto_rig,
     fit_head_landmarks,
     generate_rig,
     heat_kernel_signature,
@@ -310,3 +315,116 @@ def test_head_in_metres_is_warned_and_refused_naming_the_argument(ctx):
     with pytest.warns(UserWarning, match="vertices: .*centimetres"):
         with pytest.raises(ValueError, match="vertices"):
             fit_head_landmarks(ctx.dataset, ctx.head.vertices / 100.0, ctx.head.faces)
+
+
+# --- auto_rig: every bad argument refused before the ICT source, the orientation or the
+# landmarks are reached (those are patched to fail the test if they are) -----------------------
+
+
+@pytest.fixture(scope="module")
+def any_head(data_dir):
+    """A Rocketbox head (cm, y up, facing +z) and a template that must never be used."""
+    head = np.load(data_dir / "rocketbox" / "Male_Adult_08_head.npz")
+    names = tuple(str(n) for n in head["names"])
+    rig = BlendshapeRig(head["neutral"], head["deltas"], (), names, head["faces"])
+    return types.SimpleNamespace(
+        vertices=head["neutral"],
+        faces=head["faces"],
+        jaw=head["deltas"][names.index("jawOpen")],
+        template=Template(rig, np.arange(68)),
+        small_rig=BlendshapeRig(NEUTRAL, np.ones((1, 4, 3)), (), ("jawOpen",), FACES),
+    )
+
+
+@pytest.fixture
+def no_work_reached(monkeypatch):
+    def reached(*args, **kwargs):
+        raise AssertionError("auto_rig did work before refusing its input")
+
+    monkeypatch.setattr(data_module, "ict_pose_source", reached)
+    for name in ("decide_orientation", "place_landmarks", "_pose_displacements"):
+        monkeypatch.setattr(any_head_module, name, reached)
+
+
+def _auto_rig(c, **kw):
+    args = dict(vertices=c.vertices, faces=c.faces)
+    args.update(kw)
+    return auto_rig(**args)
+
+
+AUTO_RIG = [
+    raises("unknown-method", lambda c: _auto_rig(c, method="fast"), ValueError, "method"),
+    raises("unknown-names", lambda c: _auto_rig(c, names="ict"), ValueError, "names"),
+    raises(
+        "template-with-raf",
+        lambda c: _auto_rig(c, method="raf", template=c.template),
+        ValueError,
+        "template",
+    ),
+    raises(
+        "template-not-a-template",
+        lambda c: _auto_rig(c, template=c.template.rig),
+        TypeError,
+        "template",
+    ),
+    raises(
+        "example-unknown-name",
+        lambda c: _auto_rig(c, examples={"smile": c.jaw}),
+        ValueError,
+        "examples",
+    ),
+    raises(
+        "example-other-topology",
+        lambda c: _auto_rig(c, examples={"jawOpen": c.jaw[:-10]}),
+        ValueError,
+        "examples",
+    ),
+    raises(
+        "example-rig-other-topology",
+        lambda c: _auto_rig(c, examples=c.small_rig),
+        ValueError,
+        "examples",
+    ),
+    raises(
+        "example-nan",
+        lambda c: _auto_rig(c, examples={"jawOpen": np.where(np.abs(c.jaw) > 0.5, np.nan, c.jaw)}),
+        ValueError,
+        "examples",
+    ),
+    raises("examples-a-list", lambda c: _auto_rig(c, examples=[c.jaw]), TypeError, "examples"),
+    raises(
+        "head-in-metres",
+        lambda c: _auto_rig(c, vertices=c.vertices / 100.0),
+        ValueError,
+        "vertices",
+    ),
+    raises(
+        "head-in-millimetres",
+        lambda c: _auto_rig(c, vertices=c.vertices * 10.0),
+        ValueError,
+        "vertices",
+    ),
+    raises("up-without-forward", lambda c: _auto_rig(c, up="+z"), ValueError, "up, forward"),
+    raises("forward-without-up", lambda c: _auto_rig(c, forward="-y"), ValueError, "up, forward"),
+    raises("unknown-up-axis", lambda c: _auto_rig(c, up="w", forward="-y"), ValueError, "up"),
+    raises(
+        "same-axis-twice", lambda c: _auto_rig(c, up="+z", forward="-z"), ValueError, "up, forward"
+    ),
+    raises(
+        "landmarks-too-few",
+        lambda c: _auto_rig(c, landmarks=np.arange(10)),
+        ValueError,
+        "landmarks",
+    ),
+    raises(
+        "landmarks-out-of-range",
+        lambda c: _auto_rig(c, landmarks=np.arange(68) + len(c.vertices) - 10),
+        ValueError,
+        "landmarks",
+    ),
+]
+
+
+@pytest.mark.parametrize("case", AUTO_RIG)
+def test_auto_rig(case, any_head, no_work_reached):
+    run_case(case, any_head)

@@ -240,7 +240,7 @@ def _check_examples(examples, n_vertices: int) -> dict[str, np.ndarray]:
         return {}
     if isinstance(examples, BlendshapeRig):
         scale = UNIT_IN_CM[examples.units]
-        pairs = zip(examples.names, examples.deltas, strict=True)
+        pairs = zip(examples.names, np.asarray(examples.deltas), strict=True)  # no jax slicing
         items = [(n, np.asarray(d) * scale) for n, d in pairs]
     elif isinstance(examples, Mapping):
         items = list(examples.items())
