@@ -444,3 +444,27 @@ def test_autorig_unit_mistake_is_one_error_line(capsys, tmp_path, data_dir):
     last = err.splitlines()[-1]
     assert last.startswith("canrig: error: ") and "head.obj" in last and "units" in last, err
     assert "bad.eqx" not in err
+
+
+def test_animate_an_fbx_rig_by_arkit_names(workspace, capsys, data_dir):
+    """An artist's FBX rig (Rocketbox, whole body) is driven by the capture through its ARKit
+    names: every keyed morph target is an ARKit shape of the file, and its weight at each
+    frame is the capture's value of that channel."""
+    from canrig_jax.data import read_livelink_csv
+    from canrig_jax.rig import load_fbx_rig
+
+    fbx = data_file("rocketbox/Female_Adult_01_facial.fbx", data_dir)
+    root, _ = workspace
+    out = root / "rocketbox.glb"
+    meshes = root / "rocketbox_meshes.npz"
+    status, _, err = _run(capsys, "animate", fbx, root / "take.csv", "-o", out, "--meshes", meshes)
+    assert status == 0, err
+    _assert_one_voice(err)
+    rig = load_fbx_rig(fbx)
+    animated = load_gltf_rig(out)
+    assert animated.names == rig.names and set(rig.names) <= set(ARKIT_NAMES)
+    np.testing.assert_allclose(animated.deltas, rig.deltas, atol=1e-5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        expected = read_livelink_csv(root / "take.csv").weights_for(rig.names)
+    np.testing.assert_array_equal(read_arrays(meshes, ("weights",))["weights"], expected)

@@ -599,7 +599,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = command(
         "animate",
         "Drive a rig with a Live Link Face CSV take: an animated glTF (morph weights over time).",
-        [("rig", "the rig: .glb from canrig autorig, or a .npz rig"), ("take", "the .csv take")],
+        [("rig", "the rig: .glb from canrig autorig, a .npz or an .fbx rig"), ("take", "the .csv take")],
         "the animated .glb",
     )
     p.add_argument("--fps", type=int, help="the take's frame rate (default: from the timecodes)")
@@ -633,7 +633,7 @@ def build_parser() -> argparse.ArgumentParser:
         "invert",
         "Inverse rig: the weights of a mesh sequence, written as a Live Link Face CSV.",
         [
-            ("rig", "the rig: .glb from canrig autorig, or a .npz rig"),
+            ("rig", "the rig: .glb from canrig autorig, a .npz or an .fbx rig"),
             ("meshes", "a folder of .obj frames (sorted by name) or an .npz with 'meshes'"),
         ],
         "the .csv take",
@@ -675,7 +675,7 @@ def build_parser() -> argparse.ArgumentParser:
         "correct",
         "WPSE: correct a rig from sculpted frames; the correction is baked into the glTF.",
         [
-            ("rig", "the rig: .glb from canrig autorig, or a .npz rig"),
+            ("rig", "the rig: .glb from canrig autorig, a .npz or an .fbx rig"),
             ("edits", "an .npz with 'poses' (P, K) rig weights and 'meshes' (P, V, 3) sculpts"),
         ],
         "the corrected .glb",
