@@ -82,13 +82,14 @@ SEEDS = (
     Seed(
         "riganyface",
         "RigAnyFace (Ma et al.)",
-        ("autorig_half_balanced_long", "autorig", "autorig*", "mesh_foundations"),
+        ("any_head*", "autorig_half_balanced_long", "autorig", "autorig*", "mesh_foundations"),
         "RigAnyFace trained on ICT identities and evaluated on held-out identities at a "
         "resolution never trained on and on the MakeHuman head (evaluation only), against no "
         "motion and deformation transfer. `autorig_half_balanced_long` holds the default model "
         "(`canrig_jax.autorig.DEFAULT_CHECKPOINT`); `autorig` the standard run with the DT + "
         "residual models; the other `autorig*` folders are ablations and variants; "
-        "`mesh_foundations` checks the geometry the network stands on.",
+        "`mesh_foundations` checks the geometry the network stands on. `any_head`, where "
+        "present, compares the methods of `auto_rig` on heads from other sources.",
         "guides/autorig.md",
     ),
 )
@@ -213,7 +214,7 @@ def folder_section(folder: Path) -> str:
     if table.is_file():
         parts.append(_demote(clean(table.read_text()).strip(), 3) + "\n")
     else:
-        parts.append("This folder holds no table (its outputs are used by the folders above).\n")
+        parts.append("This folder holds no `table.md`.\n")
     lines = commands(folder)
     if lines:
         parts.append("Made by (from the project root; the commands of `COMMAND`):\n")
