@@ -17,6 +17,7 @@ from canrig_jax.autorig import (
     decide_orientation,
     fit_style,
     ict_pose_source,
+    load_makehuman,
     sculpted_target_errors,
     stated_orientation,
 )
@@ -229,6 +230,31 @@ def test_every_orientation_and_mirror_is_recovered_or_refused(source, heads, hea
     ]
     if head != "crop":
         assert all(decided)
+
+
+@pytest.mark.slow  # 48 orientations, ~1 s each
+def test_makehuman_head_every_orientation_and_mirror_is_recovered(source, data_dir):
+    """An evaluation head of another style (MakeHuman; no threshold is tuned on it)."""
+    head = load_makehuman(data_dir)
+    vertices, faces = head.neutral.astype(np.float64), head.faces.astype(np.int64)
+    for mirrored in (False, True):
+        for index in range(len(axis_rotations())):
+            assert _decided_or_refused(source, vertices, faces, index, mirrored)
+
+
+def _about_vertical(degrees: float) -> np.ndarray:
+    c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def test_a_head_turned_off_the_axes_is_refused_or_snapped_to_the_nearest(source, heads):
+    vertices, faces = heads[HEADS[0]]
+    with pytest.raises(OrientationError, match="vertices"):
+        decide_orientation(source, vertices @ _about_vertical(30.0).T, faces)
+    # a few degrees off: the nearest axis-aligned orientation (here upright already)
+    decision = decide_orientation(source, vertices @ _about_vertical(10.0).T, faces)
+    np.testing.assert_allclose(decision.rotation, np.eye(3))
+    assert decision.fit["off_axis_degrees"] == pytest.approx(10.0, abs=3.0)
 
 
 def test_axis_rotations_are_the_24_proper_axis_permutations():
