@@ -26,6 +26,7 @@ from collections.abc import Callable, Mapping
 import numpy as np
 
 from .._metrics import CM_TO_MM
+from .._warnings import warn
 from ..data import arkit_name_of
 from ..mesh import check_mesh, closest_point_correspondence, connected_components
 from ..rig import UNIT_IN_CM, BlendshapeRig, deformation_transfer, rename_to_arkit
@@ -214,7 +215,8 @@ class AutoRig:
         orientation: how the head was turned for the method (``OrientationDecision``).
         landmarks: (68,) the ICT landmarks on the head; fit: "face" or "inner face" and its
             trimmed RMS (cm).
-        examples: the ARKit names of the example shapes taken as sculpted.
+        examples: the ARKit names of the example shapes taken as sculpted (an example the
+            rig has no single shape for only shapes the style, with a warning).
         seconds: wall time per step.
     """
 
@@ -391,10 +393,17 @@ def auto_rig(
         rig = BlendshapeRig(neutral, displacements, (), source_names, faces)
     if names == "arkit":
         rig = rename_to_arkit(rig)
+    taken: tuple[str, ...] = ()
     if sculpted:
-        rig = _take_sculpted(rig, sculpted)
+        rig, taken = _take_sculpted(rig, sculpted)
+        left = [n for n in sculpted if n not in taken]
+        if left:
+            warn(
+                f"examples: {', '.join(left)} shaped the style but are not in the rig as given "
+                "(no such shape in the method's rig, or a channel it splits into halves)"
+            )
     seconds["total"] = time.perf_counter() - start
-    return AutoRig(rig, method, style, orientation, landmarks, fit_record, tuple(sculpted), seconds)
+    return AutoRig(rig, method, style, orientation, landmarks, fit_record, taken, seconds)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -479,13 +488,17 @@ def _shapes_by_arkit(displacements, source_names, wanted: Mapping, rotation):
     return kept, np.stack([channels[n] @ rotation for n in kept])
 
 
-def _take_sculpted(rig: BlendshapeRig, sculpted: Mapping) -> BlendshapeRig:
+def _take_sculpted(rig: BlendshapeRig, sculpted: Mapping):
     """The rig with each example shape replaced by the artist's, matched by ARKit name (a
-    channel the rig splits into halves, ICT's ``browInnerUp_L``/``_R``, keeps its halves)."""
+    channel the rig splits into halves, ICT's ``browInnerUp_L``/``_R``, keeps its halves),
+    and the ARKit names replaced."""
     deltas = np.array(rig.deltas, np.float32)
     scale = 1.0 / UNIT_IN_CM[rig.units]
     channels = [arkit_name_of(str(name)) for name in rig.names]
+    taken = []
     for i, arkit in enumerate(channels):
         if arkit in sculpted and channels.count(arkit) == 1:
             deltas[i] = np.asarray(sculpted[arkit], np.float32) * scale
-    return BlendshapeRig(rig.neutral, deltas, rig.correctives, rig.names, rig.faces, rig.units)
+            taken.append(arkit)
+    rig = BlendshapeRig(rig.neutral, deltas, rig.correctives, rig.names, rig.faces, rig.units)
+    return rig, tuple(n for n in sculpted if n in taken)
