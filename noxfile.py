@@ -265,6 +265,8 @@ STANDARD_EXPERIMENTS = (
         *("--out", "experiments/results/canrig_pbs_attached_local_prior"),
         *("--no-progress", "--graph", "attached", "--table6-sweep", "60", "120", "200", "400"),
     ),
+    # any head: the auto_rig methods, few-shot style, templates, orientation (~15 minutes)
+    ("any_head.py", "--out", "experiments/results/any_head"),
 )
 """The standard configurations whose outputs are committed under experiments/results/ (the
 same commands as each folder's COMMAND file)."""
