@@ -90,6 +90,9 @@ def test_help(command, capsys):
         assert "--method {quartic,linear,seol" in text and "--alpha" in text
     if command == "autorig":
         assert "--method {transfer,raf,transfer-residual}" in text and "--examples" in text
+        from canrig_jax.autorig import DEFAULT_METHOD
+
+        assert f"(default: {DEFAULT_METHOD}; transfer with --template)" in " ".join(text.split())
         assert "--names {arkit,ict}" in text and "--up" in text and "--forward" in text
 
 

@@ -148,6 +148,8 @@ def _autorig(args) -> None:
     from .rig import export_gltf
 
     out = _output(args.output, (".glb",))
+    if args.method is None:
+        args.method = "transfer" if args.template else autorig.DEFAULT_METHOD
     if args.method == "raf" or args.method == "transfer-residual":
         model_path = Path(args.model) if args.model else autorig.default_model(args.method)
         if not model_path.is_file():
@@ -556,10 +558,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--method",
         choices=("transfer", "raf", "transfer-residual"),
-        default="transfer",
-        help="transfer: the template's expressions carried onto the head (anchored "
-        "deformation transfer); raf: the RigAnyFace network; transfer-residual: transfer plus "
-        "a learned residual (default: %(default)s)",
+        default=None,  # autorig.DEFAULT_METHOD (chosen on validation heads), or transfer
+        help="raf: the RigAnyFace network; transfer: the template's expressions carried onto "
+        "the head (anchored deformation transfer; closer without --examples on heads sculpted "
+        "in another style); transfer-residual: transfer plus a learned residual "
+        "(default: raf; transfer with --template)",
     )
     p.add_argument(
         "--template",
@@ -599,7 +602,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = command(
         "animate",
         "Drive a rig with a Live Link Face CSV take: an animated glTF (morph weights over time).",
-        [("rig", "the rig: .glb from canrig autorig, a .npz or an .fbx rig"), ("take", "the .csv take")],
+        [
+            ("rig", "the rig: .glb from canrig autorig, a .npz or an .fbx rig"),
+            ("take", "the .csv take"),
+        ],
         "the animated .glb",
     )
     p.add_argument("--fps", type=int, help="the take's frame rate (default: from the timecodes)")

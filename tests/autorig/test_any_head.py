@@ -323,8 +323,8 @@ def z_up_head(data_dir):
 
 @pytest.fixture(scope="module")
 def plain_rig(source, z_up_head):
-    """k = 0: the default method, orientation and landmarks found."""
-    return auto_rig(z_up_head["vertices"], z_up_head["faces"], dataset=source)
+    """k = 0: template transfer (no network to compile), orientation and landmarks found."""
+    return auto_rig(z_up_head["vertices"], z_up_head["faces"], method="transfer", dataset=source)
 
 
 @pytest.fixture(scope="module")
@@ -333,6 +333,7 @@ def styled_rig(source, z_up_head, plain_rig):
     return auto_rig(
         z_up_head["vertices"],
         z_up_head["faces"],
+        method="transfer",
         dataset=source,
         examples=z_up_head["examples"],
         orientation=plain_rig.orientation,

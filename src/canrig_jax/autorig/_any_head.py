@@ -47,10 +47,13 @@ from ._orientation import (
 from ._rig import rig_from_poses
 
 AUTO_RIG_METHODS = ("transfer", "raf", "transfer-residual")
-DEFAULT_METHOD = "transfer"
+DEFAULT_METHOD = "raf"
 """What ``auto_rig`` and ``canrig autorig`` use unless told: chosen on validation heads only
-(held-out ICT identities, the two Rocketbox heads) by the rule committed in
-``experiments/results/any_head/COMMAND`` before the comparison ran."""
+(held-out ICT identities at k = 0, the two Rocketbox heads at k = 3 examples) by the rule
+committed in ``experiments/results/any_head/COMMAND`` before the comparison ran — the method
+whose worst ratio to no motion (skin or active MAE) is lowest: raf 0.89, transfer-residual
+0.93, transfer 0.95. Without examples, on heads sculpted in another style than ICT's,
+``"transfer"`` is the closer one (``experiments/results/any_head/table.md``)."""
 ANCHOR_CM = STATIC_MM / CM_TO_MM
 """Anchored transfer: per pose, target vertices whose carried displacement is shorter than
 this (0.01 mm, the evaluation's static threshold) stay exactly still."""
@@ -213,8 +216,8 @@ class AutoRig:
             ``names="source"``.
         method: the method run; style: the ``Style`` applied (``Style()`` without examples).
         orientation: how the head was turned for the method (``OrientationDecision``).
-        landmarks: (68,) the ICT landmarks on the head; fit: "face" or "inner face" and its
-            trimmed RMS (cm).
+        landmarks: (68,) the ICT landmarks on the head (None for "raf", which needs none);
+            fit: how they were placed ("face", "inner face", "given") and the trimmed RMS (cm).
         examples: the ARKit names of the example shapes taken as sculpted (an example the
             rig has no single shape for only shapes the style, with a warning).
         seconds: wall time per step.
@@ -276,7 +279,7 @@ def auto_rig(
     vertices,
     faces,
     *,
-    method: str = DEFAULT_METHOD,
+    method: str | None = None,
     dataset: AutorigDataset | None = None,
     template: Template | None = None,
     examples=None,
@@ -293,7 +296,8 @@ def auto_rig(
     Args:
         vertices: (V, 3) neutral head in **centimetres**, any axis-aligned orientation;
             faces: (F, 3) triangles.
-        method: one of ``AUTO_RIG_METHODS`` (default ``DEFAULT_METHOD``; see the module docstring).
+        method: one of ``AUTO_RIG_METHODS`` (default: ``DEFAULT_METHOD``, or "transfer" when
+            a ``template`` is given; see the module docstring).
         dataset: the ICT source (``ict_pose_source()``; loaded when None: seconds).
         template: a ``Template`` to carry from instead of ICT (``method="transfer"`` only).
         examples: k of this head's ARKit shapes as sculpted by its artist (a
@@ -312,6 +316,8 @@ def auto_rig(
     compiled work.
     """
     start = time.perf_counter()
+    if method is None:
+        method = "transfer" if template is not None else DEFAULT_METHOD
     if method not in AUTO_RIG_METHODS:
         raise ValueError(f"method: expected one of {AUTO_RIG_METHODS}, got {method!r}")
     if names not in NAME_STYLES:
@@ -353,7 +359,9 @@ def auto_rig(
     upright = v @ rotation.T
     skin = skin_of(upright, faces)
     t = time.perf_counter()
-    if landmarks is None:
+    if landmarks is None and method == "raf":  # the network needs no correspondence
+        fit_record = {"by": "not needed (raf)", "rms_cm": float("nan")}
+    elif landmarks is None:
         _progress(progress, "placing the ICT landmarks on the head")
         landmarks, fit, fitted_by = place_landmarks(dataset, upright, faces, region=skin)
         fit_record = {"by": fitted_by, "rms_cm": float(fit.rms)}
