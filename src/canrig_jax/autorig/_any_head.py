@@ -316,34 +316,10 @@ def auto_rig(
     compiled work.
     """
     start = time.perf_counter()
-    if method is None:
-        method = "transfer" if template is not None else DEFAULT_METHOD
-    if method not in AUTO_RIG_METHODS:
-        raise ValueError(f"method: expected one of {AUTO_RIG_METHODS}, got {method!r}")
-    if names not in NAME_STYLES:
-        raise ValueError(f"names: expected one of {NAME_STYLES}, got {names!r}")
-    if template is not None and method != "transfer":
-        raise ValueError(f"template: only method='transfer' carries a template, not {method!r}")
-    if template is not None and not isinstance(template, Template):
-        raise TypeError(f"template: expected a Template, got {type(template).__name__}")
-    vertices, faces = check_mesh(vertices, faces)
-    v = np.asarray(vertices, np.float64)
-    height = float(np.ptp(v[:, np.argmax(np.ptp(v, axis=0))]))
-    if not 10.0 <= height <= 60.0:
-        raise ValueError(
-            f"vertices: the head is {height:.3g} cm along its longest axis; a head is 10-60 "
-            "cm: give it in centimetres"
-        )
+    method = _check_method(method, names, template)
+    v, faces = _check_head(vertices, faces)
     sculpted = _check_examples(examples, v.shape[0])
-    # stated axes and given landmarks are checked with the other arguments, before any work
-    if (up is None) != (forward is None):
-        raise ValueError("up, forward: state both of the head's axes or neither")
-    if orientation is None and up is not None:
-        orientation = stated_orientation(up, forward)
-    if landmarks is not None:
-        landmarks = np.asarray(landmarks, np.int64)
-        if landmarks.shape != (68,) or landmarks.min() < 0 or landmarks.max() >= v.shape[0]:
-            raise ValueError(f"landmarks: expected 68 vertex indices in [0, {v.shape[0]})")
+    orientation, landmarks = _check_placement(orientation, up, forward, landmarks, len(v))
     if dataset is None:
         from ._data import ict_pose_source
 
@@ -353,29 +329,22 @@ def auto_rig(
     if orientation is None:
         _progress(progress, "deciding the head's orientation from its face")
         t = time.perf_counter()
-        orientation = decide_orientation(dataset, v, faces, up=up, forward=forward)
+        orientation = decide_orientation(dataset, v, faces)
         seconds["orientation"] = time.perf_counter() - t
     rotation = orientation.rotation
     upright = v @ rotation.T
     skin = skin_of(upright, faces)
     t = time.perf_counter()
-    if landmarks is None and method == "raf":  # the network needs no correspondence
-        fit_record = {"by": "not needed (raf)", "rms_cm": float("nan")}
-    elif landmarks is None:
-        _progress(progress, "placing the ICT landmarks on the head")
-        landmarks, fit, fitted_by = place_landmarks(dataset, upright, faces, region=skin)
-        fit_record = {"by": fitted_by, "rms_cm": float(fit.rms)}
-    else:
-        fit_record = {"by": "given", "rms_cm": float("nan")}
+    landmarks, fit_record = _landmarks(dataset, upright, faces, skin, landmarks, method, progress)
     seconds["landmarks"] = time.perf_counter() - t
 
     t = time.perf_counter()
     _progress(progress, f"building the rig ({method})")
     head = _Head(upright, np.asarray(faces), landmarks, skin)
     if template is not None:
-        rig = _template_rig(template, head)
-        displacements, pose_set = np.asarray(rig.deltas, np.float64), None
-        source_names = tuple(rig.names)
+        carried = _template_rig(template, head)
+        displacements, pose_set = np.asarray(carried.deltas, np.float64), None
+        source_names = tuple(carried.names)
     else:
         displacements = _pose_displacements(method, dataset, head, model)
         pose_set = dataset.poses
@@ -392,26 +361,76 @@ def auto_rig(
             f"falloff {style.falloff:g}, floor {style.floor:g}",
         )
         displacements = style.apply(displacements)
-    # back into the head's own frame
-    displacements = (np.asarray(displacements, np.float64) @ rotation).astype(np.float32)
-    neutral = v.astype(np.float32)
+    rig = _assemble(v, faces, displacements @ rotation, pose_set, source_names, names)
+    rig, taken = _take_sculpted(rig, sculpted)
+    seconds["total"] = time.perf_counter() - start
+    return AutoRig(rig, method, style, orientation, landmarks, fit_record, taken, seconds)
+
+
+def _check_method(method, names, template) -> str:
+    """The method to run (``DEFAULT_METHOD``, or "transfer" with a template)."""
+    if method is None:
+        method = "transfer" if template is not None else DEFAULT_METHOD
+    if method not in AUTO_RIG_METHODS:
+        raise ValueError(f"method: expected one of {AUTO_RIG_METHODS}, got {method!r}")
+    if names not in NAME_STYLES:
+        raise ValueError(f"names: expected one of {NAME_STYLES}, got {names!r}")
+    if template is not None and method != "transfer":
+        raise ValueError(f"template: only method='transfer' carries a template, not {method!r}")
+    if template is not None and not isinstance(template, Template):
+        raise TypeError(f"template: expected a Template, got {type(template).__name__}")
+    return method
+
+
+def _check_head(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
+    """(V, 3) float64 cm and (F, 3) faces of a plausible head (10-60 cm)."""
+    vertices, faces = check_mesh(vertices, faces)
+    v = np.asarray(vertices, np.float64)
+    height = float(np.ptp(v[:, np.argmax(np.ptp(v, axis=0))]))
+    if not 10.0 <= height <= 60.0:
+        raise ValueError(
+            f"vertices: the head is {height:.3g} cm along its longest axis; a head is 10-60 "
+            "cm: give it in centimetres"
+        )
+    return v, faces
+
+
+def _check_placement(orientation, up, forward, landmarks, n_vertices: int):
+    """Stated axes and given landmarks, checked before any work: (orientation or None,
+    (68,) landmarks or None)."""
+    if (up is None) != (forward is None):
+        raise ValueError("up, forward: state both of the head's axes or neither")
+    if orientation is None and up is not None:
+        orientation = stated_orientation(up, forward)
+    if landmarks is not None:
+        landmarks = np.asarray(landmarks, np.int64)
+        if landmarks.shape != (68,) or landmarks.min() < 0 or landmarks.max() >= n_vertices:
+            raise ValueError(f"landmarks: expected 68 vertex indices in [0, {n_vertices})")
+    return orientation, landmarks
+
+
+def _landmarks(dataset, upright, faces, skin, landmarks, method, progress):
+    """The ICT landmarks on the upright head and how they were placed (the network needs
+    none: None for "raf" unless given)."""
+    if landmarks is not None:
+        return landmarks, {"by": "given", "rms_cm": float("nan")}
+    if method == "raf":
+        return None, {"by": "not needed (raf)", "rms_cm": float("nan")}
+    _progress(progress, "placing the ICT landmarks on the head")
+    landmarks, fit, fitted_by = place_landmarks(dataset, upright, faces, region=skin)
+    return landmarks, {"by": fitted_by, "rms_cm": float(fit.rms)}
+
+
+def _assemble(vertices, faces, displacements, pose_set, source_names, names) -> BlendshapeRig:
+    """The rig in the head's own frame from its (P, V, 3) displacements (cm): correctives
+    from the combination poses of ``pose_set`` (None: a linear rig of ``source_names``)."""
+    neutral = np.asarray(vertices, np.float32)
+    displacements = np.asarray(displacements, np.float32)
     if pose_set is not None:
         rig = rig_from_poses(neutral, faces, displacements, pose_set)
     else:
         rig = BlendshapeRig(neutral, displacements, (), source_names, faces)
-    if names == "arkit":
-        rig = rename_to_arkit(rig)
-    taken: tuple[str, ...] = ()
-    if sculpted:
-        rig, taken = _take_sculpted(rig, sculpted)
-        left = [n for n in sculpted if n not in taken]
-        if left:
-            warn(
-                f"examples: {', '.join(left)} shaped the style but are not in the rig as given "
-                "(no such shape in the method's rig, or a channel it splits into halves)"
-            )
-    seconds["total"] = time.perf_counter() - start
-    return AutoRig(rig, method, style, orientation, landmarks, fit_record, taken, seconds)
+    return rename_to_arkit(rig) if names == "arkit" else rig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -497,9 +516,11 @@ def _shapes_by_arkit(displacements, source_names, wanted: Mapping, rotation):
 
 
 def _take_sculpted(rig: BlendshapeRig, sculpted: Mapping):
-    """The rig with each example shape replaced by the artist's, matched by ARKit name (a
-    channel the rig splits into halves, ICT's ``browInnerUp_L``/``_R``, keeps its halves),
-    and the ARKit names replaced."""
+    """The rig with each example shape replaced by the artist's, matched by ARKit name, and
+    the ARKit names replaced; a channel the rig splits into halves (ICT's
+    ``browInnerUp_L``/``_R``) or lacks keeps the generated shape, with a warning."""
+    if not sculpted:
+        return rig, ()
     deltas = np.array(rig.deltas, np.float32)
     scale = 1.0 / UNIT_IN_CM[rig.units]
     channels = [arkit_name_of(str(name)) for name in rig.names]
@@ -508,5 +529,11 @@ def _take_sculpted(rig: BlendshapeRig, sculpted: Mapping):
         if arkit in sculpted and channels.count(arkit) == 1:
             deltas[i] = np.asarray(sculpted[arkit], np.float32) * scale
             taken.append(arkit)
+    left = [n for n in sculpted if n not in taken]
+    if left:
+        warn(
+            f"examples: {', '.join(left)} shaped the style but are not in the rig as given "
+            "(no such shape in the method's rig, or a channel it splits into halves)"
+        )
     rig = BlendshapeRig(rig.neutral, deltas, rig.correctives, rig.names, rig.faces, rig.units)
     return rig, tuple(n for n in sculpted if n in taken)
