@@ -533,23 +533,32 @@ def _view(args) -> None:
 
 # ------------------------------------------------------------------------------------ main
 def build_parser() -> argparse.ArgumentParser:
-    from .inverse import ORDERS, QuarticCD
-
     parser = _Parser(
         prog="canrig",
         description="From a head file and a phone capture to an animated rig (canrig_jax).",
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="SUBCOMMAND")
+    _add_autorig_parser(sub)
+    _add_animate_parser(sub)
+    _add_invert_parser(sub)
+    _add_correct_parser(sub)
+    _add_view_parser(sub)
+    return parser
 
-    def command(name: str, help: str, inputs: Sequence[tuple[str, str]], out_help: str):
-        p = sub.add_parser(name, help=help, description=help)
-        for arg, text in inputs:
-            p.add_argument(arg, help=text)
-        p.add_argument("-o", "--output", required=True, help=out_help)
-        p.add_argument("--quiet", action="store_true", help="no progress messages")
-        return p
 
-    p = command(
+def _add_command(sub, name: str, help: str, inputs: Sequence[tuple[str, str]], out_help: str):
+    """A subcommand's parser with its positional ``inputs``, ``--output`` and ``--quiet``."""
+    p = sub.add_parser(name, help=help, description=help)
+    for arg, text in inputs:
+        p.add_argument(arg, help=text)
+    p.add_argument("-o", "--output", required=True, help=out_help)
+    p.add_argument("--quiet", action="store_true", help="no progress messages")
+    return p
+
+
+def _add_autorig_parser(sub) -> None:
+    p = _add_command(
+        sub,
         "autorig",
         "Generate an ARKit blendshape rig (with correctives) for any neutral head.",
         [("head", "head mesh: .obj, .ply, .gltf, .glb or .fbx")],
@@ -599,7 +608,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(run=_autorig)
 
-    p = command(
+
+def _add_animate_parser(sub) -> None:
+    p = _add_command(
+        sub,
         "animate",
         "Drive a rig with a Live Link Face CSV take: an animated glTF (morph weights over time).",
         [
@@ -635,7 +647,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(run=_animate)
 
-    p = command(
+
+def _add_invert_parser(sub) -> None:
+    from .inverse import ORDERS, QuarticCD
+
+    p = _add_command(
+        sub,
         "invert",
         "Inverse rig: the weights of a mesh sequence, written as a Live Link Face CSV.",
         [
@@ -677,7 +694,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--reference", help="a .csv take to report the weight error against")
     p.set_defaults(run=_invert)
 
-    p = command(
+
+def _add_correct_parser(sub) -> None:
+    p = _add_command(
+        sub,
         "correct",
         "WPSE: correct a rig from sculpted frames; the correction is baked into the glTF.",
         [
@@ -690,6 +710,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--take", help="bake the corrected rig over this .csv take (animated)")
     p.set_defaults(run=_correct)
 
+
+def _add_view_parser(sub) -> None:
     about = "See a rig or a take: a local web viewer (127.0.0.1 only) for a .glb file."
     p = sub.add_parser("view", help=about, description=about)
     p.add_argument("file", metavar="FILE", help="the .glb (canrig autorig, animate or correct)")
@@ -714,7 +736,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.set_defaults(run=_view)
-    return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
