@@ -40,6 +40,7 @@ from canrig_jax.canrig import (  # noqa: E402
     PBSTrainOptions,
     ShapePreservingCANRig,
     build_pbs_training_set,
+    check_pbs_training_matches,
     expression_region,
     fit_pbs,
     global_blendshape_dialogue,
@@ -54,6 +55,7 @@ from canrig_jax.canrig import (  # noqa: E402
     pbs_basis,
     pbs_reconstruct,
     pbs_shape,
+    reach_floor,
     seed_distances,
     split_capture,
     train_pbs,
@@ -294,26 +296,15 @@ def _handle_reach(head, handle_distance: np.ndarray) -> dict:
 
 
 def _check_graph(args, folder: Path) -> None:
-    """Refuse to resume or evaluate a model trained with another --handles-on, or a masked
-    model trained on the other --graph (train.json says which; before the options: 'mesh',
-    'skin')."""
-    meta = folder / "train.json"
-    if not meta.exists():
-        return
-    meta = json.loads(meta.read_text())
-    trained = {"handles_on": meta.get("handles_on", "skin")}
-    if not folder.name.startswith("shape_transformer"):  # the Shape Transformer has no masks
-        trained["graph"] = meta.get("graph", "mesh")
-        if trained["graph"] == "attached" and args.graph == "attached":
-            trained["attach"] = meta["attach"]
-            trained["attach_onto"] = meta["attach_onto"]
-    for name, value in trained.items():
-        if value != getattr(args, name):
-            flag = "--" + name.replace("_", "-")
-            raise ValueError(
-                f"{flag}: {folder} was trained with {flag} {value}, this run uses "
-                f"{getattr(args, name)}"
-            )
+    """Refuse to resume or evaluate a model trained with other --handles-on / --graph options
+    (``canrig_jax.canrig.check_pbs_training_matches``)."""
+    check_pbs_training_matches(
+        folder,
+        handles_on=args.handles_on,
+        graph=args.graph,
+        attach=args.attach,
+        attach_onto=args.attach_onto,
+    )
 
 
 def _train(args, argv, head):
@@ -469,17 +460,6 @@ def _mouth_handles(head, distances, mouth, mouth_patch, count: int):
     return candidates[farthest_point_vertices(head["neutral"][candidates], count)]
 
 
-def reach_floor(head, distances, handles, source, target, region) -> tuple[float, int]:
-    """(mm, vertices): the region's vertices whose every covering patch lies beyond the
-    clamped mask's reach from every moved handle keep the source frame in any CANRig-PBS
-    result, so their error |source - target|, averaged over the region and the frames, is
-    a lower bound of its mouth difference whatever the network."""
-    reached_patch = distances[:, handles].min(axis=1) <= DIALOGUE_REACH_CM  # (P,)
-    unreached = region & ~head["layout"].covered_by(reached_patch)
-    error = np.linalg.norm(source - target, axis=-1) * CM_TO_MM
-    return float(error[:, unreached].sum(axis=1).mean() / region.sum()), int(unreached.sum())
-
-
 def _table6(args, head, data, distances, n_mouth: int = DIALOGUE_HANDLES, clips=None):
     """Dialogue replacement (Table 6) on the whole head for the trained models and GBS.
 
@@ -558,7 +538,9 @@ def _table6(args, head, data, distances, n_mouth: int = DIALOGUE_HANDLES, clips=
             "mouth_difference_mm": error(edited, target, region),
             "rest_of_face_change_mm": error(edited, source, ~region),
         }
-    floor_mm, unreached = reach_floor(head, distances, mouth_handles, source, target, region)
+    floor_mm, unreached = reach_floor(
+        head["layout"], distances, mouth_handles, source, target, region, reach_cm=DIALOGUE_REACH_CM
+    )
     table6 = {
         "methods": methods,
         "mouth_handles": int(n_mouth),

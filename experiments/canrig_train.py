@@ -20,56 +20,27 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from canrig_jax._cli import add_dataclass_options, from_args
 from canrig_jax._io import save_json
 from canrig_jax._provenance import experiment_command, provenance
 from canrig_jax.canrig import (
-    FARTHEST_METRICS,
-    LOSSES,
-    VARIANTS,
     DataOptions,
     TrainOptions,
+    add_training_options,
     parameter_count,
     split_capture,
     train,
+    training_options_from_args,
 )
 from canrig_jax.data import load_livelinkface
 from canrig_jax.render import save_figure
 from canrig_jax.rig import ict_quartic_rig
 from canrig_jax.watchdog import run_watched
 
-OPTION_ALIASES = {"n_heads": ["--heads"], "max_minutes": ["--minutes"]}
-"""Short flags kept from the first version of this script (committed commands use them)."""
-OPTION_DEFAULTS = {"steps": 100_000, "max_minutes": 25.0}
-"""Where this script's defaults differ from ``TrainOptions``'s (a time budget decides)."""
-OPTION_CHOICES = {"variant": sorted(VARIANTS), "loss": LOSSES, "farthest_metric": FARTHEST_METRICS}
-OPTION_HELP = {
-    "max_minutes": "training time budget",
-    "steps": "step budget",
-    "n_heads": "attention heads",
-    "latent": "total latent width (all heads)",
-    "width": "hidden width of every MLP",
-    "fourier": "octaves of the query encoding",
-    "farthest_sets": "farthest-point handle sets in the pool",
-    "farthest_metric": "distance of the farthest-point handle sets (geodesic: that of the masks)",
-    "capture_mixes": "extra poses: convex combinations of two training capture frames",
-    "decay_steps": "cosine learning-rate decay (0: constant)",
-    "decay_start": "step at which the cosine decay begins",
-    "decay_floor": "final rate / initial rate of the decay",
-    "loss": "per-vertex penalty: squared error (eq. 3) or the Euclidean error (as reported)",
-    "interpolation_prior": "add the mask-weighted mean of the handle displacements",
-    "query_modulation": "output input also modulated by an affine map of the vertex's query",
-    "linear_skip": "bias-free linear skip in value/output MLPs",
-    "value_position": "value modulation: an MLP of the handle's encoded base position",
-    "p_neutral": "base shape: the neutral",
-}
-QUICK = {"steps": 30, "max_minutes": None, "checkpoint_every": 10, "log_every": 5}
-"""``--quick``: a few steps on the tiny training set (``DataOptions.quick``)."""
-
 
 def parser() -> argparse.ArgumentParser:
     """The command line: a few script flags, then every field of ``TrainOptions`` (and its
-    ``ExampleOptions``) and of ``DataOptions`` as ``--field-name``."""
+    ``ExampleOptions``) and of ``DataOptions`` as ``--field-name``
+    (``canrig_jax.canrig.add_training_options``)."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--data-dir", default=None, help="data folder (else $CANRIG_DATA)")
@@ -81,22 +52,11 @@ def parser() -> argparse.ArgumentParser:
         default=None,
         help="data-parallel training over N devices (default: all; see canrig_jax._sharding)",
     )
-    for cls in (TrainOptions, DataOptions):
-        add_dataclass_options(
-            p,
-            cls,
-            aliases=OPTION_ALIASES,
-            defaults=OPTION_DEFAULTS,
-            choices=OPTION_CHOICES,
-            help=OPTION_HELP,
-        )
-    return p
+    return add_training_options(p)
 
 
 def options_from_args(args: argparse.Namespace) -> tuple[TrainOptions, DataOptions]:
-    options = from_args(TrainOptions, args, **(QUICK if args.quick else {}))
-    data_options = from_args(DataOptions, args)
-    return options, data_options.quick() if args.quick else data_options
+    return training_options_from_args(args, quick=args.quick)
 
 
 def main(argv=None):

@@ -2,28 +2,31 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
+import subprocess
+import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-EXPERIMENTS = Path(__file__).resolve().parents[2] / "experiments"
+from canrig_jax.canrig import PatchLayout, check_pbs_training_matches, reach_floor
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
-def _load(name):
-    spec = importlib.util.spec_from_file_location(name, EXPERIMENTS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def _run(name: str, argv: list[str]) -> None:
+    """Run ``experiments/<name>.py`` as its command line (a full experiment: slow tests only)."""
+    script = ROOT / "experiments" / f"{name}.py"
+    subprocess.run([sys.executable, str(script), *argv], check=True, cwd=ROOT)
 
 
 @pytest.mark.slow
 def test_quick_train_and_eval_write_the_issue_keys(tmp_path):
-    _load("canrig_train").main(["--quick", "--no-progress", "--out", str(tmp_path)])
+    _run("canrig_train", ["--quick", "--no-progress", "--out", str(tmp_path)])
     checkpoint = tmp_path / "checkpoint.eqx"
     assert checkpoint.exists() and (tmp_path / "train.json").exists()
-    _load("canrig_eval").main(["--quick", "--checkpoint", str(checkpoint), "--out", str(tmp_path)])
+    _run("canrig_eval", ["--quick", "--checkpoint", str(checkpoint), "--out", str(tmp_path)])
     results = json.loads((tmp_path / "results.json").read_text())
     assert results["zero_preservation_max_mm"] == 0.0
     assert results["outside_region_change_max_mm"] == 0.0
@@ -40,28 +43,37 @@ def test_quick_train_and_eval_write_the_issue_keys(tmp_path):
 
 def test_pbs_graph_option_refuses_another_attachment(tmp_path):
     # (the --attach / --attach-onto part names: ICTFaceModel.part_mask, tests/data/test_ict.py)
-    pbs = _load("canrig_pbs")
     folder = tmp_path / "per_patch"
     folder.mkdir()
+    check_pbs_training_matches(folder, handles_on="moving", graph="mesh")  # nothing recorded
     meta = {"graph": "attached", "attach": ["Teeth"], "attach_onto": ["Face"]}
     (folder / "train.json").write_text(json.dumps(meta))
-    args = pbs._parser().parse_args(["--out", str(tmp_path), "--graph", "attached"])
+    run = {"handles_on": "skin", "graph": "attached", "attach_onto": ["Face"]}
     with pytest.raises(ValueError, match="--attach: "):  # trained with Teeth only
-        pbs._check_graph(args, folder)
-    args.attach = ["Teeth"]
-    pbs._check_graph(args, folder)  # the same attachment resumes
+        check_pbs_training_matches(folder, **run, attach=["Teeth", "Gums and tongue"])
+    check_pbs_training_matches(folder, **run, attach=("Teeth",))  # the same attachment resumes
     with pytest.raises(ValueError, match="--graph: "):
-        pbs._check_graph(pbs._parser().parse_args(["--out", str(tmp_path)]), folder)
+        check_pbs_training_matches(folder, handles_on="skin", graph="bridged")
+    with pytest.raises(ValueError, match="--handles-on: "):  # before the option: the skin
+        check_pbs_training_matches(
+            folder, handles_on="moving", graph="attached", attach=["Teeth"], attach_onto=["Face"]
+        )
+    # the Shape Transformer has no masks: only where its handles are drawn is checked
+    transformer = tmp_path / "shape_transformer"
+    transformer.mkdir()
+    (transformer / "train.json").write_text(json.dumps({"handles_on": "moving"}))
+    check_pbs_training_matches(transformer, handles_on="moving", graph="bridged")
+    with pytest.raises(ValueError, match="--handles-on: "):
+        check_pbs_training_matches(transformer, handles_on="skin", graph="bridged")
 
 
 @pytest.mark.slow
 def test_pbs_quick_attached_graph_end_to_end(tmp_path):
-    pbs = _load("canrig_pbs")
     argv = ["--quick", "--no-progress", "--out", str(tmp_path), "--graph", "attached"]
-    pbs.main([*argv, "--train", "per_patch", "--steps", "20", "--decay-steps", "20"])
+    _run("canrig_pbs", [*argv, "--train", "per_patch", "--steps", "20", "--decay-steps", "20"])
     meta = json.loads((tmp_path / "models" / "per_patch" / "train.json").read_text())
     assert meta["graph"] == "attached" and meta["attach_onto"] == ["Face"]
-    pbs.main(argv)
+    _run("canrig_pbs", argv)
     results = json.loads((tmp_path / "results.json").read_text())
     assert "per_patch" in results["table5"]
     reach = results["table5_reach"]["regions"]
@@ -72,25 +84,21 @@ def test_pbs_quick_attached_graph_end_to_end(tmp_path):
     # the handle sweep: no network goes below the reach floor, more handles never raise it,
     # the exact zero outside the region holds for every count; re-running replaces the section
     for _ in range(2):
-        pbs.main([*argv, "--table6-sweep", "2", "8"])
+        _run("canrig_pbs", [*argv, "--table6-sweep", "2", "8"])
     sweep = json.loads((tmp_path / "results.json").read_text())["table6_handle_sweep"]
     rows = sweep["mouth_difference_mm"]
     assert rows["2"]["reach_floor_mm"] >= rows["8"]["reach_floor_mm"]
     for row in rows.values():
         assert row["per_patch"] >= row["reach_floor_mm"] - 1e-6
         assert row["per_patch_rest_of_face_change_max_mm"] == 0.0
-    assert (tmp_path / "table.md").read_text().count(pbs.SWEEP_HEADER) == 1
+    header = "Table 6, a variant: the number of mouth handles"  # the sweep's section
+    assert (tmp_path / "table.md").read_text().count(header) == 1
     assert "table5" in json.loads((tmp_path / "results.json").read_text())  # kept
 
 
 def test_reach_floor_counts_only_vertices_no_moved_handle_reaches():
     """Two patches over four vertices; the handle reaches patch 0 only: vertices covered by
     patch 1 alone keep the source, and their error averaged over the region is the floor."""
-    import numpy as np
-
-    from canrig_jax.canrig import PatchLayout
-
-    pbs = _load("canrig_pbs")
     layout = PatchLayout(
         vertex_patches=np.array([[0, 0], [0, 1], [1, 1], [1, 1]]),
         vertex_weights=np.array([[1.0, 0.0], [0.5, 0.5], [1.0, 0.0], [1.0, 0.0]]),
@@ -102,6 +110,12 @@ def test_reach_floor_counts_only_vertices_no_moved_handle_reaches():
     target = np.zeros((1, 4, 3), np.float32)
     target[0, :, 0] = [0.1, 0.2, 0.3, 0.4]  # cm
     region = np.array([True, True, True, False])
-    floor, unreached = pbs.reach_floor({"layout": layout}, distances, [0], source, target, region)
+    floor, unreached = reach_floor(layout, distances, [0], source, target, region, reach_cm=1.0)
     assert unreached == 1  # vertex 2 (vertex 1 is also covered by the reached patch 0)
     assert floor == pytest.approx(3.0 / 3)  # 3 mm at vertex 2, averaged over 3 region vertices
+    # a reach beyond patch 1's seed reaches every vertex: no floor
+    assert reach_floor(layout, distances, [0], source, target, region, reach_cm=100.0) == (0, 0)
+    with pytest.raises(ValueError, match="reach_cm"):
+        reach_floor(layout, distances, [0], source, target, region, reach_cm=0.0)
+    with pytest.raises(ValueError, match="patch_distance_cm"):
+        reach_floor(layout, distances[:1], [0], source, target, region, reach_cm=1.0)

@@ -3,8 +3,8 @@ interrupted run gives exactly the uninterrupted result; example sampling."""
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
-import importlib.util
 import json
 from pathlib import Path
 
@@ -19,6 +19,7 @@ from canrig_jax.canrig import (
     DataOptions,
     ExampleOptions,
     TrainOptions,
+    add_training_options,
     build_training_set,
     capture_mixes_of,
     load_model,
@@ -27,6 +28,7 @@ from canrig_jax.canrig import (
     sample_examples,
     split_capture,
     train,
+    training_options_from_args,
     vertex_penalty,
 )
 
@@ -273,9 +275,12 @@ def test_committed_checkpoints_load():
 
 
 def test_training_command_line_is_derived_from_the_options():
-    """Every field of TrainOptions, ExampleOptions and DataOptions is an option of
-    canrig_train.py, and a non-default value of each round-trips through the command line."""
-    script = _load_script()
+    """Every field of TrainOptions, ExampleOptions and DataOptions is an option of the
+    training command line, and a non-default value of each round-trips through it."""
+
+    def parse(argv):
+        return add_training_options(argparse.ArgumentParser()).parse_args(argv)
+
     options = TrainOptions(
         variant="canrig",
         n_heads=2,
@@ -307,13 +312,15 @@ def test_training_command_line_is_derived_from_the_options():
         ),
     )
     data_options = DataOptions(n_random=9, n_active=(2, 3), farthest_metric="geodesic")
-    argv = ["--out", "x", *_flags(options), *_flags(data_options)]
-    parsed = script.parser().parse_args(argv)
-    assert script.options_from_args(parsed) == (options, data_options)
+    parsed = parse([*_flags(options), *_flags(data_options)])
+    assert training_options_from_args(parsed) == (options, data_options)
     # the committed command's short flags still work
-    parsed = script.parser().parse_args(["--out", "x", "--heads", "2", "--minutes", "9"])
-    got, _ = script.options_from_args(parsed)
+    got, _ = training_options_from_args(parse(["--heads", "2", "--minutes", "9"]))
     assert (got.n_heads, got.max_minutes, got.steps) == (2, 9.0, 100_000)
+    # --quick: the step budget, no time limit, and the tiny data set
+    got, data = training_options_from_args(parse(_flags(options)), quick=True)
+    assert (got.steps, got.max_minutes, got.width) == (30, None, options.width)
+    assert data == DataOptions().quick()
 
 
 def _flags(instance) -> list[str]:
@@ -333,12 +340,3 @@ def _flags(instance) -> list[str]:
         else:
             out += [flag, str(value)]
     return out
-
-
-def _load_script():
-    spec = importlib.util.spec_from_file_location(
-        "canrig_train", ROOT / "experiments" / "canrig_train.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module

@@ -76,6 +76,12 @@ from ._pbs_train import (
     seed_distances,
     train_pbs,
 )
+from ._protocols import (
+    add_training_options,
+    check_pbs_training_matches,
+    reach_floor,
+    training_options_from_args,
+)
 from ._rig import HandleEdit, Handles, NeuralRig, deform, edit_mask, trace_edit
 from ._train import (
     EUCLIDEAN_SOFTNESS_MM,
@@ -118,6 +124,10 @@ from ._workflows import (
 __all__ = [
     "PatchLayout",
     "check_basis",
+    "add_training_options",
+    "check_pbs_training_matches",
+    "reach_floor",
+    "training_options_from_args",
     "fit_pbs",
     "global_blendshape_dialogue",
     "global_blendshape_fit",
