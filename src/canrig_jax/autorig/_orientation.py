@@ -23,6 +23,8 @@ lets through: it refuses or fixes only what the cues show clearly.
 from __future__ import annotations
 
 import dataclasses
+from importlib.resources import files
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -122,15 +124,7 @@ def head_orientation(vertices, faces, *, max_points: int = 4000) -> HeadOrientat
     p = p / radius
 
     # -- left-right: mirror symmetry ---------------------------------------------------
-    sample = p[:: max(1, int(np.ceil(p.shape[0] / max_points)))]
-    tree = cKDTree(sample)
-    asymmetry = []
-    for a in range(3):
-        mirrored = sample.copy()
-        # mirror about the plane through the mean along a (bounding-box centres are pulled
-        # by one-sided features such as the nose on the forward axis; the mean is not)
-        mirrored[:, a] = 2 * sample[:, a].mean() - mirrored[:, a]
-        asymmetry.append(float(tree.query(mirrored)[0].mean()))
+    asymmetry = _mirror_asymmetry(p, max_points)
     order = np.argsort(asymmetry)
     lateral_axis = int(order[0])
     ratio = asymmetry[order[1]] / max(asymmetry[order[0]], 1e-12)
@@ -142,13 +136,7 @@ def head_orientation(vertices, faces, *, max_points: int = 4000) -> HeadOrientat
 
     # -- forward: the sharpest extreme (the nose tip) -------------------------------------
     others = [a for a in range(3) if a != lateral_axis]
-    spreads = {}
-    for a in others:
-        for sign in (1.0, -1.0):
-            height = sign * p[:, a]
-            near = height >= height.max() - 0.05
-            tip = p[np.argmax(height)]
-            spreads[(a, sign)] = float(np.sqrt(np.mean(np.sum((p[near] - tip) ** 2, axis=1))))
+    spreads = _extreme_spreads(p, others)
     ranked = sorted(spreads, key=spreads.get)
     sharpness = spreads[ranked[1]] / max(spreads[ranked[0]], 1e-12)
     margins["sharpness"] = float(sharpness)
@@ -167,10 +155,54 @@ def head_orientation(vertices, faces, *, max_points: int = 4000) -> HeadOrientat
     # -- up: the eyes above the nose, the neck cut below -------------------------------
     up_axis = next(a for a in others if a != forward_axis)
     nose = p[np.argmax(forward_sign * p[:, forward_axis])]
+    votes = _side_parts_vote(p, inner, labels[~main], lateral_axis, up_axis, nose)
+    votes.update(_neck_cut_vote(p, faces, main, up_axis))
+    margins["up_votes"] = votes
+    signs = {np.sign(value) for name, value in votes.items() if abs(value) >= UP_MARGINS[name]}
+    offset = float(next(iter(signs))) if len(signs) == 1 else 0.0
+    margins["up_sign"] = offset
+    if offset == 0.0:
+        return HeadOrientation(None, None, forward, lateral, margins)
+    up_sign = 1.0 if offset > 0 else -1.0
+    up = _signed(up_axis, up_sign)
+    rotation = _axis_rotation(up_axis, up_sign, forward_axis, forward_sign)
+    return HeadOrientation(rotation, up, forward, lateral, margins)
+
+
+def _mirror_asymmetry(p: np.ndarray, max_points: int) -> list[float]:
+    """Per axis, the mean distance from each mirrored point of a regular subsample of ``p``
+    (at most ``max_points``) to the nearest point of the subsample (unit-sphere units)."""
+    sample = p[:: max(1, int(np.ceil(p.shape[0] / max_points)))]
+    tree = cKDTree(sample)
+    asymmetry = []
+    for a in range(3):
+        mirrored = sample.copy()
+        # mirror about the plane through the mean along a (bounding-box centres are pulled
+        # by one-sided features such as the nose on the forward axis; the mean is not)
+        mirrored[:, a] = 2 * sample[:, a].mean() - mirrored[:, a]
+        asymmetry.append(float(tree.query(mirrored)[0].mean()))
+    return asymmetry
+
+
+def _extreme_spreads(p: np.ndarray, axes: list[int]) -> dict:
+    """{(axis, sign): RMS distance to the extreme point of the points within 0.05 of it}
+    for both signs of each of ``axes``: small at a sharp extreme (the nose tip)."""
+    spreads = {}
+    for a in axes:
+        for sign in (1.0, -1.0):
+            height = sign * p[:, a]
+            near = height >= height.max() - 0.05
+            tip = p[np.argmax(height)]
+            spreads[(a, sign)] = float(np.sqrt(np.mean(np.sum((p[near] - tip) ** 2, axis=1))))
+    return spreads
+
+
+def _side_parts_vote(p, inner, inner_labels, lateral_axis: int, up_axis: int, nose) -> dict:
+    """{"side_parts": weighted mean height above the nose tip of the inner parts off the
+    mid-plane}, or {} when there are none."""
     votes = {}
     # paired side parts (eyeballs, lashes, lacrimal fluid: off the mid-plane) sit above the
     # nose tip; parts on the mid-plane (teeth, tongue) are left out
-    inner_labels = labels[~main]
     if inner.shape[0]:
         counts = np.bincount(inner_labels)
         ids = np.flatnonzero(counts)
@@ -180,6 +212,13 @@ def head_orientation(vertices, faces, *, max_points: int = 4000) -> HeadOrientat
             weights = counts[ids][side]
             rise = np.average(centroids[side, up_axis] - nose[up_axis], weights=weights)
             votes["side_parts"] = float(rise)
+    return votes
+
+
+def _neck_cut_vote(p, faces, main, up_axis: int) -> dict:
+    """{"boundary": how far below the middle (in half-heights) the skin's longest open
+    boundary lies along ``up_axis``}, or {} when the skin is closed."""
+    votes = {}
     # the longest open boundary of the skin (a neck or shoulder cut) lies at the bottom
     cut = _longest_boundary(p, faces[main[faces].all(axis=1)], np.cumsum(main) - 1)
     if cut is not None:
@@ -187,19 +226,16 @@ def head_orientation(vertices, faces, *, max_points: int = 4000) -> HeadOrientat
         votes["boundary"] = float(
             -(cut[up_axis] - 0.5 * (p[:, up_axis].max() + p[:, up_axis].min())) / half
         )
-    margins["up_votes"] = votes
-    signs = {np.sign(value) for name, value in votes.items() if abs(value) >= UP_MARGINS[name]}
-    offset = float(next(iter(signs))) if len(signs) == 1 else 0.0
-    margins["up_sign"] = offset
-    if offset == 0.0:
-        return HeadOrientation(None, None, forward, lateral, margins)
-    up_sign = 1.0 if offset > 0 else -1.0
-    up = _signed(up_axis, up_sign)
+    return votes
+
+
+def _axis_rotation(up_axis: int, up_sign: float, forward_axis: int, forward_sign: float):
+    """(3, 3) right-handed rotation taking the signed up axis to +y and forward to +z."""
     rotation = np.zeros((3, 3))
     rotation[1, up_axis] = up_sign
     rotation[2, forward_axis] = forward_sign
     rotation[0] = np.cross(rotation[1], rotation[2])  # right-handed: x = y cross z
-    return HeadOrientation(rotation, up, forward, lateral, margins)
+    return rotation
 
 
 def _longest_boundary(points: np.ndarray, faces: np.ndarray, index: np.ndarray):
@@ -375,6 +411,25 @@ def _coarse_icp(points, tree, start, iterations: int = 25):
     return rotation, scale, rms
 
 
+ORIENTATION_TEMPLATE = Path(str(files(__package__) / "models" / "ict_inner_face.npy"))
+"""The points ``decide_orientation`` fits, packaged so that it (and ``auto_rig``'s network
+method) runs without the data folder: ``orientation_points`` of the generic ICT head, float32
+centimetres, derived from the ICT Face Model like the packaged network weights."""
+
+
+def orientation_points(dataset=None) -> np.ndarray:
+    """(N, 3) cm: the regular subsample of the ICT inner face that ``decide_orientation``
+    fits (``SEARCH_POINTS`` at most), from ``dataset`` (``ict_pose_source()``) or, when None,
+    the packaged copy (``ORIENTATION_TEMPLATE``)."""
+    if dataset is None:
+        points = np.load(ORIENTATION_TEMPLATE, allow_pickle=False)
+        if points.ndim != 2 or points.shape[1] != 3 or not np.all(np.isfinite(points)):
+            raise ValueError(f"{ORIENTATION_TEMPLATE}: damaged orientation template")
+        return points
+    template = np.asarray(dataset.head.neutral)[inner_face(dataset)]
+    return template[:: max(1, int(np.ceil(template.shape[0] / SEARCH_POINTS)))]
+
+
 def decide_orientation(dataset, vertices, faces, *, up=None, forward=None):
     """Which way a head (centimetres) faces, decided from a fit of the ICT inner face, or
     refused — never guessed.
@@ -386,7 +441,8 @@ def decide_orientation(dataset, vertices, faces, *, up=None, forward=None):
     (``SNAP_DEGREES``). A mirrored head is a head: it is turned, not refused.
 
     Args:
-        dataset: the ICT source (``ict_pose_source()``).
+        dataset: the ICT source (``ict_pose_source()``), or None for the packaged template
+            (the same points, ``orientation_points``).
         vertices: (V, 3) head in centimetres (any orientation); faces: (F, 3) triangles.
         up, forward: the caller's statement ("+z", "-y", ...): skips the search (both or
             neither).
@@ -402,8 +458,7 @@ def decide_orientation(dataset, vertices, faces, *, up=None, forward=None):
         return stated_orientation(up, forward)
     vertices, faces = check_mesh(vertices, faces)
     v = np.asarray(vertices, np.float64)
-    template = np.asarray(dataset.head.neutral, np.float64)[inner_face(dataset)]
-    points = template[:: max(1, int(np.ceil(template.shape[0] / SEARCH_POINTS)))]
+    points = np.asarray(orientation_points(dataset), np.float64)
     size = float(np.linalg.norm(np.ptp(points, axis=0)))
     starts = axis_rotations()
     tree = cKDTree(v)
