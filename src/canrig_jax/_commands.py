@@ -175,8 +175,10 @@ def _autorig(args) -> None:
                 f"{len(head.vertices)}: examples must be sculpted on the head's own mesh"
             )
         progress(f"read {examples.n_blendshapes} example shapes: {', '.join(examples.names)}")
-    progress("loading the ICT source rig")
-    dataset = autorig.ict_pose_source(progress=False)
+    dataset = None  # the network method needs no data folder
+    if args.method != "raf":
+        progress("loading the ICT source rig")
+        dataset = autorig.ict_pose_source(progress=False)
     template = None
     if args.template:
         rig = _load_rig(args.template, "--template", crop="head")

@@ -440,3 +440,30 @@ def test_a_template_carried_onto_its_own_head_gives_its_shapes_back(
     error = np.linalg.norm(got - want, axis=-1).max(axis=1)
     peak = np.linalg.norm(want, axis=-1).max(axis=1)
     assert np.all(error <= 0.05 * peak + 1e-4)
+
+
+def test_the_packaged_orientation_template_is_the_ict_inner_face(source):
+    """The points packaged for ``decide_orientation`` are the ones computed from the data
+    folder's ICT head (so a wheel without the data decides alike)."""
+    from canrig_jax.autorig import orientation_points
+
+    np.testing.assert_array_equal(orientation_points(), orientation_points(source))
+
+
+def test_raf_runs_without_the_data_folder(z_up_head, monkeypatch):
+    """The network method needs neither the ICT source rig nor the landmark fit: with both
+    made to fail, it still decides the orientation (packaged template) and builds the rig
+    in the head's own frame."""
+    from canrig_jax.autorig import _any_head, _data
+
+    def unavailable(*args, **kwargs):
+        raise AssertionError("the data folder was read")
+
+    monkeypatch.setattr(_data, "ict_pose_source", unavailable)
+    monkeypatch.setattr(_any_head, "place_landmarks", unavailable)
+    result = auto_rig(z_up_head["vertices"], z_up_head["faces"], method="raf")
+    assert result.orientation.up == "+z" and result.orientation.forward == "-y"
+    assert result.landmarks is None and result.rig.n_blendshapes == 51
+    np.testing.assert_array_equal(result.rig.neutral, np.float32(z_up_head["vertices"]))
+    jaw = _shape(result.rig, "jawOpen")
+    assert jaw[:, 2].sum() < 0  # the jaw drops along the head's own down (-z)

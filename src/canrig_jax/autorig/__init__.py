@@ -63,6 +63,7 @@ from ._metrics import (
 )
 from ._model import ConditionalBlock, RigAnyFace, normalise
 from ._orientation import (
+    ORIENTATION_TEMPLATE,
     HeadOrientation,
     OrientationDecision,
     OrientationError,
@@ -70,8 +71,10 @@ from ._orientation import (
     decide_orientation,
     head_orientation,
     inner_face,
+    orientation_points,
     stated_orientation,
 )
+from ._protocols import CHIN_LANDMARK, FACE_PLACED, cached_transfer, crop_below_chin
 from ._rig import (
     DEFAULT_POSE_CHUNK,
     GeneratedRig,
@@ -98,6 +101,10 @@ from ._train import (
 
 __all__ = [
     "ANCHOR_CM",
+    "CHIN_LANDMARK",
+    "FACE_PLACED",
+    "cached_transfer",
+    "crop_below_chin",
     "DEFAULT_METHOD",
     "EXAMPLE_ORDER",
     "AUTO_RIG_METHODS",
@@ -115,6 +122,8 @@ __all__ = [
     "axis_rotations",
     "decide_orientation",
     "inner_face",
+    "orientation_points",
+    "ORIENTATION_TEMPLATE",
     "stated_orientation",
     "RESIDUAL_CHECKPOINT",
     "DEFAULT_CHECKPOINT",

@@ -298,7 +298,8 @@ def auto_rig(
             faces: (F, 3) triangles.
         method: one of ``AUTO_RIG_METHODS`` (default: ``DEFAULT_METHOD``, or "transfer" when
             a ``template`` is given; see the module docstring).
-        dataset: the ICT source (``ict_pose_source()``; loaded when None: seconds).
+        dataset: the ICT source (``ict_pose_source()``; loaded from the data folder when
+            None and the method needs it: "raf" does not, it runs without the data folder).
         template: a ``Template`` to carry from instead of ICT (``method="transfer"`` only).
         examples: k of this head's ARKit shapes as sculpted by its artist (a
             ``BlendshapeRig`` on the head's mesh or {name: (V, 3) cm}); fits a ``Style``.
@@ -320,7 +321,7 @@ def auto_rig(
     v, faces = _check_head(vertices, faces)
     sculpted = _check_examples(examples, v.shape[0])
     orientation, landmarks = _check_placement(orientation, up, forward, landmarks, len(v))
-    if dataset is None:
+    if dataset is None and (method != "raf" or landmarks is not None):
         from ._data import ict_pose_source
 
         _progress(progress, "loading the ICT source rig")
@@ -329,7 +330,7 @@ def auto_rig(
     if orientation is None:
         _progress(progress, "deciding the head's orientation from its face")
         t = time.perf_counter()
-        orientation = decide_orientation(dataset, v, faces)
+        orientation = decide_orientation(dataset, v, faces)  # None: the packaged template
         seconds["orientation"] = time.perf_counter() - t
     rotation = orientation.rotation
     upright = v @ rotation.T
@@ -346,8 +347,7 @@ def auto_rig(
         displacements, pose_set = np.asarray(carried.deltas, np.float64), None
         source_names = tuple(carried.names)
     else:
-        displacements = _pose_displacements(method, dataset, head, model)
-        pose_set = dataset.poses
+        displacements, pose_set = _pose_displacements(method, dataset, head, model)
         source_names = tuple(pose_set.basis_names)
     seconds["method"] = time.perf_counter() - t
 
@@ -441,27 +441,29 @@ class _Head:
     skin: np.ndarray
 
 
-def _pose_displacements(method: str, dataset: AutorigDataset, head: _Head, model) -> np.ndarray:
-    """(P, V, 3) cm of every pose of the ICT pose set on the upright head."""
+def _pose_displacements(method: str, dataset, head: _Head, model):
+    """((P, V, 3) cm of every pose on the upright head, the ``PoseSet``). "raf" needs no
+    dataset (None): its poses come with the model."""
+    base = None
     if method in ("transfer", "transfer-residual"):
         correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
         base = transfer_poses(dataset, head, correspondence, static_below=ANCHOR_CM)
         if method == "transfer":
-            return base
-    else:
-        base = None
+            return base, dataset.poses
     from ._rig import generate_rig
     from ._train import load_riganyface
 
     if model is None:
         model = load_riganyface(default_model(method))[:2]
     network, poses = model
-    if not isinstance(poses, PoseSet) or poses.labels != dataset.poses.labels:
+    if not isinstance(poses, PoseSet):
+        raise TypeError(f"model: expected (RigAnyFace, PoseSet), got {type(poses).__name__}")
+    if dataset is not None and poses.labels != dataset.poses.labels:
         raise ValueError("model: its pose set is not the ICT source's (dataset)")
     generated = generate_rig(
         network, poses, head.vertices, head.faces, base=base, orientation="trust"
     )
-    return np.asarray(generated.displacements, np.float64)
+    return np.asarray(generated.displacements, np.float64), poses
 
 
 def default_model(method: str):
