@@ -63,10 +63,13 @@ from canrig_jax._provenance import experiment_command, provenance, record_comman
 from canrig_jax.autorig import (
     ACTIVE_MM,
     ANCHOR_MODES,
+    FACE_PLACED,
     STATIC_MM,
     RigAnyFaceTrainOptions,
+    cached_transfer,
     class_errors,
     copy_poses,
+    crop_below_chin,
     error_stats,
     face_placement,
     fit_head_landmarks,
@@ -593,41 +596,6 @@ def evaluation_rows(models: dict) -> dict:
     return rows
 
 
-def cached_transfer(
-    dataset,
-    head,
-    cache: Path | None,
-    seed: int,
-    static_below: float | None = None,
-    *,
-    anchor: str = "vertex",
-) -> np.ndarray:
-    """``transfer_poses`` of one training head (anchored with ``static_below`` per
-    ``anchor``), kept in ``cache`` when given."""
-    path = None
-    if cache is not None:
-        cache.mkdir(parents=True, exist_ok=True)
-        kind = "dt" if static_below is None else f"dt_anchored{static_below:g}"
-        kind += "" if static_below is None or anchor == "vertex" else f"_{anchor}"
-        path = cache / f"{kind}_seed{seed}_{head.name.replace('/', '_')}.npy"
-        if path.exists():
-            stored = np.load(path, allow_pickle=False)
-            if stored.shape == head.displacements.shape:
-                return stored
-    transferred = transfer_poses(dataset, head, static_below=static_below, anchor=anchor).astype(
-        np.float32
-    )
-    if path is not None:
-        np.save(path, transferred, allow_pickle=False)
-    return transferred
-
-
-FACE_PLACED = " + face_placement"
-"""Suffix of a MakeHuman row whose rig was generated with ``face_placement`` (the head placed
-in the unit sphere from its fitted face) instead of the bounding box of the whole head: a
-variant beside the protocol's rows (``evaluate_makehuman(face_placed=True)``)."""
-
-
 def evaluate_makehuman(
     dataset, models: dict, data_dir, anchors=("vertex",), face_placed: bool = False
 ) -> tuple[dict, dict, tuple]:
@@ -1062,27 +1030,6 @@ def refresh_penetration(args, argv=None) -> dict:
     write_results(args.out, results)
     print(f"rewrote the penetration of {path} and table.md")
     return results
-
-
-def crop_below_chin(head, margin_cm: float = 1.0):
-    """``head`` (a ``RiggedHead``) without the triangles reaching below its chin landmark
-    (Multi-PIE 8) minus ``margin_cm``: a head cut as a face scan would be. Returns (the cut
-    head, (V,) bool kept vertices)."""
-    chin = float(head.vertices[head.landmarks[8], 1])
-    keep_faces = (head.vertices[head.faces][:, :, 1] > chin - margin_cm).all(axis=1)
-    kept = np.zeros(head.n_vertices, bool)
-    kept[head.faces[keep_faces]] = True
-    index = np.cumsum(kept) - 1
-    cut = dataclasses.replace(
-        head,
-        name=head.name + "/cut_below_chin",
-        vertices=head.vertices[kept],
-        faces=index[head.faces[keep_faces]].astype(np.int32),
-        displacements=head.displacements[:, kept],
-        landmarks=index[head.landmarks],
-        parts=head.parts[kept],
-    )
-    return cut, kept
 
 
 def refresh_placement(args, argv=None) -> dict:

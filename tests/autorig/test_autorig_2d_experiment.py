@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -11,12 +12,14 @@ import pytest
 SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "autorig_2d.py"
 
 
+def _run(argv: list[str]) -> None:
+    """Run the experiment as its command line (a full experiment: slow tests only)."""
+    subprocess.run([sys.executable, str(SCRIPT), *argv], check=True, cwd=SCRIPT.parents[1])
+
+
 @pytest.mark.slow
 def test_quick_experiment_writes_the_issue_keys(tmp_path):
-    spec = importlib.util.spec_from_file_location("autorig_2d_experiment", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    module.main(["--quick", "--no-progress", "--out", str(tmp_path)])
+    _run(["--quick", "--no-progress", "--out", str(tmp_path)])
     results = json.loads((tmp_path / "results.json").read_text())
     rasteriser = results["rasteriser"]
     assert rasteriser["grad_rel_error"] < 0.02
