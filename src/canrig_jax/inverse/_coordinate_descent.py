@@ -39,6 +39,7 @@ runs as before.
 """
 
 import abc
+import dataclasses
 from typing import ClassVar
 
 import equinox as eqx
@@ -141,210 +142,269 @@ class AbstractCoordinateDescent(AbstractInverseMethod):
         """The problem of the rig the method assumes (all of it, or its linear part)."""
 
     def __call__(self, problem, offset, init, key) -> Iterate:
-        model = self.rig_part(problem)
+        sweep = _Sweep.build(self, problem, offset, key)
+        gradient0, energy0 = sweep.state_at(init)
+        if self.trace:
+            return _traced_passes(sweep, init, gradient0)
+        return _passes_to_tolerance(sweep, init, gradient0, energy0)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Sweep:
+    """What the passes of one frame share (built inside the trace of ``__call__``): the
+    method, its part of the rig (``model``), the target's projection and the coordinate
+    orders. Its methods are the steps of Algorithm 1 and of the Newton step."""
+
+    method: AbstractCoordinateDescent
+    problem: InverseProblem
+    model: InverseProblem
+    offset: Array
+    key: Array
+    projection: Array
+    offset_sq: Array
+    indices: Array
+    widths: list
+    bucket: Array
+    correlation_order: Array | None
+    fixed: Array | None
+
+    @classmethod
+    def build(cls, method, problem, offset, key) -> "_Sweep":
+        model = method.rig_part(problem)
         k, width = problem.n_blendshapes, model.gram.shape[0]
         # the full projection, sliced, so XLA shares it with ``solve``'s final objective
         projection = problem.projection(offset)[:width]
         offset_sq = offset @ offset
-        alpha, upper = self.alpha, self.upper
         indices = jnp.arange(k)
-
-        def derivative(weights, i):
-            """(m,) d a / d w_i on the support of i: the product of the other weights of each
-            combination (1 for column i itself); a(w) is affine in w_i with this slope."""
-            extended = jnp.append(weights, jnp.ones((1,), weights.dtype))
-            g = jnp.prod(extended[model.support_others[i]], axis=-1)
-            return jnp.where(model.support_valid[i], g, 0.0)
-
-        def line(weights, gradient, i):
-            """Closed-form update of coordinate i: (new value, slope at w_i = 0, curvature,
-            d a / d w_i)."""
-            g = derivative(weights, i)
-            curvature = g @ model.support_block[i] @ g
-            slope = g @ gradient[model.support[i]] - weights[i] * curvature + alpha
-            safe = curvature > 0
-            value = jnp.clip(-slope / jnp.where(safe, curvature, 1.0), 0.0, upper)
-            return jnp.where(safe, value, 0.0), slope, curvature, g
-
-        def decrease(weights, gradient, i):
-            value, slope, curvature, _ = line(weights, gradient, i)
-            old = weights[i]
-            return (old - value) * slope + 0.5 * (old**2 - value**2) * curvature
-
-        def choose(weights, gradient):
-            if self.order == "gauss_southwell":
-                slopes = jax.vmap(lambda i: derivative(weights, i) @ gradient[model.support[i]])(
-                    indices
-                )
-                slopes = slopes + alpha
-                stuck = ((weights <= 0) & (slopes > 0)) | ((weights >= upper) & (slopes < 0))
-                return jnp.argmax(jnp.where(stuck, 0.0, jnp.abs(slopes)))
-            return jnp.argmax(jax.vmap(decrease, (None, None, 0))(weights, gradient, indices))
-
-        # Supports are padded to the largest m (127 on ict-quartic; 26 on average): each update
-        # runs at the smallest width in ``widths`` that holds its support (a ``switch``; under
-        # vmap with a shared coordinate, e.g. a fixed order, it stays a branch).
+        # Supports are padded to the largest m (127 on ict-quartic; 26 on average): each
+        # update runs at the smallest width in ``widths`` that holds its support (a
+        # ``switch``; under vmap with a shared coordinate, e.g. a fixed order, it stays a
+        # branch).
         m = model.support.shape[1]
         widths = sorted({min(m, 2**j) for j in range(3, max(m - 1, 1).bit_length() + 1)} | {m})
         bucket = jnp.searchsorted(jnp.asarray(widths), model.support_valid.sum(axis=1))
-
-        def sized_update(width):
-            def run(weights, gradient, i):
-                extended = jnp.append(weights, jnp.ones((1,), weights.dtype))
-                g = jnp.prod(extended[model.support_others[i, :width]], axis=-1)
-                g = jnp.where(model.support_valid[i, :width], g, 0.0)
-                curvature = g @ model.support_block[i, :width, :width] @ g
-                slope = g @ gradient[model.support[i, :width]] - weights[i] * curvature + alpha
-                safe = curvature > 0
-                value = jnp.clip(-slope / jnp.where(safe, curvature, 1.0), 0.0, upper)
-                value = jnp.where(safe, value, 0.0)
-                change = value - weights[i]
-                # a weight that stays put (most often one held at 0 by the L1 term) leaves
-                # the gradient as it is: skip reading its m x P block of Q
-                gradient = jax.lax.cond(
-                    _one_frame_or_batch(change != 0, jnp.asarray(True)),
-                    lambda: gradient + change * (g @ model.support_gram[i, :width]),
-                    lambda: gradient,
-                )
-                return value, gradient
-
-            return run
-
-        branches = [sized_update(width) for width in widths]
-
-        def _no_row(g_i, i):
-            return jnp.zeros(width, g_i.dtype)
-
-        qg_rows = [
-            (lambda w: lambda g_i, i: g_i[:w] @ model.support_gram[i, :w])(width)
-            for width in widths
-        ]
-
-        def update(state, i):
-            weights, gradient = state
-            if self.order in ("gauss_southwell", "max_improvement"):
-                i = choose(weights, gradient)
-            value, gradient = jax.lax.switch(bucket[i], branches, weights, gradient, i)
-            weights = weights.at[i].set(value)
-            if not self.trace:
-                return (weights, gradient), None
-            # in vertex space: the coefficient-space form loses ~1e-7 ||b - b0||^2 to
-            # cancellation, more than late coordinate updates gain
-            residual = model.coefficients(weights) @ model.columns - offset
-            return (weights, gradient), 0.5 * residual @ residual + alpha * weights.sum()
-
-        def state_at(weights):
-            """(gradient c = Q a - p, objective) at ``weights``, from scratch."""
-            a = model.coefficients(weights)
-            gradient = model.gram @ a - projection
-            energy = 0.5 * (a @ gradient - a @ projection + offset_sq) + alpha * weights.sum()
-            return gradient, energy
-
-        def newton(weights, gradient, energy):
-            """Projected Gauss-Newton step on the free weights, kept if it lowers E."""
-            g = model.slopes(weights)  # (K, m)
-            grad = jnp.einsum("km,km->k", g, gradient[model.support]) + alpha
-            # row i: (Q G)[:, i] = g_i^T Q[S_i, :], each at its support's padded width
-            free = (weights > 0) & (weights < upper)
-            # rows of fixed weights are not needed (their part of the system is the identity)
-            skip = len(qg_rows)
-            qg = jax.lax.map(
-                lambda i: jax.lax.switch(
-                    _one_frame_or_batch(jnp.where(free[i], bucket[i], skip), bucket[i]),
-                    [*qg_rows, _no_row],
-                    g[i],
-                    i,
-                ),
-                indices,
-            )
-            jac = model.jacobian(weights)
-            hessian = jac @ qg.T  # G^T Q G
-            pair = free[:, None] & free[None, :]
-            ridge = 1e-6 * jnp.max(jnp.abs(jnp.diag(hessian)))
-            system = jnp.where(pair, hessian, 0.0) + jnp.diag(jnp.where(free, ridge, 1.0))
-            step = spd_solve(system, -jnp.where(free, grad, 0.0))
-            step = jnp.where(free & jnp.isfinite(step), step, 0.0)
-            # two candidates: the full step projected onto the box, and the longest step
-            # <= 1 that keeps every free weight inside it (the ratio test of active-set
-            # methods: the first weight to reach a bound stops on it); the lower one is
-            # taken if it lowers E
-            room = jnp.where(
-                step < 0, weights / -step, jnp.where(step > 0, (upper - weights) / step, 1.0)
-            )
-            length = jnp.minimum(1.0, jnp.min(jnp.where(free, room, 1.0)))
-            inside = weights + length * step
-            inside = jnp.clip(jnp.where(inside <= 1e-7 * upper, 0.0, inside), 0.0, upper)
-            projected = jnp.clip(weights + step, 0.0, upper)
-            best, best_gradient, best_energy = weights, gradient, energy
-            # when no free weight reaches a bound (length 1), the projected step is the
-            # inside one (but for weights below 1e-7 upper): one trial, not two
-            clipped = _one_frame_or_batch(length < 1, jnp.asarray(True))
-            for trial, needed in ((inside, True), (projected, clipped)):
-                trial_gradient, trial_energy = jax.lax.cond(
-                    needed, state_at, lambda w: (gradient, jnp.full_like(energy, jnp.inf)), trial
-                )
-                better = trial_energy < best_energy
-                best = jnp.where(better, trial, best)
-                best_gradient = jnp.where(better, trial_gradient, best_gradient)
-                best_energy = jnp.where(better, trial_energy, best_energy)
-            return best, best_gradient, best_energy
-
         correlation_order = None
-        if self.order == "frame_correlation":
+        if method.order == "frame_correlation":
             score = jnp.abs(projection[:k]) / problem.blendshape_norms
             correlation_order = jnp.argsort(-score).astype(jnp.int32)
-        fixed = static_order(problem, self.order) if correlation_order is None else None
+        fixed = static_order(problem, method.order) if correlation_order is None else None
+        return cls(
+            method, problem, model, offset, key, projection, offset_sq, indices, widths,
+            bucket, correlation_order, fixed,
+        )  # fmt: skip
 
-        def sequence(n, gradient):
-            if self.order == "random":
-                return jax.random.permutation(jax.random.fold_in(key, n), k).astype(jnp.int32)
-            if self.order == "iteration_correlation":  # B^T (f(w) - b) = c[:k]
-                return jnp.argsort(-jnp.abs(gradient[:k]) / problem.blendshape_norms).astype(
-                    jnp.int32
-                )
-            return fixed if correlation_order is None else correlation_order
+    # -- one coordinate ---------------------------------------------------------------------
+    def derivative(self, weights, i):
+        """(m,) d a / d w_i on the support of i: the product of the other weights of each
+        combination (1 for column i itself); a(w) is affine in w_i with this slope."""
+        model = self.model
+        extended = jnp.append(weights, jnp.ones((1,), weights.dtype))
+        g = jnp.prod(extended[model.support_others[i]], axis=-1)
+        return jnp.where(model.support_valid[i], g, 0.0)
 
-        def one_pass(n, weights, gradient):
-            (weights, _), per_update = jax.lax.scan(
-                update, (weights, gradient), sequence(n, gradient)
+    def line(self, weights, gradient, i):
+        """Closed-form update of coordinate i: (new value, slope at w_i = 0, curvature,
+        d a / d w_i)."""
+        model, alpha, upper = self.model, self.method.alpha, self.method.upper
+        g = self.derivative(weights, i)
+        curvature = g @ model.support_block[i] @ g
+        slope = g @ gradient[model.support[i]] - weights[i] * curvature + alpha
+        safe = curvature > 0
+        value = jnp.clip(-slope / jnp.where(safe, curvature, 1.0), 0.0, upper)
+        return jnp.where(safe, value, 0.0), slope, curvature, g
+
+    def decrease(self, weights, gradient, i):
+        """Decrease of the objective by the closed-form update of coordinate i."""
+        value, slope, curvature, _ = self.line(weights, gradient, i)
+        old = weights[i]
+        return (old - value) * slope + 0.5 * (old**2 - value**2) * curvature
+
+    def choose(self, weights, gradient):
+        """The coordinate a greedy order updates next."""
+        model, alpha, upper = self.model, self.method.alpha, self.method.upper
+        if self.method.order == "gauss_southwell":
+            slopes = jax.vmap(lambda i: self.derivative(weights, i) @ gradient[model.support[i]])(
+                self.indices
             )
-            gradient, energy = state_at(weights)
-            if self.newton:
-                weights, gradient, energy = newton(weights, gradient, energy)
-            return weights, gradient, energy, per_update
+            slopes = slopes + alpha
+            stuck = ((weights <= 0) & (slopes > 0)) | ((weights >= upper) & (slopes < 0))
+            return jnp.argmax(jnp.where(stuck, 0.0, jnp.abs(slopes)))
+        return jnp.argmax(jax.vmap(self.decrease, (None, None, 0))(weights, gradient, self.indices))
 
-        gradient0, energy0 = state_at(init)
-        if self.trace:
+    def sized_update(self, width):
+        """The update of one coordinate whose support fits in ``width``: (new value, updated
+        gradient)."""
+        model, alpha, upper = self.model, self.method.alpha, self.method.upper
 
-            def traced(carry, n):
-                weights, gradient = carry
-                weights, gradient, _, per_update = one_pass(n, weights, gradient)
-                return (weights, gradient), per_update
-
-            (weights, _), history = jax.lax.scan(traced, (init, gradient0), jnp.arange(self.passes))
-            return Iterate(
-                weights, history.reshape(-1), jnp.asarray(self.passes), jnp.asarray(True)
+        def run(weights, gradient, i):
+            extended = jnp.append(weights, jnp.ones((1,), weights.dtype))
+            g = jnp.prod(extended[model.support_others[i, :width]], axis=-1)
+            g = jnp.where(model.support_valid[i, :width], g, 0.0)
+            curvature = g @ model.support_block[i, :width, :width] @ g
+            slope = g @ gradient[model.support[i, :width]] - weights[i] * curvature + alpha
+            safe = curvature > 0
+            value = jnp.clip(-slope / jnp.where(safe, curvature, 1.0), 0.0, upper)
+            value = jnp.where(safe, value, 0.0)
+            change = value - weights[i]
+            # a weight that stays put (most often one held at 0 by the L1 term) leaves
+            # the gradient as it is: skip reading its m x P block of Q
+            gradient = jax.lax.cond(
+                _one_frame_or_batch(change != 0, jnp.asarray(True)),
+                lambda: gradient + change * (g @ model.support_gram[i, :width]),
+                lambda: gradient,
             )
+            return value, gradient
 
-        tol = self.tol
+        return run
 
-        def keep_going(state):
-            n, _, _, previous, energy, _ = state
-            change = jnp.abs(previous - energy) / jnp.maximum(jnp.abs(energy), 1e-30)
-            return (n < self.passes) & ((n == 0) | (tol <= 0) | (change > tol))
+    def update(self, branches, state, i):
+        """One step of the scan over a pass: update coordinate i (or the greedy choice)."""
+        method, model = self.method, self.model
+        weights, gradient = state
+        if method.order in ("gauss_southwell", "max_improvement"):
+            i = self.choose(weights, gradient)
+        value, gradient = jax.lax.switch(self.bucket[i], branches, weights, gradient, i)
+        weights = weights.at[i].set(value)
+        if not method.trace:
+            return (weights, gradient), None
+        # in vertex space: the coefficient-space form loses ~1e-7 ||b - b0||^2 to
+        # cancellation, more than late coordinate updates gain
+        residual = model.coefficients(weights) @ model.columns - self.offset
+        return (weights, gradient), 0.5 * residual @ residual + method.alpha * weights.sum()
 
-        def body(state):
-            n, weights, gradient, _, energy, history = state
-            weights, gradient, new_energy, _ = one_pass(n, weights, gradient)
-            return n + 1, weights, gradient, energy, new_energy, history.at[n].set(new_energy)
+    # -- passes -----------------------------------------------------------------------------
+    def state_at(self, weights):
+        """(gradient c = Q a - p, objective) at ``weights``, from scratch."""
+        model, projection = self.model, self.projection
+        a = model.coefficients(weights)
+        gradient = model.gram @ a - projection
+        energy = (
+            0.5 * (a @ gradient - a @ projection + self.offset_sq)
+            + self.method.alpha * weights.sum()
+        )
+        return gradient, energy
 
-        history0 = jnp.zeros(self.passes, energy0.dtype)
-        state = (jnp.asarray(0), init, gradient0, energy0, energy0, history0)
-        n, weights, _, previous, energy, history = jax.lax.while_loop(keep_going, body, state)
-        history = jnp.where(jnp.arange(self.passes) < n, history, energy)
+    def sequence(self, n, gradient):
+        """(K,) coordinates of pass n."""
+        order, k, problem = self.method.order, self.problem.n_blendshapes, self.problem
+        if order == "random":
+            return jax.random.permutation(jax.random.fold_in(self.key, n), k).astype(jnp.int32)
+        if order == "iteration_correlation":  # B^T (f(w) - b) = c[:k]
+            return jnp.argsort(-jnp.abs(gradient[:k]) / problem.blendshape_norms).astype(jnp.int32)
+        return self.fixed if self.correlation_order is None else self.correlation_order
+
+    def one_pass(self, n, weights, gradient):
+        """Pass n over all K coordinates, then (``newton``) the Newton step: (weights,
+        gradient, objective, per-update objectives or None)."""
+        branches = [self.sized_update(width) for width in self.widths]
+        (weights, _), per_update = jax.lax.scan(
+            lambda state, i: self.update(branches, state, i),
+            (weights, gradient),
+            self.sequence(n, gradient),
+        )
+        gradient, energy = self.state_at(weights)
+        if self.method.newton:
+            weights, gradient, energy = _newton_step(self, weights, gradient, energy)
+        return weights, gradient, energy, per_update
+
+
+def _newton_step(sweep: _Sweep, weights, gradient, energy):
+    """Projected Gauss-Newton step on the free weights, kept if it lowers E."""
+    model, alpha, upper = sweep.model, sweep.method.alpha, sweep.method.upper
+    bucket, n_columns = sweep.bucket, model.gram.shape[0]
+
+    def _no_row(g_i, i):
+        return jnp.zeros(n_columns, g_i.dtype)
+
+    qg_rows = [
+        (lambda w: lambda g_i, i: g_i[:w] @ model.support_gram[i, :w])(width)
+        for width in sweep.widths
+    ]
+    g = model.slopes(weights)  # (K, m)
+    grad = jnp.einsum("km,km->k", g, gradient[model.support]) + alpha
+    # row i: (Q G)[:, i] = g_i^T Q[S_i, :], each at its support's padded width
+    free = (weights > 0) & (weights < upper)
+    # rows of fixed weights are not needed (their part of the system is the identity)
+    skip = len(qg_rows)
+    qg = jax.lax.map(
+        lambda i: jax.lax.switch(
+            _one_frame_or_batch(jnp.where(free[i], bucket[i], skip), bucket[i]),
+            [*qg_rows, _no_row],
+            g[i],
+            i,
+        ),
+        sweep.indices,
+    )
+    jac = model.jacobian(weights)
+    hessian = jac @ qg.T  # G^T Q G
+    pair = free[:, None] & free[None, :]
+    ridge = 1e-6 * jnp.max(jnp.abs(jnp.diag(hessian)))
+    system = jnp.where(pair, hessian, 0.0) + jnp.diag(jnp.where(free, ridge, 1.0))
+    step = spd_solve(system, -jnp.where(free, grad, 0.0))
+    step = jnp.where(free & jnp.isfinite(step), step, 0.0)
+    inside, projected, clipped = _box_candidates(weights, step, free, upper)
+    best, best_gradient, best_energy = weights, gradient, energy
+    for trial, needed in ((inside, True), (projected, clipped)):
+        trial_gradient, trial_energy = jax.lax.cond(
+            needed, sweep.state_at, lambda w: (gradient, jnp.full_like(energy, jnp.inf)), trial
+        )
+        better = trial_energy < best_energy
+        best = jnp.where(better, trial, best)
+        best_gradient = jnp.where(better, trial_gradient, best_gradient)
+        best_energy = jnp.where(better, trial_energy, best_energy)
+    return best, best_gradient, best_energy
+
+
+def _box_candidates(weights, step, free, upper):
+    """The two candidates of a Newton step: the longest step <= 1 that keeps every free
+    weight inside the box (the ratio test of active-set methods: the first weight to reach a
+    bound stops on it), and the full step projected onto the box; and whether the second
+    differs (when no free weight reaches a bound, length 1, the projected step is the inside
+    one, but for weights below 1e-7 upper: one trial, not two)."""
+    room = jnp.where(step < 0, weights / -step, jnp.where(step > 0, (upper - weights) / step, 1.0))
+    length = jnp.minimum(1.0, jnp.min(jnp.where(free, room, 1.0)))
+    inside = weights + length * step
+    inside = jnp.clip(jnp.where(inside <= 1e-7 * upper, 0.0, inside), 0.0, upper)
+    projected = jnp.clip(weights + step, 0.0, upper)
+    clipped = _one_frame_or_batch(length < 1, jnp.asarray(True))
+    return inside, projected, clipped
+
+
+def _traced_passes(sweep: _Sweep, init, gradient0) -> Iterate:
+    """All ``passes`` passes, recording the objective after every coordinate update."""
+    passes = sweep.method.passes
+
+    def traced(carry, n):
+        weights, gradient = carry
+        weights, gradient, _, per_update = sweep.one_pass(n, weights, gradient)
+        return (weights, gradient), per_update
+
+    (weights, _), history = jax.lax.scan(traced, (init, gradient0), jnp.arange(passes))
+    return Iterate(weights, history.reshape(-1), jnp.asarray(passes), jnp.asarray(True))
+
+
+def _passes_to_tolerance(sweep: _Sweep, init, gradient0, energy0) -> Iterate:
+    """Passes until one lowers the objective by less than ``tol`` relative (at most
+    ``passes``), recording the objective after each."""
+    passes, tol = sweep.method.passes, sweep.method.tol
+
+    def keep_going(state):
+        n, _, _, previous, energy, _ = state
         change = jnp.abs(previous - energy) / jnp.maximum(jnp.abs(energy), 1e-30)
-        converged = (tol <= 0) | (change <= tol)
-        return Iterate(weights, history, n, converged)
+        return (n < passes) & ((n == 0) | (tol <= 0) | (change > tol))
+
+    def body(state):
+        n, weights, gradient, _, energy, history = state
+        weights, gradient, new_energy, _ = sweep.one_pass(n, weights, gradient)
+        return n + 1, weights, gradient, energy, new_energy, history.at[n].set(new_energy)
+
+    history0 = jnp.zeros(passes, energy0.dtype)
+    state = (jnp.asarray(0), init, gradient0, energy0, energy0, history0)
+    n, weights, _, previous, energy, history = jax.lax.while_loop(keep_going, body, state)
+    history = jnp.where(jnp.arange(passes) < n, history, energy)
+    change = jnp.abs(previous - energy) / jnp.maximum(jnp.abs(energy), 1e-30)
+    converged = (tol <= 0) | (change <= tol)
+    return Iterate(weights, history, n, converged)
 
 
 class QuarticCD(AbstractCoordinateDescent):
