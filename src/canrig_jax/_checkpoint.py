@@ -11,10 +11,17 @@ A checkpoint may be stored xz-compressed (``save_checkpoint(..., compress=True)`
 on the file): the reader recognises the xz signature and decompresses it whatever the file's
 name, a damaged compressed stream being a ``CorruptFileError`` too. ``verify_sha256`` checks a
 file against a digest recorded in code (the models that ship inside the package).
+
+Every trainer resumes and saves through ``train_resumably``: it reads a checkpoint once, checks
+its format and options, restores the pytree (model, optimiser state), the step, the elapsed
+time and the loss history, and runs ``run_training`` with periodic atomic saves. The trainers
+draw each step's batch from the step number (``numpy.random.default_rng([seed, step])``), so
+the step is the whole random state and a resumed run repeats an uninterrupted one bit for bit.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import io
 import json
@@ -22,8 +29,9 @@ import lzma
 import os
 import re
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -139,14 +147,17 @@ def read_checkpoint_state(path, format: str) -> dict:
 def load_checkpoint(path, like, format: str):
     """(tree, state) from ``save_checkpoint``; ``like`` gives the tree's structure."""
     state, leaves = _read(path, format)
+    return _deserialise(path, leaves, like), state
+
+
+def _deserialise(path, leaves: bytes, like):
     try:
-        tree = eqx.tree_deserialise_leaves(io.BytesIO(leaves), like)
+        return eqx.tree_deserialise_leaves(io.BytesIO(leaves), like)
     except Exception as error:  # truncated or resized leaves: equinox/numpy errors
         raise CorruptFileError(
             f"path: corrupt checkpoint {path} (its arrays do not fit the model described by "
             f"its header: {type(error).__name__})"
         ) from error
-    return tree, state
 
 
 def run_training(
@@ -204,3 +215,88 @@ def run_training(
         bar.close()
     save_fn(step, seconds, history)
     return step, seconds
+
+
+@dataclasses.dataclass
+class TrainingState:
+    """Where a resumable run stands.
+
+    Attributes:
+        tree: the trained pytree, (model, optimiser state).
+        step: steps done; with the seed it fixes every later batch (the run's random state).
+        seconds: accumulated step time (s).
+        history: the logged metrics, one dict per logged step.
+        header: the header of the checkpoint resumed from; ``{}`` for a fresh run.
+    """
+
+    tree: Any
+    step: int = 0
+    seconds: float = 0.0
+    history: list = dataclasses.field(default_factory=list)
+    header: dict = dataclasses.field(default_factory=dict)
+
+
+def resume_training(
+    checkpoint,
+    format: str,
+    init: Callable[[dict], Any],
+    options,
+    read_options: Callable[[dict], Any],
+    may_change: Sequence[str] = ("max_minutes",),
+    check: Callable[[dict], None] | None = None,
+) -> TrainingState:
+    """The state to train from: ``init({})`` at step 0 when ``checkpoint`` is None or absent,
+    else the checkpoint's (read once). A resume is refused (``ValueError`` naming
+    ``checkpoint``) when the file holds a model's weights only, when its options
+    (``read_options(header["options"])``) differ from ``options`` in anything but the fields
+    ``may_change`` (the budget), or when ``check(header)`` raises. ``init(header)`` gives the
+    pytree's structure (it may read the header, e.g. a stored output scale)."""
+    if checkpoint is None or not os.path.exists(checkpoint):
+        return TrainingState(init({}))
+    header, leaves = _read(checkpoint, format)
+    if header.get("weights_only"):
+        raise ValueError(
+            f"checkpoint: {checkpoint} holds a model's weights only (export_riganyface), "
+            "not a training state to resume from"
+        )
+    saved = read_options(header["options"])
+    budget = {name: getattr(options, name) for name in may_change}
+    if dataclasses.replace(saved, **budget) != options:
+        raise ValueError(f"checkpoint: {checkpoint} was written with different options")
+    if check is not None:
+        check(header)
+    tree = _deserialise(checkpoint, leaves, init(header))
+    return TrainingState(tree, header["step"], header["seconds"], header["history"], header)
+
+
+def train_resumably(
+    step_fn: Callable[[Any, int], tuple[Any, dict]],
+    run: TrainingState,
+    options,
+    *,
+    checkpoint,
+    format: str,
+    header: dict,
+    progress: bool,
+    desc: str,
+    stop_after: int | None = None,
+) -> TrainingState:
+    """``run_training`` from ``run`` (``resume_training``'s): ``step_fn(tree, step)`` returns
+    the updated tree and the step's scalar metrics. When ``checkpoint`` is a path, the state
+    is saved to it atomically every ``options.checkpoint_every`` steps and at the end, as
+    ``{**header, "step", "seconds", "history"}`` and the leaves of the tree. Returns ``run``,
+    updated in place."""
+
+    def one_step(step):
+        run.tree, metrics = step_fn(run.tree, step)
+        return metrics
+
+    def save(step, seconds, history):
+        if checkpoint is not None:
+            state = {**header, "step": step, "seconds": seconds, "history": history}
+            save_checkpoint(checkpoint, run.tree, state, format)
+
+    run.step, run.seconds = run_training(
+        one_step, save, options, run.step, run.seconds, run.history, progress, desc, stop_after
+    )
+    return run

@@ -37,7 +37,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checkpoint import load_checkpoint, read_checkpoint_state, run_training, save_checkpoint
+from .._checkpoint import (
+    load_checkpoint,
+    read_checkpoint_state,
+    resume_training,
+    train_resumably,
+)
 from .._metrics import CM_TO_MM
 from ..render import (
     RasterSettings,
@@ -275,6 +280,54 @@ def train_2d(
     of the heads whose 3D rig may be used; 2D stage-1 steps draw from all heads.
 
     Returns (model, step, seconds, history)."""
+    rigged = _check_stage_inputs(data, rigged, options, opts2d, stage)
+    reference = rigged_reference(data, rigged)
+    optim = optimiser(options)
+
+    def start(header):
+        model = init
+        if model is None:
+            model = make_model(options, poses.n_basis, float(np.sqrt(reference)))
+        return model, optim.init(eqx.filter(model, eqx.is_array))
+
+    # stage "3d" renders nothing: its checkpoint does not depend on the 2D options
+    options_2d = None if stage == "3d" else opts2d.to_dict()
+
+    def check(header):
+        if (stage != "3d" and header["options_2d"] != options_2d) or header["stage"] != stage:
+            raise ValueError(f"checkpoint: {checkpoint} was written with different options")
+
+    run = resume_training(
+        checkpoint,
+        CHECKPOINT_FORMAT_2D,
+        start,
+        options,
+        lambda d: RigAnyFaceTrainOptions(**d),
+        check=check,
+    )
+    header = {
+        "options": options.to_dict(),
+        "options_2d": options_2d,
+        "stage": stage,
+        "poses": poses.to_dict(),
+        "output_scale": float(np.sqrt(reference)),
+    }
+    train_resumably(
+        _step_function(data, faces, poses, rigged, options, opts2d, stage, optim, reference),
+        run,
+        options,
+        checkpoint=checkpoint,
+        format=CHECKPOINT_FORMAT_2D,
+        header=header,
+        progress=progress,
+        desc=f"riganyface-{stage}",
+        stop_after=stop_after,
+    )
+    return run.tree[0], run.step, run.seconds, run.history
+
+
+def _check_stage_inputs(data, rigged, options, opts2d, stage) -> np.ndarray:
+    """``rigged`` as int64 indices, after checking the stage's arguments."""
     if stage not in STAGES:
         raise ValueError(f"stage: expected one of {STAGES}, got {stage!r}")
     rigged = np.asarray(rigged, np.int64)
@@ -284,45 +337,18 @@ def train_2d(
         raise ValueError("options: 2D supervision trains the pure model (residual=False)")
     if opts2d.poses_2d > options.poses_per_step:
         raise ValueError("poses_2d: exceeds options.poses_per_step")
-    reference = rigged_reference(data, rigged)
-    model = make_model(options, poses.n_basis, float(np.sqrt(reference))) if init is None else init
-    optim = optimiser(options)
-    opt_state = optim.init(eqx.filter(model, eqx.is_array))
-    step, seconds, history = 0, 0.0, []
-    # stage "3d" renders nothing: its checkpoint does not depend on the 2D options
-    options_2d = None if stage == "3d" else opts2d.to_dict()
-    header = {"options": options.to_dict(), "options_2d": options_2d, "stage": stage}
-    if checkpoint is not None and os.path.exists(checkpoint):
-        state = read_checkpoint_state(checkpoint, CHECKPOINT_FORMAT_2D)
-        saved = dataclasses.replace(
-            RigAnyFaceTrainOptions(**state["options"]), max_minutes=options.max_minutes
-        )
-        same_2d = stage == "3d" or state["options_2d"] == options_2d
-        if saved != options or not same_2d or state["stage"] != stage:
-            raise ValueError(f"checkpoint: {checkpoint} was written with different options")
-        (model, opt_state), state = load_checkpoint(
-            checkpoint, (model, opt_state), CHECKPOINT_FORMAT_2D
-        )
-        step, seconds, history = state["step"], state["seconds"], state["history"]
+    return rigged
 
-    def save(step, seconds, history):
-        if checkpoint is not None:
-            state = {
-                **header,
-                "poses": poses.to_dict(),
-                "output_scale": float(np.sqrt(reference)),
-                "step": step,
-                "seconds": seconds,
-                "history": history,
-            }
-            save_checkpoint(checkpoint, (model, opt_state), state, CHECKPOINT_FORMAT_2D)
 
+def _step_function(data, faces, poses, rigged, options, opts2d, stage, optim, reference):
+    """One optimiser step of ``stage`` on (model, optimiser state), its heads and poses drawn
+    from the step number and the stage."""
     cameras = opts2d.cameras()
     reference_j = jnp.asarray(reference, jnp.float32)
     mm_per_unit = float(np.mean(np.asarray(data.scale))) * CM_TO_MM
 
-    def one_step(step):
-        nonlocal model, opt_state
+    def one_step(tree, step):
+        model, opt_state = tree
         rng = np.random.default_rng([options.seed, step, STAGES.index(stage)])
         heads = rng.integers(0, data.n_heads, options.heads_per_step)
         rigged_heads = rigged[rng.integers(0, rigged.size, options.heads_per_step)]
@@ -349,20 +375,9 @@ def train_2d(
         out = {"loss": loss, **metrics}
         if "error_unit" in metrics:
             out["error_mm"] = metrics["error_unit"] * mm_per_unit
-        return out
+        return (model, opt_state), out
 
-    step, seconds = run_training(
-        one_step,
-        save,
-        options,
-        step,
-        seconds,
-        history,
-        progress,
-        f"riganyface-{stage}",
-        stop_after,
-    )
-    return model, step, seconds, history
+    return one_step
 
 
 def load_model_2d(path, poses: PoseSet | None = None):

@@ -39,8 +39,9 @@ from jaxtyping import Array, Float, Int
 from .._checkpoint import (
     load_checkpoint,
     read_checkpoint_state,
-    run_training,
+    resume_training,
     save_checkpoint,
+    train_resumably,
     verify_sha256,
 )
 from .._metrics import CM_TO_MM
@@ -429,6 +430,44 @@ def train_riganyface(
     after that many steps (a simulated interruption, for tests). ``devices`` (default: all):
     data-parallel over that many devices (``canrig_jax._sharding.data_parallel``), each step's heads
     split over them, parameters and training set replicated."""
+    _check_training_inputs(data, poses, options)
+    placement = data_parallel(devices, options.heads_per_step, "heads_per_step")
+    reference = mean_square_displacement(data)
+    optim = optimiser(options)
+
+    def init(header):
+        # a resumed model keeps the output scale it was built with
+        scale = header.get("output_scale", float(np.sqrt(reference)))
+        model = make_model(options, poses.n_basis, scale)
+        return model, optim.init(eqx.filter(model, eqx.is_array))
+
+    run = resume_training(
+        checkpoint, CHECKPOINT_FORMAT, init, options, lambda d: RigAnyFaceTrainOptions(**d)
+    )
+    header = {
+        "options": options.to_dict(),
+        "poses": poses.to_dict(),
+        "output_scale": run.header.get("output_scale", float(np.sqrt(reference))),
+        "reference": reference,
+    }
+    data, run.tree = placement.replicate((data, run.tree))
+    train_resumably(
+        _step_function(data, poses, options, optim, reference, placement),
+        run,
+        options,
+        checkpoint=checkpoint,
+        format=CHECKPOINT_FORMAT,
+        header=header,
+        progress=progress,
+        desc="riganyface",
+        stop_after=stop_after,
+    )
+    return RigAnyFaceTrainResult(
+        model=run.tree[0], step=run.step, seconds=run.seconds, history=run.history
+    )
+
+
+def _check_training_inputs(data: TrainingSet, poses: PoseSet, options: RigAnyFaceTrainOptions):
     if data.poses.shape[0] != poses.n_poses:
         raise ValueError(f"data: {data.poses.shape[0]} poses, the pose set {poses.n_poses}")
     if options.residual != (data.base is not None):
@@ -441,52 +480,18 @@ def train_riganyface(
         raise ValueError(
             f"poses_per_step: {options.poses_per_step} exceeds the {poses.n_poses} poses"
         )
-    placement = data_parallel(devices, options.heads_per_step, "heads_per_step")
-    reference = mean_square_displacement(data)
-    output_scale = float(np.sqrt(reference))
-    model = make_model(options, poses.n_basis, output_scale)
-    optim = optimiser(options)
-    opt_state = optim.init(eqx.filter(model, eqx.is_array))
-    step, seconds, history = 0, 0.0, []
-    if checkpoint is not None and os.path.exists(checkpoint):
-        state = read_checkpoint_state(checkpoint, CHECKPOINT_FORMAT)
-        if state.get("weights_only"):
-            raise ValueError(
-                f"checkpoint: {checkpoint} holds a model's weights only (export_riganyface), "
-                "not a training state to resume from"
-            )
-        saved = RigAnyFaceTrainOptions(**state["options"])
-        if dataclasses.replace(saved, max_minutes=options.max_minutes) != options:
-            raise ValueError(f"checkpoint: {checkpoint} was written with different options")
-        output_scale = state["output_scale"]
-        model = make_model(options, poses.n_basis, output_scale)
-        opt_state = optim.init(eqx.filter(model, eqx.is_array))
-        (model, opt_state), state = load_checkpoint(
-            checkpoint, (model, opt_state), CHECKPOINT_FORMAT
-        )
-        step, seconds, history = state["step"], state["seconds"], state["history"]
 
-    def save(step, seconds, history):
-        if checkpoint is not None:
-            state = {
-                "options": options.to_dict(),
-                "poses": poses.to_dict(),
-                "output_scale": output_scale,
-                "reference": reference,
-                "step": step,
-                "seconds": seconds,
-                "history": history,
-            }
-            save_checkpoint(checkpoint, (model, opt_state), state, CHECKPOINT_FORMAT)
 
+def _step_function(data, poses, options, optim, reference: float, placement):
+    """One optimiser step on (model, optimiser state), its heads and poses drawn from the
+    step number."""
     landmark_weight = jnp.asarray(options.landmark_weight, jnp.float32)
     static_weight = jnp.asarray(options.static_weight, jnp.float32)
     reference_j = jnp.asarray(reference, jnp.float32)
     mm_per_unit = float(np.mean(np.asarray(data.scale))) * CM_TO_MM
-    data, model, opt_state = placement.replicate((data, model, opt_state))
 
-    def one_step(step):
-        nonlocal model, opt_state
+    def one_step(tree, step):
+        model, opt_state = tree
         rng = np.random.default_rng([options.seed, step])
         heads = rng.integers(0, data.n_heads, options.heads_per_step)
         pose_ids = np.stack(
@@ -509,9 +514,7 @@ def train_riganyface(
             static_weight,
             options.balance_poses,
         )
-        return {"loss": loss, "error_unit": distance, "error_mm": distance * mm_per_unit}
+        metrics = {"loss": loss, "error_unit": distance, "error_mm": distance * mm_per_unit}
+        return (model, opt_state), metrics
 
-    step, seconds = run_training(
-        one_step, save, options, step, seconds, history, progress, "riganyface", stop_after
-    )
-    return RigAnyFaceTrainResult(model=model, step=step, seconds=seconds, history=history)
+    return one_step

@@ -13,7 +13,7 @@ handles' influence evaluated at the patch's seed vertex (geodesic distance on th
 head's edge graph).
 
 The loop, checkpoints (atomic, resumable bit-identically) and the Adam schedule are the
-CANRig trainer's (``_checkpoint.run_training``, ``_train.adam``).
+CANRig trainer's (``_checkpoint.train_resumably``, ``_train.adam``).
 """
 
 from __future__ import annotations
@@ -29,8 +29,7 @@ from jaxtyping import Array, Float, Int
 
 from .._checkpoint import load_checkpoint as _load_file
 from .._checkpoint import read_checkpoint_state as _read_state_file
-from .._checkpoint import run_training
-from .._checkpoint import save_checkpoint as _save_file
+from .._checkpoint import resume_training, train_resumably
 from .._metrics import CM_TO_MM
 from ..mesh import weighted_geodesic_distance
 from ._masks import influence_mask
@@ -360,45 +359,43 @@ def train_pbs(
     if not isinstance(options, PBSTrainOptions):
         raise TypeError(f"options: expected PBSTrainOptions, got {type(options).__name__}")
     n_patches, n_weights = data.weights.shape[1:]
-    model = make_pbs_model(options, data.neutral, n_patches, n_weights, displacement_scale)
     optimiser = _optimiser(options)
-    opt_state = optimiser.init(eqx.filter(model, eqx.is_array))
-    step, seconds, history = 0, 0.0, []
-    if checkpoint is not None and os.path.exists(checkpoint):
-        (model, opt_state), state = _load_file(
-            checkpoint, (model, opt_state), PBS_CHECKPOINT_FORMAT
-        )
-        saved = PBSTrainOptions.from_dict(state["options"])
-        budget = {"steps": options.steps, "max_minutes": options.max_minutes}
-        if dataclasses.replace(saved, **budget) != options:
-            raise ValueError(f"checkpoint: {checkpoint} was written with different options")
-        step, seconds, history = state["step"], state["seconds"], state["history"]
 
-    def save(step, seconds, history):
-        if checkpoint is not None:
-            state = {
-                "options": options.to_dict(),
-                "displacement_scale": displacement_scale,
-                "step": step,
-                "seconds": seconds,
-                "history": history,
-            }
-            _save_file(checkpoint, (model, opt_state), state, PBS_CHECKPOINT_FORMAT)
+    def init(header):
+        model = make_pbs_model(options, data.neutral, n_patches, n_weights, displacement_scale)
+        return model, optimiser.init(eqx.filter(model, eqx.is_array))
 
+    run = resume_training(
+        checkpoint,
+        PBS_CHECKPOINT_FORMAT,
+        init,
+        options,
+        PBSTrainOptions.from_dict,
+        may_change=("steps", "max_minutes"),
+    )
     sizes = (data.shapes.shape[0], data.pool.shape[0], data.moving.shape[0])
 
-    def one_step(step):
-        nonlocal model, opt_state
+    def one_step(tree, step):
+        model, opt_state = tree
         ex = sample_pbs_examples(np.random.default_rng([options.seed, step]), *sizes, options)
         model, opt_state, loss, aux = _pbs_train_step(
             model, opt_state, data, ex, optimiser, options.weight_loss
         )
-        return {"loss": loss, **aux}
+        return (model, opt_state), {"loss": loss, **aux}
 
-    step, seconds = run_training(
-        one_step, save, options, step, seconds, history, progress, options.model, stop_after
+    header = {"options": options.to_dict(), "displacement_scale": displacement_scale}
+    train_resumably(
+        one_step,
+        run,
+        options,
+        checkpoint=checkpoint,
+        format=PBS_CHECKPOINT_FORMAT,
+        header=header,
+        progress=progress,
+        desc=options.model,
+        stop_after=stop_after,
     )
-    return model, step, seconds, history
+    return run.tree[0], run.step, run.seconds, run.history
 
 
 @eqx.filter_jit

@@ -24,7 +24,7 @@ from jaxtyping import Array, Float
 
 from .._checkpoint import load_checkpoint as _load_file
 from .._checkpoint import read_checkpoint_state as _read_state_file
-from .._checkpoint import run_training
+from .._checkpoint import resume_training, train_resumably
 from .._checkpoint import save_checkpoint as _save_file
 from .._metrics import CM_TO_MM
 from .._sharding import data_parallel
@@ -280,43 +280,59 @@ def train(
     placement = data_parallel(devices, options.examples.batch, "examples.batch")
     if data_options is not None:
         data_options = json.loads(json.dumps(data_options))  # as the checkpoint stores them
-    model = make_model(options, data.neutral, displacement_scale)
     optimiser = make_optimiser(options)
-    opt_state = optimiser.init(eqx.filter(model, eqx.is_array))
-    step, seconds, history = 0, 0.0, []
-    if checkpoint is not None and os.path.exists(checkpoint):
-        model, opt_state, state = load_checkpoint(checkpoint, model, opt_state)
-        saved = TrainOptions.from_dict(state["options"])
-        budget = {"steps": options.steps, "max_minutes": options.max_minutes}
-        if dataclasses.replace(saved, **budget) != options:
-            raise ValueError(f"checkpoint: {checkpoint} was written with different options")
-        saved_data = state.get("data_options")
-        if saved_data is not None and data_options is not None and saved_data != data_options:
-            changed = sorted(
-                k
-                for k in set(saved_data) | set(data_options)
-                if saved_data.get(k) != data_options.get(k)
-            )
-            raise ValueError(
-                f"checkpoint: {checkpoint} was written with other data options "
-                f"(changed: {', '.join(changed)}); delete it to start afresh"
-            )
-        if data_options is None:
-            data_options = saved_data
-        step, seconds, history = state["step"], state["seconds"], state["history"]
 
-    def save(step, seconds, history):
-        if checkpoint is not None:
-            state = {
-                "options": options.to_dict(),
-                "data_options": data_options,
-                "displacement_scale": displacement_scale,
-                "step": step,
-                "seconds": seconds,
-                "history": history,
-            }
-            save_checkpoint(checkpoint, model, opt_state, state)
+    def init(header):
+        model = make_model(options, data.neutral, displacement_scale)
+        return model, optimiser.init(eqx.filter(model, eqx.is_array))
 
+    run = resume_training(
+        checkpoint,
+        CHECKPOINT_FORMAT,
+        init,
+        options,
+        TrainOptions.from_dict,
+        may_change=("steps", "max_minutes"),
+        check=functools.partial(_check_data_options, checkpoint, data_options),
+    )
+    header = {
+        "options": options.to_dict(),
+        "data_options": run.header.get("data_options") if data_options is None else data_options,
+        "displacement_scale": displacement_scale,
+    }
+    data, run.tree = placement.replicate((data, run.tree))
+    step_fn = _step_function(data, options, optimiser, placement)
+    train_resumably(
+        step_fn,
+        run,
+        options,
+        checkpoint=checkpoint,
+        format=CHECKPOINT_FORMAT,
+        header=header,
+        progress=progress,
+        desc="canrig",
+        stop_after=stop_after,
+    )
+    model = run.tree[0]
+    return TrainResult(model=model, step=run.step, seconds=run.seconds, history=run.history)
+
+
+def _check_data_options(checkpoint, data_options: dict | None, header: dict) -> None:
+    """Refuse to resume a checkpoint written with other data options (one written before
+    they were stored resumes with any)."""
+    saved = header.get("data_options")
+    if saved is not None and data_options is not None and saved != data_options:
+        changed = sorted(
+            k for k in set(saved) | set(data_options) if saved.get(k) != data_options.get(k)
+        )
+        raise ValueError(
+            f"checkpoint: {checkpoint} was written with other data options "
+            f"(changed: {', '.join(changed)}); delete it to start afresh"
+        )
+
+
+def _step_function(data: TrainingSet, options: TrainOptions, optimiser, placement):
+    """One optimiser step on (model, optimiser state), its examples drawn from the step."""
     n_shapes, n_pool, n_vertices = (
         data.shapes.shape[0],
         data.pool.shape[0],
@@ -324,10 +340,9 @@ def train(
     )
     handle_sets = None if data.handle_sets is None else np.asarray(data.handle_sets)
     beta = jnp.asarray(options.beta, jnp.float32)
-    data, model, opt_state = placement.replicate((data, model, opt_state))
 
-    def one_step(step):
-        nonlocal model, opt_state
+    def one_step(tree, step):
+        model, opt_state = tree
         rng = np.random.default_rng([options.seed, step])
         ex = sample_examples(
             rng,
@@ -348,9 +363,6 @@ def train(
             options.sp_weight,
             options.loss,
         )
-        return {"loss": loss, "error_mm": aux["error_mm"]}
+        return (model, opt_state), {"loss": loss, "error_mm": aux["error_mm"]}
 
-    step, seconds = run_training(
-        one_step, save, options, step, seconds, history, progress, "canrig", stop_after
-    )
-    return TrainResult(model=model, step=step, seconds=seconds, history=history)
+    return one_step
