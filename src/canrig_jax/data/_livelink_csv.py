@@ -159,6 +159,29 @@ def read_livelink_csv(path: str | os.PathLike, fps: int | None = None) -> LiveLi
         malformed timecode, a non-numeric or non-finite value, a row of the wrong length,
         and a file with no rows.
     """
+    path, lines = _read_lines(path, fps)
+    header, shapes, rotations, count_column = _parse_header(lines[0], path)
+    rows = [(i + 1, line) for i, line in enumerate(lines) if i > 0 and line.strip()]
+    if not rows:
+        raise ValueError(f"{path}: no rows after the header (an empty take)")
+    values, stamps, sub_frame, counts = _parse_rows(rows, header, count_column, path)
+    blendshape_count = _blendshape_count(counts, rows, count_column, shapes, rotations, path)
+    fps, frame_number = _frame_numbers(stamps, fps, rows, path)
+    _check_sequence(frame_number, fps, path)
+    return LiveLinkCapture(
+        weights=np.ascontiguousarray(values[:, shapes]),
+        names=tuple(header[c] for c in shapes),
+        head_eye_rotations=np.ascontiguousarray(values[:, rotations]),
+        rotation_names=tuple(header[c] for c in rotations),
+        frame_number=frame_number,
+        fps=float(fps),
+        sub_frame=np.round(sub_frame, 3),
+        blendshape_count=blendshape_count,
+    )
+
+
+def _read_lines(path, fps) -> tuple[Path, list[str]]:
+    """(the checked ``path``, its lines; the first one not blank)."""
     if not isinstance(path, str | os.PathLike):
         raise TypeError(f"path: expected a file path, got {type(path).__name__}")
     path = Path(path)
@@ -173,7 +196,12 @@ def read_livelink_csv(path: str | os.PathLike, fps: int | None = None) -> LiveLi
     lines = text.splitlines()
     if not lines or not lines[0].strip():
         raise ValueError(f"{_where(path, 1)}: empty file, expected a Live Link Face header")
-    header = [c.strip() for c in lines[0].split(",")]
+    return path, lines
+
+
+def _parse_header(first_line: str, path):
+    """(header cells, blendshape columns, rotation columns, BlendShapeCount column or None)."""
+    header = [c.strip() for c in first_line.split(",")]
     if header[:1] != ["Timecode"]:
         raise ValueError(
             f"{_where(path, 1)}: the first column must be 'Timecode', got {header[0]!r}"
@@ -207,10 +235,12 @@ def read_livelink_csv(path: str | os.PathLike, fps: int | None = None) -> LiveLi
             shapes.append(col)
     if not shapes:
         raise ValueError(f"{_where(path, 1)}: no blendshape columns in the header")
+    return header, shapes, rotations, count_column
 
-    rows = [(i + 1, line) for i, line in enumerate(lines) if i > 0 and line.strip()]
-    if not rows:
-        raise ValueError(f"{path}: no rows after the header (an empty take)")
+
+def _parse_rows(rows, header, count_column, path):
+    """Per row: (values (T, columns) float32, timecodes (T, 4) h m s f, sub-frames (T,),
+    BlendShapeCount (T,), 0 without the column)."""
     n_frames = len(rows)
     values = np.zeros((n_frames, len(header)), np.float32)
     stamps = np.zeros((n_frames, 4), np.int64)
@@ -245,6 +275,12 @@ def read_livelink_csv(path: str | os.PathLike, fps: int | None = None) -> LiveLi
                     "a count"
                 )
             counts[r] = int(count)
+    return values, stamps, sub_frame, counts
+
+
+def _blendshape_count(counts, rows, count_column, shapes, rotations, path) -> int | None:
+    """The take's BlendShapeCount (None without the column): one value, warned about when it
+    matches no known layout."""
     if count_column is not None and np.any(counts != counts[0]):
         bad = rows[int(np.flatnonzero(counts != counts[0])[0])][0]
         raise ValueError(f"{_where(path, bad)}: BlendShapeCount changes within the take")
@@ -260,6 +296,11 @@ def read_livelink_csv(path: str | os.PathLike, fps: int | None = None) -> LiveLi
             f"{path}: BlendShapeCount {blendshape_count} matches neither the app's 61 nor the "
             f"{len(shapes)} blendshape columns found; the columns are read by name",
         )
+    return blendshape_count
+
+
+def _frame_numbers(stamps, fps, rows, path):
+    """(fps, (T,) frames since midnight), a take that crosses midnight counted on."""
     if fps is None:
         fps = _infer_fps(stamps, path)
     elif stamps[:, 3].max() >= fps:
@@ -271,17 +312,7 @@ def read_livelink_csv(path: str | os.PathLike, fps: int | None = None) -> LiveLi
     wrapped = np.flatnonzero(np.diff(frame_number) < -day // 2)  # the take crosses midnight
     for i in wrapped:
         frame_number[i + 1 :] += day
-    _check_sequence(frame_number, fps, path)
-    return LiveLinkCapture(
-        weights=np.ascontiguousarray(values[:, shapes]),
-        names=tuple(header[c] for c in shapes),
-        head_eye_rotations=np.ascontiguousarray(values[:, rotations]),
-        rotation_names=tuple(header[c] for c in rotations),
-        frame_number=frame_number,
-        fps=float(fps),
-        sub_frame=np.round(sub_frame, 3),
-        blendshape_count=blendshape_count,
-    )
+    return fps, frame_number
 
 
 def write_livelink_csv(
