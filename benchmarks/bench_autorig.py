@@ -8,6 +8,10 @@ process, median over ``--repeats``:
 
 - **operators** (robust-laplacian L and M, 128 eigenpairs by shift-invert Lanczos, frames,
   gradients): what every new head costs before the network runs;
+- **operators, from the disk cache** (the same head again, ``cache=`` a folder): against
+  computing them;
+- **orientation check** (``head_orientation``, the guard ``generate_rig`` runs first): against
+  the operators;
 - **network, all poses, chunks of 16** (the library's ``generate_rig`` path: (V, 16, C)
   features through the conditional blocks, ``lax.map`` over 6 chunks), warm jit;
 - **network, all poses in one pass** ((V, 96, C) features: the same function, activations
@@ -29,6 +33,7 @@ import argparse
 import os
 import platform
 import statistics
+import tempfile
 import time
 from pathlib import Path
 
@@ -42,6 +47,7 @@ from canrig_jax.autorig import (
     RigAnyFaceTrainOptions,
     generate_rig,
     head_inputs,
+    head_orientation,
     load_riganyface,
     make_model,
     pad_to_bucket,
@@ -132,6 +138,15 @@ def main(argv=None):
         lambda: head_inputs(mesh.vertices, mesh.faces, k=128, cache=False)[1].mass,
         args.repeats,
     )
+    with tempfile.TemporaryDirectory() as cache:
+        head_inputs(mesh.vertices, mesh.faces, k=128, cache=cache)  # fills the cache
+        cached_s = median_seconds(
+            lambda: head_inputs(mesh.vertices, mesh.faces, k=128, cache=cache)[1].mass,
+            args.repeats,
+        )
+    orientation_s = median_seconds(
+        lambda: head_orientation(mesh.vertices, mesh.faces).margins, args.repeats
+    )
     times = {name: time_model(*mp, mesh, other, args.repeats) for name, mp in models.items()}
 
     def cells(key, ratio=True):
@@ -139,6 +154,9 @@ def main(argv=None):
             f"{t[key]:.3f}" + (f" ({t['per_pose'] / t[key]:.1f}x faster)" if ratio else "")
             for t in times.values()
         )
+
+    def same(seconds, reference, what):  # a model-independent row, as a ratio
+        return " | ".join(f"{seconds:.3f} ({seconds / reference:.1%} {what})" for _ in times)
 
     rows = [
         f"# RigAnyFace rig generation: {mesh.n_vertices} vertices, {poses.n_poses} poses",
@@ -152,6 +170,8 @@ def main(argv=None):
         "| operators (L, M, 128 eigenpairs, gradients) | "
         + " | ".join(f"{operators_s:.3f}" for _ in times)
         + " |",
+        f"| operators, from the disk cache | {same(cached_s, operators_s, 'of computing')} |",
+        f"| orientation check | {same(orientation_s, operators_s, 'of the operators')} |",
         f"| network, all poses, chunks of {DEFAULT_POSE_CHUNK} | {cells('chunked')} |",
         f"| network, all poses in one pass | {cells('batched')} |",
         f"| reference: network, one pose per call | {cells('per_pose', ratio=False)} |",

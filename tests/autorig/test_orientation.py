@@ -16,7 +16,7 @@ from canrig_jax.autorig import (
     load_makehuman,
 )
 from canrig_jax.data import ict_identity, load_ict
-from canrig_jax.mesh import decimate
+from canrig_jax.mesh import connected_components, decimate
 
 
 def _proper_rotations() -> list[np.ndarray]:
@@ -138,16 +138,35 @@ def test_inconclusive_heads_pass_and_a_partly_known_turn_is_not_fixed(
     assert not head_orientation(sphere, hull.simplices).determined
 
 
-def test_orientation_check_is_cheap(ict_heads):
-    mesh = ict_heads["generic"]
-    head_orientation(mesh.vertices, mesh.faces)
-    import time
+def test_orientation_check_searches_a_bounded_subsample(ict_heads, monkeypatch):
+    """The check stays cheap on any head: its one nearest-neighbour search (the symmetry cue)
+    builds one k-d tree on at most ``max_points`` vertices and queries it once per axis with
+    as many points; everything else is a linear pass. (Its time, against the operators' on
+    the same head: ``benchmarks/bench_autorig.py``.)"""
+    import canrig_jax.autorig._orientation as orientation_module  # patched: the k-d tree
 
-    start = time.perf_counter()
-    for _ in range(3):
-        head_orientation(mesh.vertices, mesh.faces)
-    # ~15 ms per call on the shared 2-core CPU; a loose bound against regressions
-    assert (time.perf_counter() - start) / 3 < 0.25
+    built, queried = [], []
+    real = orientation_module.cKDTree
+
+    class CountingTree:
+        def __init__(self, points, *args, **kwargs):
+            built.append(len(points))
+            self.tree = real(points, *args, **kwargs)
+
+        def query(self, points, *args, **kwargs):
+            queried.append(len(points))
+            return self.tree.query(points, *args, **kwargs)
+
+    monkeypatch.setattr(orientation_module, "cKDTree", CountingTree)
+    mesh = ict_heads["generic"]
+    skin = np.bincount(connected_components(mesh.faces, mesh.n_vertices)).max()
+    assert skin > 600
+    head_orientation(mesh.vertices, mesh.faces)
+    assert built == [skin] and queried == [skin] * 3  # the whole skin: under 4000 points
+    built.clear(), queried.clear()
+    head_orientation(mesh.vertices, mesh.faces, max_points=300)
+    assert len(built) == 1 and 150 < built[0] <= 300
+    assert queried == built * 3
 
 
 def test_a_head_with_weak_cues_is_let_through_not_refused(data_dir):

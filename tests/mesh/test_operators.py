@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -251,10 +249,8 @@ def test_second_call_loads_from_the_cache(data_dir, tmp_path, monkeypatch):
     def fail(*args, **kwargs):
         raise AssertionError("recomputed although cached")
 
-    monkeypatch.setattr(ops_module, "compute_geometry", fail)
-    start = time.perf_counter()
+    monkeypatch.setattr(ops_module, "compute_geometry", fail)  # the cached path never computes
     second = mesh_geometry(face.neutral, face.faces, k=32, cache=tmp_path)
-    assert time.perf_counter() - start < 1.0
     assert second.from_cache
     for name in ("mass", "eigenvalues", "eigenvectors", "frames"):
         np.testing.assert_array_equal(getattr(second, name), getattr(first, name))
