@@ -68,7 +68,7 @@ def test_wheel_runs_autorig_and_animate_outside_the_repository(tmp_path, data_di
         [bin_dir / "canrig", "autorig", "head.obj", "--units", "dm", "-o", "rig.glb"], work, env
     )
     installed = tmp_path / "venv" / "lib"
-    assert f"loaded RigAnyFace from {installed}" in autorig.stderr + autorig.stdout
+    assert f"loading the network {installed}" in autorig.stderr + autorig.stdout
     rig = load_gltf_rig(work / "rig.glb")
     assert rig.n_blendshapes == 51 and rig.n_vertices == 4920 and rig.units == "cm"
     np.testing.assert_allclose(rig.neutral, head["neutral"] * 10, rtol=1e-5, atol=1e-4)
