@@ -329,6 +329,64 @@ def transfer_deltas(
         (K, V, 3) float64 target blendshape offsets. ``canrig_jax.rig.deformation_transfer``
         wraps this for a ``BlendshapeRig``.
     """
+    source_neutral, source_faces_all, source_deltas, tv, target_faces = _check_transfer(
+        source_neutral, source_deltas, source_faces, target_neutral, correspondence,
+        screening, static_below,
+    )  # fmt: skip
+    part_of_target, part_members = _static_parts(
+        static_parts, static_below, correspondence.vertex_map, source_neutral.shape[0]
+    )
+    source_faces, sample_weight, rest_ok, inverse_rest = _source_samples(
+        source_neutral, source_faces_all, correspondence.source_triangle, min_area
+    )
+    target_edges = np.stack(
+        [tv[target_faces[:, b]] - tv[target_faces[:, a]] for a, b in _EDGES], axis=-1
+    )  # (T, 3 coords, 3 edges)
+
+    n_vertices = tv.shape[0]
+    difference, system, solve, ridge = _screened_system(target_faces, n_vertices, screening)
+    rest_difference = difference @ tv  # (3T, 3)
+    # Source gradients and anchor deltas are expressed in the target's orientation (and the
+    # anchors in its size): the similarity taking the source neutral, carried to the target
+    # vertices, onto the target neutral. Without it a rotated target would be deformed along
+    # the source's axes (Sumner & Popović assume aligned meshes).
+    scale, rotation, _ = similarity_transform(correspondence.vertex_map.carry(source_neutral), tv)
+    anchor_map = scale * rotation
+
+    deltas = np.zeros((source_deltas.shape[0], n_vertices, 3))
+    for start in range(0, source_deltas.shape[0], batch_size):
+        chunk = source_deltas[start : start + batch_size]
+        gradient = _source_gradients(
+            source_neutral[None] + chunk, source_faces, inverse_rest, rest_ok, sample_weight,
+            min_area,
+        )  # fmt: skip
+        gradient = rotation @ gradient @ rotation.T  # in the target's orientation
+        edges = gradient @ target_edges  # (B, T, 3 coords, 3 edges)
+        wanted = np.moveaxis(edges, -1, 1).reshape(chunk.shape[0], -1, 3)  # (B, 3T, 3)
+        anchor = correspondence.vertex_map.carry(chunk) @ anchor_map.T  # (B, V, 3)
+        rhs = difference.T @ np.moveaxis(wanted - rest_difference, 0, 1).reshape(
+            wanted.shape[1], -1
+        ) + ridge * np.moveaxis(anchor, 0, 1).reshape(n_vertices, -1)
+        if static_below is None:
+            deltas[start : start + chunk.shape[0]] = np.moveaxis(
+                solve(rhs).reshape(n_vertices, chunk.shape[0], 3), 1, 0
+            )
+            continue
+        rhs = rhs.reshape(n_vertices, chunk.shape[0], 3)
+        free = _free_vertices(
+            anchor, chunk, scale, static_below, part_of_target, part_members
+        )  # (B, V)
+        for b in range(chunk.shape[0]):
+            deltas[start + b] = _anchored_solve(system, solve, rhs[:, b], free[b])
+    return deltas
+
+
+def _check_transfer(
+    source_neutral, source_deltas, source_faces, target_neutral, correspondence, screening,
+    static_below,
+):  # fmt: skip
+    """``transfer_deltas``'s checked arrays: (source neutral, source faces, source deltas
+    float64, target neutral float64, target faces)."""
     source_neutral, source_faces_all = check_mesh(source_neutral, source_faces)
     source_deltas = np.asarray(source_deltas)
     if source_deltas.ndim != 3 or source_deltas.shape[1:] != source_neutral.shape:
@@ -367,10 +425,14 @@ def transfer_deltas(
         raise ValueError(
             f"static_below: expected None or a finite length >= 0, got {static_below!r}"
         )
-    part_of_target, part_members = _static_parts(
-        static_parts, static_below, correspondence.vertex_map, source_neutral.shape[0]
-    )
-    source_triangle = np.asarray(correspondence.source_triangle, np.int64)
+    return source_neutral, source_faces_all, source_deltas, tv, target_faces
+
+
+def _source_samples(source_neutral, source_faces_all, source_triangle, min_area):
+    """The source triangles sampled for each target triangle: ((T * S, 3) their faces,
+    (T, S) area weights summing to 1 (0 for degenerate ones), (T * S,) which are not
+    degenerate, (T * S, 3, 3) inverse rest frames)."""
+    source_triangle = np.asarray(source_triangle, np.int64)
     source_triangle = source_triangle.reshape(source_triangle.shape[0], -1)  # (T, S)
     n_samples = source_triangle.shape[1]
     source_faces = source_faces_all[source_triangle.ravel()]
@@ -380,59 +442,46 @@ def transfer_deltas(
     sample_weight = np.where(rest_ok, rest_area, 0.0).reshape(-1, n_samples)
     sample_weight /= np.maximum(sample_weight.sum(axis=1, keepdims=True), 1e-300)
     inverse_rest = np.linalg.inv(np.where(rest_ok[:, None, None], rest_frame, np.eye(3)))
-    target_edges = np.stack(
-        [tv[target_faces[:, b]] - tv[target_faces[:, a]] for a, b in _EDGES], axis=-1
-    )  # (T, 3 coords, 3 edges)
+    return source_faces, sample_weight, rest_ok, inverse_rest
 
-    n_vertices = tv.shape[0]
+
+def _screened_system(target_faces, n_vertices: int, screening: float):
+    """(edge-difference operator D (3T, V), D^T D + ridge I, its factorised solve, ridge)."""
     difference = _difference_operator(target_faces, n_vertices)
     normal_matrix = (difference.T @ difference).tocsc()
     ridge = screening * normal_matrix.diagonal().mean()
     system = (normal_matrix + ridge * sp.identity(n_vertices)).tocsc()
     solve = spla.factorized(system)
-    rest_difference = difference @ tv  # (3T, 3)
-    # Source gradients and anchor deltas are expressed in the target's orientation (and the
-    # anchors in its size): the similarity taking the source neutral, carried to the target
-    # vertices, onto the target neutral. Without it a rotated target would be deformed along
-    # the source's axes (Sumner & Popović assume aligned meshes).
-    scale, rotation, _ = similarity_transform(correspondence.vertex_map.carry(source_neutral), tv)
-    anchor_map = scale * rotation
+    return difference, system, solve, ridge
 
-    deltas = np.zeros((source_deltas.shape[0], n_vertices, 3))
-    for start in range(0, source_deltas.shape[0], batch_size):
-        chunk = source_deltas[start : start + batch_size]
-        frame, area = triangle_frames(source_neutral[None] + chunk, source_faces)
-        gradient = frame @ inverse_rest  # (B, T, 3, 3)
-        keep = rest_ok[None] & (area >= min_area)
-        gradient = np.where(keep[..., None, None], gradient, np.eye(3))
-        gradient = gradient.reshape(chunk.shape[0], -1, n_samples, 3, 3)
-        gradient = np.einsum("btsij,ts->btij", gradient, sample_weight)
-        no_weight = sample_weight.sum(axis=1) == 0
-        gradient[:, no_weight] = np.eye(3)
-        gradient = rotation @ gradient @ rotation.T  # in the target's orientation
-        edges = gradient @ target_edges  # (B, T, 3 coords, 3 edges)
-        wanted = np.moveaxis(edges, -1, 1).reshape(chunk.shape[0], -1, 3)  # (B, 3T, 3)
-        anchor = correspondence.vertex_map.carry(chunk) @ anchor_map.T  # (B, V, 3)
-        rhs = difference.T @ np.moveaxis(wanted - rest_difference, 0, 1).reshape(
-            wanted.shape[1], -1
-        ) + ridge * np.moveaxis(anchor, 0, 1).reshape(n_vertices, -1)
-        if static_below is None:
-            deltas[start : start + chunk.shape[0]] = np.moveaxis(
-                solve(rhs).reshape(n_vertices, chunk.shape[0], 3), 1, 0
-            )
-            continue
-        rhs = rhs.reshape(n_vertices, chunk.shape[0], 3)
-        free = np.linalg.norm(anchor, axis=-1) >= static_below  # (B, V) per vertex
-        if part_of_target is not None:
-            motion = scale * np.linalg.norm(chunk, axis=-1)  # (B, Vs), target units
-            moving_part = np.stack(
-                [motion[:, members].max(axis=1) >= static_below for members in part_members], 1
-            )  # (B, parts)
-            by_part = part_of_target >= 0
-            free[:, by_part] = moving_part[:, part_of_target[by_part]]
-        for b in range(chunk.shape[0]):
-            deltas[start + b] = _anchored_solve(system, solve, rhs[:, b], free[b])
-    return deltas
+
+def _source_gradients(posed, source_faces, inverse_rest, rest_ok, sample_weight, min_area):
+    """(B, T, 3, 3) deformation gradient of each target triangle: the area-weighted mean
+    over its sampled source triangles of ``posed`` (B, Vs, 3) (identity where degenerate)."""
+    n_samples = sample_weight.shape[1]
+    frame, area = triangle_frames(posed, source_faces)
+    gradient = frame @ inverse_rest  # (B, T, 3, 3)
+    keep = rest_ok[None] & (area >= min_area)
+    gradient = np.where(keep[..., None, None], gradient, np.eye(3))
+    gradient = gradient.reshape(posed.shape[0], -1, n_samples, 3, 3)
+    gradient = np.einsum("btsij,ts->btij", gradient, sample_weight)
+    no_weight = sample_weight.sum(axis=1) == 0
+    gradient[:, no_weight] = np.eye(3)
+    return gradient
+
+
+def _free_vertices(anchor, chunk, scale, static_below, part_of_target, part_members):
+    """(B, V) the target vertices anchored transfer solves for in each expression (the
+    others are held at zero): by the carried anchor, or by their source part's motion."""
+    free = np.linalg.norm(anchor, axis=-1) >= static_below  # (B, V) per vertex
+    if part_of_target is not None:
+        motion = scale * np.linalg.norm(chunk, axis=-1)  # (B, Vs), target units
+        moving_part = np.stack(
+            [motion[:, members].max(axis=1) >= static_below for members in part_members], 1
+        )  # (B, parts)
+        by_part = part_of_target >= 0
+        free[:, by_part] = moving_part[:, part_of_target[by_part]]
+    return free
 
 
 def _static_parts(static_parts, static_below, vertex_map: SurfaceMap, n_source: int):
