@@ -61,34 +61,32 @@ from canrig_jax._io import save_json, save_text
 from canrig_jax._metrics import CM_TO_MM
 from canrig_jax._provenance import experiment_command, provenance, record_command
 from canrig_jax.autorig import (
-    ACTIVE_MM,
+    ANCHOR_CM,
     ANCHOR_MODES,
-    FACE_PLACED,
     STATIC_MM,
     RigAnyFaceTrainOptions,
+    anchored_base_key,
     cached_transfer,
     class_errors,
     copy_poses,
     crop_below_chin,
     error_stats,
+    evaluate_makehuman,
     face_placement,
-    fit_head_landmarks,
     generate_rig,
+    generate_rows,
     head_correspondence,
     head_inputs,
     ict_autorig_dataset,
     inner_outside,
-    load_makehuman,
     load_riganyface,
     normalise,
     penetration,
     penetration_free_set,
     sculpted_shape_errors,
-    sculpted_target_errors,
-    shared_shape_matrix,
     train_riganyface,
     training_set,
-    transfer_poses,
+    transfer_bases,
     worst_poses,
 )
 from canrig_jax.canrig import parameter_count
@@ -129,10 +127,6 @@ ANCHORED_RESIDUALS = {
 """Residual models trained on anchored deformation transfer, by anchoring mode
 (``transfer_poses(anchor=)``; ``--anchor``): per vertex (the standard), per part, per vertex on
 the skin and per part elsewhere (issue 19, per-part anchoring)."""
-ANCHOR_CM = STATIC_MM / CM_TO_MM
-"""Anchored deformation transfer (``transfer_poses(static_below=)``): per pose, the vertices
-whose carried ICT displacement is below the evaluation's static threshold (0.01 mm) are held
-still. Not tuned: the issue's own definition of static."""
 ANCHORED = "_anchored"
 """Suffix of a row evaluated on anchored deformation transfer (``deformation_transfer_anchored``
 and ``raf_dt_residual_anchored``: the plain-trained residual model on the anchored base)."""
@@ -153,42 +147,6 @@ def _held_out_dataset(args, n_test: int, seed: int):
         seed=seed,
         progress=not args.no_progress,
     )
-
-
-def _transfer_bases(dataset, head, correspondence, plain=None, anchors=("vertex",)) -> dict:
-    """The residual models' bases on ``head``: plain and anchored deformation transfer of
-    every pose (``plain``: the plain one when already computed), anchored per ``anchors``
-    (``transfer_poses(anchor=)``; keys "anchored" for "vertex", "anchored_<mode>" else)."""
-    if plain is None:
-        plain = transfer_poses(dataset, head, correspondence)
-    bases = {"plain": plain}
-    for mode in anchors:
-        bases[_anchored_key(mode)] = transfer_poses(
-            dataset, head, correspondence, static_below=ANCHOR_CM, anchor=mode
-        )
-    return bases
-
-
-def _anchored_key(mode: str) -> str:
-    """Base key (and row suffix without the leading '_') of anchoring mode ``mode``."""
-    return "anchored" if mode == "vertex" else f"anchored_{mode}"
-
-
-def _generated(models, rows, poses, head, bases, operators=None, placement=None) -> dict:
-    """Each evaluation row's generated rig on ``head`` (row -> (model, base key or None));
-    ``placement``: ``generate_rig``'s (default: the head's bounding box)."""
-    return {
-        name: generate_rig(
-            models[model_name],
-            poses,
-            head.vertices,
-            head.faces,
-            operators=operators,
-            base=None if base is None else bases[base],
-            placement=placement,
-        )
-        for name, (model_name, base) in rows.items()
-    }
 
 
 def _train_one(args, name, data, poses, options):
@@ -435,7 +393,7 @@ def main(argv=None):
         ]
         data = training_set(dataset.train, poses, k=options.k, progress=progress, base=base)
         models[name], trained[name] = _train_one(args, name, data, poses, residual_options)
-        key = "" if mode is None else "_" + _anchored_key(mode)
+        key = "" if mode is None else "_" + anchored_base_key(mode)
         trained[name]["base"] = "deformation_transfer" + key
         del data, base
     if args.train_only is not None:
@@ -444,7 +402,9 @@ def main(argv=None):
     # -- evaluation on held-out heads ------------------------------------------------------------
     part_names = dataset.head.part_names
     rows = evaluation_rows(models)
-    anchored_dt = {"deformation_transfer_" + _anchored_key(m): _anchored_key(m) for m in anchors}
+    anchored_dt = {
+        "deformation_transfer_" + anchored_base_key(m): anchored_base_key(m) for m in anchors
+    }
     methods = (*BASELINES, *anchored_dt, *rows)
     test: dict = {name: {} for name in methods if name != "no_motion"}
     pen: dict = {name: [] for name in (*rows, "ground_truth")}
@@ -457,12 +417,12 @@ def main(argv=None):
             truth_all.append(head.displacements)
             unit_scale.append(scale)
             correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
-            bases = _transfer_bases(dataset, head, correspondence, anchors=anchors)
+            bases = transfer_bases(dataset, head, correspondence, anchors=anchors)
             predicted_all["deformation_transfer"].append(bases["plain"])
             for name, key in anchored_dt.items():
                 predicted_all[name].append(bases[key])
             predicted_all["copy_deltas"].append(copy_poses(dataset, head, correspondence))
-            generated_rigs = _generated(models, rows, poses, head, bases, operators=operators)
+            generated_rigs = generate_rows(models, rows, poses, head, bases, operators=operators)
             for name, generated in generated_rigs.items():
                 predicted_all[name].append(generated.displacements)
                 pen[name].append(penetration(head, generated.displacements, part_names))
@@ -495,7 +455,7 @@ def main(argv=None):
 
     # -- MakeHuman hm08 against its person-made targets (evaluation only) -----------------
     makehuman, makehuman_info, makehuman_example = evaluate_makehuman(
-        dataset, models, args.data_dir, anchors
+        dataset, models, evaluation_rows(models), args.data_dir, anchors
     )
 
     # -- rig generation time, ~1,750 vertices -------------------------------------------------
@@ -551,7 +511,7 @@ def main(argv=None):
             "(transfer_poses): per pose, vertices whose carried ICT displacement is shorter "
             "are held at zero; *_anchored rows use it as the residual model's base",
             "anchors": {
-                _anchored_key(m): f"transfer_poses(static_below={ANCHOR_CM}, anchor={m!r})"
+                anchored_base_key(m): f"transfer_poses(static_below={ANCHOR_CM}, anchor={m!r})"
                 for m in anchors
             },
             "rows": {name: {"model": m, "base": b} for name, (m, b) in rows.items()},
@@ -589,80 +549,11 @@ def evaluation_rows(models: dict) -> dict:
         if not model.residual:
             rows[name] = (name, None)
         elif name in ANCHORED_RESIDUALS:
-            rows[name] = (name, _anchored_key(ANCHORED_RESIDUALS[name]))
+            rows[name] = (name, anchored_base_key(ANCHORED_RESIDUALS[name]))
         else:
             rows[name] = (name, "plain")
             rows[name + ANCHORED] = (name, "anchored")
     return rows
-
-
-def evaluate_makehuman(
-    dataset, models: dict, data_dir, anchors=("vertex",), face_placed: bool = False
-) -> tuple[dict, dict, tuple]:
-    """Every method on the MakeHuman head over the shapes it shares with ICT (anchored DT per
-    each mode of ``anchors``); with ``face_placed``, each model row once more with
-    ``face_placement`` (rows suffixed ``FACE_PLACED``)."""
-    mh = load_makehuman(data_dir)
-    poses = dataset.poses
-    start = time.perf_counter()
-    landmarks, fit = fit_head_landmarks(dataset, mh.neutral, mh.faces, region=mh.skin)
-    correspondence = head_correspondence(dataset, mh.neutral, mh.faces, landmarks)
-    seconds_correspondence = time.perf_counter() - start
-    start = time.perf_counter()
-    transferred = transfer_poses(dataset, mh, correspondence)
-    seconds_transfer = time.perf_counter() - start
-    bases = _transfer_bases(dataset, mh, correspondence, plain=transferred, anchors=anchors)
-    predictions = {
-        "no_motion": np.zeros_like(transferred),
-        "copy_deltas": copy_poses(dataset, mh, correspondence),
-        "deformation_transfer": transferred,
-    }
-    for mode in anchors:
-        predictions["deformation_transfer_" + _anchored_key(mode)] = bases[_anchored_key(mode)]
-    rows = evaluation_rows(models)
-    for name, generated in _generated(models, rows, poses, mh, bases).items():
-        predictions[name] = generated.displacements
-    if face_placed:
-        placement = face_placement(dataset, mh.neutral, mh.faces, fit=fit)
-        placed = _generated(models, rows, poses, mh, bases, placement=placement)
-        for name, generated in placed.items():
-            predictions[name + FACE_PLACED] = generated.displacements
-    target_index, matrix = shared_shape_matrix(poses.basis_names, mh.names)
-    truth = mh.deltas[target_index]
-    singles = {
-        name: np.einsum("sk,kvd->svd", matrix, p[: poses.n_basis])
-        for name, p in predictions.items()
-    }
-    results = {name: sculpted_target_errors(p, truth, mh.skin) for name, p in singles.items()}
-    # which ICT part each MakeHuman component was matched to (majority of its vertices)
-    source_face = correspondence.vertex_map.triangle
-    source_part = np.searchsorted(
-        dataset.head.part_vertex_range[:, 1], dataset.head.faces[source_face, 0], side="right"
-    )
-    matched = {}
-    for label in np.unique(mh.component_labels):
-        parts = source_part[mh.component_labels == label]
-        matched[f"component_{int(label)} ({int(np.sum(mh.component_labels == label))} v)"] = str(
-            dataset.head.part_names[np.bincount(parts).argmax()]
-        )
-    info = {
-        "vertices": int(mh.neutral.shape[0]),
-        "shared_shapes": len(target_index),
-        "units": "decimetres x 10 -> cm",
-        "alignment": "trimmed-ICP similarity of the ICT face part (90 % of pairs kept; start: "
-        "identity rotation, nose tips together), ICT's 68 landmarks snapped to the skin",
-        "fit_scale": fit.scale,
-        "fit_trimmed_rms_cm": fit.rms,
-        "fit_iterations": fit.iterations,
-        "matched_parts": matched,
-        "skin": "largest component",
-        "active_mm": ACTIVE_MM,
-        "seconds_landmarks_and_correspondence": seconds_correspondence,
-        "seconds_deformation_transfer": seconds_transfer,
-    }
-    labels = [mh.names[i] for i in target_index]
-    example = (mh, truth, {k: v for k, v in singles.items() if k != "no_motion"}, labels)
-    return results, info, example
 
 
 UPPER_FACE = ("brow", "eye", "cheekSquint")
@@ -802,7 +693,7 @@ def _checkpoint_predictions(dataset, models: dict, anchors, copy: bool = False, 
     ground truth per head) for no motion, (copied ICT deltas,) DT plain and anchored per each
     mode of ``anchors``, and each of ``rows`` (row -> (model name, base key or None); default:
     each checkpoint, a residual one on every base)."""
-    anchored = [_anchored_key(mode) for mode in anchors]
+    anchored = [anchored_base_key(mode) for mode in anchors]
     if rows is None:
         rows = {}
         for name, model in models.items():
@@ -815,14 +706,14 @@ def _checkpoint_predictions(dataset, models: dict, anchors, copy: bool = False, 
     truth = []
     for head in dataset.test[HELDOUT_SPLIT]:
         correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
-        bases = _transfer_bases(dataset, head, correspondence, anchors=tuple(anchors))
+        bases = transfer_bases(dataset, head, correspondence, anchors=tuple(anchors))
         truth.append(head.displacements)
         predicted["no_motion"].append(np.zeros_like(head.displacements))
         if copy:
             predicted["copy_deltas"].append(copy_poses(dataset, head, correspondence))
         for name, key in dt.items():
             predicted[name].append(bases[key])
-        for name, generated in _generated(models, rows, dataset.poses, head, bases).items():
+        for name, generated in generate_rows(models, rows, dataset.poses, head, bases).items():
             predicted[name].append(generated.displacements)
         print(f"predicted {head.name}")
     return predicted, truth
@@ -858,7 +749,7 @@ def validate(args, argv=None) -> dict:
             "bases": "a residual checkpoint's row uses plain deformation transfer as its base; "
             f"'+anchored_base' rows anchored DT (static_below = {ANCHOR_CM} cm)",
             "anchors": {
-                _anchored_key(m): f"transfer_poses(static_below={ANCHOR_CM}, anchor={m!r})"
+                anchored_base_key(m): f"transfer_poses(static_below={ANCHOR_CM}, anchor={m!r})"
                 for m in args.validation_anchors
             },
         },
@@ -910,7 +801,7 @@ def evaluate_checkpoints(args, argv=None) -> dict:
     poses = dataset.poses
     predicted, truth = _checkpoint_predictions(dataset, models, ("vertex",), copy=True)
     makehuman, makehuman_info, makehuman_example = evaluate_makehuman(
-        dataset, models, args.data_dir, face_placed=True
+        dataset, models, evaluation_rows(models), args.data_dir, face_placed=True
     )
     heads, part_names = dataset.test[HELDOUT_SPLIT], dataset.head.part_names
     results = {

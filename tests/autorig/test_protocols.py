@@ -1,18 +1,30 @@
-"""The auto-rigging protocol pieces the experiments use: a head cut below the chin, and the
-deformation-transfer base kept on disk between runs."""
+"""The auto-rigging protocol pieces the experiments use: a head cut below the chin, the
+deformation-transfer bases (kept on disk between runs), the MakeHuman evaluation."""
 
 from __future__ import annotations
+
+import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from canrig_jax.autorig import (
+    ANCHOR_CM,
+    ANCHOR_MODES,
     CHIN_LANDMARK,
+    STATIC_MM,
     RiggedHead,
-    _protocols,
+    anchored_base_key,
     cached_transfer,
     crop_below_chin,
+    evaluate_makehuman,
+    ict_pose_source,
+    transfer_bases,
 )
+
+ROOT = Path(__file__).resolve().parents[2]
+TRANSFER = "canrig_jax.autorig._protocols.transfer_poses"  # replaced by a recording stand-in
 
 
 def _grid_head(rows: int = 6, cols: int = 4, poses: int = 3) -> RiggedHead:
@@ -79,7 +91,7 @@ def test_cached_transfer_reads_back_what_it_stored(tmp_path, monkeypatch):
         scale = 1.0 if static_below is None else 2.0
         return head.displacements * scale  # float64: returned as float32
 
-    monkeypatch.setattr(_protocols, "transfer_poses", transfer)
+    monkeypatch.setattr(TRANSFER, transfer)
     head = _grid_head()
     first = cached_transfer(None, head, tmp_path / "cache", seed=0)
     assert first.dtype == np.float32
@@ -106,3 +118,58 @@ def test_cached_transfer_reads_back_what_it_stored(tmp_path, monkeypatch):
     cached_transfer(None, head, None, 0)
     cached_transfer(None, head, None, 0)
     assert len(calls) == 7
+
+
+def test_transfer_bases_are_plain_and_anchored_per_mode(monkeypatch):
+    """The plain base (given or computed) and one anchored base per mode, anchored at the
+    evaluation's static threshold, under ``anchored_base_key``'s names."""
+    calls = []
+
+    def transfer(dataset, head, correspondence=None, *, static_below=None, anchor="vertex"):
+        calls.append((static_below, anchor))
+        return np.full((2, 3, 3), len(calls), np.float32)
+
+    monkeypatch.setattr(TRANSFER, transfer)
+    head = _grid_head()
+    bases = transfer_bases(None, head, anchors=("vertex", "part"))
+    assert list(bases) == ["plain", "anchored", "anchored_part"]
+    assert calls == [(None, "vertex"), (ANCHOR_CM, "vertex"), (ANCHOR_CM, "part")]
+    assert ANCHOR_CM == pytest.approx(STATIC_MM / 10)  # cm
+    assert [float(b[0, 0, 0]) for b in bases.values()] == [1, 2, 3]
+    plain = np.zeros((2, 3, 3))
+    given = transfer_bases(None, head, plain=plain, anchors=())
+    assert list(given) == ["plain"] and given["plain"] is plain and len(calls) == 3
+    assert [anchored_base_key(m) for m in ANCHOR_MODES] == [
+        "anchored" if m == "vertex" else f"anchored_{m}" for m in ANCHOR_MODES
+    ]
+
+
+@pytest.mark.slow  # 15-20 s: the landmark fit, correspondence and transfers on hm08
+def test_makehuman_baselines_against_the_sculpted_targets(data_dir):
+    """On MakeHuman's 51 shared ARKit shapes: no motion has no amplitude; copying and
+    transferring the ICT deltas move the face, and transfer errs less than no motion where the
+    targets move (the committed run: 2.5 mm against 3.8 mm)."""
+    dataset = ict_pose_source(data_dir, progress=False)
+    results, info, (mh, truth, predictions, labels) = evaluate_makehuman(
+        dataset, {}, {}, data_dir, anchors=("vertex",), face_placed=True
+    )
+    assert set(results) == {
+        "no_motion",
+        "copy_deltas",
+        "deformation_transfer",
+        "deformation_transfer_anchored",
+    }
+    assert set(predictions) == set(results) - {"no_motion"}
+    assert info["shared_shapes"] == len(labels) == truth.shape[0] == 51
+    assert truth.shape[1:] == (mh.neutral.shape[0], 3)
+    assert results["no_motion"]["amplitude_ratio_median"] == 0
+    no_motion = results["no_motion"]["active_mae_mm"]
+    for name in ("copy_deltas", "deformation_transfer", "deformation_transfer_anchored"):
+        assert results[name]["amplitude_ratio_median"] > 0.5
+        assert results[name]["active_mae_mm"] < no_motion
+    # the eye proxies go to ICT's eyeballs (the majority rule over each component)
+    assert "Eyeball left" in info["matched_parts"].values()
+    # the baselines reproduce the committed standard run's rows (experiments/autorig.py)
+    committed = json.loads((ROOT / "experiments/results/autorig/results.json").read_text())
+    for name, errors in results.items():
+        assert errors == pytest.approx(committed["makehuman"][name], rel=1e-4, abs=1e-6), name

@@ -74,7 +74,16 @@ from ._orientation import (
     orientation_points,
     stated_orientation,
 )
-from ._protocols import CHIN_LANDMARK, FACE_PLACED, cached_transfer, crop_below_chin
+from ._protocols import (
+    CHIN_LANDMARK,
+    FACE_PLACED,
+    anchored_base_key,
+    cached_transfer,
+    crop_below_chin,
+    evaluate_makehuman,
+    generate_rows,
+    transfer_bases,
+)
 from ._rig import (
     DEFAULT_POSE_CHUNK,
     GeneratedRig,
@@ -103,8 +112,12 @@ __all__ = [
     "ANCHOR_CM",
     "CHIN_LANDMARK",
     "FACE_PLACED",
+    "anchored_base_key",
     "cached_transfer",
     "crop_below_chin",
+    "evaluate_makehuman",
+    "generate_rows",
+    "transfer_bases",
     "DEFAULT_METHOD",
     "EXAMPLE_ORDER",
     "AUTO_RIG_METHODS",

@@ -1,6 +1,7 @@
 """Pieces of the auto-rigging evaluation protocols that are more than orchestration: the
-deformation-transfer base of a training head kept on disk between runs, a head cut below the
-chin as a face scan would be, and the name of the MakeHuman rows placed from the fitted face.
+deformation-transfer bases of a head (kept on disk between runs for the training heads), each
+evaluated method's rig on a head, the MakeHuman evaluation against its person-made ARKit
+targets, and a head cut below the chin as a face scan would be.
 
 The experiment scripts (``experiments/autorig.py``) call these; the tests call them here.
 """
@@ -8,13 +9,28 @@ The experiment scripts (``experiments/autorig.py``) call these; the tests call t
 from __future__ import annotations
 
 import dataclasses
+import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 from jaxtyping import Bool, Float
 
 from .._io import atomic_path
-from ._data import AutorigDataset, RiggedHead, transfer_poses
+from ._any_head import ANCHOR_CM
+from ._data import (
+    AutorigDataset,
+    RiggedHead,
+    copy_poses,
+    face_placement,
+    fit_head_landmarks,
+    head_correspondence,
+    transfer_poses,
+)
+from ._evaluation import ACTIVE_MM, sculpted_target_errors, shared_shape_matrix
+from ._makehuman import load_makehuman
+from ._model import RigAnyFace
+from ._rig import GeneratedRig, generate_rig
 
 FACE_PLACED = " + face_placement"
 """Suffix of a MakeHuman row whose rig was generated with ``face_placement`` (the head placed
@@ -84,3 +100,143 @@ def crop_below_chin(
         parts=head.parts[kept],
     )
     return cut, kept
+
+
+def anchored_base_key(mode: str) -> str:
+    """Key of the deformation-transfer base anchored per ``mode`` (``transfer_poses(anchor=)``)
+    in ``transfer_bases``' result, and its rows' suffix without the leading '_': "anchored"
+    for "vertex", "anchored_<mode>" else."""
+    return "anchored" if mode == "vertex" else f"anchored_{mode}"
+
+
+def transfer_bases(
+    dataset: AutorigDataset,
+    head,
+    correspondence=None,
+    plain: Float[np.ndarray, "P V 3"] | None = None,
+    anchors: Sequence[str] = ("vertex",),
+) -> dict[str, Float[np.ndarray, "P V 3"]]:
+    """The residual models' bases on ``head`` (cm): ``"plain"``, deformation transfer of every
+    pose (``plain`` when already computed), and the transfer anchored below
+    ``ANCHOR_CM`` per each mode of ``anchors``, under ``anchored_base_key(mode)``."""
+    if plain is None:
+        plain = transfer_poses(dataset, head, correspondence)
+    bases = {"plain": plain}
+    for mode in anchors:
+        bases[anchored_base_key(mode)] = transfer_poses(
+            dataset, head, correspondence, static_below=ANCHOR_CM, anchor=mode
+        )
+    return bases
+
+
+def generate_rows(
+    models: Mapping[str, RigAnyFace],
+    rows: Mapping[str, tuple[str, str | None]],
+    poses,
+    head,
+    bases: Mapping[str, np.ndarray],
+    operators=None,
+    placement=None,
+) -> dict[str, GeneratedRig]:
+    """Each evaluation row's rig generated on ``head`` (``head.vertices`` (V, 3) cm,
+    ``head.faces``): ``rows`` maps a row name to (a name in ``models``, the key of its base in
+    ``bases`` or None for a model without one); ``operators`` and ``placement`` are
+    ``generate_rig``'s (default: computed, and the head's bounding box)."""
+    return {
+        name: generate_rig(
+            models[model_name],
+            poses,
+            head.vertices,
+            head.faces,
+            operators=operators,
+            base=None if base is None else bases[base],
+            placement=placement,
+        )
+        for name, (model_name, base) in rows.items()
+    }
+
+
+def evaluate_makehuman(
+    dataset: AutorigDataset,
+    models: Mapping[str, RigAnyFace],
+    rows: Mapping[str, tuple[str, str | None]],
+    data_dir=None,
+    anchors: Sequence[str] = ("vertex",),
+    face_placed: bool = False,
+) -> tuple[dict, dict, tuple]:
+    """Every method on the MakeHuman hm08 head against its person-made ARKit targets, over the
+    shapes it shares with ICT (evaluation only: nothing is fitted to the targets).
+
+    The ICT face part is fitted to the head (``fit_head_landmarks``: trimmed-ICP similarity,
+    ICT's 68 landmarks snapped to the skin), the correspondence built from those landmarks
+    (``head_correspondence``); the rows are no motion, copied ICT deltas, deformation transfer
+    (plain, and anchored per each mode of ``anchors``), and ``rows`` (see ``generate_rows``)
+    of ``models``; with ``face_placed``, each model row once more with ``face_placement``
+    (rows suffixed ``FACE_PLACED``). Each row's single-expression poses are mapped to
+    MakeHuman's shapes (``shared_shape_matrix``) and compared on the skin
+    (``sculpted_target_errors``).
+
+    Returns (row -> errors in mm and the amplitude ratio, the protocol's record, and
+    (the head, (S, V, 3) target deltas in cm, row -> (S, V, 3) predictions without no motion,
+    the S shape names) for figures)."""
+    mh = load_makehuman(data_dir)
+    poses = dataset.poses
+    start = time.perf_counter()
+    landmarks, fit = fit_head_landmarks(dataset, mh.neutral, mh.faces, region=mh.skin)
+    correspondence = head_correspondence(dataset, mh.neutral, mh.faces, landmarks)
+    seconds_correspondence = time.perf_counter() - start
+    start = time.perf_counter()
+    transferred = transfer_poses(dataset, mh, correspondence)
+    seconds_transfer = time.perf_counter() - start
+    bases = transfer_bases(dataset, mh, correspondence, plain=transferred, anchors=anchors)
+    predictions = {
+        "no_motion": np.zeros_like(transferred),
+        "copy_deltas": copy_poses(dataset, mh, correspondence),
+        "deformation_transfer": transferred,
+    }
+    for mode in anchors:
+        key = anchored_base_key(mode)
+        predictions["deformation_transfer_" + key] = bases[key]
+    for name, generated in generate_rows(models, rows, poses, mh, bases).items():
+        predictions[name] = generated.displacements
+    if face_placed:
+        placement = face_placement(dataset, mh.neutral, mh.faces, fit=fit)
+        placed = generate_rows(models, rows, poses, mh, bases, placement=placement)
+        for name, generated in placed.items():
+            predictions[name + FACE_PLACED] = generated.displacements
+    target_index, matrix = shared_shape_matrix(poses.basis_names, mh.names)
+    truth = mh.deltas[target_index]
+    singles = {
+        name: np.einsum("sk,kvd->svd", matrix, p[: poses.n_basis])
+        for name, p in predictions.items()
+    }
+    results = {name: sculpted_target_errors(p, truth, mh.skin) for name, p in singles.items()}
+    # which ICT part each MakeHuman component was matched to (majority of its vertices)
+    source_face = correspondence.vertex_map.triangle
+    source_part = np.searchsorted(
+        dataset.head.part_vertex_range[:, 1], dataset.head.faces[source_face, 0], side="right"
+    )
+    matched = {}
+    for label in np.unique(mh.component_labels):
+        parts = source_part[mh.component_labels == label]
+        matched[f"component_{int(label)} ({int(np.sum(mh.component_labels == label))} v)"] = str(
+            dataset.head.part_names[np.bincount(parts).argmax()]
+        )
+    info = {
+        "vertices": int(mh.neutral.shape[0]),
+        "shared_shapes": len(target_index),
+        "units": "decimetres x 10 -> cm",
+        "alignment": "trimmed-ICP similarity of the ICT face part (90 % of pairs kept; start: "
+        "identity rotation, nose tips together), ICT's 68 landmarks snapped to the skin",
+        "fit_scale": fit.scale,
+        "fit_trimmed_rms_cm": fit.rms,
+        "fit_iterations": fit.iterations,
+        "matched_parts": matched,
+        "skin": "largest component",
+        "active_mm": ACTIVE_MM,
+        "seconds_landmarks_and_correspondence": seconds_correspondence,
+        "seconds_deformation_transfer": seconds_transfer,
+    }
+    labels = [mh.names[i] for i in target_index]
+    example = (mh, truth, {k: v for k, v in singles.items() if k != "no_motion"}, labels)
+    return results, info, example
