@@ -166,6 +166,58 @@ def generate_rig(
     a head that faces elsewhere.
     """
     start = time.perf_counter()
+    vertices, faces, base = _check_rig_inputs(
+        model, poses, vertices, faces, k, bucket, memory_budget, pose_chunk, base, orientation
+    )
+    found, rotation = _orientation_for_model(vertices, faces, orientation, operators)
+    placement = _check_placement(placement)
+    after_orientation = time.perf_counter()
+    original = vertices
+    if rotation is not None:  # an axis permutation with signs: exact in floating point
+        vertices = vertices @ rotation.T
+        if base is not None:
+            base = base @ rotation.T
+        if placement is not None:
+            placement = (rotation @ placement[0], placement[1])
+    _check_memory(model, vertices.shape[0], poses.n_poses, pose_chunk, k, memory_budget)
+    if placement is None:
+        unit, _, scale = normalise(vertices)
+    else:
+        unit, scale = (vertices - placement[0]) / placement[1], placement[1]
+    unit = unit.astype(np.float32)
+    if operators is None:
+        operators = mesh_operators(unit, faces, k=k, cache=cache)
+    elif operators.n_vertices != unit.shape[0]:
+        raise ValueError(
+            f"operators: built for {operators.n_vertices} vertices, the head has {unit.shape[0]}"
+        )
+    after_operators = time.perf_counter()
+    predicted = _predict_padded(model, poses, unit, operators, bucket, pose_chunk, base, scale)
+    if rotation is not None:
+        predicted = predicted @ rotation  # back into the head's frame
+    after_network = time.perf_counter()
+    if not np.all(np.isfinite(predicted)):
+        raise ValueError("model: produced non-finite displacements for this head")
+    rig = rig_from_poses(original.astype(np.float32), faces, predicted.astype(np.float32), poses)
+    end = time.perf_counter()
+    return GeneratedRig(
+        rig=rig,
+        displacements=predicted.astype(np.float32),
+        seconds={
+            "total": end - start,
+            "orientation": after_orientation - start,
+            "operators": after_operators - after_orientation,
+            "network": after_network - after_operators,
+        },
+        orientation=found,
+        rotated=rotation is not None,
+    )
+
+
+def _check_rig_inputs(
+    model, poses, vertices, faces, k, bucket, memory_budget, pose_chunk, base, orientation
+):
+    """``generate_rig``'s checks: (vertices, faces, base float64 or None)."""
     if not isinstance(model, RigAnyFace):
         raise TypeError(f"model: expected a trained RigAnyFace, got {type(model).__name__}")
     if not isinstance(poses, PoseSet):
@@ -196,6 +248,12 @@ def generate_rig(
         raise ValueError("base: only a residual model takes base displacements")
     if orientation not in ORIENTATIONS:
         raise ValueError(f"orientation: expected one of {ORIENTATIONS}, got {orientation!r}")
+    return vertices, faces, base
+
+
+def _orientation_for_model(vertices, faces, orientation: str, operators):
+    """(what ``head_orientation`` found or None, the rotation that turns the head into the
+    model's convention or None); raises for a head ``orientation`` does not let through."""
     found, rotation = None, None
     if orientation != "trust":
         found = head_orientation(vertices, faces)
@@ -218,6 +276,11 @@ def generate_rig(
                     "operators: given for the head as stored, but orientation='fix' turns it; "
                     "pass operators=None"
                 )
+    return found, rotation
+
+
+def _check_placement(placement):
+    """``placement`` as ((3,) float64 centre, float scale), or None."""
     if placement is not None:
         centre, scale = placement
         centre = np.asarray(centre, np.float64)
@@ -226,34 +289,24 @@ def generate_rig(
         if not (np.isfinite(scale) and scale > 0):
             raise ValueError(f"placement: expected a positive scale, got {scale!r}")
         placement = (centre, float(scale))
-    after_orientation = time.perf_counter()
-    original = vertices
-    if rotation is not None:  # an axis permutation with signs: exact in floating point
-        vertices = vertices @ rotation.T
-        if base is not None:
-            base = base @ rotation.T
-        if placement is not None:
-            placement = (rotation @ placement[0], placement[1])
-    per_pass = poses.n_poses if pose_chunk is None else min(pose_chunk, poses.n_poses)
-    needed = activation_bytes(model, vertices.shape[0], per_pass, k)
+    return placement
+
+
+def _check_memory(model, n_vertices: int, n_poses: int, pose_chunk, k: int, memory_budget: int):
+    """Refuse a head whose activations would exceed ``memory_budget`` bytes."""
+    per_pass = n_poses if pose_chunk is None else min(pose_chunk, n_poses)
+    needed = activation_bytes(model, n_vertices, per_pass, k)
     if needed > memory_budget:
         raise ValueError(
-            f"vertices: a head of {vertices.shape[0]} vertices needs ~{needed / 2**30:.1f} GiB "
+            f"vertices: a head of {n_vertices} vertices needs ~{needed / 2**30:.1f} GiB "
             f"for {per_pass} poses per pass, above memory_budget={memory_budget / 2**30:.1f} GiB; "
             "decimate it, lower pose_chunk or raise memory_budget"
         )
-    if placement is None:
-        unit, _, scale = normalise(vertices)
-    else:
-        unit, scale = (vertices - placement[0]) / placement[1], placement[1]
-    unit = unit.astype(np.float32)
-    if operators is None:
-        operators = mesh_operators(unit, faces, k=k, cache=cache)
-    elif operators.n_vertices != unit.shape[0]:
-        raise ValueError(
-            f"operators: built for {operators.n_vertices} vertices, the head has {unit.shape[0]}"
-        )
-    after_operators = time.perf_counter()
+
+
+def _predict_padded(model, poses, unit, operators, bucket, pose_chunk, base, scale):
+    """(P, V, 3) float64 displacements in the head's units: the network on the head and its
+    operators padded to ``bucket`` (``base`` in the head's units), cut back to V."""
     padded = pad_to_bucket(operators, bucket)
     unit_padded = np.zeros((padded.n_vertices, 3), np.float32)
     unit_padded[: unit.shape[0]] = unit
@@ -271,23 +324,4 @@ def generate_rig(
         base_padded,
     )
     predicted = np.asarray(jax.block_until_ready(predicted), np.float64)[:, : unit.shape[0]]
-    predicted = predicted * scale
-    if rotation is not None:
-        predicted = predicted @ rotation  # back into the head's frame
-    after_network = time.perf_counter()
-    if not np.all(np.isfinite(predicted)):
-        raise ValueError("model: produced non-finite displacements for this head")
-    rig = rig_from_poses(original.astype(np.float32), faces, predicted.astype(np.float32), poses)
-    end = time.perf_counter()
-    return GeneratedRig(
-        rig=rig,
-        displacements=predicted.astype(np.float32),
-        seconds={
-            "total": end - start,
-            "orientation": after_orientation - start,
-            "operators": after_operators - after_orientation,
-            "network": after_network - after_operators,
-        },
-        orientation=found,
-        rotated=rotation is not None,
-    )
+    return predicted * scale
