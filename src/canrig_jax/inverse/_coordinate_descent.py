@@ -142,6 +142,8 @@ class AbstractCoordinateDescent(AbstractInverseMethod):
         """The problem of the rig the method assumes (all of it, or its linear part)."""
 
     def __call__(self, problem, offset, init, key) -> Iterate:
+        """Passes of coordinate descent from ``init`` (each followed by the Newton step when
+        ``newton``), to the tolerance or, with ``trace``, all ``passes``."""
         sweep = _Sweep.build(self, problem, offset, key)
         gradient0, energy0 = sweep.state_at(init)
         if self.trace:
@@ -170,6 +172,8 @@ class _Sweep:
 
     @classmethod
     def build(cls, method, problem, offset, key) -> "_Sweep":
+        """The per-frame quantities: projection, ||b - b0||^2, the support width of each
+        coordinate's update (``bucket`` into ``widths``) and the fixed coordinate order."""
         model = method.rig_part(problem)
         k, width = problem.n_blendshapes, model.gram.shape[0]
         # the full projection, sliced, so XLA shares it with ``solve``'s final objective
