@@ -471,3 +471,20 @@ def test_animate_an_fbx_rig_by_arkit_names(workspace, capsys, data_dir):
         warnings.simplefilter("ignore")
         expected = read_livelink_csv(root / "take.csv").weights_for(rig.names)
     np.testing.assert_array_equal(read_arrays(meshes, ("weights",))["weights"], expected)
+
+
+def test_a_missing_optional_dependency_is_one_error_line(workspace, capsys, monkeypatch):
+    """Without jaxopt (an extra), ``canrig invert --method lbfgsb`` says which extra to
+    install in one error line, no traceback."""
+    root, rig = workspace
+    frames = np.repeat(np.asarray(rig.neutral)[None], 2, axis=0)
+    np.savez(root / "still.npz", meshes=frames)
+    monkeypatch.setitem(sys.modules, "jaxopt", None)  # import jaxopt raises ImportError
+    status, _, err = _run(
+        capsys,
+        *("invert", root / "rig.npz", root / "still.npz", "-o", root / "w.csv"),
+        *("--method", "lbfgsb", "--quiet"),
+    )
+    assert status == 2 and "canrig_jax[jaxopt]" in err, err
+    _assert_one_voice(err, quiet=True)
+    assert not (root / "w.csv").exists()

@@ -747,7 +747,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     with print_warnings("canrig"):
         try:
             watchdog.run_watched(args.run, f"canrig {args.command}", args)
-        except (CommandError, ValueError, OSError, RuntimeError) as error:
+        except (CommandError, ValueError, OSError, RuntimeError, ImportError) as error:
             print(f"canrig: error: {error}", file=sys.stderr)
             return 2
     return 0
