@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from canrig_jax.autorig import RigAnyFaceTrainOptions, make_model
+from canrig_jax.autorig import FACE_PLACED, RigAnyFaceTrainOptions, make_model
 from canrig_jax.canrig import parameter_count
 
 SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "autorig.py"
