@@ -55,6 +55,7 @@ from canrig_jax.autorig import (  # noqa: E402
     auto_rig,
     axis_rotations,
     decide_orientation,
+    face_crop,
     ict_autorig_dataset,
     load_makehuman,
     place_landmarks,
@@ -99,7 +100,7 @@ def ict_heads(data_dir, n: int) -> list[Head]:
     """Held-out ICT identities, their 53 ICT shapes as 51 ARKit shapes (halves summed)."""
     dataset = ict_autorig_dataset(data_dir, n_train=1, n_test=n, progress=False)
     basis = list(dataset.poses.basis_names)
-    target = [a for a in ARKIT_NAMES]
+    target = list(ARKIT_NAMES)
     index, matrix = shared_shape_matrix(basis, target)
     heads = []
     for head in dataset.test["unseen_topology"]:
@@ -108,21 +109,6 @@ def ict_heads(data_dir, n: int) -> list[Head]:
         names = [target[i] for i in index]
         heads.append(Head(f"ict_{head.name}", head.vertices, head.faces, deltas, names))
     return heads
-
-
-def face_crop(vertices, faces):
-    """The front of a head (+y up, facing +z): vertices within the front 45 % of its depth
-    and between 10 % and 75 % of its height from the top; faces wholly inside."""
-    v = np.asarray(vertices)
-    depth, height = np.ptp(v[:, 2]), np.ptp(v[:, 1])
-    keep = (v[:, 2] > v[:, 2].max() - 0.45 * depth) & (v[:, 1] > v[:, 1].max() - 0.75 * height)
-    keep &= v[:, 1] < v[:, 1].max() - 0.1 * height
-    inside = keep[faces].all(axis=1)
-    used = np.zeros(len(v), bool)
-    used[faces[inside].ravel()] = True
-    index = -np.ones(len(v), np.int64)
-    index[used] = np.arange(used.sum())
-    return v[used], index[faces[inside]].astype(np.int32)
 
 
 def errors(rig, head: Head, names) -> dict:

@@ -81,6 +81,7 @@ from ._protocols import (
     cached_transfer,
     crop_below_chin,
     evaluate_makehuman,
+    face_crop,
     generate_rows,
     transfer_bases,
 )
@@ -115,6 +116,7 @@ __all__ = [
     "anchored_base_key",
     "cached_transfer",
     "crop_below_chin",
+    "face_crop",
     "evaluate_makehuman",
     "generate_rows",
     "transfer_bases",

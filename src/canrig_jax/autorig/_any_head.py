@@ -29,7 +29,13 @@ from .._metrics import CM_TO_MM
 from .._warnings import warn
 from ..data import arkit_name_of
 from ..mesh import check_mesh, closest_point_correspondence, connected_components
-from ..rig import UNIT_IN_CM, BlendshapeRig, deformation_transfer, rename_to_arkit
+from ..rig import (
+    UNIT_IN_CM,
+    BlendshapeRig,
+    arkit_channels,
+    deformation_transfer,
+    rename_to_arkit,
+)
 from ._data import (
     AutorigDataset,
     PoseSet,
@@ -503,18 +509,19 @@ def _template_rig(template: Template, head: _Head) -> BlendshapeRig:
 
 def _shapes_by_arkit(displacements, source_names, wanted: Mapping, rotation):
     """The method's version of each wanted ARKit shape in the head's frame (ICT's halves
-    summed): (names, (k, V, 3)); names the method lacks are left out."""
-    channels: dict[str, np.ndarray] = {}
-    for name, delta in zip(source_names, displacements, strict=False):
-        arkit = arkit_name_of(str(name)) or str(name)
-        channels[arkit] = channels.get(arkit, 0.0) + np.asarray(delta, np.float64)
+    summed, as ``rename_to_arkit`` merges them): (names, (k, V, 3)); names the method lacks
+    are left out."""
+    channels, index = arkit_channels(source_names)  # the single poses come first
+    singles = np.asarray(displacements, np.float64)[: len(source_names)]
+    merged = np.zeros((len(channels), *singles.shape[1:]))
+    np.add.at(merged, index, singles)
     kept = tuple(n for n in wanted if n in channels)
     if not kept:
         raise ValueError(
             f"examples: none of {sorted(wanted)} is a shape of the generated rig "
             f"({', '.join(sorted(channels)[:6])}, ...)"
         )
-    return kept, np.stack([channels[n] @ rotation for n in kept])
+    return kept, np.stack([merged[channels.index(n)] @ rotation for n in kept])
 
 
 def _take_sculpted(rig: BlendshapeRig, sculpted: Mapping):

@@ -102,6 +102,25 @@ def crop_below_chin(
     return cut, kept
 
 
+def face_crop(
+    vertices: Float[np.ndarray, "V 3"], faces
+) -> tuple[Float[np.ndarray, "Vc 3"], np.ndarray]:
+    """The front of a head (cm, +y up, facing +z), as a face-only mask would be: the vertices
+    within the front 45 % of its depth and between 10 % and 75 % of its height from the top,
+    the triangles wholly inside. Returns ((Vc, 3) vertices, (Fc, 3) int32 triangles
+    re-indexed to them)."""
+    v = np.asarray(vertices)
+    faces = np.asarray(faces)
+    depth, height = np.ptp(v[:, 2]), np.ptp(v[:, 1])
+    keep = (v[:, 2] > v[:, 2].max() - 0.45 * depth) & (v[:, 1] > v[:, 1].max() - 0.75 * height)
+    keep &= v[:, 1] < v[:, 1].max() - 0.1 * height
+    inside = keep[faces].all(axis=1)
+    used = np.zeros(len(v), bool)
+    used[faces[inside].ravel()] = True
+    index = np.cumsum(used) - 1
+    return v[used], index[faces[inside]].astype(np.int32)
+
+
 def anchored_base_key(mode: str) -> str:
     """Key of the deformation-transfer base anchored per ``mode`` (``transfer_poses(anchor=)``)
     in ``transfer_bases``' result, and its rows' suffix without the leading '_': "anchored"
