@@ -85,21 +85,23 @@ STANDARD_EXPERIMENTS = (
     ("build_quartic_rig.py", "--out", "experiments/results/build_quartic_rig"),
     ("inverse_rig.py", "--out", "experiments/results/inverse_rig"),
     ("wpse.py", "--out", "experiments/results/wpse"),
+    ("wpse_timing.py", "--out", "experiments/results/wpse"),  # Table 1's rows, into wpse's
     ("mesh_foundations.py", "--out", "experiments/results/mesh_foundations"),
     ("autorig.py", "--out", "experiments/results/autorig", "--no-progress"),
     # RigAnyFace width 64, 4,000 steps, and its step-matched ablation, then their evaluation
     *(
         (
-            "autorig.py",
+            "autorig_train.py",
+            name,
             *("--out", "experiments/results/autorig_wide", "--no-progress"),
             *("--raf-loss", "euclidean_static", "--raf-width", "64", "--steps", "4000"),
-            *("--train-identities", "40", "--train-only", name),
+            *("--train-identities", "40"),
         )
         for name in ("raf", "raf_no_global_encoder")
     ),
     (
-        "autorig.py",
-        *("--out", "experiments/results/autorig_wide", "--no-progress", "--evaluate-only"),
+        "autorig_evaluate.py",
+        *("--out", "experiments/results/autorig_wide", "--no-progress"),
         *(
             f"experiments/results/{checkpoint}.eqx"
             for checkpoint in (
@@ -114,15 +116,16 @@ STANDARD_EXPERIMENTS = (
     # the loss ablation of pure RigAnyFace (width 32, 1,200 steps), then its evaluation
     *(
         (
-            "autorig.py",
+            "autorig_train.py",
+            "raf",
             *("--out", f"experiments/results/autorig_loss/{loss}", "--no-progress"),
-            *("--steps", "1200", "--raf-loss", loss, "--train-only", "raf"),
+            *("--steps", "1200", "--raf-loss", loss),
         )
         for loss in ("squared", "squared_static", "euclidean")
     ),
     (
-        "autorig.py",
-        *("--out", "experiments/results/autorig_loss", "--no-progress", "--evaluate-only"),
+        "autorig_evaluate.py",
+        *("--out", "experiments/results/autorig_loss", "--no-progress"),
         *(
             f"experiments/results/{checkpoint}.eqx"
             for checkpoint in (
@@ -136,14 +139,15 @@ STANDARD_EXPERIMENTS = (
     ),
     # the default RigAnyFace of 2026-12-03: the same recipe on 7,000 steps, then its evaluation
     (
-        "autorig.py",
+        "autorig_train.py",
+        "raf",
         *("--out", "experiments/results/autorig_long", "--no-progress"),
         *("--raf-loss", "euclidean_static", "--raf-width", "64", "--steps", "7000"),
-        *("--train-identities", "40", "--train-only", "raf"),
+        *("--train-identities", "40"),
     ),
     (
-        "autorig.py",
-        *("--out", "experiments/results/autorig_long", "--no-progress", "--evaluate-only"),
+        "autorig_evaluate.py",
+        *("--out", "experiments/results/autorig_long", "--no-progress"),
         "experiments/results/autorig_wide/checkpoint_raf.eqx",
         "experiments/results/autorig_long/checkpoint_raf.eqx",
     ),
@@ -152,17 +156,18 @@ STANDARD_EXPERIMENTS = (
     # runs it is compared with
     *(
         (
-            "autorig.py",
+            "autorig_train.py",
+            "raf",
             *("--out", f"experiments/results/{folder}", "--no-progress"),
             *("--raf-loss", loss, "--raf-width", "64", "--steps", steps),
-            *("--train-identities", "40", "--train-only", "raf"),
+            *("--train-identities", "40"),
         )
         for folder, loss, steps, _ in SQUARED_RUNS
     ),
     *(
         (
-            "autorig.py",
-            *("--out", f"experiments/results/{folder}", "--no-progress", "--evaluate-only"),
+            "autorig_evaluate.py",
+            *("--out", f"experiments/results/{folder}", "--no-progress"),
             *(
                 f"experiments/results/{run}/checkpoint_raf.eqx"
                 for run in ("autorig_long", *compared, folder)
@@ -172,15 +177,15 @@ STANDARD_EXPERIMENTS = (
     ),
     # a second seed of the default's recipe (reported, not a candidate), then its evaluation
     (
-        "autorig.py",
+        "autorig_train.py",
+        "raf",
         *("--out", "experiments/results/autorig_half_balanced_long_seed1", "--no-progress"),
         *("--raf-loss", "squared_static_half_balanced", "--raf-width", "64", "--steps", "12000"),
-        *("--train-identities", "40", "--train-only", "raf", "--seed", "1"),
+        *("--train-identities", "40", "--seed", "1"),
     ),
     (
-        "autorig.py",
+        "autorig_evaluate.py",
         *("--out", "experiments/results/autorig_half_balanced_long_seed1", "--no-progress"),
-        "--evaluate-only",
         *(
             f"experiments/results/{run}/checkpoint_raf.eqx"
             for run in (
@@ -192,9 +197,8 @@ STANDARD_EXPERIMENTS = (
     ),
     # the residual models with face placement on MakeHuman
     (
-        "autorig.py",
+        "autorig_evaluate.py",
         *("--out", "experiments/results/autorig_residual_face", "--no-progress"),
-        "--evaluate-only",
         "experiments/results/autorig/checkpoint_raf_anchored_dt_residual.eqx",
         "experiments/results/autorig/checkpoint_raf_dt_residual.eqx",
     ),

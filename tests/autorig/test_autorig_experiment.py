@@ -13,12 +13,13 @@ import pytest
 from canrig_jax.autorig import FACE_PLACED, RigAnyFaceTrainOptions, make_model
 from canrig_jax.canrig import parameter_count
 
-SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "autorig.py"
+EXPERIMENTS = Path(__file__).resolve().parents[2] / "experiments"
 
 
-def _run(argv: list[str]) -> None:
-    """Run the experiment as its command line (a full experiment: slow tests only)."""
-    subprocess.run([sys.executable, str(SCRIPT), *argv], check=True, cwd=SCRIPT.parents[1])
+def _run(argv: list[str], script: str = "autorig.py") -> None:
+    """Run an experiment as its command line (a full experiment: slow tests only)."""
+    path = EXPERIMENTS / script
+    subprocess.run([sys.executable, str(path), *argv], check=True, cwd=EXPERIMENTS.parent)
 
 
 @pytest.mark.slow
@@ -113,25 +114,27 @@ def test_quick_experiment_writes_the_issue_keys(tmp_path):
 
 @pytest.mark.slow
 def test_wider_model_trained_alone_then_evaluated_on_heldout_and_makehuman(tmp_path):
-    """``--raf-width`` / ``--raf-conditional-blocks`` size the pure model; ``--evaluate-only``
-    evaluates a checkpoint trained outside the standard folder on the held-out identities and
-    the MakeHuman head, next to the baselines, training nothing."""
+    """``--raf-width`` / ``--raf-conditional-blocks`` size the pure model (autorig_train.py);
+    autorig_evaluate.py evaluates a checkpoint trained outside the standard folder on the
+    held-out identities and the MakeHuman head, next to the baselines, training nothing."""
     sizes = {}
     for width in (16, 24):
         out = tmp_path / f"w{width}"
         _run(
             [
-                *("--quick", "--no-progress", "--out", str(out), "--train-only", "raf"),
+                *("raf", "--quick", "--no-progress", "--out", str(out)),
                 *("--raf-width", str(width), "--raf-conditional-blocks", "3"),
-            ]
+            ],
+            "autorig_train.py",
         )
-        assert not (out / "results.json").exists()  # --train-only writes no results
+        assert not (out / "results.json").exists()  # training alone writes no results
         sizes[width] = out / "checkpoint_raf.eqx"
     _run(
         [
             *("--no-progress", "--out", str(tmp_path / "eval"), "--test-identities", "1"),
-            *("--evaluate-only", str(sizes[16]), str(sizes[24])),
-        ]
+            *(str(sizes[16]), str(sizes[24])),
+        ],
+        "autorig_evaluate.py",
     )
     results = json.loads((tmp_path / "eval" / "results.json").read_text())
     rows = ("w16/checkpoint_raf", "w24/checkpoint_raf")
@@ -140,8 +143,9 @@ def test_wider_model_trained_alone_then_evaluated_on_heldout_and_makehuman(tmp_p
     _run(
         [
             *("--no-progress", "--out", str(tmp_path / "val"), "--validation-identities", "1"),
-            *("--validation-only", str(sizes[16]), str(sizes[24])),
-        ]
+            *(str(sizes[16]), str(sizes[24])),
+        ],
+        "autorig_validate.py",
     )
     checked = json.loads((tmp_path / "val" / "validation.json").read_text())
     assert set(checked["validation"]) >= {"no_motion", "deformation_transfer", *rows}

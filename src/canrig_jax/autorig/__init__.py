@@ -51,6 +51,19 @@ from ._evaluation import (
     static_mask,
     worst_poses,
 )
+from ._evaluation_protocols import (
+    HELDOUT_SPLIT,
+    clean_penetration,
+    evaluate_splits,
+    evaluation_rows,
+    gltf_round_trip,
+    heldout_predictions,
+    heldout_shapes,
+    load_checkpoint_rows,
+    makehuman_shapes,
+    placement_errors,
+    rig_timing,
+)
 from ._features import heat_kernel_signature, hks_times, mass_weighted_mean
 from ._makehuman import MakeHumanHead, load_makehuman
 from ._metrics import (
@@ -85,6 +98,20 @@ from ._protocols import (
     generate_rows,
     transfer_bases,
 )
+from ._recipes import (
+    ANCHORED_RESIDUAL_MODELS,
+    PURE_MODELS,
+    RAF_LOSSES,
+    RECIPE_MODELS,
+    RESIDUAL_MODEL,
+    add_recipe_arguments,
+    checkpoint_record,
+    recipe_base,
+    recipe_options,
+    recipe_training_set,
+    train_checkpoint,
+)
+from ._report import autorig_table, plot_pose_examples, plot_shape_ratios, plot_training_history
 from ._rig import (
     DEFAULT_POSE_CHUNK,
     GeneratedRig,
@@ -120,6 +147,32 @@ __all__ = [
     "evaluate_makehuman",
     "generate_rows",
     "transfer_bases",
+    "HELDOUT_SPLIT",
+    "clean_penetration",
+    "evaluate_splits",
+    "evaluation_rows",
+    "gltf_round_trip",
+    "heldout_predictions",
+    "heldout_shapes",
+    "load_checkpoint_rows",
+    "makehuman_shapes",
+    "placement_errors",
+    "rig_timing",
+    "ANCHORED_RESIDUAL_MODELS",
+    "PURE_MODELS",
+    "RAF_LOSSES",
+    "RECIPE_MODELS",
+    "RESIDUAL_MODEL",
+    "add_recipe_arguments",
+    "checkpoint_record",
+    "recipe_base",
+    "recipe_options",
+    "recipe_training_set",
+    "train_checkpoint",
+    "autorig_table",
+    "plot_pose_examples",
+    "plot_shape_ratios",
+    "plot_training_history",
     "DEFAULT_METHOD",
     "EXAMPLE_ORDER",
     "AUTO_RIG_METHODS",
