@@ -53,11 +53,9 @@ from canrig_jax.canrig import (
     farthest_point_vertices,
     interior_vertices,
     load_model,
-    local_fit_rig,
-    patch_layout,
-    pbs_basis,
     pose_a_to_b,
 )
+from canrig_jax.pbs import local_fit_rig, patch_layout, pbs_basis
 from canrig_jax.rig import evaluate_batch, ict_linear_rig, random_sparse_poses
 
 DEFAULT_CHECKPOINT = Path(__file__).parents[1] / "experiments/results/canrig/checkpoint.eqx"

@@ -64,19 +64,15 @@ def measure():
 
     from canrig_jax import inverse
     from canrig_jax.canrig import (
-        CANRigPBS,
         NeuralRig,
         dialogue_replacement,
         evaluate_poses,
         influence_mask,
         load_model,
-        local_fit_rig,
-        patch_layout,
-        patch_means,
-        pbs_basis,
         pose_a_to_b,
     )
     from canrig_jax.data import FACE, load_livelinkface
+    from canrig_jax.pbs import PerPatchPBS, local_fit_rig, patch_layout, patch_means, pbs_basis
     from canrig_jax.rig import ict_quartic_rig, random_sparse_poses
     from canrig_jax.wpse import solve_coefficients
 
@@ -124,7 +120,7 @@ def measure():
     handle_index = index[:120]
     rest = jnp.asarray(rig.neutral[handle_index])
     mask = influence_mask(jnp.linalg.norm(seeds[:, None] - rest[None], axis=-1), 2.0, 3.0)
-    pbs = CANRigPBS(rig.neutral, 200, 17, local_prior=True, key=jax.random.key(0))
+    pbs = PerPatchPBS(rig.neutral, 200, 17, local_prior=True, key=jax.random.key(0))
     queries, base = pbs.encode_patches(seeds), patch_means(layout200, rig.neutral)
     handle_basis = basis18[:, handle_index]
     edits = jnp.asarray(frames[:, handle_index] - rig.neutral[handle_index])

@@ -41,10 +41,15 @@ from canrig_jax._io import save_text
 from canrig_jax._timing import median_ms
 from canrig_jax.canrig import (
     CLAMP,
-    PBSTrainOptions,
     ShapePreservingCANRig,
-    build_pbs_training_set,
     influence_mask,
+    weighted_geodesic_distance,
+)
+from canrig_jax.data import load_ict
+from canrig_jax.mesh import attached_edge_graph, bridged_edge_graph, farthest_point_vertices
+from canrig_jax.pbs import (
+    PBSTrainOptions,
+    build_pbs_training_set,
     load_pbs_model,
     patch_layout,
     patch_means,
@@ -52,12 +57,9 @@ from canrig_jax.canrig import (
     pbs_delta_shape,
     predict_pbs_weights,
     seed_distances,
-    weighted_geodesic_distance,
 )
-from canrig_jax.canrig._pbs import local_fit_factor, local_fit_solve
-from canrig_jax.canrig._pbs_train import make_pbs_model
-from canrig_jax.data import load_ict
-from canrig_jax.mesh import attached_edge_graph, bridged_edge_graph, farthest_point_vertices
+from canrig_jax.pbs._basis import local_fit_factor, local_fit_solve
+from canrig_jax.pbs._train import make_pbs_model
 from canrig_jax.rig import evaluate_batch, ict_linear_rig, random_sparse_poses
 
 DEFAULT_DIR = Path(__file__).parents[1] / "experiments/results/canrig_pbs_attached_local_prior"

@@ -26,19 +26,15 @@ import numpy as np
 
 from canrig_jax import inverse
 from canrig_jax.canrig import (
-    CANRigPBS,
     NeuralRig,
     dialogue_replacement,
     evaluate_poses,
     influence_mask,
     load_model,
-    local_fit_rig,
-    patch_layout,
-    patch_means,
-    pbs_basis,
     pose_a_to_b,
 )
 from canrig_jax.data import FACE, load_livelinkface
+from canrig_jax.pbs import PerPatchPBS, local_fit_rig, patch_layout, patch_means, pbs_basis
 from canrig_jax.rig import ict_quartic_rig, random_sparse_poses
 from canrig_jax.watchdog import watchdog
 from canrig_jax.wpse import loo_error, solve_coefficients
@@ -125,7 +121,7 @@ def main(argv=None) -> None:
             seeds = jnp.asarray(rig.neutral[layout.seeds])
             distance = jnp.linalg.norm(seeds[:, None] - rig.neutral[handles][None], axis=-1)
             mask = influence_mask(distance, 2.0, 3.0)
-            model = CANRigPBS(rig.neutral, 200, 17, local_prior=True, key=jax.random.key(0))
+            model = PerPatchPBS(rig.neutral, 200, 17, local_prior=True, key=jax.random.key(0))
             queries, base = model.encode_patches(seeds), patch_means(layout, rig.neutral)
             rest, handle_basis = jnp.asarray(rig.neutral[handles]), basis[:, handles]
             edits = jnp.asarray(frames[:64, handles] - rig.neutral[handles])

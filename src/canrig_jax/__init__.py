@@ -35,7 +35,7 @@ if TYPE_CHECKING:
     from . import autorig, canrig, data, inverse, mesh, render, rig, viewer, watchdog, wpse
 
 _SUBPACKAGES = frozenset(
-    ("data", "mesh", "rig", "inverse", "wpse", "canrig", "autorig", "render", "viewer", "watchdog")
+    ("data", "mesh", "rig", "inverse", "wpse", "canrig", "pbs", "autorig", "render", "viewer", "watchdog")
 )
 """The public subpackages, imported on first attribute access."""
 
@@ -88,6 +88,7 @@ __all__ = [
     "inverse",
     "wpse",
     "canrig",
+    "pbs",
     "autorig",
     "render",
     "viewer",

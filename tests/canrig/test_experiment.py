@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from canrig_jax.canrig import PatchLayout, check_pbs_training_matches, reach_floor
+from canrig_jax.pbs import PatchLayout, check_pbs_training_matches, reach_floor
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -14,11 +14,9 @@ from canrig_jax.canrig import (
     clip_edit,
     dialogue_replacement,
     iterative_layers,
-    local_fit_rig,
-    patch_layout,
-    pbs_basis,
     pose_a_to_b,
 )
+from canrig_jax.pbs import local_fit_rig, patch_layout, pbs_basis
 from canrig_jax.rig import evaluate_batch, random_sparse_poses
 
 N_PATCHES, N_HANDLES, RADIUS, FALLOFF, RIDGE = 60, 24, 2.0, 3.0, 1e-3

@@ -8,7 +8,8 @@ import pytest
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from canrig_jax.canrig import (
+from canrig_jax.mesh import vertex_adjacency
+from canrig_jax.pbs import (
     PatchLayout,
     check_basis,
     fit_pbs,
@@ -19,8 +20,7 @@ from canrig_jax.canrig import (
     pbs_basis,
     pbs_shape,
 )
-from canrig_jax.canrig._pbs import local_fit_factor, local_fit_solve
-from canrig_jax.mesh import vertex_adjacency
+from canrig_jax.pbs._basis import local_fit_factor, local_fit_solve
 from canrig_jax.rig import evaluate_batch, random_sparse_poses
 
 N_PATCHES = 60

@@ -10,14 +10,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from canrig_jax.canrig import (
+from canrig_jax.canrig import edge_graph, influence_mask
+from canrig_jax.pbs import (
     PBS_VARIANTS,
-    CANRigPBS,
     PBSTrainOptions,
     ShapeTransformer,
     build_pbs_training_set,
-    edge_graph,
-    influence_mask,
     local_pbs_fit,
     patch_layout,
     patch_means,
@@ -47,11 +45,10 @@ def data(ict_face):
 
 
 def _model(data, variant, seed=0, **options):
-    return CANRigPBS(
+    return PBS_VARIANTS[variant](
         np.asarray(data.neutral),
         N_PATCHES,
         data.basis.shape[0],
-        variant=variant,
         width=32,
         patch_width=16,
         fourier=2,
@@ -225,8 +222,8 @@ def test_bad_options_name_the_argument(kwargs, name):
 
 @pytest.mark.slow
 def test_bad_model_and_data_arguments(data):
-    with pytest.raises(ValueError, match="variant"):
-        _model(data, "shared")
+    with pytest.raises(ValueError, match="n_patches"):
+        PBS_VARIANTS["per_patch"](np.asarray(data.neutral), 0, 3, key=jax.random.PRNGKey(0))
     with pytest.raises(ValueError, match="shapes"):
         build_pbs_training_set(
             np.asarray(data.neutral),

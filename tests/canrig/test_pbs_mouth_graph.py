@@ -6,17 +6,10 @@ canrig_pbs_attached_local_prior). Skin handles only, as Table 5's protocol."""
 import numpy as np
 import pytest
 
-from canrig_jax.canrig import (
-    CLAMP,
-    influence_mask,
-    local_pbs_fit,
-    patch_layout,
-    pbs_basis,
-    pbs_shape,
-    seed_distances,
-)
+from canrig_jax.canrig import CLAMP, influence_mask
 from canrig_jax.data import load_ict
 from canrig_jax.mesh import attached_edge_graph, bridged_edge_graph, farthest_point_vertices
+from canrig_jax.pbs import local_pbs_fit, patch_layout, pbs_basis, pbs_shape, seed_distances
 from canrig_jax.rig import evaluate_batch, ict_linear_rig, random_sparse_poses
 
 MOUTH_INTERIOR = ("Mouth socket", "Gums and tongue", "Teeth")

@@ -1,9 +1,11 @@
 """CANRig (Mohammadi, Weiss et al.): geodesic influence masks, masked cross-attention with
 zero-preserving MLPs, the shape-preserving variant, training on real rig shapes, and the
 workflows an artist runs on it (pose A to B direct and fitted, iterative layers, clip editing,
-dialogue replacement), and patch blendshapes (PBS) for the whole head."""
+dialogue replacement), all on one family of handle rigs (``AbstractHandleRig``). Patch
+blendshapes (PBS) for the whole head are ``canrig_jax.pbs``."""
 
 from ._attention import masked_attention_weights, masked_cross_attention
+from ._attention_fit import apply_jacobian, displacement_jacobian, normal_matrix, trace_edit
 from ._data import (
     EVAL_FALLOFF_PER_CM,
     FARTHEST_METRICS,
@@ -21,6 +23,14 @@ from ._data import (
     sample_examples,
     split_capture,
 )
+from ._handle_rig import (
+    AbstractHandleRig,
+    FitOptions,
+    FitState,
+    HandleEdit,
+    Handles,
+    edit_mask,
+)
 from ._layout import (
     DENSE,
     BlockLayout,
@@ -31,7 +41,6 @@ from ._layout import (
     influence_reach,
     vertex_blocks,
 )
-from ._local_fit import LocalFitRig, local_fit_deform, local_fit_lsmr, local_fit_rig
 from ._masks import (
     CLAMP,
     MIN_EDGE_FACTOR,
@@ -44,45 +53,8 @@ from ._masks import (
 )
 from ._mlp import ZeroPreservingMLP
 from ._model import AbstractCANRig, Architecture, CANRig, ShapePreservingCANRig, parameter_count
-from ._pbs import (
-    PatchLayout,
-    check_basis,
-    fit_pbs,
-    global_blendshape_dialogue,
-    global_blendshape_fit,
-    local_pbs_fit,
-    patch_layout,
-    pbs_basis,
-    pbs_shape,
-)
-from ._pbs_model import (
-    PBS_VARIANTS,
-    CANRigPBS,
-    ShapeTransformer,
-    patch_means,
-    pbs_delta_shape,
-)
-from ._pbs_train import (
-    PBS_MODELS,
-    PBSExamples,
-    PBSTrainingSet,
-    PBSTrainOptions,
-    build_pbs_training_set,
-    load_pbs_model,
-    pbs_example_loss,
-    pbs_reconstruct,
-    predict_pbs_weights,
-    sample_pbs_examples,
-    seed_distances,
-    train_pbs,
-)
-from ._protocols import (
-    add_training_options,
-    check_pbs_training_matches,
-    reach_floor,
-    training_options_from_args,
-)
-from ._rig import HandleEdit, Handles, NeuralRig, deform, edit_mask, trace_edit
+from ._protocols import add_training_options, training_options_from_args
+from ._rig import NeuralRig, deform
 from ._train import (
     EUCLIDEAN_SOFTNESS_MM,
     LOSSES,
@@ -102,43 +74,31 @@ from ._workflows import (
     FIT_PARTS,
     FIT_WIDTH_MULTIPLE,
     ClipEdit,
-    FitOptions,
     FitSolution,
     LayerResult,
-    apply_jacobian,
     clip_edit,
     dialogue_replacement,
     direct_displacements,
-    displacement_jacobian,
     expression_region,
     fit_displacements,
     interior_vertices,
     iterative_layers,
     max_acceleration,
-    normal_matrix,
     pose_a_to_b,
     region_error,
     smoothstep_fade,
 )
 
+HANDLE_RIGS = (CANRig, ShapePreservingCANRig)
+"""The final handle rigs of this subpackage (``AbstractHandleRig``); ``canrig_jax.pbs``
+adds ``LocalFitRig`` and ``PBSRig`` (``canrig_jax.pbs.HANDLE_RIGS`` lists all four)."""
+
 __all__ = [
-    "PatchLayout",
-    "check_basis",
+    "AbstractHandleRig",
+    "FitState",
+    "HANDLE_RIGS",
     "add_training_options",
-    "check_pbs_training_matches",
-    "reach_floor",
     "training_options_from_args",
-    "fit_pbs",
-    "global_blendshape_dialogue",
-    "global_blendshape_fit",
-    "local_pbs_fit",
-    "LocalFitRig",
-    "local_fit_deform",
-    "local_fit_lsmr",
-    "local_fit_rig",
-    "patch_layout",
-    "pbs_basis",
-    "pbs_shape",
     "ClipEdit",
     "FitOptions",
     "FIT_PARTS",
@@ -217,21 +177,4 @@ __all__ = [
     "train",
     "train_step",
     "weighted_geodesic_distance",
-    "PBS_MODELS",
-    "PBS_VARIANTS",
-    "CANRigPBS",
-    "PBSExamples",
-    "PBSTrainOptions",
-    "PBSTrainingSet",
-    "ShapeTransformer",
-    "build_pbs_training_set",
-    "load_pbs_model",
-    "patch_means",
-    "pbs_delta_shape",
-    "pbs_example_loss",
-    "pbs_reconstruct",
-    "predict_pbs_weights",
-    "sample_pbs_examples",
-    "seed_distances",
-    "train_pbs",
 ]

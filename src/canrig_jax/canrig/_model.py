@@ -60,7 +60,9 @@ import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from ._attention import masked_attention_weights
-from ._layout import DENSE, Layout
+from ._attention_fit import gauss_newton, trace_edit
+from ._handle_rig import AbstractHandleRig, FitOptions, FitState, HandleEdit
+from ._layout import DENSE, Layout, influence_reach
 from ._masks import CLAMP
 from ._mlp import ZeroPreservingMLP
 
@@ -91,9 +93,12 @@ def _per_row(fn, x: Float[Array, "*B F"], *more: Float[Array, "*B G"]) -> Float[
     return out.reshape(*lead, out.shape[-1])
 
 
-class AbstractCANRig(eqx.Module):
+class AbstractCANRig(AbstractHandleRig):
     """The CANRig forward pass; ``CANRig`` and ``ShapePreservingCANRig`` are its two final
-    models. ``encode_queries`` once per mesh, then ``__call__`` per edit."""
+    models. ``encode_queries`` once per mesh, then ``__call__`` per edit. As a handle rig
+    (``AbstractHandleRig``): ``prepare`` encodes the queries, ``deform`` is ``trace``'s shape,
+    the work is laid out over the masks' reach, and ``fit`` is the whitened Gauss-Newton solve
+    on the exact structured Jacobian (``_attention_fit.py``)."""
 
     arch: eqx.AbstractVar[Architecture]
     query_mlp: eqx.AbstractVar[eqx.nn.MLP]
@@ -118,6 +123,37 @@ class AbstractCANRig(eqx.Module):
     @abc.abstractmethod
     def attention_beta(self, beta) -> Float[Array, ""] | None:
         """The extra attention column's logit, or None for no extra column."""
+
+    # ------------------------------------------------------------ as a handle rig
+    def prepare(self, canonical: Float[Array, "V 3"]) -> Float[Array, "heads V d"]:
+        return self.encode_queries(canonical)
+
+    def reach(
+        self, radius: Float[np.ndarray, " H"], falloff: Float[np.ndarray, " H"]
+    ) -> Float[np.ndarray, " H"]:
+        return influence_reach(radius, falloff, self.clamp)
+
+    def deform(
+        self,
+        prepared: Float[Array, "heads V d"],
+        canonical: Float[Array, "V 3"],
+        edit: HandleEdit,
+        layout: Layout = DENSE,
+        local: Float[Array, "..."] | None = None,
+    ) -> Float[Array, "V 3"]:
+        return trace_edit(self, prepared, canonical, edit, layout, local).shape
+
+    def fit(
+        self,
+        prepared: Float[Array, "heads V d"],
+        canonical: Float[Array, "V 3"],
+        edit: HandleEdit,
+        target: Float[Array, "V 3"],
+        region: Float[Array, " V"],
+        layout: Layout,
+        options: FitOptions,
+    ) -> FitState:
+        return gauss_newton(self, prepared, canonical, edit, target, region, layout, options)
 
     # ------------------------------------------------------------ static attributes
     @property

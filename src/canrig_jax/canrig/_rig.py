@@ -1,5 +1,6 @@
-"""A trained CANRig bound to one mesh: the queries of S_0 and the edge graph computed once,
-handles placed (geodesic distances) once per handle set, then any number of edits with new
+"""A handle rig (a trained CANRig, a ``LocalFitRig``, a ``PBSRig``) bound to one mesh: what
+it prepares for the mesh (a CANRig's queries of S_0) and the edge graph computed once, handles
+placed (geodesic distances) once per handle set, then any number of edits with new
 displacements, radii, falloffs, base shapes and beta, without recompiling.
 
     rig = NeuralRig(model, neutral, faces)
@@ -14,8 +15,8 @@ and ``jax.vmap`` batches it over edits. By default the attention is block-sparse
 (``_layout.py``: each block of ~48 vertices attends only to the handles that reach it, exact);
 ``dense=True`` uses the dense (V x H) layout instead.
 
-The model may also be a ``LocalFitRig`` (``_local_fit.py``: no network, local linear fits of
-a data-driven basis): the same handles, edits and workflows, its own forward pass.
+The model is any member of the handle-rig family (``_handle_rig.py``): the same handles,
+edits and workflows, each its own forward pass and fit.
 
 Distances run along the mesh's edges, so a handle on the skin never reaches a part that is a
 separate piece of mesh (teeth, gums, eyelashes on a whole head): ``bridge=True`` measures
@@ -23,9 +24,7 @@ them along ``mesh.bridged_edge_graph`` instead, where every vertex of such a par
 (its 3D distance) from its nearest vertex of the largest piece.
 """
 
-from __future__ import annotations
-
-import dataclasses
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -36,130 +35,70 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from .._checks import check_points
 from .._threads import blocking_single_threaded_blas
 from ..mesh import bridged_edge_graph
-from ._layout import (
-    DENSE,
-    BlockLayout,
-    Layout,
-    block_distance,
-    block_layout,
-    influence_reach,
-    vertex_blocks,
-)
-from ._local_fit import LocalFitRig, local_fit_deform
-from ._masks import check_handle_parameters, edge_graph, influence_mask, weighted_geodesic_distance
-from ._model import AbstractCANRig, Trace
-
-
-@dataclasses.dataclass(frozen=True)
-class Handles:
-    """Handle vertices, the (V, H) weighted geodesic distance of every vertex to them (kept on
-    the device, so repeated edits do not copy it) and the (B, H) distance of each handle to
-    the nearest vertex of each of the rig's vertex blocks (on the host)."""
-
-    index: np.ndarray
-    distance: Array
-    block_distance: np.ndarray
-
-    @property
-    def n_handles(self) -> int:
-        return len(self.index)
-
-
-class HandleEdit(eqx.Module):
-    """Everything one forward pass needs besides the model and the mesh, as one pytree.
-
-    Attributes:
-        index: (H,) handle vertices.
-        distance: (V, H) geodesic distance of every vertex to each handle (cm; inf: far).
-        displacements: (H, 3) handle displacements from the base shape (cm).
-        radius: (H,) mask radius per handle (cm).
-        falloff: (H,) mask falloff per handle (1/cm).
-        base: (V, 3) base shape S_B (cm); the neutral for reconstruction.
-        beta: () logit of the extra attention column (shape-preserving model only).
-    """
-
-    index: Int[Array, " H"]
-    distance: Float[Array, "V H"]
-    displacements: Float[Array, "H 3"]
-    radius: Float[Array, " H"]
-    falloff: Float[Array, " H"]
-    base: Float[Array, "V 3"]
-    beta: Float[Array, ""]
-
-    def with_displacements(self, displacements: Float[Array, "H 3"]) -> HandleEdit:
-        return eqx.tree_at(lambda e: e.displacements, self, displacements)
-
-    def with_base(self, base: Float[Array, "V 3"]) -> HandleEdit:
-        return eqx.tree_at(lambda e: e.base, self, base)
-
-
-def edit_mask(edit: HandleEdit, clamp: float, layout: Layout = DENSE) -> Float[Array, "..."]:
-    """The clamped influence masks of ``edit`` in the layout's local form."""
-    return jax.tree.map(
-        lambda d, r, f: influence_mask(d, r, f, clamp),
-        layout.distance(edit.distance),
-        layout.per_handle(edit.radius),
-        layout.per_handle(edit.falloff),
-    )
-
-
-def trace_edit(
-    model: AbstractCANRig,
-    queries: Float[Array, "heads V d"],
-    canonical: Float[Array, "V 3"],
-    edit: HandleEdit,
-    layout: Layout = DENSE,
-    local_queries: Float[Array, "..."] | None = None,
-) -> Trace:
-    """``AbstractCANRig.trace`` of ``edit``: the forward pass with its intermediates."""
-    return model.trace(
-        queries,
-        edit.base,
-        canonical[edit.index],
-        edit.base[edit.index],
-        edit.displacements,
-        edit_mask(edit, model.clamp, layout),
-        edit.beta,
-        layout,
-        local_queries,
-    )
+from ._handle_rig import AbstractHandleRig, HandleEdit, Handles
+from ._layout import DENSE, BlockLayout, Layout, block_distance, block_layout, vertex_blocks
+from ._masks import check_handle_parameters, edge_graph, weighted_geodesic_distance
 
 
 @eqx.filter_jit
 def deform(
-    model: AbstractCANRig,
-    queries: Float[Array, "heads V d"],
+    model: AbstractHandleRig,
+    queries: Any,
     canonical: Float[Array, "V 3"],
     edit: HandleEdit,
     layout: Layout = DENSE,
     local_queries: Float[Array, "..."] | None = None,
 ) -> Float[Array, "V 3"]:
-    """The shape of ``edit``: the one jitted forward pass (no validation; build ``edit``
-    with ``NeuralRig.edit``). ``layout`` (``NeuralRig.layout``) only changes where the
-    attention runs, not the result; ``local_queries`` may cache
-    ``layout.vertices(queries, axis=-2)``. Batch over edits with ``jax.vmap``. A
-    ``LocalFitRig`` (no network) has no queries and no layout: its own pass."""
-    if isinstance(model, LocalFitRig):
-        return local_fit_deform(model, edit)
-    return trace_edit(model, queries, canonical, edit, layout, local_queries).shape
+    """The shape of ``edit``: the one jitted forward pass of any handle rig (no validation;
+    build ``edit`` with ``NeuralRig.edit``). ``queries`` is ``model.prepare(canonical)`` (the
+    attention rig's queries; None for rigs without). ``layout`` (``NeuralRig.layout``) only
+    changes where the work runs, not the result; ``local_queries`` may cache
+    ``layout.vertices(queries, axis=-2)``. Batch over edits with ``jax.vmap``."""
+    return model.deform(queries, canonical, edit, layout, local_queries)
 
 
-def call_blas_safe(model, fn, *args):
-    """``fn(*args)``, with one BLAS thread when ``model`` is a ``LocalFitRig``: its forward
-    pass factors every patch's normal matrix in LAPACK, whose threads fight XLA's
-    (``canrig_jax._threads``); a network's pass runs none."""
-    if isinstance(model, LocalFitRig):
+def call_blas_safe(model: AbstractHandleRig, fn, *args):
+    """``fn(*args)``, with one BLAS thread when ``model``'s forward pass runs LAPACK
+    (``AbstractHandleRig.lapack_in_forward``: its threads fight XLA's, see
+    ``canrig_jax._threads``). Under a trace (the rig inside ``jit``) it only calls ``fn``."""
+    tracing = any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(args))
+    if model.lapack_in_forward and not tracing:
         return blocking_single_threaded_blas(fn, *args)
     return fn(*args)
 
 
-class NeuralRig:
-    """A CANRig model (or a ``LocalFitRig``) on a mesh with its cached queries (see the
-    module docstring)."""
+class _Host:
+    """Host-side data of a ``NeuralRig`` (the edge graph, the vertex blocks): a static field,
+    hashed and compared by identity, so the rig passes through ``eqx.filter_jit``."""
+
+    def __init__(self, **values):
+        self.__dict__.update(values)
+
+
+class NeuralRig(eqx.Module):
+    """A handle rig (any ``AbstractHandleRig``: a trained CANRig, a ``LocalFitRig``, a
+    ``PBSRig``) on a mesh with what it prepared for that mesh cached (see the module
+    docstring). An ``eqx.Module``: it passes through ``eqx.filter_jit`` and ``eqx.filter_vmap``
+    (its device arrays are leaves; the edge graph and vertex blocks are static host data).
+
+    Attributes:
+        model: the handle rig.
+        canonical: (V, 3) the mesh's neutral (cm).
+        queries: ``model.prepare(canonical)`` (the attention rig's queries; None otherwise).
+        block_queries: those queries gathered into the vertex blocks (None without queries).
+        device_blocks: the vertex blocks (B, S) (padded with V) and each vertex's slot (V,).
+    """
+
+    model: AbstractHandleRig
+    canonical: Float[Array, "V 3"]
+    queries: Any
+    block_queries: Any
+    device_blocks: tuple[Int[Array, "B S"], Int[Array, " V"]]
+    host: _Host = eqx.field(static=True)
 
     def __init__(
         self,
-        model: AbstractCANRig,
+        model: AbstractHandleRig,
         canonical: Float[ArrayLike, "V 3"],
         faces: Int[ArrayLike, "F 3"],
         *,
@@ -167,39 +106,55 @@ class NeuralRig:
         block_size: int = 48,
         bridge: bool = False,
     ):
-        if not isinstance(model, AbstractCANRig | LocalFitRig):
+        if not isinstance(model, AbstractHandleRig):
             raise TypeError(
-                f"model: expected a CANRig model or a LocalFitRig, got {type(model).__name__}"
+                "model: expected a handle rig (canrig_jax.canrig.HANDLE_RIGS, e.g. a trained "
+                f"CANRig or a LocalFitRig), got {type(model).__name__}"
             )
         canonical = np.asarray(canonical, np.float32)
-        if isinstance(model, LocalFitRig) and model.layout.n_vertices != len(canonical):
-            raise ValueError(
-                f"canonical: {len(canonical)} vertices, the LocalFitRig's layout has "
-                f"{model.layout.n_vertices}"
-            )
+        model.check_mesh(len(canonical))
         self.model = model
         if bridge:
             # exit edges lead out of the floating parts (teeth, eyelashes): reversed, the paths
             # from a handle on the skin lead into them (distances are measured from handles)
-            self.graph = bridged_edge_graph(canonical, np.asarray(faces), edge_factor).T.tocsr()
+            graph = bridged_edge_graph(canonical, np.asarray(faces), edge_factor).T.tocsr()
         else:
-            self.graph = edge_graph(canonical, np.asarray(faces), edge_factor)
+            graph = edge_graph(canonical, np.asarray(faces), edge_factor)
         self.canonical = jnp.asarray(canonical)
-        self.faces = np.asarray(faces)
         blocks = vertex_blocks(canonical, block_size)
         flat = blocks.ravel()
         position = np.zeros(len(canonical), np.int32)
         position[flat[flat >= 0]] = np.flatnonzero(flat >= 0)
-        self.blocks = np.where(blocks < 0, len(canonical), blocks).astype(np.int32)
-        self.block_position = position
-        self._device_blocks = (jnp.asarray(self.blocks), jnp.asarray(position))
-        self.queries = self.block_queries = None  # a LocalFitRig attends to nothing
-        if isinstance(model, AbstractCANRig):
-            self.queries = eqx.filter_jit(type(model).encode_queries)(model, self.canonical)
+        blocks = np.where(blocks < 0, len(canonical), blocks).astype(np.int32)
+        self.host = _Host(
+            graph=graph, faces=np.asarray(faces), blocks=blocks, block_position=position
+        )
+        self.device_blocks = (jnp.asarray(blocks), jnp.asarray(position))
+        self.queries = eqx.filter_jit(type(model).prepare)(model, self.canonical)
+        self.block_queries = None
+        if self.queries is not None:
             # the queries gathered into the blocks once (the layout's first step, cached)
             chosen = jnp.zeros((len(blocks), 1), jnp.int32)
-            blocked = BlockLayout(*self._device_blocks, chosen=chosen)
+            blocked = BlockLayout(*self.device_blocks, chosen=chosen)
             self.block_queries = blocked.vertices(self.queries, axis=-2)
+
+    @property
+    def graph(self):
+        """The (V, V) edge graph the handles' geodesic distances run along (SciPy CSR)."""
+        return self.host.graph
+
+    @property
+    def faces(self) -> np.ndarray:
+        return self.host.faces
+
+    @property
+    def blocks(self) -> np.ndarray:
+        """(B, S) the vertex blocks of the block-sparse layout (padded with V)."""
+        return self.host.blocks
+
+    @property
+    def block_position(self) -> np.ndarray:
+        return self.host.block_position
 
     @property
     def n_vertices(self) -> int:
@@ -299,14 +254,14 @@ class NeuralRig:
         """The block-sparse layout of these handles at this radius and falloff (host-side:
         which handles reach which vertex block). One layout serves any displacements and base
         shapes, e.g. every frame of a clip. ``width``/``multiple``/``parts``: see
-        ``block_layout``. A ``LocalFitRig`` has no attention to lay out: ``DENSE``."""
+        ``block_layout``. A rig without attention (``reach`` None) has none: ``DENSE``."""
         h = self._check_handles(handles)
         radius, falloff = check_handle_parameters(radius, falloff, h)
-        if isinstance(self.model, LocalFitRig):
-            return DENSE  # no attention to lay out
-        reach = influence_reach(radius, falloff, self.model.clamp)
+        reach = self.model.reach(radius, falloff)
+        if reach is None:
+            return DENSE  # nothing to lay out
         return block_layout(
-            *self._device_blocks,
+            *self.device_blocks,
             handles.block_distance,
             reach,
             width=width,
@@ -318,7 +273,7 @@ class NeuralRig:
         """``deform`` with this rig's model, queries and neutral (and, for one of its block
         layouts, the queries already gathered into the blocks)."""
         cached = None
-        if isinstance(layout, BlockLayout) and layout.blocks is self._device_blocks[0]:
+        if isinstance(layout, BlockLayout) and layout.blocks is self.device_blocks[0]:
             cached = self.block_queries
         return call_blas_safe(
             self.model, deform, self.model, self.queries, self.canonical, edit, layout, cached

@@ -3,16 +3,11 @@
 - **Pose A to B, direct** (section 7.1): handles on chosen vertices of A, displacements
   B[h] - A[h], base shape A, one forward pass (``direct_edit``).
 - **Pose A to B, fitted** (``fit_displacements``): the displacements that minimise the mesh
-  error ||rig(A, d) - B||^2 (optionally weighted by a region, plus ``penalty`` ||d||^2), by
-  ``optimistix.least_squares`` (Gauss-Newton or Levenberg-Marquardt, ``lineax.LSMR``
-  linear solves) started from the direct displacements. The Jacobian of the rig with
-  respect to the displacements is exact and structured (``displacement_jacobian``): the
-  attention weights do not depend on the displacements, so per (vertex, handle) it is a
-  3 x 3 block sum_k A^k_vh G_v^k U_h^k (+ the prior's weight times I), G the output MLP's
-  Jacobian at the vertex, U the value MLP's at the handle; it reaches the solver as a
-  ``jax.custom_jvp``. The variables are whitened by the normal matrix J^T W J of the start
-  (``normal_matrix``, a Cholesky factor), so each step's linear system is close to the
-  identity. The answer is the best of {fitted, direct, zero} by the reported error (the
+  error ||rig(A, d) - B||^2 (optionally weighted by a region, plus ``penalty`` ||d||^2),
+  started from the direct displacements, by the rig's own solve (``AbstractHandleRig.fit``:
+  for the attention rig ``optimistix.least_squares`` on its exact structured Jacobian,
+  ``_attention_fit.py``; LSMR for the linear ``LocalFitRig``). The answer is the best of
+  {fitted, direct, zero} by the reported error (the
   mean per-vertex Euclidean error over the region), so a fit is never worse than the direct
   pass nor than the base shape, exactly.
 - **Iterative layers** (section 7.4, ``iterative_layers``): each layer's base shape is the
@@ -24,208 +19,28 @@
   the mouth move to the target clip's positions, base shape the source frame, ``jax.vmap``
   over frames.
 
-The rig's model may be a trained CANRig or a ``LocalFitRig`` (no network, ``_local_fit.py``):
-every workflow runs on either. Units follow the rig (ICT: cm). Inputs are validated in plain
-Python before any jit work.
+The rig's model may be any handle rig (``_handle_rig.py``: a trained CANRig, a ``LocalFitRig``,
+a ``PBSRig``): every workflow runs on each through its ``deform`` and ``fit``. Units follow
+the rig (ICT: cm). Inputs are validated in plain Python before any jit work.
 """
-
-from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, ArrayLike, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int, Shaped
 from scipy.sparse.csgraph import dijkstra
 
 from .._checks import check_points
-from .._linalg import cho_solve, cholesky, solve_triangular
 from .._threads import blocking_single_threaded_blas
+from ._handle_rig import AbstractHandleRig, FitOptions, FitState, HandleEdit, Handles
 from ._layout import DENSE, Layout
-from ._local_fit import LocalFitRig, local_fit_lsmr
-from ._model import AbstractCANRig
-from ._rig import (
-    HandleEdit,
-    Handles,
-    NeuralRig,
-    call_blas_safe,
-    deform,
-    edit_mask,
-    trace_edit,
-)
-
-# --------------------------------------------------------------------------- Jacobian
-
-
-def _value_jacobian(model: AbstractCANRig, displacements, handle_base):
-    """(H, heads, e, 3): d values_h / d d_h per handle."""
-
-    def one(d, b):
-        return model.encode_values(d[None], b[None])[:, 0]  # (heads, e)
-
-    return jax.vmap(jax.jacfwd(one))(displacements, handle_base)
-
-
-def _decode_jacobian(model: AbstractCANRig, attended, base, queries):
-    """(V, 3, heads, e): d decode_v / d attended_v per vertex (the latent axis is the heads'
-    concatenation, ``merge_heads``)."""
-
-    def one(a, b, q):
-        return model.decode(a[None], b[None], q[:, None])[0]  # (3,)
-
-    jac = jax.vmap(jax.jacrev(one), in_axes=(0, 0, 1))(attended, base, queries)
-    return jac.reshape(*jac.shape[:2], model.n_heads, -1)
-
-
-def displacement_jacobian(
-    model: AbstractCANRig,
-    queries: Float[Array, "heads V d"],
-    canonical: Float[Array, "V 3"],
-    edit: HandleEdit,
-    layout: Layout = DENSE,
-) -> tuple[Float[Array, "V 3"], Float[Array, "... 3 3"]]:
-    """The shape of ``edit`` and the exact Jacobian of ``deform`` with respect to
-    ``edit.displacements``, as 3 x 3 blocks in the layout's local form: (V, 3, H, 3) for the
-    dense layout, (B, S, 3, W, 3) for a block layout (block b, slot s, its w-th handle), a
-    tuple of those for a ``PartsLayout``:
-    blocks[..., s, i, w, j] = d shape[s, i] / d displacements[w, j].
-
-    Only the values depend on d, so the block of vertex v and handle h is
-    sum_k A^k_vh G_v^k U_h^k + P_vh I (A the attention of head k, G the output MLP's
-    Jacobian, U the value MLP's, P the interpolation prior's weight)."""
-    trace = trace_edit(model, queries, canonical, edit, layout)
-    value_jac = _value_jacobian(model, edit.displacements, edit.base[edit.index])  # (H,k,e,3)
-    decode_jac = _decode_jacobian(model, trace.attended, edit.base, queries)  # (V, 3, k, e)
-    mask = edit_mask(edit, model.clamp, layout)  # the trace's (XLA computes it once)
-
-    def local_blocks(decode, value, attention, mask):
-        # decode (.., S, 3, k, e), value (.., W, k, e, 3), attention (.., k, S, W); one head
-        # at a time: (S*3 x e) @ (e x W*3) products weighted by A^k and accumulated (4x
-        # faster on CPU than materialising every head's products before the sum)
-        blocks = 0.0
-        for head in range(model.n_heads):
-            products = jnp.einsum(
-                "...sie,...wej->...siwj", decode[..., head, :], value[..., head, :, :]
-            )
-            blocks = blocks + attention[..., head, :, None, :, None] * products
-        if model.interpolation_prior:
-            prior = model.interpolation_weights(mask)  # (.., S, W)
-            eye = jnp.eye(3, dtype=blocks.dtype)[:, None]
-            blocks = blocks + prior[..., :, None, :, None] * eye
-        return blocks
-
-    blocks = jax.tree.map(
-        local_blocks,
-        layout.vertices(decode_jac, axis=0),
-        layout.handles(value_jac, axis=0),
-        trace.attention,
-        mask,
-    )
-    return trace.shape, blocks
-
-
-def apply_jacobian(
-    blocks: Float[Array, "... 3 3"], tangent: Float[Array, "H 3"], layout: Layout = DENSE
-) -> Float[Array, "V 3"]:
-    """J t for the blocks of ``displacement_jacobian`` (linear in t; JAX transposes it)."""
-
-    def local_product(blocks, local):
-        local = local.reshape(*local.shape[:-2], -1, 1)  # (.., W*3, 1)
-        flat = blocks.reshape(*blocks.shape[:-4], blocks.shape[-4] * 3, -1)  # (.., S*3, W*3)
-        return jnp.matmul(flat, local).reshape(*blocks.shape[:-4], -1, 3)
-
-    return layout.scatter(jax.tree.map(local_product, blocks, layout.handles(tangent, axis=0)))
-
-
-def _differentiable_shape(
-    model, queries, canonical, edit: HandleEdit, layout: Layout, frozen_blocks=None
-):
-    """d -> deform(edit with displacements d), with the structured Jacobian as its JVP; with
-    ``frozen_blocks``, that Jacobian (taken at the start) stands in for the exact one."""
-
-    @jax.custom_jvp
-    def shape(displacements):
-        return deform(model, queries, canonical, edit.with_displacements(displacements), layout)
-
-    @shape.defjvp
-    def shape_jvp(primals, tangents):
-        (displacements,), (tangent,) = primals, tangents
-        moved = edit.with_displacements(displacements)
-        if frozen_blocks is None:
-            out, blocks = displacement_jacobian(model, queries, canonical, moved, layout)
-        else:
-            out, blocks = deform(model, queries, canonical, moved, layout), frozen_blocks
-        return out, apply_jacobian(blocks, tangent, layout)
-
-    return shape
-
-
-# --------------------------------------------------------------------------- fitting
-
-
-def normal_matrix(
-    blocks: Float[Array, "... 3 3"],
-    vertex_weight: Float[Array, " V"],
-    n_handles: int,
-    layout: Layout = DENSE,
-) -> Float[Array, "3H 3H"]:
-    """J^T W J for the blocks of ``displacement_jacobian`` (W = diag(``vertex_weight``)),
-    (3H, 3H) in handle-major order: per block one batched (W*3 x S*3) @ (S*3 x W*3) product,
-    summed over the blocks listing each pair of handles (``Layout.sum_handle_pairs``)."""
-
-    def local_normal(blocks, weight):
-        weighted = blocks * weight[..., :, None, None, None]
-        return jnp.einsum("...siwj,...sixl->...wxjl", weighted, blocks)
-
-    local = jax.tree.map(local_normal, blocks, layout.vertices(vertex_weight, axis=0))
-    pairs = layout.sum_handle_pairs(local, n_handles)  # (H, H, 3, 3)
-    return jnp.swapaxes(pairs, 1, 2).reshape(3 * n_handles, 3 * n_handles)
-
-
-@dataclasses.dataclass(frozen=True)
-class FitOptions:
-    """Settings of ``fit_displacements``.
-
-    The variables are whitened by the normal matrix of the start (z = L^T d, L L^T =
-    J^T W J + (penalty + eps) I), so with the start's Jacobian (``exact_jacobian=False``)
-    the linearised problem is the identity and one LSMR iteration (``lsmr_steps``) solves
-    each step's linear system. ``damped=False`` takes Gauss-Newton steps (the default:
-    measured on real poses it is as accurate as Levenberg-Marquardt and faster, but
-    undamped steps with the start's Jacobian can overshoot after a few steps, so
-    ``max_steps`` stays small: a solve's first step only evaluates the start, 3 steps
-    are 2 updates, the first in closed form); ``damped=True`` takes Levenberg-Marquardt
-    steps (a trust region that only accepts steps lowering the true objective).
-    ``rtol``/``atol`` stop the solve on a small change of the whitened displacements;
-    ``penalty`` weighs ||d||^2 (cm^2 per cm^2 of mesh error); ``exact_jacobian=True``
-    recomputes the Jacobian at every step (slower, a little more accurate). Whatever the
-    settings, the answer is never worse than the direct displacements or zero
-    displacements (``fit_displacements`` keeps the best). A ``LocalFitRig`` is linear in d:
-    its fit is ``max_steps`` LSMR iterations and ``penalty``; the other settings do not
-    apply."""
-
-    max_steps: int = 3
-    rtol: float = 1e-3
-    atol: float = 1e-4
-    lsmr_steps: int = 1
-    penalty: float = 0.0
-    exact_jacobian: bool = False
-    damped: bool = False
-
-    def __post_init__(self):
-        if int(self.max_steps) < 1 or int(self.lsmr_steps) < 1:
-            raise ValueError(
-                f"max_steps, lsmr_steps: expected >= 1, got {self.max_steps}, {self.lsmr_steps}"
-            )
-        for name in ("rtol", "atol"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name}: expected > 0, got {getattr(self, name)}")
-        if not (np.isfinite(self.penalty) and self.penalty >= 0):
-            raise ValueError(f"penalty: expected a finite value >= 0, got {self.penalty}")
+from ._rig import NeuralRig, call_blas_safe, deform
 
 
 class FitSolution(eqx.Module):
@@ -262,8 +77,8 @@ def region_error(
 
 @eqx.filter_jit
 def fit_displacements(
-    model: AbstractCANRig | LocalFitRig,
-    queries: Float[Array, "heads V d"],
+    model: AbstractHandleRig,
+    queries: Any,
     canonical: Float[Array, "V 3"],
     edit: HandleEdit,
     target: Float[Array, "V 3"],
@@ -272,95 +87,23 @@ def fit_displacements(
     options: FitOptions = FitOptions(),
 ) -> FitSolution:
     """The handle displacements whose shape best matches ``target``: minimises
-    sum_v region_v ||deform(edit with d)_v - target_v||^2 + penalty ||d||^2 over d with
-    ``optimistix.least_squares`` (Gauss-Newton or Levenberg-Marquardt, ``lineax.LSMR``
-    steps, see ``FitOptions``), started from ``edit.displacements``; undamped with the
-    start's Jacobian, the first step is taken in closed form from the trace's residual. Use a
-    ``PartsLayout`` (``FIT_PARTS``) for speed. Pure and jit/vmap-able; validate with
-    ``NeuralRig.edit``. For a ``LocalFitRig`` (linear in d) the solve is ``max_steps`` LSMR
-    iterations on the same objective (``local_fit_lsmr``; queries and layout unused).
-    Its Cholesky runs in SciPy's OpenBLAS: call it inside
+    sum_v region_v ||deform(edit with d)_v - target_v||^2 + penalty ||d||^2 over d by the
+    rig's own solve (``model.fit``, see ``FitOptions``), started from ``edit.displacements``,
+    and keeps the best of {fitted, direct, zero} displacements. ``queries``:
+    ``model.prepare(canonical)``. Use a ``PartsLayout`` (``FIT_PARTS``) for speed with the
+    attention rig. Pure and jit/vmap-able; validate with ``NeuralRig.edit``. The attention
+    rig's Cholesky runs in SciPy's OpenBLAS: call it inside
     ``canrig_jax._threads.single_threaded_blas()`` (as ``pose_a_to_b`` does) or it may be
     several times slower next to XLA's threads."""
-    if isinstance(model, LocalFitRig):
-        fitted, *rest, linear_result, steps = local_fit_lsmr(
-            model, edit, target, region, options.penalty, options.max_steps
-        )
-        result = optx.RESULTS.promote(linear_result)
-    else:
-        fitted, *rest, result, steps = _gauss_newton(
-            model, queries, canonical, edit, target, region, layout, options
-        )
-    return _best_of(edit, target, region, fitted, *rest, result, steps)
+    state = model.fit(queries, canonical, edit, target, region, layout, options)
+    return _best_of(edit, target, region, state)
 
 
-def _gauss_newton(model, queries, canonical, edit, target, region, layout, options):
-    """The network's solve (see ``fit_displacements``): (fitted displacements, their shape,
-    the direct shape, the solver's result, its steps)."""
-    weight = jnp.sqrt(region)[:, None]
-    root_penalty = jnp.sqrt(jnp.asarray(options.penalty, target.dtype))
-    start = edit.displacements
-    n_handles = start.shape[0]
-    # whitened variables z = L^T d, L L^T = J^T W J + (penalty + eps) I at the start: the
-    # damped normal equations are then close to the identity and LSMR needs one or two
-    # iterations per step (eps = 1e-3 x the mean diagonal keeps handles that move nothing
-    # finite)
-    direct_shape, blocks = displacement_jacobian(model, queries, canonical, edit, layout)
-    normal = normal_matrix(blocks, region, n_handles, layout)
-    eps = 1e-3 * jnp.mean(jnp.diagonal(normal)) + 1e-12
-    # factor D^-1/2 (N + lambda I) D^-1/2 = L_C L_C^T, D its diagonal, with couplings below
-    # 1e-12 flushed to 0 (only the preconditioner changes, negligibly): unscaled, the
-    # float32 factorisation ran into subnormal numbers on a real checkpoint and took 0.5 s
-    # instead of 7 ms. Then L = D^1/2 L_C.
-    root = jnp.sqrt(jnp.diagonal(normal) + options.penalty + eps)
-    identity = jnp.eye(3 * n_handles, dtype=normal.dtype)
-    scaled = (normal + (options.penalty + eps) * identity) / (root[:, None] * root[None, :])
-    scaled = jnp.where(jnp.abs(scaled) < 1e-12, 0.0, scaled)
-    factor = root[:, None] * cholesky(scaled)
-    frozen = None if options.exact_jacobian else blocks
-    shape_of = _differentiable_shape(model, queries, canonical, edit, layout, frozen)
-
-    def unwhiten(z):
-        d = solve_triangular(factor, z.reshape(-1), transpose=True)
-        return d.reshape(n_handles, 3)
-
-    def residual(z, args):
-        del args
-        displacements = unwhiten(z)
-        shape = shape_of(displacements)
-        # the shape rides along as aux: optimistix returns the accepted point's, so the
-        # fitted shape costs no extra forward pass
-        return ((shape - target) * weight, root_penalty * displacements), shape
-
-    # a fixed number of LSMR iterations per step (truncated: tolerances 0)
-    linear_solver = lx.LSMR(rtol=0.0, atol=0.0, max_steps=options.lsmr_steps)
-    solver_class = optx.LevenbergMarquardt if options.damped else optx.GaussNewton
-    solver = solver_class(rtol=options.rtol, atol=options.atol, linear_solver=linear_solver)
-    first, max_steps = start, options.max_steps
-    if not options.damped and not options.exact_jacobian and max_steps >= 2:
-        # optimistix's first step only evaluates the start, whose shape the trace already
-        # gave: take that Gauss-Newton step here, d1 = d0 - (L L^T)^-1 (J^T W r0 + penalty d0)
-        weighted = (direct_shape - target) * region[:, None]
-        gradient = (
-            jax.linear_transpose(lambda t: apply_jacobian(blocks, t, layout), start)(weighted)[0]
-            + options.penalty * start
-        )
-        step = cho_solve(factor, gradient.reshape(-1))
-        first, max_steps = start - step.reshape(n_handles, 3), max_steps - 1
-    z0 = (factor.T @ first.reshape(-1)).reshape(n_handles, 3)
-    solution = optx.least_squares(
-        residual, solver, z0, has_aux=True, max_steps=max_steps, throw=False
-    )
-    value = unwhiten(solution.value)
-    # the shape at ``solution.value``: the Gauss-Newton state's aux (``solution.aux`` is the
-    # previous accepted point's; tested against ``deform``)
-    steps = solution.stats["num_steps"] + (options.max_steps - max_steps)
-    return value, solution.state.aux, direct_shape, solution.result, steps
-
-
-def _best_of(edit, target, region, fitted, fitted_shape, direct_shape, result, steps):
+def _best_of(edit: HandleEdit, target, region, state: FitState) -> FitSolution:
     """The ``FitSolution`` of the best of {fitted, direct, zero} displacements by the
     reported error; a non-finite fit falls back to the direct displacements."""
+    fitted, fitted_shape, direct_shape = state.fitted, state.fitted_shape, state.direct_shape
+    result, steps = state.result, state.steps
     start = edit.displacements
     finite = jnp.all(jnp.isfinite(fitted)) & jnp.all(jnp.isfinite(fitted_shape))
     fitted = jnp.where(finite, fitted, start)
@@ -437,7 +180,7 @@ def pose_a_to_b(
     falloff: float | Float[ArrayLike, " H"],
     *,
     fit: bool = False,
-    region: Float[ArrayLike, " V"] | None = None,
+    region: Shaped[ArrayLike, " V"] | None = None,
     options: FitOptions = FitOptions(),
     beta: float | None = None,
     dense: bool = False,
@@ -530,7 +273,7 @@ def iterative_layers(
     falloff: float,
     *,
     fit: bool = False,
-    region: Float[ArrayLike, " V"] | None = None,
+    region: Shaped[ArrayLike, " V"] | None = None,
     options: FitOptions = FitOptions(),
 ) -> LayerResult:
     """Layered edits (section 7.4): layer i places ``schedule[i] = (handles, radius)`` on the
@@ -662,7 +405,7 @@ def dialogue_replacement(
     falloff: float | Float[ArrayLike, " H"],
     *,
     fit: bool = False,
-    region: Float[ArrayLike, " V"] | None = None,
+    region: Shaped[ArrayLike, " V"] | None = None,
     options: FitOptions = FitOptions(),
     beta: float | None = None,
 ) -> np.ndarray:
@@ -712,7 +455,7 @@ def dialogue_replacement(
     return np.asarray(out)
 
 
-def interior_vertices(rig: NeuralRig, region: Float[ArrayLike, " V"], margin: float) -> np.ndarray:
+def interior_vertices(rig: NeuralRig, region: Shaped[ArrayLike, " V"], margin: float) -> np.ndarray:
     """Vertices of the boolean ``region`` (V,) whose geodesic distance to every vertex
     outside it exceeds ``margin`` (cm): handles there, with ``influence_reach`` <= margin,
     cannot move anything outside the region."""

@@ -10,12 +10,12 @@ Voronoi cell, on the canonical shape), and its mask row is the handles' influenc
 at that seed (geodesic distance from the seed to each handle). The attended vector of each
 patch goes through an output MLP that gives its B - 1 PBS weights:
 
-- ``per_patch`` (the paper's section 4): P small zero-preserving MLPs, one per patch
+- ``PerPatchPBS`` (the paper's section 4): P small zero-preserving MLPs, one per patch
   (stacked parameters, ``eqx.filter_vmap``), input multiplied by an affine map of the patch's
   base position (eq. 10's L_s at the patch: the layout-weighted mean of the base shape over
   the patch's vertices);
-- ``base_multiplied``: one shared zero-preserving MLP, the same multiplied input;
-- ``no_modulation``: one shared zero-preserving MLP on the attended vector alone.
+- ``BaseMultipliedPBS``: one shared zero-preserving MLP, the same multiplied input;
+- ``NoModulationPBS``: one shared zero-preserving MLP on the attended vector alone.
 
 These are Figure 8's three rows. Beyond the paper, ``local_prior`` (any variant, off by
 default) adds the network's output to a per-patch least-squares fit of the basis to the
@@ -35,20 +35,18 @@ gives its weights. No base shape, no masks, not zero-preserving: it reconstructs
 the canonical shape only.
 """
 
-from __future__ import annotations
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, PRNGKeyArray
+from jaxtyping import Array, Float, Int, PRNGKeyArray
 
-from ._mlp import ZeroPreservingMLP
-from ._model import ShapePreservingCANRig, _per_row
-from ._pbs import PatchLayout, _local_pbs_fit, _pbs_shape
-
-PBS_VARIANTS = ("per_patch", "base_multiplied", "no_modulation")
-"""CANRig-PBS output heads (Figure 8's ablation); ``per_patch`` is the paper's model."""
+from ..canrig import influence_mask
+from ..canrig._mlp import ZeroPreservingMLP
+from ..canrig._model import ShapePreservingCANRig, _per_row
+from ._basis import PatchLayout, _local_pbs_fit, _pbs_shape
 
 
 def patch_means(layout: PatchLayout, points: Float[Array, "*B N 3"]) -> Float[Array, "*B P 3"]:
@@ -66,22 +64,27 @@ def patch_means(layout: PatchLayout, points: Float[Array, "*B N 3"]) -> Float[Ar
     return jax.vmap(one)(flat).reshape(*lead, p, 3)
 
 
-class CANRigPBS(eqx.Module):
-    """CANRig-PBS: masked cross-attention from handles to patches, PBS weights out.
+class AbstractCANRigPBS(eqx.Module):
+    """CANRig-PBS: masked cross-attention from handles to patches, PBS weights out. Its three
+    final variants (Figure 8's rows) differ in the output head: ``PerPatchPBS`` (the paper's),
+    ``BaseMultipliedPBS``, ``NoModulationPBS`` (module docstring).
 
     Attributes:
         encoder: the CANRig encoder (queries, keys, values, attention, base modulation); its
             per-vertex output MLP is unused and dropped (``None``).
-        patch_mlp: the output MLP: one per patch (stacked, leading axis P) for ``per_patch``,
-            else one shared.
-        variant: one of ``PBS_VARIANTS``.
+        patch_mlp: the output MLP: one per patch (stacked, leading axis P) for
+            ``PerPatchPBS``, else one shared.
         log_ridge: with ``local_prior``, log of the local fit's ridge (trained), else None.
     """
 
-    encoder: ShapePreservingCANRig
-    patch_mlp: ZeroPreservingMLP
-    log_ridge: Float[Array, ""] | None
-    variant: str = eqx.field(static=True)
+    encoder: eqx.AbstractVar[ShapePreservingCANRig]
+    patch_mlp: eqx.AbstractVar[ZeroPreservingMLP]
+    log_ridge: eqx.AbstractVar[Float[Array, ""] | None]
+
+    per_patch: ClassVar[bool] = False
+    """One output MLP per patch (stacked) instead of one shared."""
+    base_modulated: ClassVar[bool] = True
+    """The attended vector is multiplied by an affine map of the patch's base position."""
 
     def __init__(
         self,
@@ -89,7 +92,6 @@ class CANRigPBS(eqx.Module):
         n_patches: int,
         n_weights: int,
         *,
-        variant: str = "per_patch",
         patch_width: int = 32,
         local_prior: bool = False,
         prior_ridge: float = 1e-2,
@@ -101,8 +103,6 @@ class CANRigPBS(eqx.Module):
         ``width``, ``n_layers``, ``fourier``, ``displacement_scale``); ``patch_width``: the
         hidden width of each per-patch MLP; ``local_prior``: add the network's output to
         ``local_pbs_fit`` with initial ridge ``prior_ridge`` (module docstring)."""
-        if variant not in PBS_VARIANTS:
-            raise ValueError(f"variant: expected one of {PBS_VARIANTS}, got {variant!r}")
         if not (np.isfinite(prior_ridge) and prior_ridge > 0):
             raise ValueError(f"prior_ridge: expected a finite value > 0, got {prior_ridge}")
         for name, value in (("n_patches", n_patches), ("n_weights", n_weights)):
@@ -123,18 +123,46 @@ class CANRigPBS(eqx.Module):
                 key=key,
             )
 
-        if variant == "per_patch":  # one per patch, parameters stacked on a leading axis
+        if self.per_patch:  # one per patch, parameters stacked on a leading axis
             keys = jax.random.split(km, int(n_patches))
-            self.patch_mlp = eqx.filter_vmap(lambda k: output_mlp(patch_width, k))(keys)
+            patch_mlp = eqx.filter_vmap(lambda k: output_mlp(patch_width, k))(keys)
         else:
-            self.patch_mlp = output_mlp(arch.width, km)
+            patch_mlp = output_mlp(arch.width, km)
         self.log_ridge = None
         if local_prior:  # the correction starts at zero: an untrained model is the local fit
-            self.patch_mlp = eqx.tree_at(
-                lambda m: m.layers[-1].weight, self.patch_mlp, replace_fn=jnp.zeros_like
+            patch_mlp = eqx.tree_at(
+                lambda m: m.layers[-1].weight, patch_mlp, replace_fn=jnp.zeros_like
             )
             self.log_ridge = jnp.log(jnp.asarray(prior_ridge, jnp.float32))
-        self.variant = variant
+        self.patch_mlp = patch_mlp
+
+    def from_edit(
+        self,
+        queries: Float[Array, "heads P d"],
+        data: Any,
+        handle_vertices: Int[Array, " H"],
+        handle_distance: Float[Array, "P H"],
+        base: Float[Array, "N 3"],
+        displacements: Float[Array, "H 3"],
+        radius: Float[Array, ""],
+        falloff: Float[Array, ""],
+        patch_base: Float[Array, "P 3"] | None = None,
+    ) -> Float[Array, "P Bm1"]:
+        """S_pred for one training-style edit (``predict_pbs_weights``): ``data`` a
+        ``PBSTrainingSet`` (layout, basis, neutral), one radius and falloff for every handle,
+        ``handle_distance`` from each patch's seed to each handle."""
+        if patch_base is None:
+            patch_base = patch_means(data.layout, base)
+        mask = influence_mask(handle_distance, radius, falloff)
+        return self(
+            queries,
+            patch_base,
+            data.neutral[handle_vertices],
+            base[handle_vertices],
+            displacements,
+            mask,
+            handle_basis=data.basis[:, handle_vertices] if self.local_prior else None,
+        )
 
     @property
     def local_prior(self) -> bool:
@@ -167,9 +195,9 @@ class CANRigPBS(eqx.Module):
         values = enc.encode_values(displacements, handle_base)
         attention = enc.attention(patch_queries, keys, mask, beta)
         attended = enc.merge_heads(jnp.matmul(attention, values))  # (P, latent)
-        if self.variant != "no_modulation":
+        if self.base_modulated:
             attended = attended * _per_row(enc.output_modulation, enc.normalise(patch_base))
-        if self.variant == "per_patch":
+        if self.per_patch:
             out = eqx.filter_vmap(lambda mlp, x: mlp(x))(self.patch_mlp, attended)
         else:
             out = _per_row(self.patch_mlp, attended)
@@ -177,6 +205,44 @@ class CANRigPBS(eqx.Module):
             return out
         clamped = jnp.where(mask < enc.clamp, 0.0, mask)
         return out + _local_pbs_fit(handle_basis, displacements, clamped, jnp.exp(self.log_ridge))
+
+
+class PerPatchPBS(AbstractCANRigPBS):
+    """CANRig-PBS as in the paper (section 4): one small zero-preserving MLP per patch, its
+    input multiplied by an affine map of the patch's base position."""
+
+    encoder: ShapePreservingCANRig
+    patch_mlp: ZeroPreservingMLP
+    log_ridge: Float[Array, ""] | None
+
+    per_patch: ClassVar[bool] = True
+
+
+class BaseMultipliedPBS(AbstractCANRigPBS):
+    """Figure 8's middle row: one shared output MLP, the same base-multiplied input."""
+
+    encoder: ShapePreservingCANRig
+    patch_mlp: ZeroPreservingMLP
+    log_ridge: Float[Array, ""] | None
+
+
+class NoModulationPBS(AbstractCANRigPBS):
+    """Figure 8's last row: one shared output MLP on the attended vector alone."""
+
+    encoder: ShapePreservingCANRig
+    patch_mlp: ZeroPreservingMLP
+    log_ridge: Float[Array, ""] | None
+
+    base_modulated: ClassVar[bool] = False
+
+
+PBS_VARIANTS = {
+    "per_patch": PerPatchPBS,
+    "base_multiplied": BaseMultipliedPBS,
+    "no_modulation": NoModulationPBS,
+}
+"""CANRig-PBS variants by the name a training option or command line gives (Figure 8's
+ablation); ``per_patch`` is the paper's model."""
 
 
 class _EncoderBlock(eqx.Module):
@@ -256,6 +322,23 @@ class ShapeTransformer(eqx.Module):
 
     def encode_patches(self, seeds_canonical: Float[Array, "P 3"]) -> Float[Array, "P latent"]:
         return jax.vmap(self.query)(self.encode_position(seeds_canonical))
+
+    def from_edit(
+        self,
+        queries: Float[Array, "P latent"],
+        data: Any,
+        handle_vertices: Int[Array, " H"],
+        handle_distance: Float[Array, "P H"],
+        base: Float[Array, "N 3"],
+        displacements: Float[Array, "H 3"],
+        radius: Float[Array, ""],
+        falloff: Float[Array, ""],
+        patch_base: Float[Array, "P 3"] | None = None,
+    ) -> Float[Array, "P Bm1"]:
+        """S_pred for one training-style edit: the baseline ignores the base, masks and
+        radius (relative to the canonical shape)."""
+        del handle_distance, base, radius, falloff, patch_base
+        return self(queries, data.neutral[handle_vertices], displacements)
 
     def __call__(
         self,

@@ -31,11 +31,16 @@ from .._checkpoint import load_checkpoint as _load_file
 from .._checkpoint import read_checkpoint_state as _read_state_file
 from .._checkpoint import resume_training, train_resumably
 from .._metrics import CM_TO_MM
+from ..canrig._train import adam
 from ..mesh import weighted_geodesic_distance
-from ._masks import influence_mask
-from ._pbs import PatchLayout, fit_pbs
-from ._pbs_model import PBS_VARIANTS, CANRigPBS, ShapeTransformer, patch_means, pbs_delta_shape
-from ._train import adam
+from ._basis import PatchLayout, fit_pbs
+from ._model import (
+    PBS_VARIANTS,
+    AbstractCANRigPBS,
+    ShapeTransformer,
+    patch_means,
+    pbs_delta_shape,
+)
 
 PBS_MODELS = (*PBS_VARIANTS, "shape_transformer")
 PBS_CHECKPOINT_FORMAT = "canrig-pbs-checkpoint-1"
@@ -209,7 +214,7 @@ def sample_pbs_examples(
 
 def make_pbs_model(
     options: PBSTrainOptions, neutral, n_patches: int, n_weights: int, scale: float
-) -> CANRigPBS | ShapeTransformer:
+) -> AbstractCANRigPBS | ShapeTransformer:
     """The untrained model of ``options.model`` (``scale``: the displacement scale, cm)."""
     neutral = np.asarray(neutral)
     key = jax.random.PRNGKey(options.seed)
@@ -225,11 +230,10 @@ def make_pbs_model(
             displacement_scale=scale,
             key=key,
         )
-    return CANRigPBS(
+    return PBS_VARIANTS[options.model](
         neutral,
         n_patches,
         n_weights,
-        variant=options.model,
         patch_width=options.patch_width,
         local_prior=options.local_prior,
         n_heads=options.n_heads,
@@ -243,7 +247,7 @@ def make_pbs_model(
 
 
 def predict_pbs_weights(
-    model: CANRigPBS | ShapeTransformer,
+    model: AbstractCANRigPBS | ShapeTransformer,
     data: PBSTrainingSet,
     handle_vertices: Int[Array, " H"],
     handle_distance: Float[Array, "P H"],
@@ -260,19 +264,16 @@ def predict_pbs_weights(
     of ``base``) may be given when cached."""
     if queries is None:
         queries = model.encode_patches(data.seeds)
-    if isinstance(model, ShapeTransformer):
-        return model(queries, data.neutral[handle_vertices], displacements)
-    if patch_base is None:
-        patch_base = patch_means(data.layout, base)
-    mask = influence_mask(handle_distance, radius, falloff)  # one radius for every handle
-    return model(
+    return model.from_edit(
         queries,
-        patch_base,
-        data.neutral[handle_vertices],
-        base[handle_vertices],
+        data,
+        handle_vertices,
+        handle_distance,
+        base,
         displacements,
-        mask,
-        handle_basis=data.basis[:, handle_vertices] if model.local_prior else None,
+        radius,
+        falloff,
+        patch_base,
     )
 
 
@@ -400,7 +401,7 @@ def train_pbs(
 
 @eqx.filter_jit
 def pbs_reconstruct(
-    model: CANRigPBS | ShapeTransformer,
+    model: AbstractCANRigPBS | ShapeTransformer,
     data: PBSTrainingSet,
     handle_vertices: Int[Array, " H"],
     handle_distance: Float[Array, "P H"],

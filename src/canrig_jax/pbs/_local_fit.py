@@ -25,30 +25,78 @@ pass above; ``fit_displacements`` minimises the region-weighted ||S(d) - B||^2 (
 direct and zero displacements as for the network. Units follow the mesh (ICT: cm).
 """
 
-from __future__ import annotations
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
+import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
-from ._masks import CLAMP, influence_mask
-from ._pbs import PatchLayout, _pbs_shape, check_basis, local_fit_factor, local_fit_solve
+from ..canrig import (
+    CLAMP,
+    DENSE,
+    AbstractHandleRig,
+    FitOptions,
+    FitState,
+    HandleEdit,
+    Layout,
+    influence_mask,
+)
+from ._basis import PatchLayout, _pbs_shape, check_basis, local_fit_factor, local_fit_solve
 
 
-class LocalFitRig(eqx.Module):
-    """The layout, the basis offsets (B - 1, V, 3) and the fit's ridge (``local_pbs_fit``)."""
+class LocalFitRig(AbstractHandleRig):
+    """The layout, the basis offsets (B - 1, V, 3) and the fit's ridge (``local_pbs_fit``).
+    A handle rig (``canrig.AbstractHandleRig``) bound to its layout's mesh; nothing to
+    prepare or lay out; ``fit`` is LSMR on the linear map."""
 
     layout: PatchLayout
     basis: Float[Array, "Bm1 V 3"]
     ridge: float = eqx.field(static=True)
     clamp: float = eqx.field(static=True, default=CLAMP)
 
+    lapack_in_forward: ClassVar[bool] = True  # every patch's normal matrix is factored
+
     def __check_init__(self):
         if not (np.isfinite(self.ridge) and self.ridge > 0):
             raise ValueError(f"ridge: expected a finite value > 0, got {self.ridge}")
+
+    def check_mesh(self, n_vertices: int) -> None:
+        if self.layout.n_vertices != n_vertices:
+            raise ValueError(
+                f"canonical: {n_vertices} vertices, the LocalFitRig's layout has "
+                f"{self.layout.n_vertices}"
+            )
+
+    def deform(
+        self,
+        prepared: Any,
+        canonical: Float[Array, "V 3"],
+        edit: HandleEdit,
+        layout: Layout = DENSE,
+        local: Any = None,
+    ) -> Float[Array, "V 3"]:
+        del prepared, canonical, layout, local
+        return local_fit_deform(self, edit)
+
+    def fit(
+        self,
+        prepared: Any,
+        canonical: Float[Array, "V 3"],
+        edit: HandleEdit,
+        target: Float[Array, "V 3"],
+        region: Float[Array, " V"],
+        layout: Layout,
+        options: FitOptions,
+    ) -> FitState:
+        del prepared, canonical, layout
+        fitted, shape, start_shape, result, steps = local_fit_lsmr(
+            self, edit, target, region, options.penalty, options.max_steps
+        )
+        return FitState(fitted, shape, start_shape, optx.RESULTS.promote(result), steps)
 
 
 def local_fit_rig(
@@ -77,9 +125,9 @@ def _linear_map(rig: LocalFitRig, edit):
     return offset
 
 
-def local_fit_deform(rig: LocalFitRig, edit) -> Float[Array, "V 3"]:
+def local_fit_deform(rig: LocalFitRig, edit: HandleEdit) -> Float[Array, "V 3"]:
     """The shape of a ``HandleEdit`` (``NeuralRig.edit``): base + g * W_layout X(d) S_basis.
-    Pure and jit/vmap-able; ``canrig.deform`` calls it for a ``LocalFitRig``."""
+    Pure and jit/vmap-able (``LocalFitRig.deform``)."""
     return edit.base + _linear_map(rig, edit)(edit.displacements)
 
 

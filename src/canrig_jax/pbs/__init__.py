@@ -1,0 +1,92 @@
+"""Patch blendshapes (PBS, CANRig section 4) for the whole head: a patch layout over the mesh
+(geodesic Voronoi cells and their rings), a data-driven basis fitted per patch, the CANRig-PBS
+networks that predict each patch's weights from handle displacements (three final variants,
+Figure 8's rows) and the Shape Transformer baseline, their training, and two handle rigs
+(``canrig.AbstractHandleRig``) that every CANRig workflow runs on: ``PBSRig`` (a trained
+network with its basis) and ``LocalFitRig`` (local least-squares fits of the basis, no
+network)."""
+
+from ..canrig import HANDLE_RIGS as _ATTENTION_RIGS
+from ._basis import (
+    PatchLayout,
+    check_basis,
+    fit_pbs,
+    global_blendshape_dialogue,
+    global_blendshape_fit,
+    local_pbs_fit,
+    patch_layout,
+    pbs_basis,
+    pbs_shape,
+)
+from ._local_fit import LocalFitRig, local_fit_deform, local_fit_lsmr, local_fit_rig
+from ._model import (
+    PBS_VARIANTS,
+    AbstractCANRigPBS,
+    BaseMultipliedPBS,
+    NoModulationPBS,
+    PerPatchPBS,
+    ShapeTransformer,
+    patch_means,
+    pbs_delta_shape,
+)
+from ._protocols import check_pbs_training_matches, reach_floor
+from ._rig import PBSRig, pbs_rig
+from ._train import (
+    PBS_MODELS,
+    PBSExamples,
+    PBSTrainingSet,
+    PBSTrainOptions,
+    build_pbs_training_set,
+    load_pbs_model,
+    pbs_example_loss,
+    pbs_reconstruct,
+    predict_pbs_weights,
+    sample_pbs_examples,
+    seed_distances,
+    train_pbs,
+)
+
+HANDLE_RIGS = (*_ATTENTION_RIGS, LocalFitRig, PBSRig)
+"""Every final handle rig (``canrig.AbstractHandleRig``): ``CANRig``,
+``ShapePreservingCANRig``, ``LocalFitRig``, ``PBSRig`` (with any CANRig-PBS variant)."""
+
+__all__ = [
+    "HANDLE_RIGS",
+    "PBS_MODELS",
+    "PBS_VARIANTS",
+    "AbstractCANRigPBS",
+    "BaseMultipliedPBS",
+    "LocalFitRig",
+    "NoModulationPBS",
+    "PBSExamples",
+    "PBSRig",
+    "PBSTrainOptions",
+    "PBSTrainingSet",
+    "PatchLayout",
+    "PerPatchPBS",
+    "ShapeTransformer",
+    "build_pbs_training_set",
+    "check_basis",
+    "check_pbs_training_matches",
+    "fit_pbs",
+    "global_blendshape_dialogue",
+    "global_blendshape_fit",
+    "load_pbs_model",
+    "local_fit_deform",
+    "local_fit_lsmr",
+    "local_fit_rig",
+    "local_pbs_fit",
+    "patch_layout",
+    "patch_means",
+    "pbs_basis",
+    "pbs_delta_shape",
+    "pbs_example_loss",
+    "pbs_reconstruct",
+    "pbs_rig",
+    "pbs_shape",
+    "predict_pbs_weights",
+    "reach_floor",
+    "sample_pbs_examples",
+    "seed_distances",
+    "train_pbs",
+]
