@@ -1,4 +1,5 @@
-"""The WPSE experiment end to end in --quick mode (slow: 5-8 minutes on 2 shared cores)."""
+"""The WPSE experiment end to end in --quick mode, then its timing rows (slow: 5-8 minutes on
+2 shared cores)."""
 
 from __future__ import annotations
 
@@ -9,17 +10,20 @@ from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "wpse.py"
+EXPERIMENTS = Path(__file__).resolve().parents[2] / "experiments"
 
 
-def _run(argv: list[str]) -> None:
-    """Run the experiment as its command line (a full experiment: slow tests only)."""
-    subprocess.run([sys.executable, str(SCRIPT), *argv], check=True, cwd=SCRIPT.parents[1])
+def _run(script: str, argv: list[str]) -> None:
+    """Run a script as its command line (a full experiment: slow tests only)."""
+    path = EXPERIMENTS / script
+    subprocess.run([sys.executable, str(path), *argv], check=True, cwd=EXPERIMENTS.parent)
 
 
 @pytest.mark.slow
 def test_quick_experiment_writes_the_issue_keys(tmp_path):
-    _run(["--quick", "--out", str(tmp_path)])
+    _run("wpse.py", ["--quick", "--out", str(tmp_path)])
+    assert "timing" not in json.loads((tmp_path / "results.json").read_text())
+    _run("wpse_timing.py", ["--out", str(tmp_path)])
     results = json.loads((tmp_path / "results.json").read_text())
     for method in ("linear", "pse", "wpse", "fsm", "quartic"):
         for budget in ("p10", "p50"):

@@ -27,7 +27,18 @@ from ._metric import (
     pairwise_pose_distance_sq,
     pose_distance_sq,
 )
+from ._probes import layering_probe, locality_probe, overshoot_sweep, search_by_region
 from ._protocol import retained_fraction, select_edit_frames, temporal_change
+from ._protocols import (
+    MethodComparison,
+    apply_frames,
+    channel_region,
+    compare_methods,
+    error_summary,
+    few_edit_errors,
+    reuse_by_search,
+    temporal_smoothness,
+)
 from ._pse import (
     DUPLICATE_DISTANCE,
     EditData,
@@ -49,6 +60,7 @@ from ._reference import (
     reference_vertex_frames,
     time_runtime,
 )
+from ._report import results_table
 from ._reuse import ReuseResult, reuse_edits
 from ._search import SearchResult, region_energy, search_edits
 from ._sigma import (
@@ -62,6 +74,7 @@ from ._sigma import (
     loo_residuals,
     sigma_from_gui,
 )
+from ._timing import time_edit_model
 from ._width import WidthFit, default_width_grid, fit_width, loo_distance_per_edit
 
 __all__ = [
@@ -121,4 +134,19 @@ __all__ = [
     "solve_coefficients",
     "to_local",
     "to_world",
+    # the experiment's protocols (experiments/wpse.py, experiments/wpse_timing.py)
+    "MethodComparison",
+    "apply_frames",
+    "channel_region",
+    "compare_methods",
+    "error_summary",
+    "few_edit_errors",
+    "layering_probe",
+    "locality_probe",
+    "overshoot_sweep",
+    "results_table",
+    "reuse_by_search",
+    "search_by_region",
+    "temporal_smoothness",
+    "time_edit_model",
 ]
