@@ -4,13 +4,12 @@ A layer of its own below everything that caches: ``mesh`` caches operators, ``ri
 synthesised rigs, and neither needs the other for it.
 """
 
-from __future__ import annotations
-
 import hashlib
 import os
 from pathlib import Path
 
 import numpy as np
+from jaxtyping import ArrayLike, Shaped
 
 CACHE_ENV_VAR = "CANRIG_CACHE"
 
@@ -24,7 +23,7 @@ def cache_dir(path: str | os.PathLike | None = None) -> Path:
     return Path.home() / ".cache" / "canrig_jax"
 
 
-def fingerprint(*arrays: np.ndarray) -> str:
+def fingerprint(*arrays: Shaped[ArrayLike, "..."]) -> str:
     """SHA-256 of the arrays' dtypes, shapes and bytes (a cache key)."""
     digest = hashlib.sha256()
     for a in arrays:

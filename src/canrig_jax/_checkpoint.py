@@ -19,8 +19,6 @@ draw each step's batch from the step number (``numpy.random.default_rng([seed, s
 the step is the whole random state and a resumed run repeats an uninterrupted one bit for bit.
 """
 
-from __future__ import annotations
-
 import dataclasses
 import hashlib
 import io
@@ -31,13 +29,16 @@ import re
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import equinox as eqx
 import jax
+from jaxtyping import PyTree
 
 from . import watchdog
 from ._io import CorruptFileError, atomic_path
+
+T = TypeVar("T")
 
 _HASH_SUFFIX = re.compile(rb', "sha256": "([0-9a-f]{64})"\}$')
 _XZ_MAGIC = b"\xfd7zXZ\x00"
@@ -47,7 +48,9 @@ def _digest(header: bytes, leaves: bytes) -> str:
     return hashlib.sha256(header + b"\n" + leaves).hexdigest()
 
 
-def save_checkpoint(path, tree, state: dict, format: str, *, compress: bool = False) -> Path:
+def save_checkpoint(
+    path: str | os.PathLike, tree: PyTree, state: dict, format: str, *, compress: bool = False
+) -> Path:
     """Write ``state`` (JSON-able) and the array leaves of ``tree`` to ``path`` atomically,
     with a SHA-256 of the header and the leaves in the header; ``compress``: the file
     xz-compressed (smaller, slower to write; read back the same way)."""
@@ -67,7 +70,7 @@ def _write(path, header: dict, leaves: bytes, compress: bool = False) -> Path:
     return Path(path)
 
 
-def seal_checkpoint(path, format: str) -> Path:
+def seal_checkpoint(path: str | os.PathLike, format: str) -> Path:
     """Add the integrity hash to a checkpoint written before it existed (atomically; the
     state and the arrays are unchanged, a compressed file stays compressed). A sealed
     checkpoint is checked, and kept as is."""
@@ -124,7 +127,7 @@ def _read(path, format: str) -> tuple[dict, bytes]:
     return state, leaves
 
 
-def verify_sha256(path, expected: str) -> None:
+def verify_sha256(path: str | os.PathLike, expected: str) -> None:
     """Check that the file ``path`` has the SHA-256 ``expected`` (hex): ``CorruptFileError``
     naming the file when it does not (a damaged or replaced file)."""
     digest = hashlib.sha256()
@@ -138,13 +141,13 @@ def verify_sha256(path, expected: str) -> None:
         )
 
 
-def read_checkpoint_state(path, format: str) -> dict:
+def read_checkpoint_state(path: str | os.PathLike, format: str) -> dict:
     """The header of a checkpoint; ValueError when missing or of another format,
     ``CorruptFileError`` (a ValueError) when damaged."""
     return _read(path, format)[0]
 
 
-def load_checkpoint(path, like, format: str):
+def load_checkpoint(path: str | os.PathLike, like: T, format: str) -> tuple[T, dict]:
     """(tree, state) from ``save_checkpoint``; ``like`` gives the tree's structure."""
     state, leaves = _read(path, format)
     return _deserialise(path, leaves, like), state
@@ -163,7 +166,7 @@ def _deserialise(path, leaves: bytes, like):
 def run_training(
     step_fn: Callable[[int], dict],
     save_fn: Callable[[int, float, list], None],
-    options,
+    options: Any,
     step: int,
     seconds: float,
     history: list,
@@ -237,10 +240,10 @@ class TrainingState:
 
 
 def resume_training(
-    checkpoint,
+    checkpoint: str | os.PathLike | None,
     format: str,
     init: Callable[[dict], Any],
-    options,
+    options: Any,
     read_options: Callable[[dict], Any],
     may_change: Sequence[str] = ("max_minutes",),
     check: Callable[[dict], None] | None = None,
@@ -272,9 +275,9 @@ def resume_training(
 def train_resumably(
     step_fn: Callable[[Any, int], tuple[Any, dict]],
     run: TrainingState,
-    options,
+    options: Any,
     *,
-    checkpoint,
+    checkpoint: str | os.PathLike | None,
     format: str,
     header: dict,
     progress: bool,

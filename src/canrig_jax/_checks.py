@@ -4,24 +4,25 @@ Each raises a ``ValueError`` naming the argument. Checks on values skip traced a
 value is unknown at trace time); validate concrete inputs at the public boundary.
 """
 
-from __future__ import annotations
+from typing import Any
 
 import jax
 import numpy as np
+from jaxtyping import Float32, Shaped
 
 
-def is_concrete(x) -> bool:
+def is_concrete(x: Any) -> bool:
     """True unless ``x`` is a JAX tracer (its values are known)."""
     return not isinstance(x, jax.core.Tracer)
 
 
-def check_finite(name: str, x) -> None:
+def check_finite(name: str, x: Any) -> None:
     """ValueError naming ``name`` when the concrete array ``x`` holds NaN or inf."""
     if is_concrete(x) and not bool(np.all(np.isfinite(np.asarray(x)))):
         raise ValueError(f"{name}: contains non-finite values (NaN or inf)")
 
 
-def check_real(name: str, x) -> None:
+def check_real(name: str, x: Any) -> None:
     """TypeError naming ``name`` unless ``x`` (an array, traced or not, or array-like) holds
     real numbers: integers, floats or booleans; not complex numbers, strings or objects."""
     dtype = x.dtype if hasattr(x, "dtype") else np.asarray(x).dtype
@@ -31,7 +32,7 @@ def check_real(name: str, x) -> None:
         raise TypeError(f"{name}: expected real numbers, got dtype {dtype}")
 
 
-def native(x: np.ndarray) -> np.ndarray:
+def native(x: Shaped[np.ndarray, "*shape"]) -> Shaped[np.ndarray, "*shape"]:
     """A NumPy array in the machine's byte order, contiguous (JAX rejects big-endian arrays
     and stages strided ones through a compiled copy)."""
     x = np.ascontiguousarray(x)
@@ -40,7 +41,9 @@ def native(x: np.ndarray) -> np.ndarray:
     return x
 
 
-def check_points(name: str, value, n_vertices: int, *, frames: bool = False) -> np.ndarray:
+def check_points(
+    name: str, value: Any, n_vertices: int, *, frames: bool = False
+) -> Float32[np.ndarray, "*frames V 3"]:
     """``value`` as float32 points of the mesh, (V, 3) or with ``frames`` (F >= 1, V, 3):
     real, finite, the mesh's vertex count; else TypeError/ValueError naming ``name``."""
     array = np.asarray(value)

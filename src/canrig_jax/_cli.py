@@ -7,13 +7,14 @@ annotations: ``bool`` -> ``--x / --no-x``, ``tuple[int, int]`` -> two values,
 rebuilds the dataclass from the parsed namespace.
 """
 
-from __future__ import annotations
-
 import argparse
 import dataclasses
 import types
 import typing
 from collections.abc import Mapping, Sequence
+from typing import TypeVar
+
+T = TypeVar("T")
 
 
 def _flag(name: str) -> str:
@@ -48,7 +49,7 @@ def _fields(cls) -> list[tuple[dataclasses.Field, object]]:
 
 def add_dataclass_options(
     parser: argparse.ArgumentParser,
-    cls,
+    cls: type,
     *,
     aliases: Mapping[str, Sequence[str]] | None = None,
     defaults: Mapping[str, object] | None = None,
@@ -95,7 +96,7 @@ def add_dataclass_options(
         )
 
 
-def from_args(cls, args: argparse.Namespace | Mapping, **overrides):
+def from_args(cls: type[T], args: argparse.Namespace | Mapping, **overrides) -> T:
     """``cls`` built from parsed options (nested dataclasses rebuilt from the same namespace);
     ``overrides`` replace values by field name (at any nesting level)."""
     values = dict(vars(args) if isinstance(args, argparse.Namespace) else args)

@@ -16,8 +16,6 @@ done). Warnings are ``canrig: warning: ...`` lines, each message once; progress 
 (``[  12.3 s] ...``) go to standard error too, and ``--quiet`` silences only those.
 """
 
-from __future__ import annotations
-
 import argparse
 import dataclasses
 import sys

@@ -1,12 +1,12 @@
 """Atomic writes: nothing a user wrote is lost to an interrupted save."""
 
-from __future__ import annotations
-
 import contextlib
 import json
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -22,7 +22,7 @@ def _new_file_mode() -> int:
     return 0o666 & ~umask
 
 
-def check_output_path(path, name: str = "path") -> Path:
+def check_output_path(path: Any, name: str = "path") -> Path:
     """``path`` as a Path; TypeError/OSError naming the argument ``name`` when a file cannot
     be written there (not a path, a folder, under a file, no permission)."""
     if not isinstance(path, str | os.PathLike):
@@ -41,7 +41,7 @@ def check_output_path(path, name: str = "path") -> Path:
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike):
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; move it over ``path`` only on success.
 
     The result keeps the permissions of the file it replaces, or gets those of a newly
@@ -72,7 +72,7 @@ def save_npz(path: str | os.PathLike, **arrays) -> Path:
     return Path(path)
 
 
-def save_json(path: str | os.PathLike, data) -> Path:
+def save_json(path: str | os.PathLike, data: Any) -> Path:
     """Write JSON to ``path`` atomically (sorted keys are not imposed)."""
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(data, indent=2) + "\n")

@@ -24,8 +24,6 @@ the library keeps a batched LAPACK call. Conventions follow ``jnp.linalg``: a ma
 not positive definite gives a NaN factor, which the callers test with ``jnp.isfinite``.
 """
 
-from __future__ import annotations
-
 import os
 import re
 
@@ -128,12 +126,12 @@ def _solve_lower(lower, rhs, transpose: bool):
 
 
 def solve_triangular(
-    lower: Float[Array, "*batch n n"],
-    rhs: Float[Array, "*batch n"] | Float[Array, "*batch n m"],
+    lower: Float[Array, "*#batch n n"],
+    rhs: Float[Array, "*#batch n"] | Float[Array, "*#batch n m"],
     *,
     transpose: bool = False,
     vector: bool | None = None,
-) -> Array:
+) -> Float[Array, "*#batch n"] | Float[Array, "*#batch n m"]:
     """x with ``L x = b`` (``L^T x = b`` with ``transpose``), L lower triangular (its upper
     triangle must be zero). ``rhs`` is (..., n) when ``vector`` (default: when it has one
     dimension fewer than ``lower``), else (..., n, m); leading dimensions broadcast."""
@@ -153,11 +151,11 @@ def solve_triangular(
 
 
 def cho_solve(
-    lower: Float[Array, "*batch n n"],
-    rhs: Float[Array, "*batch n"] | Float[Array, "*batch n m"],
+    lower: Float[Array, "*#batch n n"],
+    rhs: Float[Array, "*#batch n"] | Float[Array, "*#batch n m"],
     *,
     vector: bool | None = None,
-) -> Array:
+) -> Float[Array, "*#batch n"] | Float[Array, "*#batch n m"]:
     """x with ``L L^T x = b``, L a lower Cholesky factor (``cholesky``); shapes as
     ``solve_triangular``."""
     forward = solve_triangular(lower, rhs, vector=vector)
@@ -190,11 +188,11 @@ def cholesky(matrix: Float[Array, "*batch n n"]) -> Float[Array, "*batch n n"]:
 
 
 def spd_solve(
-    matrix: Float[Array, "*batch n n"],
-    rhs: Float[Array, "*batch n"] | Float[Array, "*batch n m"],
+    matrix: Float[Array, "*#batch n n"],
+    rhs: Float[Array, "*#batch n"] | Float[Array, "*#batch n m"],
     *,
     vector: bool | None = None,
-) -> Array:
+) -> Float[Array, "*#batch n"] | Float[Array, "*#batch n m"]:
     """x with ``A x = b`` for symmetric positive definite A, by ``cholesky`` and
     ``cho_solve`` (NaN where A is not positive definite)."""
     return cho_solve(cholesky(matrix), rhs, vector=vector)

@@ -5,8 +5,6 @@ Every experiment's results writer records ``provenance(command)`` in its ``resul
 the command in a file named ``COMMAND`` (``COMMAND_FILE``).
 """
 
-from __future__ import annotations
-
 import importlib.metadata
 import platform
 import shlex

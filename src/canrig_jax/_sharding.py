@@ -16,15 +16,17 @@ On CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` (set before JAX i
 gives N host devices for testing.
 """
 
-from __future__ import annotations
-
 import dataclasses
 from collections.abc import Callable
+from typing import TypeVar
 
 import equinox as eqx
 import jax
 import numpy as np
+import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+T = TypeVar("T")
 
 BATCH_AXIS = "batch"
 """Name of the mesh axis the batch is split over."""
@@ -46,7 +48,7 @@ def device_mesh(devices: int | None = None) -> Mesh:
     return Mesh(np.asarray(available[:devices]), (BATCH_AXIS,))
 
 
-def shard_batch(tree, mesh: Mesh):
+def shard_batch(tree: T, mesh: Mesh) -> T:
     """Every array leaf of ``tree`` split along its leading axis over ``mesh``'s devices.
 
     Raises ValueError naming the leaf's shape when its leading axis is not a multiple of the
@@ -67,7 +69,7 @@ def shard_batch(tree, mesh: Mesh):
     return jax.tree_util.tree_map(put, tree)
 
 
-def replicate(tree, mesh: Mesh):
+def replicate(tree: T, mesh: Mesh) -> T:
     """Every array leaf of ``tree`` copied to all of ``mesh``'s devices."""
     sharding = NamedSharding(mesh, PartitionSpec())
     return jax.tree_util.tree_map(
@@ -83,10 +85,10 @@ class DataParallel:
 
     mesh: Mesh | None
 
-    def replicate(self, tree):
+    def replicate(self, tree: T) -> T:
         return tree if self.mesh is None else replicate(tree, self.mesh)
 
-    def shard(self, tree):
+    def shard(self, tree: T) -> T:
         return tree if self.mesh is None else shard_batch(tree, self.mesh)
 
     @property
@@ -108,7 +110,7 @@ def data_parallel(devices: int | None, batch: int, batch_name: str = "batch") ->
     return DataParallel(mesh if n > 1 else None)
 
 
-def data_parallel_step(loss_fn: Callable, optimiser) -> Callable:
+def data_parallel_step(loss_fn: Callable, optimiser: optax.GradientTransformation) -> Callable:
     """A jitted optimiser step ``step(model, opt_state, batch) -> (model, opt_state, loss)``.
 
     ``loss_fn(model, batch)`` is the mean loss over the batch; ``optimiser`` an optax

@@ -2,15 +2,15 @@
 median wall time of ``repeats`` calls, each waiting for its result (JAX dispatches
 asynchronously)."""
 
-from __future__ import annotations
-
 import statistics
 import time
+from collections.abc import Callable
+from typing import Any
 
 import jax
 
 
-def call_times_ms(fn, repeats: int = 10) -> list[float]:
+def call_times_ms(fn: Callable[[], Any], repeats: int = 10) -> list[float]:
     """Milliseconds of each of ``repeats`` calls of ``fn()`` after one warm-up call."""
     if repeats < 1:
         raise ValueError(f"repeats: expected >= 1, got {repeats}")
@@ -23,6 +23,6 @@ def call_times_ms(fn, repeats: int = 10) -> list[float]:
     return times
 
 
-def median_ms(fn, repeats: int = 10) -> float:
+def median_ms(fn: Callable[[], Any], repeats: int = 10) -> float:
     """Median milliseconds of ``fn()`` over ``repeats`` calls after one warm-up call."""
     return statistics.median(call_times_ms(fn, repeats))

@@ -6,8 +6,6 @@ public function of the package found the problem and however deep inside the pac
 Filter them all with ``warnings.filterwarnings("ignore", category=CanrigWarning)``.
 """
 
-from __future__ import annotations
-
 import contextlib
 import os
 import sys

@@ -8,9 +8,8 @@ capture's weights from noisy meshes with quartic coordinate descent, batched ove
 Progress lines (``[  12.3 s] ...``) and warnings go to stderr, results to stdout.
 """
 
-from __future__ import annotations
-
 import argparse
+from collections.abc import Sequence
 from pathlib import Path
 
 from ._commands import _Progress
@@ -20,7 +19,7 @@ BLEND_CHUNK = 60
 """Frames of the deformation-gradient blend between two progress lines."""
 
 
-def main(argv=None) -> None:
+def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description="canrig_jax demo on the ICT face")
     parser.add_argument("--out", type=Path, default=Path("out/demo"))
     parser.add_argument("--data-dir", default=None)

@@ -19,8 +19,6 @@ case the Python interpreter itself is blocked.
 ``CANRIG_WATCHDOG`` (seconds; 0 disables) sets the limit of the command line.
 """
 
-from __future__ import annotations
-
 import contextlib
 import faulthandler
 import os
@@ -28,6 +26,10 @@ import sys
 import threading
 import time
 import traceback
+from collections.abc import Callable
+from typing import TypeVar
+
+T = TypeVar("T")
 
 EXIT_STATUS = 70
 """The process's exit status when the watchdog fires (EX_SOFTWARE)."""
@@ -39,7 +41,7 @@ REARM = 1.0
 """Seconds between two re-armings of the native timer (it fires up to this much early,
 well inside ``GRACE``)."""
 
-_active: list[Watchdog] = []
+_active: "list[Watchdog]" = []
 
 
 class Watchdog:
@@ -87,7 +89,7 @@ class Watchdog:
                 _dump_stacks()
                 os._exit(EXIT_STATUS)
 
-    def __enter__(self) -> Watchdog:
+    def __enter__(self) -> "Watchdog":
         _active.append(self)
         self.progress("start")
         self._thread.start()
@@ -127,7 +129,9 @@ def _dump_stacks() -> None:
     sys.stderr.flush()
 
 
-def watchdog(seconds: float | None, what: str = "this run"):
+def watchdog(
+    seconds: float | None, what: str = "this run"
+) -> "Watchdog | contextlib.nullcontext[None]":
     """Context: ``Watchdog(seconds, what)``; ``None`` or 0 watches nothing (yields None)."""
     if not seconds:
         return contextlib.nullcontext()
@@ -160,7 +164,7 @@ DEFAULT_LIMIT = 1800.0
 two progress reports seen here (operators of a large head, an evaluation pass)."""
 
 
-def run_watched(main, what: str, *args, **kwargs):
+def run_watched(main: Callable[..., T], what: str, *args, **kwargs) -> T:
     """``main(*args, **kwargs)`` inside ``watchdog(limit_from_environment(DEFAULT_LIMIT), what)``:
     how the ``canrig`` command and the experiments run."""
     with watchdog(limit_from_environment(DEFAULT_LIMIT), what):

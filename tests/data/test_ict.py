@@ -180,6 +180,7 @@ def test_identity_linear_against_tensordot(data_dir, head, modes):
     np.testing.assert_allclose(ict_identity(a, data_dir, model=face), got[:9409], atol=1e-6)
 
 
+@pytest.mark.bad_input
 @pytest.mark.parametrize(
     "bad", [np.zeros((2, 3)), np.zeros(0), np.zeros(101), np.array([0.0, np.nan])]
 )

@@ -270,6 +270,7 @@ def test_timecodes_and_gaps_survive_every_csv_written_from_a_take(take_csv, tmp_
     assert _timecodes(tmp_path / "plain.csv")[:2] == ["00:00:00:00.000", "00:00:00:01.000"]
 
 
+@pytest.mark.bad_input
 def test_timecodes_must_match_the_weights(take_csv):
     take = _read(take_csv)
     with pytest.raises(ValueError, match="timecodes: the take has 180 frames, the weights 179"):

@@ -268,6 +268,7 @@ def small_rig():
     return BlendshapeRig(neutral, deltas, (pairs,), ("a", "b", "c", "d"), faces)
 
 
+@pytest.mark.bad_input
 @pytest.mark.parametrize("shape", [(5,), (3,), (2, 4), (), (4, 1)])
 def test_weights_of_wrong_shape_raise(small_rig, shape):
     with pytest.raises(ValueError, match="weights"):

@@ -149,6 +149,7 @@ def test_morph_weights_closed_form(small_quartic):
     np.testing.assert_allclose(morph[:, 53 + 3], w[:, i] * w[:, j], rtol=1e-6)
 
 
+@pytest.mark.bad_input
 def test_bad_input(small_quartic, take, tmp_path):
     _, weights = take
     with pytest.raises(ValueError, match="weights: expected shape"):

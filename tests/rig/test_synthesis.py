@@ -253,6 +253,7 @@ def test_max_order_one_adds_nothing(sub_linear, sub_blend):
 # --- options ------------------------------------------------------------------------------------
 
 
+@pytest.mark.bad_input
 @pytest.mark.parametrize(
     ("field", "value"),
     [

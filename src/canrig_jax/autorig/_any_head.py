@@ -17,8 +17,6 @@ generated versions of those k shapes match the artist's, applied to every pose, 
 shapes themselves are taken as sculpted.
 """
 
-from __future__ import annotations
-
 import dataclasses
 import time
 from collections.abc import Callable, Mapping

@@ -15,8 +15,6 @@ Units: ``RiggedHead`` stores centimetres; ``normalise`` gives the unit-sphere vi
 network is trained on.
 """
 
-from __future__ import annotations
-
 import dataclasses
 import warnings
 
@@ -83,7 +81,7 @@ class PoseSet:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> PoseSet:
+    def from_dict(cls, d: dict) -> "PoseSet":
         return cls(tuple(d["basis_names"]), tuple(tuple(c) for c in d["combinations"]))
 
 

@@ -12,8 +12,6 @@ Both take (V, C) features and one time per channel (C,), and are jit-, vmap- and
 Vertices with ``vertex_mask`` 0 (padding, isolated) stay at zero and do not couple to others.
 """
 
-from __future__ import annotations
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp

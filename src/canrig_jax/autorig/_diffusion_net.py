@@ -14,8 +14,6 @@ mesh and cached; the layers only consume it. One mesh per call; batch meshes of 
 sizes with ``stack_operators`` + ``eqx.filter_vmap`` (padding, see ``MeshOperators``).
 """
 
-from __future__ import annotations
-
 from collections.abc import Callable
 
 import equinox as eqx

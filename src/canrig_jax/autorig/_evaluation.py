@@ -12,8 +12,6 @@ worst poses, and errors against a head's person-made targets over shared ARKit s
 Inputs are centimetres (ICT, MakeHuman after ``load_makehuman``); outputs millimetres.
 """
 
-from __future__ import annotations
-
 from collections.abc import Sequence
 
 import numpy as np

@@ -1,7 +1,5 @@
 """Per-vertex input features and pooling over a mesh, from its ``MeshOperators``."""
 
-from __future__ import annotations
-
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float

@@ -3,8 +3,6 @@ another topology, made by other people than ICT's. **For evaluation only**: noth
 trained or tuned on it. Stored in MakeHuman decimetres; ``load_makehuman`` returns
 centimetres (like ICT)."""
 
-from __future__ import annotations
-
 import dataclasses
 import os
 

@@ -1,7 +1,5 @@
 """Evaluation of generated rigs: vertex errors and inner-part penetration."""
 
-from __future__ import annotations
-
 import jax
 import jax.numpy as jnp
 import numpy as np

@@ -29,8 +29,6 @@ depend on the pose, so computing them once per head instead of once per pose giv
 function class at a fraction of the cost (rig generation is ~P times cheaper there).
 """
 
-from __future__ import annotations
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp

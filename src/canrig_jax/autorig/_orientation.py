@@ -20,8 +20,6 @@ turned by other than a multiple of 90 degrees) is "undetermined", which ``genera
 lets through: it refuses or fixes only what the cues show clearly.
 """
 
-from __future__ import annotations
-
 import dataclasses
 from importlib.resources import files
 from pathlib import Path

@@ -8,8 +8,6 @@ sub-combinations (Racković eq. (5)), so evaluating the rig with weight 1 on a c
 expressions reproduces the predicted combination pose.
 """
 
-from __future__ import annotations
-
 import dataclasses
 import time
 

@@ -27,8 +27,6 @@ continues on the rigged heads with the 3D loss of ``_train.batch_loss`` plus
 unrigged head: its heads are drawn from ``rigged`` only.
 """
 
-from __future__ import annotations
-
 import dataclasses
 import os
 

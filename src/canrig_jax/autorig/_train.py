@@ -21,8 +21,6 @@ run resumed from its checkpoint (one file, written atomically) draws the same ba
 ends at the same model as an uninterrupted one.
 """
 
-from __future__ import annotations
-
 import dataclasses
 import functools
 import os

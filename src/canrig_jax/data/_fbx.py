@@ -18,8 +18,6 @@ child process (``_fbx_child.py``) that copies the file's arrays out: those bindi
 memory-safe when a scene is freed, and a process of their own keeps that away from the caller.
 """
 
-from __future__ import annotations
-
 import dataclasses
 import os
 import subprocess
@@ -28,6 +26,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from jaxtyping import Float32, Int32
 
 from .._io import CorruptFileError
 
@@ -66,10 +65,10 @@ class FbxMesh:
     """
 
     name: str
-    vertices: np.ndarray
-    triangles: np.ndarray
+    vertices: Float32[np.ndarray, "V 3"]
+    triangles: Int32[np.ndarray, "F 3"]
     names: tuple[str, ...]
-    deltas: np.ndarray
+    deltas: Float32[np.ndarray, "S V 3"]
     path: Path
     unit_cm: float
     axes: tuple[str, str, str]

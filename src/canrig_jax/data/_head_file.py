@@ -9,14 +9,13 @@ file's own, that makes the head shorter than 10 cm or taller than 60 cm is refus
 The ICT raw OBJ folder keeps its own loader (``load_ict_obj_folder``).
 """
 
-from __future__ import annotations
-
 import dataclasses
 import os
 import warnings
 from pathlib import Path
 
 import numpy as np
+from jaxtyping import ArrayLike, Float, Float32, Int, Int32
 
 from .._io import atomic_path, check_output_path
 from ._fbx import load_fbx_meshes
@@ -51,8 +50,8 @@ class HeadMesh:
         path: the file it came from.
     """
 
-    vertices: np.ndarray
-    faces: np.ndarray
+    vertices: Float32[np.ndarray, "V 3"]
+    faces: Int32[np.ndarray, "F 3"]
     units: str
     inferred: bool
     path: Path
@@ -63,7 +62,7 @@ class HeadMesh:
         extent = self.vertices.max(axis=0) - self.vertices.min(axis=0)
         return float(extent.max()) * HEAD_UNITS_CM[self.units]
 
-    def vertices_in(self, units: str) -> np.ndarray:
+    def vertices_in(self, units: str) -> Float32[np.ndarray, "V 3"]:
         """(V, 3) float32 vertices converted to ``units``."""
         if units not in HEAD_UNITS_CM:
             raise ValueError(f"units: expected one of {tuple(HEAD_UNITS_CM)}, got {units!r}")
@@ -198,7 +197,9 @@ def _fbx_head(path: Path, units: str | None) -> HeadMesh:
     return HeadMesh(vertices, faces.astype(np.int32), "cm", False, path)
 
 
-def save_obj(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) -> Path:
+def save_obj(
+    path: str | os.PathLike, vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"]
+) -> Path:
     """Write a triangle mesh as a Wavefront OBJ (positions and faces only), atomically."""
     check_output_path(path)
     vertices = np.asarray(vertices, np.float64)

@@ -6,8 +6,6 @@ reads ICT-FaceKit's original folder format (one OBJ per shape plus
 ``vertex_indices.json``). ``ICTFaceModel.select`` restricts the model to parts.
 """
 
-from __future__ import annotations
-
 import dataclasses
 import io
 import json
@@ -19,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 import trimesh
+from jaxtyping import ArrayLike, Bool, Float, Float32, Int, Int32
 from scipy.sparse.csgraph import connected_components
 
 from .._io import CorruptFileError
@@ -78,21 +77,23 @@ class ICTFaceModel:
         vertex_ids: (V,) index of each vertex in the full 26,719-vertex head.
     """
 
-    neutral: np.ndarray
-    faces: np.ndarray
-    deltas: np.ndarray
+    neutral: Float32[np.ndarray, "V 3"]
+    faces: Int32[np.ndarray, "F 3"]
+    deltas: Float32[np.ndarray, "K V 3"]
     names: tuple[str, ...]
     part_names: tuple[str, ...]
-    part_vertex_range: np.ndarray
-    component_labels: np.ndarray
-    landmarks: np.ndarray
-    vertex_ids: np.ndarray
+    part_vertex_range: Int[np.ndarray, "P 2"]
+    component_labels: Int[np.ndarray, " V"]
+    landmarks: Int[np.ndarray, " L"]
+    vertex_ids: Int[np.ndarray, " V"]
 
     @property
     def n_vertices(self) -> int:
         return int(self.neutral.shape[0])
 
-    def part_mask(self, parts: Sequence[str] | str, argument: str = "parts") -> np.ndarray:
+    def part_mask(
+        self, parts: Sequence[str] | str, argument: str = "parts"
+    ) -> Bool[np.ndarray, " V"]:
         """(V,) bool: the vertices of the named parts (ValueError naming ``argument`` for an
         empty list or an unknown name)."""
         if isinstance(parts, str):
@@ -114,7 +115,7 @@ class ICTFaceModel:
                 f"{list(self.part_names)}"
             )
 
-    def select(self, parts: Sequence[str] | str | None = FACE) -> ICTFaceModel:
+    def select(self, parts: Sequence[str] | str | None = FACE) -> "ICTFaceModel":
         """Restrict to a list of part names (``None`` or ``"head"`` keeps all 17 parts).
 
         Faces are kept when all three corners are kept, and re-indexed.
@@ -178,7 +179,9 @@ def load_ict(
     return model.select(parts)
 
 
-def load_identity_modes(data_dir: str | os.PathLike | None = None) -> np.ndarray:
+def load_identity_modes(
+    data_dir: str | os.PathLike | None = None,
+) -> Float32[np.ndarray, "100 V 3"]:
     """The (100, 26719, 3) float32 identity PCA modes, offsets from the neutral (cm)."""
     path = data_file("ict-facekit/identity.npz", data_dir)
     modes = read_arrays(path, ("identity_deltas",))["identity_deltas"]
@@ -188,10 +191,10 @@ def load_identity_modes(data_dir: str | os.PathLike | None = None) -> np.ndarray
 
 
 def ict_identity(
-    coefficients: np.ndarray,
+    coefficients: Float[ArrayLike, " n"],
     data_dir: str | os.PathLike | None = None,
     model: ICTFaceModel | None = None,
-) -> np.ndarray:
+) -> Float32[np.ndarray, "V 3"]:
     """Neutral head of an identity: neutral + sum_i c_i mode_i (cm).
 
     Args:

@@ -23,8 +23,6 @@ any CSV written from it, and ``capture_from_weights(..., timecodes=take)`` gives
 weights the timecodes of the take they came from.
 """
 
-from __future__ import annotations
-
 import math
 import os
 import re
@@ -32,6 +30,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from jaxtyping import ArrayLike, Float
 
 from .._io import check_output_path, save_text
 from .._warnings import warn
@@ -395,7 +394,10 @@ def write_livelink_csv(
     shape_idx = [i for _, i in shape_order]
     rot_idx = [i for _, i in rotation_order]
     for r in range(t):
-        cells = [format_timecode(frame_number[r], sub_frame[r], fps), str(int(blendshape_count))]
+        cells = [
+            format_timecode(int(frame_number[r]), float(sub_frame[r]), fps),
+            str(int(blendshape_count)),
+        ]
         cells += [_format_value(x) for x in weights[r, shape_idx]]
         cells += [_format_value(x) for x in rotations[r, rot_idx]]
         out.append(",".join(cells))
@@ -403,11 +405,11 @@ def write_livelink_csv(
 
 
 def capture_from_weights(
-    weights: np.ndarray,
+    weights: Float[ArrayLike, "T K"],
     names: Sequence[str],
     fps: float | None = None,
     *,
-    head_eye_rotations: np.ndarray | None = None,
+    head_eye_rotations: Float[ArrayLike, "T R"] | None = None,
     rotation_names: Sequence[str] = (),
     start_frame: int = 0,
     timecodes: LiveLinkCapture | None = None,

@@ -1,13 +1,12 @@
 """A Live Link Face capture (LLV example ``dao.gesichter``, BSD-2-Clause): 52 ARKit
 blendshape weights plus head and eye rotations per frame, 60 fps."""
 
-from __future__ import annotations
-
 import dataclasses
 import os
 from collections.abc import Sequence
 
 import numpy as np
+from jaxtyping import Float, Float32, Int
 
 from ._names import retarget_weights
 from ._paths import data_file, read_arrays
@@ -30,20 +29,22 @@ class LiveLinkCapture:
             the capture did not come from one).
     """
 
-    weights: np.ndarray
+    weights: Float32[np.ndarray, "T K"]
     names: tuple[str, ...]
-    head_eye_rotations: np.ndarray
+    head_eye_rotations: Float32[np.ndarray, "T R"]
     rotation_names: tuple[str, ...]
-    frame_number: np.ndarray
+    frame_number: Int[np.ndarray, " T"]
     fps: float
-    sub_frame: np.ndarray | None = None
+    sub_frame: Float[np.ndarray, " T"] | None = None
     blendshape_count: int | None = None
 
     @property
     def n_frames(self) -> int:
         return int(self.weights.shape[0])
 
-    def weights_for(self, target_names: Sequence[str], missing: str = "raise") -> np.ndarray:
+    def weights_for(
+        self, target_names: Sequence[str], missing: str = "raise"
+    ) -> Float32[np.ndarray, "T K"]:
         """(T, K) float32 weights for a rig with channels ``target_names``, matched by ARKit
         name through ``retarget_weights`` (which warns about channels the rig lacks)."""
         out, _ = retarget_weights(self.weights, self.names, target_names, missing=missing)

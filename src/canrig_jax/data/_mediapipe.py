@@ -1,12 +1,11 @@
 """MediaPipe's canonical face model (Apache-2.0): a 468-vertex neutral face surface with
 UVs and no blendshapes, in centimetres; a different topology from ICT."""
 
-from __future__ import annotations
-
 import dataclasses
 import os
 
 import numpy as np
+from jaxtyping import Float32, Int32
 
 from ._paths import data_file, read_arrays
 
@@ -22,10 +21,10 @@ class MediaPipeFace:
         face_uv_idx: (898, 3) int32 triangles indexing ``uv``.
     """
 
-    neutral: np.ndarray
-    faces: np.ndarray
-    uv: np.ndarray
-    face_uv_idx: np.ndarray
+    neutral: Float32[np.ndarray, "V 3"]
+    faces: Int32[np.ndarray, "F 3"]
+    uv: Float32[np.ndarray, "U 2"]
+    face_uv_idx: Int32[np.ndarray, "F 3"]
 
 
 def load_mediapipe_face(data_dir: str | os.PathLike | None = None) -> MediaPipeFace:

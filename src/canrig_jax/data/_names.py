@@ -11,13 +11,12 @@ Three spellings of the same 52 ARKit channels meet in the data:
 array from one rig's channel list onto another's through that canonical name.
 """
 
-from __future__ import annotations
-
 import dataclasses
 import re
 from collections.abc import Sequence
 
 import numpy as np
+from jaxtyping import ArrayLike, Float, Float32
 
 from .._checks import check_real
 from .._warnings import warn
@@ -123,11 +122,11 @@ class RetargetReport:
 
 
 def retarget_weights(
-    weights: np.ndarray,
+    weights: Float[ArrayLike, "*frames K"],
     source_names: Sequence[str],
     target_names: Sequence[str],
     missing: str = "raise",
-) -> tuple[np.ndarray, RetargetReport]:
+) -> tuple[Float32[np.ndarray, "*frames K_target"], RetargetReport]:
     """Map blendshape weights over ``source_names`` onto ``target_names`` by ARKit name.
 
     Each target channel takes the source channel with the same canonical ARKit name, so a

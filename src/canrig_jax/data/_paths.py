@@ -5,8 +5,6 @@ environment variable, and ``../shared/data`` relative to the project root (the f
 holding ``pyproject.toml``). Nothing here copies data into the repository.
 """
 
-from __future__ import annotations
-
 import os
 import zipfile
 import zlib
@@ -14,6 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from jaxtyping import Shaped
 
 from .._io import CorruptFileError
 
@@ -53,7 +52,9 @@ def data_file(relative: str, data_dir: str | os.PathLike | None = None) -> Path:
     return path
 
 
-def read_arrays(path: str | os.PathLike, keys: Sequence[str]) -> dict[str, np.ndarray]:
+def read_arrays(
+    path: str | os.PathLike, keys: Sequence[str]
+) -> dict[str, Shaped[np.ndarray, "..."]]:
     """The arrays ``keys`` of the ``.npz`` file ``path``, read in full (no pickles).
 
     A damaged file (not a zip, truncated, a member failing its CRC) or one without an expected

@@ -3,8 +3,6 @@
 jaxopt is an optional dependency (``pip install canrig_jax[jaxopt]``), imported when a
 ``JaxoptLBFGSB`` is made."""
 
-from __future__ import annotations
-
 from typing import ClassVar
 
 import equinox as eqx

@@ -1,7 +1,5 @@
 """Closed-form baselines on the linear rig, clipped to the [0, 1] box."""
 
-from __future__ import annotations
-
 from typing import ClassVar
 
 import jax.numpy as jnp

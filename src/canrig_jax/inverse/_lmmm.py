@@ -19,8 +19,6 @@ the quadratic majoriser's, v = -linear / (2 c2): no cubic is solved (Cardano's f
 c4 -> 0 overflows float32, which used to return NaN for every frame of a linear rig).
 """
 
-from __future__ import annotations
-
 from typing import ClassVar
 
 import equinox as eqx

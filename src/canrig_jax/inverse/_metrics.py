@@ -5,8 +5,6 @@ Meshes are always reconstructed with the full rig (all corrective orders), whate
 method assumed, and compared with the clean (noise-free) target.
 """
 
-from __future__ import annotations
-
 import jax
 import numpy as np
 

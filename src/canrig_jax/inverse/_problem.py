@@ -11,8 +11,6 @@ and every coordinate update need only P-vectors, never a 3V-vector: f is affine 
 weight, a(w) = a(w with w_i = 0) + w_i g_i(w), and phi_i = M g_i.
 """
 
-from __future__ import annotations
-
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np

@@ -30,8 +30,6 @@ with the Live Link take it needs ~7 iterations from zero and ~4.7 warm-started
 (``benchmarks/bench_inverse.py``).
 """
 
-from __future__ import annotations
-
 from typing import ClassVar
 
 import equinox as eqx

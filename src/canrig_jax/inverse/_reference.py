@@ -16,8 +16,6 @@ No residual bookkeeping, no Gram matrix: two 3V x P matrix-vector products per c
 (``benchmarks/bench_inverse.py`` and ``experiments/inverse_rig.py``).
 """
 
-from __future__ import annotations
-
 import time
 
 import jax.numpy as jnp

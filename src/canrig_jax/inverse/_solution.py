@@ -1,7 +1,5 @@
 """The uniform result of every inverse-rig solver."""
 
-from __future__ import annotations
-
 import equinox as eqx
 import optimistix as optx
 from jaxtyping import Array, Float

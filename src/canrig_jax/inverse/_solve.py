@@ -6,8 +6,6 @@ per (problem shape, method type and static settings) and is reused by every late
 ``solve_sequence`` and by ``Stream``. Inside a caller's ``jit``/``vmap`` it is traced inline.
 """
 
-from __future__ import annotations
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp

@@ -14,8 +14,6 @@ reports the fit's trimmed RMS distance and refuses a fit that does not converge 
 surface (a head facing elsewhere, e.g. stored z up) or whose scale says other units.
 """
 
-from __future__ import annotations
-
 import dataclasses
 
 import numpy as np

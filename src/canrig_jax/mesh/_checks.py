@@ -1,7 +1,5 @@
 """The one check of a triangle mesh, shared by everything in ``mesh`` and above it."""
 
-from __future__ import annotations
-
 import numpy as np
 
 

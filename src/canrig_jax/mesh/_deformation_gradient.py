@@ -24,8 +24,6 @@ target, inverted ones (det F < 0), and rotations within ``min_angle_to_pi`` of 1
 where log R is ill-defined.
 """
 
-from __future__ import annotations
-
 import dataclasses
 
 import jax

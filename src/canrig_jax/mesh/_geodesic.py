@@ -21,8 +21,6 @@ them, none enters, so distances between two vertices outside them are those of t
 without them.
 """
 
-from __future__ import annotations
-
 import numpy as np
 import scipy.sparse as sp
 from jaxtyping import ArrayLike

@@ -27,8 +27,6 @@ into the JAX pytree the layers take; ``mesh_operators`` does both. Results are c
 ``cache_dir()`` keyed by a SHA-256 of the vertices, faces and parameters.
 """
 
-from __future__ import annotations
-
 import dataclasses
 import hashlib
 import os
@@ -430,7 +428,7 @@ class SparseMatrix(eqx.Module):
         return jax.ops.segment_sum(on_diagonal, self.rows, num_segments=n)
 
     @classmethod
-    def from_scipy(cls, matrix: sp.spmatrix, dtype=jnp.float32) -> SparseMatrix:
+    def from_scipy(cls, matrix: sp.spmatrix, dtype=jnp.float32) -> "SparseMatrix":
         coo = sp.coo_matrix(matrix)
         return cls(
             jnp.asarray(coo.row, jnp.int32),
@@ -438,7 +436,7 @@ class SparseMatrix(eqx.Module):
             jnp.asarray(coo.data, dtype),
         )
 
-    def pad(self, nnz: int) -> SparseMatrix:
+    def pad(self, nnz: int) -> "SparseMatrix":
         extra = nnz - self.values.shape[0]
         if extra < 0:
             raise ValueError(f"nnz: cannot pad {self.values.shape[0]} entries down to {nnz}")
@@ -482,7 +480,7 @@ class MeshOperators(eqx.Module):
     face_mask: Float[Array, " F"]
 
     @classmethod
-    def from_geometry(cls, geometry: MeshGeometry, dtype=jnp.float32) -> MeshOperators:
+    def from_geometry(cls, geometry: MeshGeometry, dtype=jnp.float32) -> "MeshOperators":
         f = lambda x: jnp.asarray(x, dtype)  # noqa: E731
         return cls(
             mass=f(geometry.mass),
@@ -510,7 +508,7 @@ class MeshOperators(eqx.Module):
     def n_vertices(self) -> int:
         return int(self.mass.shape[-1])
 
-    def pad(self, n_vertices: int, n_faces: int, k: int, nnz: dict[str, int]) -> MeshOperators:
+    def pad(self, n_vertices: int, n_faces: int, k: int, nnz: dict[str, int]) -> "MeshOperators":
         """The same operators padded to ``n_vertices``, ``n_faces``, ``k`` eigenpairs and
         ``nnz[name]`` entries for each sparse matrix (padded eigenpairs: value 0, vector 0)."""
         v, f, kk = self.mass.shape[0], self.faces.shape[0], self.eigenvalues.shape[0]

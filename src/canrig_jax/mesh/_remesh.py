@@ -17,8 +17,6 @@ ground-truth rig (``canrig_jax.rig.remesh_rig``). By construction
 ``map.carry(original_vertices)`` equals the new vertices.
 """
 
-from __future__ import annotations
-
 import dataclasses
 
 import numpy as np

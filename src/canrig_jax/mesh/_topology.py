@@ -1,7 +1,5 @@
 """Mesh connectivity: vertex graph and connected components (scipy.sparse.csgraph)."""
 
-from __future__ import annotations
-
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components as _csgraph_components

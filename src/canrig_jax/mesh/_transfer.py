@@ -37,8 +37,6 @@ the source triangles under four points inside it (centroid and towards each corn
 gradients averaged with source-area weights.
 """
 
-from __future__ import annotations
-
 import dataclasses
 
 import numpy as np

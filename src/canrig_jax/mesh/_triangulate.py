@@ -1,7 +1,5 @@
 """Triangles from polygons with up to four corners (quads and triangles mixed)."""
 
-from __future__ import annotations
-
 import numpy as np
 from jaxtyping import Int
 

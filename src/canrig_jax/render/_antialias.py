@@ -27,8 +27,6 @@ exit edge is f's own: where the segment leaves f into an uncovered neighbour tri
 (slivers thinner than a pixel), the blend ends at f's edge, not the mesh's.
 """
 
-from __future__ import annotations
-
 import math
 
 import equinox as eqx

@@ -12,8 +12,6 @@ A ``Camera`` is a pytree of arrays (plus static image size and projection), so c
 the same kind stack (``stack_cameras``) and ``jax.vmap`` maps over views.
 """
 
-from __future__ import annotations
-
 import math
 
 import equinox as eqx

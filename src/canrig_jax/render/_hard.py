@@ -28,8 +28,6 @@ Triangles are not culled by orientation (like ``rasterise``); degenerate triangl
 screen area, e.g. the (0, 0, 0) padding of ``padded_faces``) cover nothing.
 """
 
-from __future__ import annotations
-
 import math
 
 import equinox as eqx

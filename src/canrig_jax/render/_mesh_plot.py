@@ -1,8 +1,6 @@
 """Orthographic mesh rendering with matplotlib: a per-vertex scalar (e.g. error in mm) as
 colour, modulated by Lambert shading, triangles painted back to front."""
 
-from __future__ import annotations
-
 import matplotlib
 
 matplotlib.use("Agg")

@@ -35,8 +35,6 @@ with more candidates than ``faces_per_tile`` drops the farthest:
 nothing was dropped.
 """
 
-from __future__ import annotations
-
 import dataclasses
 import math
 
@@ -89,7 +87,7 @@ class RasterSettings:
                 raise ValueError(f"{name}: expected an int >= 1, got {value!r}")
 
     @classmethod
-    def hard(cls, **changes) -> RasterSettings:
+    def hard(cls, **changes) -> "RasterSettings":
         """The hard limit: sigma = 1e-5 pixels, gamma = 1e-6 (a z-buffer, numerically)."""
         return cls(**{"sigma": 1e-5, "gamma": 1e-6, **changes})
 

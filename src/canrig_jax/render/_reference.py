@@ -1,7 +1,5 @@
 """An independent reference for the rasterisers' hard limit: NumPy ray casting."""
 
-from __future__ import annotations
-
 import numpy as np
 from jaxtyping import ArrayLike, Float, Int
 

@@ -5,15 +5,16 @@ ICT splits ``browInnerUp`` and ``cheekPuff`` into ``_L``/``_R`` halves; ARKit dr
 one channel. Renaming therefore merges the halves: the ARKit shape is their sum, which is what
 the ICT rig shows with both halves at the same weight."""
 
-from __future__ import annotations
+from collections.abc import Sequence
 
 import numpy as np
+from jaxtyping import Int64
 
 from ..data import arkit_name_of
 from ._blendshape import BlendshapeRig, Corrective
 
 
-def arkit_channels(names) -> tuple[list[str], np.ndarray]:
+def arkit_channels(names: Sequence[str]) -> tuple[list[str], Int64[np.ndarray, " K"]]:
     """The ARKit channel of each name, in first-seen order, and (K,) the channel index of
     each input name (several names may share one: ICT's halves)."""
     channels: list[str] = []

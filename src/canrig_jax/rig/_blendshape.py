@@ -13,16 +13,16 @@ vertices that any corrective of that order moves, and deltas over S only (see
 ``benchmarks/bench_evaluate.py`` for the measured gain over a dense layout).
 """
 
-from __future__ import annotations
-
 import functools
 import operator
+from collections.abc import Sequence
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Float32, Int, Int32
 
 from .._checks import check_finite, check_real, is_concrete, native
 
@@ -102,10 +102,10 @@ class Corrective(eqx.Module):
     @classmethod
     def from_dense(
         cls,
-        indices: ArrayLike,
-        dense_deltas: ArrayLike,
+        indices: Int[ArrayLike, "C n"] | Sequence[Sequence[int]],
+        dense_deltas: Float[ArrayLike, "C V 3"],
         support_tol: float = 0.0,
-    ) -> Corrective:
+    ) -> "Corrective":
         """Build from (C, V, 3) dense offsets, keeping vertices where any offset norm
         exceeds ``support_tol`` (rig units); offsets below it elsewhere are dropped."""
         dense = np.asarray(dense_deltas, dtype=np.float32)
@@ -116,7 +116,7 @@ class Corrective(eqx.Module):
         vertices = np.flatnonzero(magnitude > support_tol).astype(np.int32)
         return cls(indices, vertices, dense[:, vertices])
 
-    def to_dense(self, n_vertices: int) -> np.ndarray:
+    def to_dense(self, n_vertices: int) -> Float32[np.ndarray, "C V 3"]:
         """(C, V, 3) NumPy offsets on all vertices."""
         dense = np.zeros((self.indices.shape[0], n_vertices, 3), np.float32)
         dense[:, np.asarray(self.vertices)] = np.asarray(self.deltas)
@@ -210,11 +210,11 @@ class BlendshapeRig(eqx.Module):
         table = self.corrective(order)
         return 0 if table is None else int(table.indices.shape[0])
 
-    def linear(self) -> BlendshapeRig:
+    def linear(self) -> "BlendshapeRig":
         """The same rig without correctives."""
         return BlendshapeRig(self.neutral, self.deltas, (), self.names, self.faces, self.units)
 
-    def index(self, names) -> np.ndarray:
+    def index(self, names: Sequence[str]) -> Int32[np.ndarray, " N"]:
         """Blendshape indices of ``names`` (ValueError listing unknown names)."""
         lookup = {n: i for i, n in enumerate(self.names)}
         unknown = [n for n in names if n not in lookup]
@@ -223,7 +223,7 @@ class BlendshapeRig(eqx.Module):
         return np.array([lookup[n] for n in names], dtype=np.int32)
 
 
-def check_weights(rig: BlendshapeRig, weights) -> None:
+def check_weights(rig: BlendshapeRig, weights: Any) -> None:
     """Validate a weight vector against a rig (shape, and finiteness when concrete)."""
     check_real("weights", weights)
     shape = np.shape(weights)
@@ -236,9 +236,10 @@ def check_weights(rig: BlendshapeRig, weights) -> None:
 
 
 def combination_coefficients(
-    weights: Float[Array, " K"], indices: Int[Array, "C n"]
-) -> Float[Array, " C"]:
-    """prod_{i in combination} w_i for every row of ``indices``."""
+    weights: Float[ArrayLike, " K *frames"], indices: Int[ArrayLike, "C n"]
+) -> Float[ArrayLike, " C *frames"]:
+    """prod_{i in combination} w_i for every row of ``indices`` (NumPy in, NumPy out; JAX in,
+    JAX out)."""
     return functools.reduce(operator.mul, [weights[indices[:, j]] for j in range(indices.shape[1])])
 
 

@@ -1,7 +1,5 @@
 """A ``BlendshapeRig`` from an FBX file's blend shapes (Maya, 3ds Max, Blender, Unreal)."""
 
-from __future__ import annotations
-
 import os
 
 import numpy as np

@@ -10,8 +10,6 @@ drivers; a player sets its weight to the product of the drivers' weights (Rackov
 reader), the morph targets from the file's accessors (trimesh does not parse morph targets).
 """
 
-from __future__ import annotations
-
 import json
 import os
 import struct

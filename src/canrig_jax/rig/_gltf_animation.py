@@ -9,19 +9,20 @@ rotation (yaw, pitch, roll in radians) animates a parent node that pivots about 
 bounding-box centre.
 """
 
-from __future__ import annotations
-
 import os
 from pathlib import Path
 
 import numpy as np
+from jaxtyping import ArrayLike, Float, Float32
 
 from .._checks import check_finite, check_real
 from ._blendshape import BlendshapeRig, combination_coefficients
 from ._gltf import _ARRAY_BUFFER, _FLOAT, _check_rig, _rig_document, _write_glb
 
 
-def morph_target_weights(rig: BlendshapeRig, weights: np.ndarray) -> np.ndarray:
+def morph_target_weights(
+    rig: BlendshapeRig, weights: Float[ArrayLike, "T K"]
+) -> Float32[np.ndarray, "T KC"]:
     """(T, K + C) glTF morph weights of (T, K) rig weights: the K blendshape weights then,
     for each corrective term (in ``export_gltf``'s target order), the product of its drivers'
     weights."""
@@ -32,7 +33,9 @@ def morph_target_weights(rig: BlendshapeRig, weights: np.ndarray) -> np.ndarray:
     return np.concatenate(columns, axis=1).astype(np.float32)
 
 
-def head_rotation_quaternions(yaw_pitch_roll: np.ndarray) -> np.ndarray:
+def head_rotation_quaternions(
+    yaw_pitch_roll: Float[ArrayLike, "T 3"],
+) -> Float32[np.ndarray, "T 4"]:
     """(T, 4) unit quaternions (x, y, z, w; glTF order) of (T, 3) yaw, pitch, roll in radians:
     yaw about +Y (up), pitch about +X, roll about +Z, applied roll first (R = Ry Rx Rz)."""
     angles = np.asarray(yaw_pitch_roll, np.float64)
@@ -59,14 +62,14 @@ def head_rotation_quaternions(yaw_pitch_roll: np.ndarray) -> np.ndarray:
 
 def export_animated_gltf(
     rig: BlendshapeRig,
-    weights: np.ndarray,
+    weights: Float[ArrayLike, "T K"],
     path: str | os.PathLike,
     *,
     fps: float = 60.0,
-    times: np.ndarray | None = None,
-    head_rotation: np.ndarray | None = None,
+    times: Float[ArrayLike, " T"] | None = None,
+    head_rotation: Float[ArrayLike, "T 3"] | None = None,
     name: str = "take",
-    vertex_colors: np.ndarray | None = None,
+    vertex_colors: Float[ArrayLike, "V C"] | None = None,
 ) -> Path:
     """Write ``rig`` with an animation of ``weights`` as a binary glTF 2.0 file, atomically.
 

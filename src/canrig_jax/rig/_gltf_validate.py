@@ -4,8 +4,6 @@ Install it once with ``npm install gltf-validator`` in the repository (``node_mo
 git-ignored; ``nox -s gltf`` does it) or anywhere on ``NODE_PATH``.
 """
 
-from __future__ import annotations
-
 import json
 import os
 import shutil

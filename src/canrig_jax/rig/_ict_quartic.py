@@ -5,8 +5,6 @@ expressions, then cached on disk keyed by a hash of the inputs and options, so e
 load it in about a second.
 """
 
-from __future__ import annotations
-
 import dataclasses
 import hashlib
 import json

@@ -1,7 +1,5 @@
 """Save and load a ``BlendshapeRig`` as one .npz (written atomically)."""
 
-from __future__ import annotations
-
 import os
 from pathlib import Path
 

@@ -4,9 +4,8 @@ The blend itself is geometry (``canrig_jax.mesh.DeformationGradientBlend``, arra
 this wrapper takes a ``BlendshapeRig`` and keeps the prefactorised blend of the last mesh.
 """
 
-from __future__ import annotations
-
 import numpy as np
+from jaxtyping import ArrayLike, Float, Float64
 
 from .._cache import fingerprint
 from ..mesh import DeformationGradientBlend
@@ -15,7 +14,9 @@ from ._blendshape import BlendshapeRig
 _BLEND_CACHE: dict[str, DeformationGradientBlend] = {}
 
 
-def deformation_gradient_blend(rig: BlendshapeRig, weights: np.ndarray, **options) -> np.ndarray:
+def deformation_gradient_blend(
+    rig: BlendshapeRig, weights: Float[ArrayLike, "*batch K"], **options
+) -> Float64[np.ndarray, "*batch V 3"]:
     """Nonlinear blend of ``rig``'s blendshapes at ``weights`` (K,) or (B, K).
 
     The rig must carry ``faces``. The prefactorised blend is cached in memory per mesh.

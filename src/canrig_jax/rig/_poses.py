@@ -1,10 +1,9 @@
 """Pose sets for experiments: random sparse weight vectors."""
 
-from __future__ import annotations
-
 from collections.abc import Sequence
 
 import numpy as np
+from jaxtyping import Float32
 
 from ._synthesis import MUTUALLY_EXCLUSIVE, exclusive_pairs
 
@@ -15,7 +14,7 @@ def random_sparse_poses(
     names: Sequence[str],
     n_active: tuple[int, int] = (4, 10),
     exclude: Sequence[tuple[str, str]] = MUTUALLY_EXCLUSIVE,
-) -> np.ndarray:
+) -> Float32[np.ndarray, "n_poses K"]:
     """(n_poses, K) float32 poses with between ``n_active`` active weights, each U(0, 1).
 
     The active set is drawn uniformly without replacement; a set holding both names of an

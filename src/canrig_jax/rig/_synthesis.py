@@ -15,8 +15,6 @@ was dropped for being small, its remainder is absorbed, so the finished rig equa
 nonlinear blend at every selected corner (up to the support tolerance).
 """
 
-from __future__ import annotations
-
 import dataclasses
 import itertools
 import time
@@ -24,6 +22,7 @@ from collections.abc import Sequence
 
 import jax
 import numpy as np
+from jaxtyping import ArrayLike, Float
 from tqdm.auto import tqdm
 
 from ..data import to_arkit
@@ -148,7 +147,7 @@ class SynthesisReport:
 
 
 def overlapping_pairs(
-    deltas: np.ndarray, names: Sequence[str], options: SynthesisOptions
+    deltas: Float[ArrayLike, "K V 3"], names: Sequence[str], options: SynthesisOptions
 ) -> list[tuple[int, int]]:
     """Pairs of blendshapes whose supports share ``min_overlap`` vertices, minus exclusions."""
     support = (np.linalg.norm(deltas, axis=2) > options.support_tol).astype(np.int32)

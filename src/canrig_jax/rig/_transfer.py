@@ -4,9 +4,8 @@ The geometry (surface maps, deformation transfer of per-vertex offsets) lives in
 ``canrig_jax.mesh``, which knows arrays only; these wrappers build the ``BlendshapeRig``.
 """
 
-from __future__ import annotations
-
 import numpy as np
+from jaxtyping import ArrayLike, Float, Int
 
 from .._warnings import warn
 from ..mesh import Remeshed, TriangleCorrespondence, transfer_deltas
@@ -44,14 +43,14 @@ def remesh_rig(rig: BlendshapeRig, remeshed: Remeshed) -> BlendshapeRig:
 
 def deformation_transfer(
     source_rig: BlendshapeRig,
-    target_neutral: np.ndarray,
+    target_neutral: Float[ArrayLike, "Vt 3"],
     correspondence: TriangleCorrespondence,
     *,
     screening: float = 1e-3,
     min_area: float = 1e-10,
     batch_size: int = 8,
     static_below: float | None = None,
-    static_parts: np.ndarray | None = None,
+    static_parts: Int[ArrayLike, " Vs"] | None = None,
 ) -> BlendshapeRig:
     """Transfer every blendshape of ``source_rig`` onto ``target_neutral``
     (Sumner & Popović 2004; the geometry is ``canrig_jax.mesh.transfer_deltas``).

@@ -7,8 +7,6 @@ chromium-headless-shell`` or ``chromium``); nothing is downloaded at run time. W
 SwiftShader, Chromium's CPU renderer, so no GPU is needed.
 """
 
-from __future__ import annotations
-
 import base64
 import json
 import os
@@ -285,7 +283,7 @@ class HeadlessChromium:
         self._log.close()
         shutil.rmtree(self._profile, ignore_errors=True)
 
-    def __enter__(self) -> HeadlessChromium:
+    def __enter__(self) -> "HeadlessChromium":
         return self
 
     def __exit__(self, *exc) -> None:

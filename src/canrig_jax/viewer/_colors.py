@@ -1,7 +1,5 @@
 """Per-vertex colours for the viewer's ``COLOR_0`` channel (error maps)."""
 
-from __future__ import annotations
-
 import numpy as np
 from jaxtyping import Float
 

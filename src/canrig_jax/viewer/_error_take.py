@@ -9,8 +9,6 @@ at ``vmax_mm`` and above), so a user can scrub the take and turn the head around
 vertex. ``save_error_legend`` draws the colour scale as a small PNG to go beside it.
 """
 
-from __future__ import annotations
-
 import dataclasses
 import os
 from pathlib import Path

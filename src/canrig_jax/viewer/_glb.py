@@ -1,7 +1,5 @@
 """What a binary glTF holds, read from its header and JSON chunk: checked before serving."""
 
-from __future__ import annotations
-
 import dataclasses
 import json
 import os

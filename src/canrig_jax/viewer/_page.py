@@ -1,8 +1,6 @@
 """The viewer page in a headless browser: pose it (time, morph targets, display) and take
 pictures; ``screenshot_glb`` is ``canrig view --screenshot``."""
 
-from __future__ import annotations
-
 import dataclasses
 import json
 import os

@@ -1,7 +1,5 @@
 """The viewer's web server: the page, its script, three.js and one glb, on 127.0.0.1 only."""
 
-from __future__ import annotations
-
 import errno
 import html
 import http.server
@@ -28,7 +26,7 @@ _TYPES = {
 
 
 class _Handler(http.server.BaseHTTPRequestHandler):
-    server: _Server
+    server: "_Server"
     server_version = "canrig-view"
     sys_version = ""
 
@@ -110,7 +108,7 @@ class ViewerServer:
         host, port = self.address
         return f"http://{host}:{port}/"
 
-    def start(self) -> ViewerServer:
+    def start(self) -> "ViewerServer":
         self._thread = threading.Thread(target=self._server.serve_forever, daemon=True)
         self._thread.start()
         return self
@@ -123,7 +121,7 @@ class ViewerServer:
             self._thread = None
         self._server.server_close()
 
-    def __enter__(self) -> ViewerServer:
+    def __enter__(self) -> "ViewerServer":
         return self.start()
 
     def __exit__(self, *exc) -> None:

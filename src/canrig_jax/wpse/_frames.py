@@ -19,8 +19,6 @@ one row gather per ring slot, no weights; a final gather puts the vertices back 
 The normalisation, tangent and bitangent are written per coordinate, so XLA fuses them.
 """
 
-from __future__ import annotations
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp

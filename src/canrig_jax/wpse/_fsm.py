@@ -11,8 +11,6 @@ placed only at corners: in-between poses get the product of fractional weights t
 corner sculpt, and weights above 1 overshoot polynomially.
 """
 
-from __future__ import annotations
-
 from collections.abc import Callable, Sequence
 
 import numpy as np

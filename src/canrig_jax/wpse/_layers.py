@@ -10,8 +10,6 @@ their corrections add. An edit at exactly the pose of an earlier one therefore o
 there: the later sculpt wins, which is the tested handling of duplicated poses.
 """
 
-from __future__ import annotations
-
 from collections.abc import Sequence
 
 import equinox as eqx

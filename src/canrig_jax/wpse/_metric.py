@@ -14,8 +14,6 @@ A metric is stored as a (S, K) array of per-vertex weights, or (1, K) when every
 it (PSE: all ones, the Euclidean distance), so one code path serves both.
 """
 
-from __future__ import annotations
-
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float

@@ -52,6 +52,8 @@ def locality_probe(
     Returns ``"{name}_retained"`` (mean over probes) for each model and ``desired_retained``,
     the number of ``probes`` per model, ``region_vertices`` and ``eye_channels``.
     """
+    if draws < 1:
+        raise ValueError(f"draws: expected >= 1, got {draws}")
     poses, linear = np.asarray(poses), np.asarray(linear)
     eye = np.asarray(eye_channels, np.int64)
     region = channel_region(rig, mouth_channels)

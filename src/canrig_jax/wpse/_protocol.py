@@ -1,8 +1,6 @@
 """Pieces of the WPSE evaluation protocol: which frames an artist would edit, and how much of
 a correction survives at a probe pose (the locality measure of Seol et al.'s Figure 7)."""
 
-from __future__ import annotations
-
 import numpy as np
 from jaxtyping import ArrayLike, Float, Int
 

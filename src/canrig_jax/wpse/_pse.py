@@ -18,8 +18,6 @@ Duplicated edit poses make every Phi singular: ``fit_pose_space_edit`` raises un
 tends to), and ``_layers.py`` routes a new edit close to an old one to a new layer instead.
 """
 
-from __future__ import annotations
-
 from typing import Literal
 
 import equinox as eqx

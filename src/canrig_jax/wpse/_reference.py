@@ -5,8 +5,6 @@ squared distances, Gaussian basis matrices, batched ``np.linalg.solve``, frames 
 triangle normals and a neighbour edge.
 """
 
-from __future__ import annotations
-
 import time
 
 import jax

@@ -6,8 +6,6 @@ a WPSE model of those edits alone (one per distinct set found, cached) corrects 
 A frame for which the search finds nothing is left uncorrected.
 """
 
-from __future__ import annotations
-
 import dataclasses
 
 import jax

@@ -8,8 +8,6 @@ pose w^p is scored by its weighted distance summed over the region,
 so only the blendshapes that move the region matter. Candidates with E < tau, sorted by E.
 """
 
-from __future__ import annotations
-
 import dataclasses
 
 import jax

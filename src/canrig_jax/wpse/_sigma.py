@@ -14,8 +14,6 @@ squared LOO error over log sigma with ``optimistix.BFGS``, started from the best
 coarse log-spaced grid (the LOO curve is not convex in general).
 """
 
-from __future__ import annotations
-
 import dataclasses
 
 import jax

@@ -20,8 +20,6 @@ The minimum is found on a dense log-spaced grid (the curve is flat and not conve
 what the one-standard-error rule needs anyway).
 """
 
-from __future__ import annotations
-
 import dataclasses
 
 import jax
