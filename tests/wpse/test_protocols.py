@@ -350,3 +350,29 @@ def test_search_by_region_keeps_the_library_below_the_percentile(take):
         expected = np.flatnonzero(energy < found[name]["tau"])
         assert sorted(hits.indices.tolist()) == sorted(expected.tolist())
         assert np.all(np.diff(hits.energies) >= 0)
+
+
+def test_protocols_name_the_bad_argument(take, models):
+    rig, frames = take["rig"], take["frames"]
+    edit_frames, held_out = take["edit_frames"], take["held_out"]
+    with pytest.raises(ValueError, match="budgets"):
+        wpse.compare_methods(
+            rig, *frames, edit_frames, held_out, budgets=(9,), sculpt=take["sculpt"]
+        )
+    with pytest.raises(ValueError, match="budgets"):
+        wpse.few_edit_errors(rig, *frames, edit_frames, held_out, budgets=(0, 3))
+    with pytest.raises(ValueError, match="draws"):
+        wpse.locality_probe(
+            rig,
+            {"wpse": models["wpse"]},
+            frames[0],
+            edit_frames,
+            frames[2],
+            take["sculpt"],
+            np.random.default_rng(0),
+            eye_channels=[3],
+            mouth_channels=[0],
+            draws=0,
+        )
+    with pytest.raises(ValueError, match="t:"):
+        wpse.overshoot_sweep(rig, models["fsm"], {}, take["sculpt"], sigma=0.4, t=[0.0, 1.0])

@@ -146,8 +146,7 @@ def compare_methods(
     """
     poses, desired, linear = (np.asarray(a) for a in (poses, desired, linear))
     edit_frames, held_out = np.asarray(edit_frames), np.asarray(held_out)
-    if max(budgets, default=0) > edit_frames.size or min(budgets, default=1) < 1:
-        raise ValueError(f"budgets: expected values in [1, {edit_frames.size}], got {budgets}")
+    _check_budgets(budgets, edit_frames)
     others = dict(others or {})
     methods = ("linear", *VARIANTS, "fsm", *others)
     errors: dict = {m: {} for m in methods}
@@ -184,6 +183,11 @@ def compare_methods(
         score("fsm", key, np.asarray(evaluate_batch(fsm, poses[held_out])))
     errors = {m: errors[m] for m in methods}
     return MethodComparison(errors, maps, sigma, sweep, rest_correction, models)
+
+
+def _check_budgets(budgets: Sequence[int], edit_frames: np.ndarray) -> None:
+    if not budgets or not all(1 <= b <= edit_frames.size for b in budgets):
+        raise ValueError(f"budgets: expected values in [1, {edit_frames.size}], got {budgets}")
 
 
 def _held_out_mean(model, poses, linear, wanted, held_out) -> float:
@@ -243,6 +247,7 @@ def few_edit_errors(
     """
     poses, desired, linear = (np.asarray(a) for a in (poses, desired, linear))
     edit_frames, held_out = np.asarray(edit_frames), np.asarray(held_out)
+    _check_budgets(budgets, edit_frames)
     wanted = desired[held_out]
     known_sigma = dict(known_sigma or {})
 
