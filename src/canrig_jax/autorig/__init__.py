@@ -15,6 +15,21 @@ from ._any_head import (
     place_landmarks,
     skin_of,
 )
+from ._any_head_protocols import (
+    FEW_SHOT_KS,
+    SculptedHead,
+    any_head_table,
+    choose_default_method,
+    face_crop_fit,
+    few_shot_rows,
+    ict_sculpted_heads,
+    load_rocketbox_head,
+    mean_few_shot,
+    measure_cli_seconds,
+    orientation_cases,
+    sculpted_head_errors,
+    template_row,
+)
 from ._data import (
     ANCHOR_MODES,
     AutorigDataset,
@@ -173,6 +188,19 @@ __all__ = [
     "plot_pose_examples",
     "plot_shape_ratios",
     "plot_training_history",
+    "FEW_SHOT_KS",
+    "SculptedHead",
+    "any_head_table",
+    "choose_default_method",
+    "face_crop_fit",
+    "few_shot_rows",
+    "ict_sculpted_heads",
+    "load_rocketbox_head",
+    "mean_few_shot",
+    "measure_cli_seconds",
+    "orientation_cases",
+    "sculpted_head_errors",
+    "template_row",
     "DEFAULT_METHOD",
     "EXAMPLE_ORDER",
     "AUTO_RIG_METHODS",
@@ -270,5 +298,27 @@ from ._supervision_2d import (  # noqa: E402
     padded_faces,
     train_2d,
 )
+from ._supervision_2d_protocols import (  # noqa: E402
+    SUPERVISION_2D_RUNS,
+    chunk_overflow,
+    evaluate_2d,
+    parse_supervision_2d_args,
+    rasteriser_checks,
+    rigged_heads,
+    supervision_2d_options,
+    supervision_2d_table,
+    train_2d_run,
+)
 
 __all__ += ["Supervision2DOptions", "load_model_2d", "loss_2d", "padded_faces", "train_2d"]
+__all__ += [
+    "SUPERVISION_2D_RUNS",
+    "chunk_overflow",
+    "evaluate_2d",
+    "parse_supervision_2d_args",
+    "rasteriser_checks",
+    "rigged_heads",
+    "supervision_2d_options",
+    "supervision_2d_table",
+    "train_2d_run",
+]
