@@ -232,27 +232,41 @@ STANDARD_EXPERIMENTS = (
         *("--fit-pairs", "100", "--fit-pairs-main", "1000", "--layer-pairs", "30"),
     ),
     (
+        "canrig_workflows_dialogue.py",
+        *("--checkpoint", "experiments/results/canrig_workflows/model/checkpoint.eqx"),
+        *("--out", "experiments/results/canrig_workflows"),
+    ),
+    (
+        "canrig_workflows_floor.py",
+        *("--checkpoint", "experiments/results/canrig_workflows/model/checkpoint.eqx"),
+        *("--out", "experiments/results/canrig_workflows", "--pairs", "1000"),
+    ),
+    (
         "canrig_workflows.py",
         *("--rig", "local-fit", "--out", "experiments/results/canrig_workflows_local_fit"),
         *("--pairs", "1000", "--fit-pairs", "100", "--fit-pairs-main", "1000"),
         *("--layer-pairs", "30"),
     ),
     (
-        "canrig_pbs.py",
-        *("--out", "experiments/results/canrig_pbs_attached_local_prior", "--train", "per_patch"),
+        "canrig_workflows_dialogue.py",
+        *("--rig", "local-fit", "--out", "experiments/results/canrig_workflows_local_fit"),
+    ),
+    (
+        "canrig_pbs_train.py",
+        *("--out", "experiments/results/canrig_pbs_attached_local_prior", "--model", "per_patch"),
         *("--local-prior", "--learning-rate", "1e-4", "--steps", "4000", "--decay-steps", "4000"),
         *("--minutes", "150", "--no-progress", "--graph", "attached"),
     ),
     (
-        "canrig_pbs.py",
+        "canrig_pbs_train.py",
         *("--out", "experiments/results/canrig_pbs_attached_local_prior"),
-        *("--train", "shape_transformer", "--steps", "4000", "--decay-steps", "4000"),
+        *("--model", "shape_transformer", "--steps", "4000", "--decay-steps", "4000"),
         *("--minutes", "150", "--no-progress", "--graph", "attached"),
     ),
     *(
         (
-            "canrig_pbs.py",
-            *("--out", "experiments/results/canrig_pbs_attached_local_prior", "--train", variant),
+            "canrig_pbs_train.py",
+            *("--out", "experiments/results/canrig_pbs_attached_local_prior", "--model", variant),
             *("--local-prior", "--learning-rate", "1e-4", "--steps", "1000"),
             *("--decay-steps", "2000", "--minutes", "60", "--tag", "_fig8"),
             *("--no-progress", "--graph", "attached"),
@@ -265,9 +279,9 @@ STANDARD_EXPERIMENTS = (
         *("--no-progress", "--graph", "attached"),
     ),
     (
-        "canrig_pbs.py",
+        "canrig_pbs_table6_sweep.py",
         *("--out", "experiments/results/canrig_pbs_attached_local_prior"),
-        *("--no-progress", "--graph", "attached", "--table6-sweep", "60", "120", "200", "400"),
+        *("--no-progress", "--graph", "attached", "--counts", "60", "120", "200", "400"),
     ),
     # any head: the auto_rig methods, few-shot style, templates, orientation (~15 minutes)
     ("any_head.py", "--out", "experiments/results/any_head"),

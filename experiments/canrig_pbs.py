@@ -33,12 +33,8 @@ from canrig_jax._metrics import CM_TO_MM  # noqa: E402
 from canrig_jax._provenance import experiment_command, provenance  # noqa: E402
 from canrig_jax._timing import median_ms  # noqa: E402
 from canrig_jax.canrig import (  # noqa: E402
-    PBS_VARIANTS,
-    PBSTrainOptions,
     ShapePreservingCANRig,
     influence_mask,
-    load_pbs_model,
-    pbs_shape,
     weighted_geodesic_distance,
 )
 from canrig_jax.canrig._pbs_protocols import (  # noqa: E402
@@ -64,6 +60,7 @@ from canrig_jax.canrig._pbs_protocols import (  # noqa: E402
     whole_head,
     whole_head_options_from_args,
 )
+from canrig_jax.pbs import PBS_VARIANTS, PBSTrainOptions, load_pbs_model, pbs_shape  # noqa: E402
 from canrig_jax.render import plot_vertex_scalar, save_figure  # noqa: E402
 from canrig_jax.watchdog import run_watched  # noqa: E402
 

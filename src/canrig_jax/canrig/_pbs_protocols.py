@@ -28,12 +28,7 @@ from .._metrics import CM_TO_MM
 from ..autorig import head_rig
 from ..data import ICTFaceModel, load_ict, load_livelinkface
 from ..mesh import attached_edge_graph, bridged_edge_graph, edge_graph, farthest_point_vertices
-from ..rig import BlendshapeRig, evaluate_batch, ict_quartic_rig, random_sparse_poses
-from ._data import held_out_poses, split_capture
-from ._layout import influence_reach
-from ._masks import CLAMP, influence_mask
-from ._model import parameter_count
-from ._pbs import (
+from ..pbs._basis import (
     PatchLayout,
     fit_pbs,
     global_blendshape_dialogue,
@@ -43,14 +38,19 @@ from ._pbs import (
     pbs_basis,
     pbs_shape,
 )
-from ._pbs_train import (
+from ..pbs._protocols import check_pbs_training_matches, reach_floor
+from ..pbs._train import (
     PBSTrainingSet,
     build_pbs_training_set,
     load_pbs_model,
     pbs_reconstruct,
     seed_distances,
 )
-from ._protocols import check_pbs_training_matches, reach_floor
+from ..rig import BlendshapeRig, evaluate_batch, ict_quartic_rig, random_sparse_poses
+from ._data import held_out_poses, split_capture
+from ._layout import influence_reach
+from ._masks import CLAMP, influence_mask
+from ._model import parameter_count
 from ._workflows import expression_region
 
 SKIN = ("Face", "Head and Neck")
@@ -774,7 +774,8 @@ def _reach_lines(reach: Mapping, graph: str) -> list[str]:
 def _figure8_lines(figure8: Mapping) -> list[str]:
     if not figure8:
         return [
-            f"Figure 8: no variant trained in this folder (`--model NAME --tag {FIGURE8_TAG}`)."
+            "Figure 8: no variant trained in this folder "
+            f"(`canrig_pbs_train.py --model NAME --tag {FIGURE8_TAG}`)."
         ]
     return [
         "Figure 8 (each variant 1,000 steps of the same 2,000-step cosine "

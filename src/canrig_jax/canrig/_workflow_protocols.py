@@ -23,17 +23,17 @@ from jaxtyping import Float, Int
 from .._metrics import CM_TO_MM
 from ..data import load_livelinkface
 from ..mesh import farthest_point_vertices
+from ..pbs._basis import global_blendshape_dialogue, patch_layout, pbs_basis
+from ..pbs._local_fit import local_fit_rig
 from ..rig import BlendshapeRig, ict_quartic_rig, random_sparse_poses
 from ._data import EVAL_FALLOFF_PER_CM, RADII_CM, evaluate_poses, held_out_poses, split_capture
+from ._handle_rig import FitOptions, Handles
 from ._layout import influence_reach
-from ._local_fit import local_fit_rig
 from ._masks import influence_mask
-from ._pbs import global_blendshape_dialogue, patch_layout, pbs_basis
-from ._rig import Handles, NeuralRig
+from ._rig import NeuralRig
 from ._train import load_model
 from ._workflows import (
     ClipEdit,
-    FitOptions,
     clip_edit,
     dialogue_replacement,
     expression_region,
