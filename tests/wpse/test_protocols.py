@@ -122,6 +122,7 @@ def test_compare_methods_rest_pose_variant_is_zero_at_rest(compared):
         assert compared.rest_correction[f"wpse_{key}"] > 1e-2
 
 
+@pytest.mark.slow  # 5-20 s of compilation
 def test_few_edit_errors_use_the_given_and_the_one_se_widths(take):
     rig, (poses, desired, linear) = take["rig"], take["frames"]
     edit_frames, held_out = take["edit_frames"], take["held_out"]
@@ -318,6 +319,7 @@ def test_overshoot_sweep_fix_shape_and_corner_edit_are_exact_at_the_corner(take,
     assert curves["fsm"][20] == at["fsm"]["t=1.0"]
 
 
+@pytest.mark.slow  # 5-20 s of compilation
 def test_layering_probe_layers_reproduce_the_latest_sculpt_without_overshoot(take):
     poses = take["frames"][0]
     out = wpse.layering_probe(take["rig"], poses[take["edit_frames"][0]], take["sculpt"], sigma=0.4)

@@ -8,8 +8,6 @@ Meshes are in the rig's units (ICT: centimetres); sizes are reported in millimet
 (e.g. ``mesh.DeformationGradientBlend``).
 """
 
-from __future__ import annotations
-
 from collections.abc import Callable, Mapping
 
 import jax

@@ -8,8 +8,6 @@ building blocks (which frames to edit, the locality measure, a take's steps) liv
 overshoot, layering, search) in ``_probes.py``.
 """
 
-from __future__ import annotations
-
 import dataclasses
 import time
 from collections.abc import Callable, Mapping, Sequence

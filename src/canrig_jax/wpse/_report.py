@@ -1,7 +1,5 @@
 """The Markdown summary of the WPSE experiment's ``results.json`` (``table.md``)."""
 
-from __future__ import annotations
-
 
 def results_table(results: dict) -> str:
     """``table.md`` of a WPSE experiment: the held-out errors per method and budget, locality,

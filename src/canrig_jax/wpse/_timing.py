@@ -1,8 +1,6 @@
 """Table 1 of Seol et al. for one mesh and one edit library: how long a pose-space edit takes
 to train and to run per frame, in JAX and in the NumPy reference, beside the rig itself."""
 
-from __future__ import annotations
-
 import time
 
 import jax
