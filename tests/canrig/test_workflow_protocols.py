@@ -247,6 +247,7 @@ def test_the_committed_tables_render_from_their_results(folder):
     assert "dialogue" not in text and "Table 6" not in text
 
 
+@pytest.mark.slow  # loads and prepares the trained network (~10 s)
 def test_network_rig_reproduces_the_committed_protocol(ict_quartic):
     checkpoint = RESULTS / "canrig_workflows" / "model" / "checkpoint.eqx"
     rig, model = network_rig(checkpoint, ict_quartic)
