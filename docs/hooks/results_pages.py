@@ -132,7 +132,7 @@ def makes_large_outputs(folder: Path) -> bool:
         return True
     command = folder / "COMMAND"
     text = command.read_text() if command.is_file() else ""
-    return bool(re.search(r"\.eqx|\.glb|checkpoint|view_error\.py|--train", text))
+    return bool(re.search(r"\.eqx|\.glb|checkpoint|view_error\.py|--train|_train\.py", text))
 
 
 @functools.cache
