@@ -13,11 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from canrig_jax.canrig import CLAMP, influence_mask, influence_reach
+from canrig_jax.canrig import CLAMP, influence_mask, influence_reach, parameter_count
 from canrig_jax.canrig._pbs_protocols import (
     DIALOGUE_REACH_CM,
     EVAL_FALLOFF_PER_CM,
     EVAL_RADIUS_CM,
+    MODELS_DIR,
     POOL_SIZE,
     REGIONS,
     SWEEP_HEADER,
@@ -38,6 +39,8 @@ from canrig_jax.canrig._pbs_protocols import (
     table5_baselines,
     table5_handles,
     table5_local_fit,
+    table5_reconstruct,
+    table5_trained_row,
     table6,
     table6_sweep,
     whole_head,
@@ -45,7 +48,7 @@ from canrig_jax.canrig._pbs_protocols import (
 )
 from canrig_jax.data import load_ict
 from canrig_jax.mesh import edge_graph
-from canrig_jax.pbs import patch_layout, pbs_basis, seed_distances
+from canrig_jax.pbs import PBSTrainOptions, patch_layout, pbs_basis, seed_distances, train_pbs
 from canrig_jax.rig import evaluate_batch, ict_linear_rig, random_sparse_poses
 
 RESULTS = Path(__file__).resolve().parents[2] / "experiments" / "results"
@@ -285,3 +288,28 @@ def test_whole_head_quick(data_dir):
     assert head.handle_region is head.skin
     np.testing.assert_array_equal(head.basis, head.train_shapes[head.picked] - head.neutral)
     assert seed_distances(head.layout, head.graph).shape == (60, len(head.neutral))
+
+
+@pytest.mark.slow
+def test_a_trained_network_keeps_its_exact_zeros_in_table5_and_table6(head, training, tmp_path):
+    """A CANRig-PBS network (two training steps) through Table 5's row and Table 6: zero
+    displacements give the base frame exactly, and nothing moves outside the mouth region."""
+    data, distances = training
+    folder = tmp_path / MODELS_DIR / "per_patch"
+    options = PBSTrainOptions(steps=2, n_handles=(20, 40), handle_bucket=20, n_vertices=256)
+    net, *_ = train_pbs(data, options, checkpoint=folder / "checkpoint.eqx", progress=False)
+    handles = table5_handles(head)
+    trained, row = table5_trained_row(
+        head, data, folder / "checkpoint.eqx", handles, distances[:, handles]
+    )
+    assert row["steps"] == 2 and row["parameters"] == parameter_count(net)
+    shapes = np.asarray(
+        table5_reconstruct(trained, data, handles, distances[:, handles], head.test_shapes)
+    )
+    error = np.linalg.norm(shapes - head.test_shapes, axis=-1).mean(axis=1) * 10.0
+    assert row["mean_mm"] == pytest.approx(error.mean(), rel=1e-6)
+    clips = dialogue_clips(head, 2)
+    table, run = table6(head, data, distances, tmp_path / MODELS_DIR, clips, 8, **QUIET)
+    assert table["methods"]["per_patch"]["rig_inversion_mm"] == 0.0
+    assert table["methods"]["per_patch"]["rest_of_face_change_mm"] == 0.0
+    assert table["methods"]["per_patch"]["mouth_difference_mm"] >= table["reach_floor_mm"] - 1e-6
