@@ -14,20 +14,19 @@ handle (and no beta column) gets weight 0 on every handle, not 0/0.
 Layout is heads-first, (heads, V, d), so both products are batched matrix multiplies.
 """
 
-from __future__ import annotations
-
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 
 def masked_attention_weights(
-    logits: Float[Array, "*heads V H"],
-    mask: Float[Array, "V H"],
+    logits: Float[Array, "*lead V H"],
+    mask: Float[Array, "*#lead V H"],
     beta: float | Float[Array, ""] | None = None,
-) -> tuple[Float[Array, "*heads V H"], Float[Array, "*heads V 1"]]:
+) -> tuple[Float[Array, "*lead V H"], Float[Array, "*lead V 1"]]:
     """Unnormalised weights w = exp(A + log M - m) and their normaliser
     sum_h w_h [+ exp(beta - m)] (1 where the row has no weight at all), with m the row max
-    of A + log M (and beta). The attention weights are w / normaliser."""
+    of A + log M (and beta). The attention weights are w / normaliser. ``mask`` broadcasts
+    against the leading (heads, batch) axes of ``logits``."""
     influenced = mask > 0
     log_mask = jnp.where(influenced, jnp.log(jnp.where(influenced, mask, 1.0)), -jnp.inf)
     scores = jnp.where(influenced, logits, 0.0) + log_mask

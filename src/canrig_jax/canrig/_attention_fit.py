@@ -9,6 +9,8 @@ a ``jax.custom_jvp``. The variables are whitened by the normal matrix J^T W J of
 (``FitOptions``).
 """
 
+from collections.abc import Callable
+
 import jax
 import jax.numpy as jnp
 import lineax as lx
@@ -16,20 +18,21 @@ import optimistix as optx
 from jaxtyping import Array, Float
 
 from .._linalg import cho_solve, cholesky, solve_triangular
-from ._handle_rig import AbstractHandleRig, FitOptions, FitState, HandleEdit, edit_mask
-from ._layout import DENSE, Layout
+from ._handle_rig import FitOptions, FitState, HandleEdit, edit_mask
+from ._layout import DENSE, Layout, Local
+from ._model import AbstractCANRig, Trace
 
 
 def trace_edit(
-    model: AbstractHandleRig,
+    model: AbstractCANRig,
     queries: Float[Array, "heads V d"],
     canonical: Float[Array, "V 3"],
     edit: HandleEdit,
     layout: Layout = DENSE,
-    local_queries: Float[Array, "..."] | None = None,
-):
+    local_queries: Local | None = None,
+) -> Trace:
     """``AbstractCANRig.trace`` of ``edit``: the forward pass with its intermediates."""
-    return model.trace(  # type: ignore[attr-defined]
+    return model.trace(
         queries,
         edit.base,
         canonical[edit.index],
@@ -42,7 +45,9 @@ def trace_edit(
     )
 
 
-def _value_jacobian(model: AbstractHandleRig, displacements, handle_base):
+def _value_jacobian(
+    model: AbstractCANRig, displacements: Float[Array, "H 3"], handle_base: Float[Array, "H 3"]
+) -> Float[Array, "H heads e 3"]:
     """(H, heads, e, 3): d values_h / d d_h per handle."""
 
     def one(d, b):
@@ -51,7 +56,12 @@ def _value_jacobian(model: AbstractHandleRig, displacements, handle_base):
     return jax.vmap(jax.jacfwd(one))(displacements, handle_base)
 
 
-def _decode_jacobian(model: AbstractHandleRig, attended, base, queries):
+def _decode_jacobian(
+    model: AbstractCANRig,
+    attended: Float[Array, "V latent"],
+    base: Float[Array, "V 3"],
+    queries: Float[Array, "heads V d"],
+) -> Float[Array, "V 3 heads e"]:
     """(V, 3, heads, e): d decode_v / d attended_v per vertex (the latent axis is the heads'
     concatenation, ``merge_heads``)."""
 
@@ -63,12 +73,12 @@ def _decode_jacobian(model: AbstractHandleRig, attended, base, queries):
 
 
 def displacement_jacobian(
-    model: AbstractHandleRig,
+    model: AbstractCANRig,
     queries: Float[Array, "heads V d"],
     canonical: Float[Array, "V 3"],
     edit: HandleEdit,
     layout: Layout = DENSE,
-) -> tuple[Float[Array, "V 3"], Float[Array, "... 3 3"]]:
+) -> tuple[Float[Array, "V 3"], Local]:
     """The shape of ``edit`` and the exact Jacobian of ``deform`` with respect to
     ``edit.displacements``, as 3 x 3 blocks in the layout's local form: (V, 3, H, 3) for the
     dense layout, (B, S, 3, W, 3) for a block layout (block b, slot s, its w-th handle), a
@@ -87,7 +97,7 @@ def displacement_jacobian(
         # decode (.., S, 3, k, e), value (.., W, k, e, 3), attention (.., k, S, W); one head
         # at a time: (S*3 x e) @ (e x W*3) products weighted by A^k and accumulated (4x
         # faster on CPU than materialising every head's products before the sum)
-        blocks = 0.0
+        blocks = jnp.zeros((), jnp.result_type(decode, value, attention))
         for head in range(model.n_heads):
             products = jnp.einsum(
                 "...sie,...wej->...siwj", decode[..., head, :], value[..., head, :, :]
@@ -110,7 +120,7 @@ def displacement_jacobian(
 
 
 def apply_jacobian(
-    blocks: Float[Array, "... 3 3"], tangent: Float[Array, "H 3"], layout: Layout = DENSE
+    blocks: Local, tangent: Float[Array, "H 3"], layout: Layout = DENSE
 ) -> Float[Array, "V 3"]:
     """J t for the blocks of ``displacement_jacobian`` (linear in t; JAX transposes it)."""
 
@@ -123,8 +133,13 @@ def apply_jacobian(
 
 
 def _differentiable_shape(
-    model, queries, canonical, edit: HandleEdit, layout: Layout, frozen_blocks=None
-):
+    model: AbstractCANRig,
+    queries: Float[Array, "heads V d"],
+    canonical: Float[Array, "V 3"],
+    edit: HandleEdit,
+    layout: Layout,
+    frozen_blocks: Local | None = None,
+) -> Callable[[Float[Array, "H 3"]], Float[Array, "V 3"]]:
     """d -> deform(edit with displacements d), with the structured Jacobian as its JVP; with
     ``frozen_blocks``, that Jacobian (taken at the start) stands in for the exact one."""
 
@@ -149,14 +164,15 @@ def _differentiable_shape(
 
 
 def normal_matrix(
-    blocks: Float[Array, "... 3 3"],
+    blocks: Local,
     vertex_weight: Float[Array, " V"],
     n_handles: int,
     layout: Layout = DENSE,
-) -> Float[Array, "3H 3H"]:
+) -> Float[Array, "H3 H3"]:
     """J^T W J for the blocks of ``displacement_jacobian`` (W = diag(``vertex_weight``)),
-    (3H, 3H) in handle-major order: per block one batched (W*3 x S*3) @ (S*3 x W*3) product,
-    summed over the blocks listing each pair of handles (``Layout.sum_handle_pairs``)."""
+    (3H, 3H) (``H3`` = 3 ``n_handles``) in handle-major order: per block one batched
+    (W*3 x S*3) @ (S*3 x W*3) product, summed over the blocks listing each pair of handles
+    (``Layout.sum_handle_pairs``)."""
 
     def local_normal(blocks, weight):
         weighted = blocks * weight[..., :, None, None, None]
@@ -168,7 +184,7 @@ def normal_matrix(
 
 
 def gauss_newton(
-    model: AbstractHandleRig,
+    model: AbstractCANRig,
     queries: Float[Array, "heads V d"],
     canonical: Float[Array, "V 3"],
     edit: HandleEdit,

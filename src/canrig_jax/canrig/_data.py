@@ -13,14 +13,14 @@ on which the loss is evaluated (each vertex's output depends only on its own que
 handles, so the loss over a subset is an unbiased estimate of the loss over all vertices).
 """
 
-from __future__ import annotations
-
 import dataclasses
+from collections.abc import Sequence
+from typing import Any
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Float32, Int
 
 from ..mesh import edge_graph, farthest_point_vertices, weighted_geodesic_distance
 from ..rig import BlendshapeRig, evaluate_batch, random_sparse_poses
@@ -33,14 +33,22 @@ EVAL_FALLOFF_PER_CM = 3.0
 """Falloff of the evaluation's masks (per cm)."""
 
 
-def split_capture(capture: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def split_capture(
+    capture: Float[np.ndarray, "F K"],
+) -> tuple[Float[np.ndarray, "_ K"], Float[np.ndarray, "_ K"]]:
     """(train, test): the first and second half of a capture (contiguous, so that no test
     frame has a neighbouring frame in the training set)."""
     half = len(capture) // 2
     return capture[:half], capture[half:]
 
 
-def nearby_poses(poses: np.ndarray, rng: np.random.Generator, *, sequence: bool, jitter=0.1):
+def nearby_poses(
+    poses: Float[ArrayLike, "N K"],
+    rng: np.random.Generator,
+    *,
+    sequence: bool,
+    jitter: float = 0.1,
+) -> Float32[np.ndarray, "N K"]:
     """A pose near each pose: the previous frame of a sequence (the next one for frame 0),
     or the active weights jittered by N(0, jitter) and clipped to [0, 1]."""
     poses = np.asarray(poses, np.float32)
@@ -52,7 +60,9 @@ def nearby_poses(poses: np.ndarray, rng: np.random.Generator, *, sequence: bool,
     return np.clip(poses + noise * (poses > 0), 0.0, 1.0)
 
 
-def evaluate_poses(rig: BlendshapeRig, poses: np.ndarray, chunk: int = 64) -> np.ndarray:
+def evaluate_poses(
+    rig: BlendshapeRig, poses: Float[ArrayLike, "N K"], chunk: int = 64
+) -> Float32[np.ndarray, "N V 3"]:
     """(N, V, 3) float32 NumPy meshes of ``poses`` (N, K): ``rig.evaluate_batch`` in chunks."""
     return np.asarray(evaluate_batch(rig, poses, chunk=chunk), np.float32)
 
@@ -83,12 +93,12 @@ class TrainingSet(eqx.Module):
 
 def build_training_set(
     rig: BlendshapeRig,
-    capture_train: np.ndarray,
+    capture_train: Float[np.ndarray, "F K"],
     *,
     n_random: int = 800,
     n_pool: int = 2048,
     distance_limit_cm: float = 10.0,
-    edge_factor: np.ndarray | None = None,
+    edge_factor: Float[ArrayLike, " E"] | None = None,
     seed: int = 0,
     n_active: tuple[int, int] = (4, 10),
     farthest_sets: int = 0,
@@ -108,7 +118,9 @@ def build_training_set(
     if capture_mixes < 0:
         raise ValueError(f"capture_mixes: expected >= 0, got {capture_mixes}")
     rng = np.random.default_rng(seed)
-    random_poses = random_sparse_poses(rng, n_random, rig.names, n_active=tuple(n_active))
+    random_poses = random_sparse_poses(
+        rng, n_random, rig.names, n_active=(int(n_active[0]), int(n_active[1]))
+    )
     poses = np.concatenate([capture_train, random_poses]).astype(np.float32)
     near = np.concatenate(
         [
@@ -184,20 +196,20 @@ class DataOptions:
                 f"n_active: expected (low, high) with 1 <= low <= high, got {self.n_active}"
             )
 
-    def quick(self) -> DataOptions:
+    def quick(self) -> "DataOptions":
         """The same options with the tiny sizes of a ``--quick`` run."""
         return dataclasses.replace(self, n_random=50, n_pool=256)
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {**dataclasses.asdict(self), "n_active": list(self.n_active)}
 
     def build(
         self,
         rig: BlendshapeRig,
-        capture_train: np.ndarray,
+        capture_train: Float[np.ndarray, "F K"],
         *,
         seed: int = 0,
-        edge_factor: np.ndarray | None = None,
+        edge_factor: Float[ArrayLike, " E"] | None = None,
     ) -> TrainingSet:
         """``build_training_set`` with these options."""
         return build_training_set(
@@ -208,7 +220,7 @@ class DataOptions:
             distance_limit_cm=self.distance_limit_cm,
             edge_factor=edge_factor,
             seed=seed,
-            n_active=tuple(self.n_active),
+            n_active=self.n_active,
             farthest_sets=self.farthest_sets,
             farthest_size=self.farthest_size,
             farthest_geodesic=self.farthest_metric == "geodesic",
@@ -217,8 +229,8 @@ class DataOptions:
 
 
 def capture_mixes_of(
-    capture: Float[np.ndarray, "F K"], n: int, rng: np.random.Generator
-) -> Float[np.ndarray, "n K"]:
+    capture: Float[ArrayLike, "F K"], n: int, rng: np.random.Generator
+) -> Float32[np.ndarray, "n K"]:
     """``n`` poses (1 - t) w_a + t w_b from random pairs a != b of capture frames, t ~ U(0, 1):
     new dense, capture-like expressions (mixup of the training frames; no test frame used)."""
     capture = np.asarray(capture, np.float32)
@@ -231,8 +243,8 @@ def capture_mixes_of(
 
 
 def held_out_poses(
-    capture_test: np.ndarray, names, n_random: int = 100, seed: int = 1
-) -> np.ndarray:
+    capture_test: Float[np.ndarray, "F K"], names: Sequence[str], n_random: int = 100, seed: int = 1
+) -> Float32[np.ndarray, "N K"]:
     """Held-out poses: the capture's test half and ``n_random`` random sparse poses drawn
     with a different seed than training (continuous weights: disjoint almost surely)."""
     random_poses = random_sparse_poses(np.random.default_rng(10_000 + seed), n_random, names)
@@ -262,14 +274,14 @@ class ExampleOptions:
 class Examples(eqx.Module):
     """Index arrays of one batch (numpy, drawn on the host; the step gathers on device)."""
 
-    target: Int[Array, " B"]
-    base: Int[Array, " B"]  # index into shapes, or -1 for the neutral
-    base_nearby: Int[Array, " B"]  # 1: the target's nearby pose
-    handles: Int[Array, "B H"]  # indices into the pool
-    handle_valid: Float[Array, "B H"]  # 1 for real handles, 0 for padding
-    vertices: Int[Array, "B Nv"]
-    radius: Float[Array, " B"]
-    falloff: Float[Array, " B"]
+    target: Int[np.ndarray | Array, " B"]
+    base: Int[np.ndarray | Array, " B"]  # index into shapes, or -1 for the neutral
+    base_nearby: Int[np.ndarray | Array, " B"]  # 1: the target's nearby pose
+    handles: Int[np.ndarray | Array, "B H"]  # indices into the pool
+    handle_valid: Float[np.ndarray | Array, "B H"]  # 1 for real handles, 0 for padding
+    vertices: Int[np.ndarray | Array, "B Nv"]
+    radius: Float[np.ndarray | Array, " B"]
+    falloff: Float[np.ndarray | Array, " B"]
 
 
 def sample_examples(
@@ -279,7 +291,7 @@ def sample_examples(
     n_vertices: int,
     options: ExampleOptions,
     *,
-    handle_sets: np.ndarray | None = None,
+    handle_sets: Int[ArrayLike, "S n"] | None = None,
     n_capture: int = 0,
 ) -> Examples:
     """One batch of example indices; handle arrays are padded to the batch's largest handle
@@ -312,7 +324,8 @@ def sample_examples(
     vertices = np.stack(
         [rng.choice(n_vertices, size=options.n_vertices, replace=False) for _ in range(b)]
     )
-    log_r = rng.uniform(*np.log(options.radius_cm), b)
+    log_low, log_high = np.log(options.radius_cm)
+    log_r = rng.uniform(log_low, log_high, b)
     radius = np.exp(log_r).astype(np.float32)
     falloff = rng.uniform(*options.falloff_per_cm, b).astype(np.float32)
     if options.p_farthest > 0:

@@ -23,7 +23,7 @@ and every workflow (``pose_a_to_b``, ``iterative_layers``, ``clip_edit``,
 
 import abc
 import dataclasses
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -31,9 +31,9 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, Bool, Float, Int, PyTree
 
-from ._layout import DENSE, Layout
+from ._layout import DENSE, Layout, Local
 from ._masks import influence_mask
 
 
@@ -43,9 +43,9 @@ class Handles:
     the device, so repeated edits do not copy it) and the (B, H) distance of each handle to
     the nearest vertex of each of the rig's vertex blocks (on the host)."""
 
-    index: np.ndarray
-    distance: Array
-    block_distance: np.ndarray
+    index: Int[np.ndarray, " H"]
+    distance: Float[Array, "V H"]
+    block_distance: Float[np.ndarray, "B H"]
 
     @property
     def n_handles(self) -> int:
@@ -80,7 +80,7 @@ class HandleEdit(eqx.Module):
         return eqx.tree_at(lambda e: e.base, self, base)
 
 
-def edit_mask(edit: HandleEdit, clamp: float, layout: Layout = DENSE) -> Any:
+def edit_mask(edit: HandleEdit, clamp: float, layout: Layout = DENSE) -> Local:
     """The clamped influence masks of ``edit`` in the layout's local form ((V, H) dense)."""
     return jax.tree.map(
         lambda d, r, f: influence_mask(d, r, f, clamp),
@@ -165,7 +165,7 @@ class AbstractHandleRig(eqx.Module):
         ``n_vertices`` vertices (a rig with per-vertex data is bound to its mesh)."""
         del n_vertices
 
-    def prepare(self, canonical: Float[Array, "V 3"]) -> Any:
+    def prepare(self, canonical: Float[Array, "V 3"]) -> PyTree:
         """What depends on the mesh alone (the attention rig's queries), computed once per
         mesh and passed back to ``deform`` and ``fit``; ``None`` when there is nothing."""
         del canonical
@@ -185,11 +185,11 @@ class AbstractHandleRig(eqx.Module):
     @abc.abstractmethod
     def deform(
         self,
-        prepared: Any,
+        prepared: PyTree,
         canonical: Float[Array, "V 3"],
         edit: HandleEdit,
         layout: Layout = DENSE,
-        local: Any = None,
+        local: Local | None = None,
     ) -> Float[Array, "V 3"]:
         """The shape of ``edit`` (pure, jit/vmap-able). ``layout`` changes where the work
         runs, never the result; ``local`` is ``layout.vertices(prepared, axis=-2)`` when the
@@ -197,7 +197,7 @@ class AbstractHandleRig(eqx.Module):
 
     def fit(
         self,
-        prepared: Any,
+        prepared: PyTree,
         canonical: Float[Array, "V 3"],
         edit: HandleEdit,
         target: Float[Array, "V 3"],

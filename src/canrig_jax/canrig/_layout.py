@@ -24,22 +24,28 @@ tuple with one array per part: code that works on local arrays maps over it with
 ``jax.tree.map`` (a single array is a one-leaf tree), so every layout runs the same code.
 """
 
-from __future__ import annotations
+import functools
+import operator
+from collections.abc import Iterable
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Float32, Float64, Int, Int32, Shaped
+
+Local = Shaped[Array, "..."] | tuple[Shaped[Array, "..."], ...]
+"""An array in a layout's local form: the array itself (``DENSE``), gathered into blocks
+(``BlockLayout``), or a tuple with one such array per part (``PartsLayout``)."""
 
 
 class DenseLayout(eqx.Module):
     """Every vertex attends to every handle: all gathers and the scatter are identities."""
 
-    def vertices(self, x: Float[Array, "*A N *C"], axis: int) -> Float[Array, "*A N *C"]:
+    def vertices(self, x: Shaped[Array, "*shape"], axis: int) -> Shaped[Array, "*shape"]:
         return x
 
-    def handles(self, x: Float[Array, "*A H *C"], axis: int) -> Float[Array, "*A H *C"]:
+    def handles(self, x: Shaped[Array, "*shape"], axis: int) -> Shaped[Array, "*shape"]:
         return x
 
     def distance(self, distance: Float[Array, "N H"]) -> Float[Array, "N H"]:
@@ -48,15 +54,15 @@ class DenseLayout(eqx.Module):
     def per_handle(self, x: Float[Array, " H"]) -> Float[Array, " H"]:
         return x
 
-    def scatter(self, x: Float[Array, "N F"]) -> Float[Array, "N F"]:
+    def scatter(self, x: Shaped[Array, "N F"]) -> Shaped[Array, "N F"]:
         return x
 
-    def sum_handles(self, x: Float[Array, "H ..."], n_handles: int) -> Float[Array, "H ..."]:
+    def sum_handles(self, x: Shaped[Array, " H *C"], n_handles: int) -> Shaped[Array, " H *C"]:
         return x
 
     def sum_handle_pairs(
-        self, x: Float[Array, "H H ..."], n_handles: int
-    ) -> Float[Array, "H H ..."]:
+        self, x: Shaped[Array, "H H *C"], n_handles: int
+    ) -> Shaped[Array, "H H *C"]:
         return x
 
 
@@ -78,40 +84,44 @@ class BlockLayout(eqx.Module):
         chosen: (B, W) handle indices per block, those within reach first.
     """
 
-    blocks: Int[Array, "B S"]
-    position: Int[Array, " V"]
-    chosen: Int[Array, "B W"]
+    blocks: Int[Array, "*lead B S"]
+    position: Int[Array, "*lead V"]
+    chosen: Int[Array, "*lead B W"]
 
-    def vertices(self, x: Float[Array, "*A V *C"], axis: int) -> Float[Array, "B *A S *C"]:
+    def vertices(self, x: Shaped[Array, "..."], axis: int) -> Shaped[Array, "B ..."]:
+        """``x`` with its vertex axis ``axis`` (V) replaced by the blocks' slots (S), the
+        block axis (B) first: padding slots get 0."""
         pad_shape = list(x.shape)
         pad_shape[axis % x.ndim] = 1
         padded = jnp.concatenate([x, jnp.zeros(pad_shape, x.dtype)], axis=axis)
         return _gather(padded, self.blocks, axis)
 
-    def handles(self, x: Float[Array, "*A H *C"], axis: int) -> Float[Array, "B *A W *C"]:
+    def handles(self, x: Shaped[Array, "..."], axis: int) -> Shaped[Array, "B ..."]:
+        """``x`` with its handle axis ``axis`` (H) replaced by each block's chosen handles
+        (W), the block axis (B) first."""
         return _gather(x, self.chosen, axis)
 
     def distance(self, distance: Float[Array, "V H"]) -> Float[Array, "B S W"]:
         padded = jnp.concatenate([distance, jnp.full((1, distance.shape[1]), jnp.inf)])
         return padded[self.blocks[:, :, None], self.chosen[:, None, :]]
 
-    def per_handle(self, x: Float[Array, " H"]) -> Float[Array, "B 1 W"]:
+    def per_handle(self, x: Shaped[Array, " H"]) -> Shaped[Array, "B 1 W"]:
         return x[self.chosen][:, None, :]
 
-    def scatter(self, x: Float[Array, "B S F"]) -> Float[Array, "V F"]:
+    def scatter(self, x: Shaped[Array, "B S F"]) -> Shaped[Array, "V F"]:
         """Back to vertex order; vertices outside these blocks (a part's ``position`` past
         its last slot) get 0."""
         flat = x.reshape(-1, x.shape[-1])
         return jnp.take(flat, self.position, axis=0, mode="fill", fill_value=0)
 
-    def sum_handles(self, x: Float[Array, "B W *C"], n_handles: int) -> Float[Array, "H ..."]:
+    def sum_handles(self, x: Shaped[Array, "B W *C"], n_handles: int) -> Shaped[Array, " _ *C"]:
         """The transpose of ``handles``: per handle, the sum over the blocks listing it."""
         flat = x.reshape(-1, *x.shape[2:])
         return jax.ops.segment_sum(flat, self.chosen.reshape(-1), num_segments=n_handles)
 
     def sum_handle_pairs(
-        self, x: Float[Array, "B W W *C"], n_handles: int
-    ) -> Float[Array, "H H *C"]:
+        self, x: Shaped[Array, "B W W *C"], n_handles: int
+    ) -> Shaped[Array, "_ _ *C"]:
         """Per pair of handles, the sum over the blocks listing both (a normal matrix's
         assembly from per-block products)."""
         rows, cols = self.chosen[:, :, None], self.chosen[:, None, :]
@@ -129,28 +139,32 @@ class PartsLayout(eqx.Module):
 
     parts: tuple[BlockLayout, ...]
 
-    def vertices(self, x, axis: int) -> tuple:
+    def vertices(self, x: Shaped[Array, "..."], axis: int) -> tuple[Shaped[Array, "..."], ...]:
         return tuple(part.vertices(x, axis) for part in self.parts)
 
-    def handles(self, x, axis: int) -> tuple:
+    def handles(self, x: Shaped[Array, "..."], axis: int) -> tuple[Shaped[Array, "..."], ...]:
         return tuple(part.handles(x, axis) for part in self.parts)
 
-    def distance(self, distance) -> tuple:
+    def distance(self, distance: Float[Array, "V H"]) -> tuple[Float[Array, "_ S _"], ...]:
         return tuple(part.distance(distance) for part in self.parts)
 
-    def per_handle(self, x) -> tuple:
+    def per_handle(self, x: Shaped[Array, " H"]) -> tuple[Shaped[Array, "_ 1 _"], ...]:
         return tuple(part.per_handle(x) for part in self.parts)
 
-    def scatter(self, x: tuple) -> Float[Array, "V F"]:
-        return sum(part.scatter(local) for part, local in zip(self.parts, x, strict=True))
+    def scatter(self, x: tuple[Shaped[Array, "_ S F"], ...]) -> Shaped[Array, "V F"]:
+        return _sum(part.scatter(local) for part, local in zip(self.parts, x, strict=True))
 
-    def sum_handles(self, x: tuple, n_handles: int) -> Float[Array, "H ..."]:
-        return sum(
+    def sum_handles(
+        self, x: tuple[Shaped[Array, "_ _ *C"], ...], n_handles: int
+    ) -> Shaped[Array, " _ *C"]:
+        return _sum(
             part.sum_handles(local, n_handles) for part, local in zip(self.parts, x, strict=True)
         )
 
-    def sum_handle_pairs(self, x: tuple, n_handles: int) -> Float[Array, "H H ..."]:
-        return sum(
+    def sum_handle_pairs(
+        self, x: tuple[Shaped[Array, "_ _ _ *C"], ...], n_handles: int
+    ) -> Shaped[Array, "_ _ *C"]:
+        return _sum(
             part.sum_handle_pairs(local, n_handles)
             for part, local in zip(self.parts, x, strict=True)
         )
@@ -163,7 +177,14 @@ class PartsLayout(eqx.Module):
 Layout = DenseLayout | BlockLayout | PartsLayout
 
 
-def vertex_blocks(vertices: np.ndarray, max_size: int = 48) -> np.ndarray:
+def _sum(arrays: Iterable[Array]) -> Array:
+    """The sum of the parts' arrays (``sum`` would start from the int 0)."""
+    return functools.reduce(operator.add, arrays)
+
+
+def vertex_blocks(
+    vertices: Float[ArrayLike, "V 3"], max_size: int = 48
+) -> Int32[np.ndarray, "B S"]:
     """(B, S) vertex indices in compact blocks of equal size S <= max_size (-1 pads the last
     slots of blocks one shorter). Recursive median bisection along the longest extent."""
     vertices = np.asarray(vertices, np.float64)
@@ -186,7 +207,9 @@ def vertex_blocks(vertices: np.ndarray, max_size: int = 48) -> np.ndarray:
     return out.astype(np.int32)
 
 
-def block_distance(blocks: np.ndarray, distance: np.ndarray) -> np.ndarray:
+def block_distance(
+    blocks: Int[np.ndarray, "B S"], distance: Float[ArrayLike, "V H"]
+) -> Float32[np.ndarray, "B H"]:
     """(B, H) distance from each handle to the nearest vertex of each block (host, once per
     handle placement); ``distance`` is (V, H), padding slots (-1 or V) count as infinite."""
     distance = np.asarray(distance, np.float32)
@@ -195,7 +218,11 @@ def block_distance(blocks: np.ndarray, distance: np.ndarray) -> np.ndarray:
     return padded[blocks].min(axis=1)
 
 
-def influence_reach(radius: np.ndarray, falloff: np.ndarray, clamp: float) -> np.ndarray:
+def influence_reach(
+    radius: float | Float[ArrayLike, "*shape"],
+    falloff: float | Float[ArrayLike, "*#shape"],
+    clamp: float,
+) -> Float64[np.ndarray, "*shape"]:
     """(H,) distance beyond which a handle's clamped mask is exactly 0.
 
     0.5 (1 - tanh(g (d - r))) < clamp  <=>  d > r + atanh(1 - 2 clamp) / g. A relative and
@@ -211,10 +238,10 @@ def influence_reach(radius: np.ndarray, falloff: np.ndarray, clamp: float) -> np
 
 
 def block_layout(
-    blocks: np.ndarray,
-    position: np.ndarray,
-    nearest: Float[np.ndarray, "... B H"],
-    reach: Float[np.ndarray, "... H"],
+    blocks: Int[np.ndarray | Array, "B S"],
+    position: Int[np.ndarray | Array, " V"],
+    nearest: Float[np.ndarray, "*lead B H"],
+    reach: Float[np.ndarray, "*lead H"],
     *,
     width: int | None = None,
     multiple: int | None = None,

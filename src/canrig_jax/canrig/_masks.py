@@ -15,11 +15,9 @@ with radius r_h and falloff gamma_h per handle. ``influence_mask`` is a jnp func
 arrays, so radii and falloffs change per call without recompiling.
 """
 
-from __future__ import annotations
-
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float, Float32, Float64, Int
 
 from .._checks import check_real, is_concrete
 from ..mesh import edge_graph, mesh_edges, weighted_geodesic_distance
@@ -42,7 +40,9 @@ MIN_EDGE_FACTOR = 1e-3
 """Floor of the correlation-prior edge factor: csgraph drops zero-weight edges."""
 
 
-def correlation_edge_factor(faces: np.ndarray, shapes: np.ndarray) -> np.ndarray:
+def correlation_edge_factor(
+    faces: Int[ArrayLike, "F 3"], shapes: Float[ArrayLike, "N V 3"]
+) -> Float64[np.ndarray, " E"]:
     """(E,) appendix A's prior ``1 - |corr(v_i, v_j)|`` per edge of ``mesh_edges(faces)``.
 
     ``shapes`` (N, V, 3) are training shapes; the correlation of two vertices is the Pearson
@@ -70,14 +70,17 @@ def correlation_edge_factor(faces: np.ndarray, shapes: np.ndarray) -> np.ndarray
 
 
 def influence_mask(
-    distance: Float[ArrayLike, "V H"],
-    radius: Float[ArrayLike, " H"],
-    falloff: Float[ArrayLike, " H"],
+    distance: Float[ArrayLike, "*shape"],
+    radius: Float[ArrayLike, "*#shape"],
+    falloff: Float[ArrayLike, "*#shape"],
     clamp: float = 0.0,
-) -> Float[Array, "V H"]:
+) -> Float[Array, "*shape"]:
     """Influence M_{h,v} = 0.5 (1 - tanh(falloff_h (d_{h,v} - radius_h))) of each handle
     (last axis) on each vertex; values below ``clamp`` become exactly 0, infinite distances
     (unreachable, beyond a distance limit) give 0. jit/vmap/grad-safe.
+
+    ``distance`` is (V, H) (or a layout's local form, e.g. (B, S, W)); ``radius`` and
+    ``falloff`` (H,), or anything that broadcasts against ``distance`` (a scalar, (B, 1, W)).
 
     Concrete (non-traced) arguments are checked first: ValueError for a NaN or negative
     distance, or a radius or falloff that is not finite and > 0 (a negative one inverts the
@@ -95,7 +98,9 @@ def influence_mask(
     return mask
 
 
-def check_handle_parameters(radius, falloff, n_handles: int) -> tuple[np.ndarray, np.ndarray]:
+def check_handle_parameters(
+    radius: float | Float[ArrayLike, " H"], falloff: float | Float[ArrayLike, " H"], n_handles: int
+) -> tuple[Float32[np.ndarray, " H"], Float32[np.ndarray, " H"]]:
     """Validate radius and falloff (scalars or (H,)) and broadcast them to (H,) float32."""
     out = []
     for name, value in (("radius", radius), ("falloff", falloff)):

@@ -2,8 +2,6 @@
 zero input gives an exactly zero output; the rig then reproduces the base shape exactly when
 every handle displacement is zero."""
 
-from __future__ import annotations
-
 from collections.abc import Callable
 
 import equinox as eqx

@@ -48,21 +48,19 @@ handle is, not only how it moved. All four are linear in d, multiply the attende
 multiply W_d d, so both exact properties still hold.
 """
 
-from __future__ import annotations
-
 import abc
 import dataclasses
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Float, Float64, PRNGKeyArray
 
 from ._attention import masked_attention_weights
-from ._attention_fit import gauss_newton, trace_edit
 from ._handle_rig import AbstractHandleRig, FitOptions, FitState, HandleEdit
-from ._layout import DENSE, Layout, influence_reach
+from ._layout import DENSE, Layout, Local, influence_reach
 from ._masks import CLAMP
 from ._mlp import ZeroPreservingMLP
 
@@ -85,7 +83,9 @@ class Architecture:
     value_position: bool = False
 
 
-def _per_row(fn, x: Float[Array, "*B F"], *more: Float[Array, "*B G"]) -> Float[Array, "*B O"]:
+def _per_row(
+    fn: Callable[..., Float[Array, " O"]], x: Float[Array, "*B F"], *more: Float[Array, "*B G"]
+) -> Float[Array, "*B O"]:
     """``fn`` applied to each row (last axis) of ``x`` (and the matching rows of ``more``)."""
     lead = x.shape[:-1]
     flat = [a.reshape(-1, a.shape[-1]) for a in (x, *more)]
@@ -121,7 +121,7 @@ class AbstractCANRig(AbstractHandleRig):
         """What multiplies the attended vector before the output MLP (None: nothing)."""
 
     @abc.abstractmethod
-    def attention_beta(self, beta) -> Float[Array, ""] | None:
+    def attention_beta(self, beta: float | Float[Array, ""] | None) -> Float[Array, ""]:
         """The extra attention column's logit, or None for no extra column."""
 
     # ------------------------------------------------------------ as a handle rig
@@ -130,7 +130,7 @@ class AbstractCANRig(AbstractHandleRig):
 
     def reach(
         self, radius: Float[np.ndarray, " H"], falloff: Float[np.ndarray, " H"]
-    ) -> Float[np.ndarray, " H"]:
+    ) -> Float64[np.ndarray, " H"]:
         return influence_reach(radius, falloff, self.clamp)
 
     def deform(
@@ -139,8 +139,10 @@ class AbstractCANRig(AbstractHandleRig):
         canonical: Float[Array, "V 3"],
         edit: HandleEdit,
         layout: Layout = DENSE,
-        local: Float[Array, "..."] | None = None,
+        local: Local | None = None,
     ) -> Float[Array, "V 3"]:
+        from ._attention_fit import trace_edit  # it needs this module's classes
+
         return trace_edit(self, prepared, canonical, edit, layout, local).shape
 
     def fit(
@@ -153,6 +155,8 @@ class AbstractCANRig(AbstractHandleRig):
         layout: Layout,
         options: FitOptions,
     ) -> FitState:
+        from ._attention_fit import gauss_newton  # it needs this module's classes
+
         return gauss_newton(self, prepared, canonical, edit, target, region, layout, options)
 
     # ------------------------------------------------------------ static attributes
@@ -219,7 +223,7 @@ class AbstractCANRig(AbstractHandleRig):
         queries: Float[Array, "*B heads N d"],
         keys: Float[Array, "*B heads H d"],
         mask: Float[Array, "*B N H"],
-        beta=None,
+        beta: float | Float[Array, ""] | None = None,
     ) -> Float[Array, "*B heads N H"]:
         """Masked attention weights A_M (eq. 2, with the beta column of eq. 10): they depend
         on the canonical positions and the masks, never on the displacements. ``mask`` is
@@ -274,11 +278,11 @@ class AbstractCANRig(AbstractHandleRig):
         handle_canonical: Float[Array, "H 3"],
         handle_base: Float[Array, "H 3"],
         displacements: Float[Array, "H 3"],
-        mask: Float[Array, "..."],
+        mask: Local,
         beta: float | Float[Array, ""] | None = None,
         layout: Layout = DENSE,
-        local_queries: Float[Array, "..."] | None = None,
-    ) -> Trace:
+        local_queries: Local | None = None,
+    ) -> "Trace":
         """The forward pass with its intermediates (``__call__`` returns ``.shape``).
         ``local_queries``: ``layout.vertices(queries, axis=-2)`` if cached by the caller."""
         keys = layout.handles(self.encode_keys(handle_canonical), axis=-2)
@@ -305,10 +309,10 @@ class AbstractCANRig(AbstractHandleRig):
         handle_canonical: Float[Array, "H 3"],
         handle_base: Float[Array, "H 3"],
         displacements: Float[Array, "H 3"],
-        mask: Float[Array, "..."],
+        mask: Local,
         beta: float | Float[Array, ""] | None = None,
         layout: Layout = DENSE,
-        local_queries: Float[Array, "..."] | None = None,
+        local_queries: Local | None = None,
     ) -> Float[Array, "N 3"]:
         """The deformed shape at the N vertices: base + network output (+ prior).
 
@@ -336,21 +340,21 @@ class Trace(eqx.Module):
 
     shape: Float[Array, "N 3"]
     attended: Float[Array, "N latent"]
-    attention: Float[Array, "..."]
+    attention: Local
 
 
 def _architecture(
-    canonical,
+    canonical: Float[ArrayLike, "V 3"],
     *,
-    n_heads,
-    latent,
-    width,
-    n_layers,
-    displacement_scale,
-    clamp,
-    fourier,
-    linear_skip,
-    interpolation_prior,
+    n_heads: int,
+    latent: int,
+    width: int,
+    n_layers: int,
+    displacement_scale: float,
+    clamp: float,
+    fourier: int,
+    linear_skip: bool,
+    interpolation_prior: bool,
 ) -> Architecture:
     for name, value in (("n_heads", n_heads), ("latent", latent), ("width", width)):
         if int(value) < 1:
@@ -373,7 +377,7 @@ def _architecture(
     centre = canonical.mean(axis=0)
     scale = float(np.sqrt(((canonical - centre) ** 2).sum(axis=1).mean())) or 1.0
     return Architecture(
-        centre=tuple(float(c) for c in centre),
+        centre=(float(centre[0]), float(centre[1]), float(centre[2])),
         position_scale=scale,
         displacement_scale=float(displacement_scale),
         n_heads=int(n_heads),
@@ -387,16 +391,31 @@ def _architecture(
     )
 
 
-def _position_mlps(arch: Architecture, kq, kk) -> tuple[eqx.nn.MLP, eqx.nn.MLP]:
-    mlp = dict(width_size=arch.width, depth=arch.n_layers - 1, activation=jax.nn.gelu)
+def _position_mlps(
+    arch: Architecture, kq: PRNGKeyArray, kk: PRNGKeyArray
+) -> tuple[eqx.nn.MLP, eqx.nn.MLP]:
     n_in = 3 + 6 * arch.fourier
-    return (
-        eqx.nn.MLP(n_in, arch.latent, **mlp, key=kq),
-        eqx.nn.MLP(n_in, arch.latent, **mlp, key=kk),
-    )
+
+    def mlp(key: PRNGKeyArray) -> eqx.nn.MLP:
+        return eqx.nn.MLP(
+            n_in,
+            arch.latent,
+            width_size=arch.width,
+            depth=arch.n_layers - 1,
+            activation=jax.nn.gelu,
+            key=key,
+        )
+
+    return mlp(kq), mlp(kk)
 
 
-def _zero_preserving(arch: Architecture, n_in, n_out, activation, key) -> ZeroPreservingMLP:
+def _zero_preserving(
+    arch: Architecture,
+    n_in: int,
+    n_out: int,
+    activation: Callable[[Array], Array],
+    key: PRNGKeyArray,
+) -> ZeroPreservingMLP:
     return ZeroPreservingMLP(
         n_in,
         n_out,
@@ -420,7 +439,7 @@ class CANRig(AbstractCANRig):
 
     def __init__(
         self,
-        canonical: Float[np.ndarray, "V 3"],
+        canonical: Float[ArrayLike, "V 3"],
         *,
         n_heads: int = 4,
         latent: int = 64,
@@ -452,15 +471,19 @@ class CANRig(AbstractCANRig):
         self.output_mlp = _zero_preserving(self.arch, latent, 3, jnp.tanh, ko)
         self.query_modulation = eqx.nn.Linear(latent, latent, key=km) if query_modulation else None
 
-    def value_input(self, displacements, handle_base):
+    def value_input(
+        self, displacements: Float[Array, "*B H 3"], handle_base: Float[Array, "*B H 3"]
+    ) -> Float[Array, "*B H F"]:
         del handle_base  # only the shape-preserving variant uses it
         return displacements / self.displacement_scale
 
-    def output_modulation_of(self, base, queries):
+    def output_modulation_of(
+        self, base: Float[Array, "*B N 3"], queries: Float[Array, "*B N latent"]
+    ) -> Float[Array, "*B N latent"] | None:
         del base
         return self.vertex_modulation(queries)
 
-    def attention_beta(self, beta):
+    def attention_beta(self, beta: float | Float[Array, ""] | None) -> None:
         return None
 
 
@@ -481,7 +504,7 @@ class ShapePreservingCANRig(AbstractCANRig):
 
     def __init__(
         self,
-        canonical: Float[np.ndarray, "V 3"],
+        canonical: Float[ArrayLike, "V 3"],
         *,
         key: PRNGKeyArray,
         value_position: bool = False,
@@ -497,14 +520,22 @@ class ShapePreservingCANRig(AbstractCANRig):
         self.value_embedding = eqx.nn.Linear(3, width, use_bias=False, key=ke)
         if value_position:
             n_in = 3 + 6 * self.arch.fourier
-            mlp = dict(width_size=width, depth=self.arch.n_layers - 1, activation=jax.nn.gelu)
-            self.value_modulation = eqx.nn.MLP(n_in, width, **mlp, key=kb)
+            self.value_modulation = eqx.nn.MLP(
+                n_in,
+                width,
+                width_size=width,
+                depth=self.arch.n_layers - 1,
+                activation=jax.nn.gelu,
+                key=kb,
+            )
         else:
             self.value_modulation = eqx.nn.Linear(3, width, key=kb)
         self.output_modulation = eqx.nn.Linear(3, latent, key=ks)
         self.value_mlp = _zero_preserving(self.arch, width, latent, jax.nn.gelu, kv)
 
-    def value_input(self, displacements, handle_base):
+    def value_input(
+        self, displacements: Float[Array, "*B H 3"], handle_base: Float[Array, "*B H 3"]
+    ) -> Float[Array, "*B H F"]:
         embedded = _per_row(self.value_embedding, displacements / self.displacement_scale)
         if self.arch.value_position:
             position = self.encode_position(handle_base)
@@ -512,12 +543,14 @@ class ShapePreservingCANRig(AbstractCANRig):
             position = self.normalise(handle_base)
         return embedded * _per_row(self.value_modulation, position)
 
-    def output_modulation_of(self, base, queries):
+    def output_modulation_of(
+        self, base: Float[Array, "*B N 3"], queries: Float[Array, "*B N latent"]
+    ) -> Float[Array, "*B N latent"]:
         modulation = _per_row(self.output_modulation, self.normalise(base))
         by_query = self.vertex_modulation(queries)
         return modulation if by_query is None else modulation + by_query
 
-    def attention_beta(self, beta):
+    def attention_beta(self, beta: float | Float[Array, ""] | None) -> Float[Array, ""]:
         """The extra attention column's logit (default 0, the training value)."""
         return jnp.asarray(0.0 if beta is None else beta)
 

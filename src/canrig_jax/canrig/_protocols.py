@@ -1,8 +1,6 @@
 """Protocol of the CANRig training experiment that is more than orchestration: the training
 command line derived from the option dataclasses (``experiments/canrig_train.py``)."""
 
-from __future__ import annotations
-
 import argparse
 
 from .._cli import add_dataclass_options, from_args

@@ -24,30 +24,40 @@ them along ``mesh.bridged_edge_graph`` instead, where every vertex of such a par
 (its 3D distance) from its nearest vertex of the largest piece.
 """
 
-from typing import Any
+from collections.abc import Callable, Sequence
+from typing import TypeVar
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float, Int
+import scipy.sparse as sp
+from jaxtyping import Array, ArrayLike, Float, Int, Int32, PyTree, Shaped
 
-from .._checks import check_points
+from .._checks import check_points, is_concrete
 from .._threads import blocking_single_threaded_blas
 from ..mesh import bridged_edge_graph
 from ._handle_rig import AbstractHandleRig, HandleEdit, Handles
-from ._layout import DENSE, BlockLayout, Layout, block_distance, block_layout, vertex_blocks
+from ._layout import (
+    DENSE,
+    BlockLayout,
+    Layout,
+    Local,
+    block_distance,
+    block_layout,
+    vertex_blocks,
+)
 from ._masks import check_handle_parameters, edge_graph, weighted_geodesic_distance
 
 
 @eqx.filter_jit
 def deform(
     model: AbstractHandleRig,
-    queries: Any,
+    queries: PyTree,
     canonical: Float[Array, "V 3"],
     edit: HandleEdit,
     layout: Layout = DENSE,
-    local_queries: Float[Array, "..."] | None = None,
+    local_queries: Local | None = None,
 ) -> Float[Array, "V 3"]:
     """The shape of ``edit``: the one jitted forward pass of any handle rig (no validation;
     build ``edit`` with ``NeuralRig.edit``). ``queries`` is ``model.prepare(canonical)`` (the
@@ -57,11 +67,14 @@ def deform(
     return model.deform(queries, canonical, edit, layout, local_queries)
 
 
-def call_blas_safe(model: AbstractHandleRig, fn, *args):
+T = TypeVar("T")
+
+
+def call_blas_safe(model: AbstractHandleRig, fn: Callable[..., T], *args) -> T:
     """``fn(*args)``, with one BLAS thread when ``model``'s forward pass runs LAPACK
     (``AbstractHandleRig.lapack_in_forward``: its threads fight XLA's, see
     ``canrig_jax._threads``). Under a trace (the rig inside ``jit``) it only calls ``fn``."""
-    tracing = any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(args))
+    tracing = not all(is_concrete(x) for x in jax.tree.leaves(args))
     if model.lapack_in_forward and not tracing:
         return blocking_single_threaded_blas(fn, *args)
     return fn(*args)
@@ -71,8 +84,17 @@ class _Host:
     """Host-side data of a ``NeuralRig`` (the edge graph, the vertex blocks): a static field,
     hashed and compared by identity, so the rig passes through ``eqx.filter_jit``."""
 
-    def __init__(self, **values):
-        self.__dict__.update(values)
+    def __init__(
+        self,
+        graph: sp.csr_matrix,
+        faces: Int[np.ndarray, "F 3"],
+        blocks: Int32[np.ndarray, "B S"],
+        block_position: Int32[np.ndarray, " V"],
+    ):
+        self.graph = graph
+        self.faces = faces
+        self.blocks = blocks
+        self.block_position = block_position
 
 
 class NeuralRig(eqx.Module):
@@ -91,8 +113,8 @@ class NeuralRig(eqx.Module):
 
     model: AbstractHandleRig
     canonical: Float[Array, "V 3"]
-    queries: Any
-    block_queries: Any
+    queries: PyTree
+    block_queries: Shaped[Array, "B ..."] | None
     device_blocks: tuple[Int[Array, "B S"], Int[Array, " V"]]
     host: _Host = eqx.field(static=True)
 
@@ -102,7 +124,7 @@ class NeuralRig(eqx.Module):
         canonical: Float[ArrayLike, "V 3"],
         faces: Int[ArrayLike, "F 3"],
         *,
-        edge_factor: np.ndarray | None = None,
+        edge_factor: Float[ArrayLike, " E"] | None = None,
         block_size: int = 48,
         bridge: bool = False,
     ):
@@ -139,28 +161,31 @@ class NeuralRig(eqx.Module):
             self.block_queries = blocked.vertices(self.queries, axis=-2)
 
     @property
-    def graph(self):
+    def graph(self) -> sp.csr_matrix:
         """The (V, V) edge graph the handles' geodesic distances run along (SciPy CSR)."""
         return self.host.graph
 
     @property
-    def faces(self) -> np.ndarray:
+    def faces(self) -> Int[np.ndarray, "F 3"]:
         return self.host.faces
 
     @property
-    def blocks(self) -> np.ndarray:
+    def blocks(self) -> Int32[np.ndarray, "B S"]:
         """(B, S) the vertex blocks of the block-sparse layout (padded with V)."""
         return self.host.blocks
 
     @property
-    def block_position(self) -> np.ndarray:
+    def block_position(self) -> Int32[np.ndarray, " V"]:
+        """(V,) each vertex's slot in the flattened (B * S) block order."""
         return self.host.block_position
 
     @property
     def n_vertices(self) -> int:
         return int(self.canonical.shape[0])
 
-    def handles(self, index: ArrayLike, *, limit: float = np.inf) -> Handles:
+    def handles(
+        self, index: Int[ArrayLike, " H"] | Sequence[int], *, limit: float = np.inf
+    ) -> Handles:
         """Place handles at vertex ``index`` (H,), distinct vertices: computes their geodesic
         distances (Dijkstra, once per placement)."""
         index = np.asarray(index)
@@ -202,7 +227,9 @@ class NeuralRig(eqx.Module):
             )
         return h
 
-    def check_base(self, base: Float[ArrayLike, "V 3"] | None, name: str = "base") -> Array:
+    def check_base(
+        self, base: Float[ArrayLike, "V 3"] | None, name: str = "base"
+    ) -> Float[Array, "V 3"]:
         """``base`` as a checked (V, 3) float32 device array; None: the neutral."""
         if base is None:
             return self.canonical

@@ -7,20 +7,19 @@ draws the same batches as an uninterrupted one; the checkpoint holds the model, 
 state, the step, the elapsed time and the loss history, written in one file atomically.
 """
 
-from __future__ import annotations
-
 import dataclasses
 import functools
 import json
 import os
 from pathlib import Path
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from .._checkpoint import load_checkpoint as _load_file
 from .._checkpoint import read_checkpoint_state as _read_state_file
@@ -30,7 +29,7 @@ from .._metrics import CM_TO_MM
 from .._sharding import data_parallel
 from ._data import ExampleOptions, Examples, TrainingSet, sample_examples
 from ._masks import influence_mask
-from ._model import CANRig, ShapePreservingCANRig
+from ._model import AbstractCANRig, CANRig, ShapePreservingCANRig
 
 VARIANTS = {"canrig": CANRig, "shape_preserving": ShapePreservingCANRig}
 LOSSES = ("squared", "euclidean")
@@ -84,11 +83,11 @@ class TrainOptions:
         if not 0.0 <= self.decay_floor <= 1.0:
             raise ValueError(f"decay_floor: expected a value in [0, 1], got {self.decay_floor}")
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> TrainOptions:
+    def from_dict(cls, d: dict[str, Any]) -> "TrainOptions":
         d = dict(d)
         ex = d.pop("examples")
         ex = {k: tuple(v) if isinstance(v, list) else v for k, v in ex.items()}
@@ -120,7 +119,10 @@ def make_optimiser(options: TrainOptions) -> optax.GradientTransformation:
     )
 
 
-def make_model(options: TrainOptions, canonical, displacement_scale: float = 1.0) -> CANRig:
+def make_model(
+    options: TrainOptions, canonical: Float[ArrayLike, "V 3"], displacement_scale: float = 1.0
+) -> AbstractCANRig:
+    """The untrained model of ``options`` (its variant, sizes and seed) on ``canonical``."""
     return VARIANTS[options.variant](
         np.asarray(canonical),
         n_heads=options.n_heads,
@@ -147,8 +149,13 @@ def vertex_penalty(difference: Float[Array, "N 3"], loss: str) -> Float[Array, "
 
 
 def example_loss(
-    model: CANRig, data: TrainingSet, ex: Examples, beta, sp_weight, loss: str = "squared"
-) -> tuple[Float[Array, ""], dict]:
+    model: AbstractCANRig,
+    data: TrainingSet,
+    ex: Examples,
+    beta: float | Float[Array, ""],
+    sp_weight: float | Float[Array, ""],
+    loss: str = "squared",
+) -> tuple[Float[Array, ""], dict[str, Float[Array, ""]]]:
     """Mean over the batch of (L2 + sp_weight * L_sp) on each example's vertex subset, with
     the per-vertex penalty ``loss`` (``vertex_penalty``); also the mean squared error (mm^2)
     and the mean per-vertex error (mm) on those vertices."""
@@ -202,7 +209,18 @@ def example_loss(
 
 
 @eqx.filter_jit
-def train_step(model, opt_state, data, ex, optimiser, beta, sp_weight, loss="squared"):
+def train_step(
+    model: AbstractCANRig,
+    opt_state: PyTree,
+    data: TrainingSet,
+    ex: Examples,
+    optimiser: optax.GradientTransformation,
+    beta: float | Float[Array, ""],
+    sp_weight: float | Float[Array, ""],
+    loss: str = "squared",
+) -> tuple[AbstractCANRig, PyTree, Float[Array, ""], dict[str, Float[Array, ""]]]:
+    """One Adam step on ``example_loss`` over the batch ``ex``: the updated model and
+    optimiser state, the loss and its parts (``example_loss``'s aux)."""
     (total, aux), grads = eqx.filter_value_and_grad(example_loss, has_aux=True)(
         model, data, ex, beta, sp_weight, loss
     )
@@ -213,23 +231,30 @@ def train_step(model, opt_state, data, ex, optimiser, beta, sp_weight, loss="squ
 # --------------------------------------------------------------------------- checkpoints
 
 
-def save_checkpoint(path, model, opt_state, state: dict) -> Path:
+def save_checkpoint(
+    path: str | os.PathLike, model: AbstractCANRig, opt_state: PyTree, state: dict[str, Any]
+) -> Path:
     """One file, written atomically (``canrig_jax.checkpoint``): a JSON header line
     (``state``), then the leaves of (model, opt_state)."""
     return _save_file(path, (model, opt_state), state, CHECKPOINT_FORMAT)
 
 
-def read_checkpoint_state(path) -> dict:
+def read_checkpoint_state(path: str | os.PathLike) -> dict[str, Any]:
+    """The JSON header of a training checkpoint (options, step, history, ...)."""
     return _read_state_file(path, CHECKPOINT_FORMAT)
 
 
-def load_checkpoint(path, like_model, like_opt_state):
+def load_checkpoint(
+    path: str | os.PathLike, like_model: AbstractCANRig, like_opt_state: PyTree
+) -> tuple[AbstractCANRig, PyTree, dict[str, Any]]:
     """(model, opt_state, state) from ``save_checkpoint``; ``like_*`` give the structure."""
     (model, opt_state), state = _load_file(path, (like_model, like_opt_state), CHECKPOINT_FORMAT)
     return model, opt_state, state
 
 
-def load_model(path, canonical) -> tuple[CANRig, dict]:
+def load_model(
+    path: str | os.PathLike, canonical: Float[ArrayLike, "V 3"]
+) -> tuple[AbstractCANRig, dict[str, Any]]:
     """The trained model of a checkpoint (its options are in the header) and the header."""
     state = read_checkpoint_state(path)
     options = TrainOptions.from_dict(state["options"])
@@ -245,10 +270,13 @@ def load_model(path, canonical) -> tuple[CANRig, dict]:
 
 @dataclasses.dataclass
 class TrainResult:
-    model: CANRig
+    """``train``'s result: the trained model, its step count, the accumulated training time
+    (s) and the logged history (one dict per ``log_every`` steps)."""
+
+    model: AbstractCANRig
     step: int
     seconds: float
-    history: list
+    history: list[dict[str, Any]]
 
 
 def train(
@@ -259,7 +287,7 @@ def train(
     displacement_scale: float = 1.0,
     progress: bool = True,
     stop_after: int | None = None,
-    data_options: dict | None = None,
+    data_options: dict[str, Any] | None = None,
     devices: int | None = None,
 ) -> TrainResult:
     """Train (or resume from ``checkpoint`` if it exists) until ``options.steps`` steps or

@@ -26,18 +26,18 @@ the rig (ICT: cm). Inputs are validated in plain Python before any jit work.
 
 import dataclasses
 from collections.abc import Sequence
-from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, ArrayLike, Float, Int, Shaped
+from jaxtyping import Array, ArrayLike, Bool, Float, Float32, Float64, Int, PyTree, Shaped
 from scipy.sparse.csgraph import dijkstra
 
 from .._checks import check_points
 from .._threads import blocking_single_threaded_blas
+from ..rig import BlendshapeRig
 from ._handle_rig import AbstractHandleRig, FitOptions, FitState, HandleEdit, Handles
 from ._layout import DENSE, Layout
 from ._rig import NeuralRig, call_blas_safe, deform
@@ -78,7 +78,7 @@ def region_error(
 @eqx.filter_jit
 def fit_displacements(
     model: AbstractHandleRig,
-    queries: Any,
+    queries: PyTree,
     canonical: Float[Array, "V 3"],
     edit: HandleEdit,
     target: Float[Array, "V 3"],
@@ -99,7 +99,12 @@ def fit_displacements(
     return _best_of(edit, target, region, state)
 
 
-def _best_of(edit: HandleEdit, target, region, state: FitState) -> FitSolution:
+def _best_of(
+    edit: HandleEdit,
+    target: Float[Array, "V 3"],
+    region: Float[Array, " V"],
+    state: FitState,
+) -> FitSolution:
     """The ``FitSolution`` of the best of {fitted, direct, zero} displacements by the
     reported error; a non-finite fit falls back to the direct displacements."""
     fitted, fitted_shape, direct_shape = state.fitted, state.fitted_shape, state.direct_shape
@@ -131,7 +136,9 @@ def _best_of(edit: HandleEdit, target, region, state: FitState) -> FitSolution:
 # --------------------------------------------------------------------------- checks
 
 
-def _check_region(rig: NeuralRig, region, name: str = "region") -> Array:
+def _check_region(
+    rig: NeuralRig, region: Shaped[ArrayLike, " V"] | None, name: str = "region"
+) -> Float[Array, " V"]:
     if region is None:
         return jnp.ones(rig.n_vertices, jnp.float32)
     region = np.asarray(region)
@@ -145,13 +152,15 @@ def _check_region(rig: NeuralRig, region, name: str = "region") -> Array:
     return jnp.asarray(region)
 
 
-def _check_clip(rig: NeuralRig, clip, name: str) -> np.ndarray:
+def _check_clip(
+    rig: NeuralRig, clip: Float[ArrayLike, "F V 3"], name: str
+) -> Float32[np.ndarray, "F V 3"]:
     return check_points(name, clip, rig.n_vertices, frames=True)
 
 
 def direct_displacements(
     source: Float[ArrayLike, "V 3"], target: Float[ArrayLike, "V 3"], handles: Handles
-) -> np.ndarray:
+) -> Float32[np.ndarray, "H 3"]:
     """(H, 3) target[h] - source[h] at the handle vertices (section 7.1)."""
     index = np.asarray(handles.index)
     return np.asarray(target, np.float32)[index] - np.asarray(source, np.float32)[index]
@@ -257,11 +266,13 @@ class LayerResult:
     solutions: tuple[FitSolution, ...]
 
     @property
-    def errors(self) -> np.ndarray:
+    def errors(self) -> Float64[np.ndarray, " L"]:
+        """(L,) each layer's error (cm)."""
         return np.array([float(s.error) for s in self.solutions])
 
     @property
-    def shape(self) -> Array:
+    def shape(self) -> Float[Array, "V 3"]:
+        """(V, 3) the last layer's shape."""
         return self.solutions[-1].shape
 
 
@@ -308,7 +319,7 @@ def iterative_layers(
 # --------------------------------------------------------------------------- clips
 
 
-def smoothstep_fade(n_frames: int, frame: int, half_window: int) -> np.ndarray:
+def smoothstep_fade(n_frames: int, frame: int, half_window: int) -> Float32[np.ndarray, " F"]:
     """(F,) weight of an edit at ``frame`` faded in and out over ``half_window`` frames on
     each side: 1 at the frame, smoothstep 3x^2 - 2x^3 of x = 1 - |f - frame| / (half + 1)
     inside, 0 outside; both ends have zero slope (no velocity jump)."""
@@ -331,20 +342,20 @@ def _edit_frames(model, queries, canonical, edit, bases, displacements, layout):
 class ClipEdit:
     """``clip_edit``: the edited clip (F, V, 3) and the fade weight per frame (F,)."""
 
-    clip: np.ndarray
-    fade: np.ndarray
+    clip: Float32[np.ndarray, "F V 3"]
+    fade: Float32[np.ndarray, " F"]
     window: tuple[int, int]
 
 
 def clip_edit(
     rig: NeuralRig,
     clip: Float[ArrayLike, "F V 3"],
-    frame: int,
+    frame: int | np.integer,
     handles: Handles,
     displacements: Float[ArrayLike, "H 3"],
     radius: float | Float[ArrayLike, " H"],
     falloff: float | Float[ArrayLike, " H"],
-    half_window: int,
+    half_window: int | np.integer,
     *,
     beta: float | None = None,
 ) -> ClipEdit:
@@ -408,7 +419,7 @@ def dialogue_replacement(
     region: Shaped[ArrayLike, " V"] | None = None,
     options: FitOptions = FitOptions(),
     beta: float | None = None,
-) -> np.ndarray:
+) -> Float32[np.ndarray, "F V 3"]:
     """Replace the mouth of ``source`` with that of ``target`` (section 7.2), frame by frame
     (``jax.vmap``): handles (around the mouth and chin) move to the target frame's positions,
     base shape the source frame; with ``fit``, the displacements that best match the target
@@ -455,7 +466,9 @@ def dialogue_replacement(
     return np.asarray(out)
 
 
-def interior_vertices(rig: NeuralRig, region: Shaped[ArrayLike, " V"], margin: float) -> np.ndarray:
+def interior_vertices(
+    rig: NeuralRig, region: Shaped[ArrayLike, " V"], margin: float
+) -> Int[np.ndarray, " N"]:
     """Vertices of the boolean ``region`` (V,) whose geodesic distance to every vertex
     outside it exceeds ``margin`` (cm): handles there, with ``influence_reach`` <= margin,
     cannot move anything outside the region."""
@@ -474,11 +487,11 @@ def interior_vertices(rig: NeuralRig, region: Shaped[ArrayLike, " V"], margin: f
 
 
 def expression_region(
-    rig,
+    rig: BlendshapeRig,
     include: Sequence[str] = ("jaw", "mouth"),
     exclude: Sequence[str] = ("eye", "brow"),
     threshold: float = 0.1,
-) -> np.ndarray:
+) -> Bool[np.ndarray, " V"]:
     """(V,) bool: the vertices that some expression whose name starts with one of
     ``include`` moves by more than ``threshold`` (rig units; ICT: 0.1 cm = 1 mm) and that no
     expression starting with one of ``exclude`` moves that much. On ICT the default is the

@@ -22,17 +22,15 @@ and their weights, so that a shape is one gather and one contraction (no scatter
 Units follow the mesh (ICT: cm).
 """
 
-from __future__ import annotations
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
-from jaxtyping import Array, ArrayLike, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Float32, Int
 from scipy.sparse.csgraph import dijkstra
 
-from .._checks import check_finite, check_points, check_real
+from .._checks import check_finite, check_points, check_real, is_concrete
 from .._linalg import cho_solve, cholesky, spd_solve
 from ..mesh import check_mesh, edge_graph, farthest_point_vertices, vertex_adjacency
 
@@ -63,7 +61,7 @@ class PatchLayout(eqx.Module):
                 f"vertex_weights: expected the shape of vertex_patches {patches.shape}, "
                 f"got {weights.shape}"
             )
-        if isinstance(weights, jax.core.Tracer) or isinstance(patches, jax.core.Tracer):
+        if not (is_concrete(weights) and is_concrete(patches)):
             return
         weights, patches = np.asarray(weights), np.asarray(patches)
         if not np.all(np.isfinite(weights)) or weights.min(initial=0) < 0:
@@ -105,15 +103,15 @@ class PatchLayout(eqx.Module):
             shape=(self.n_vertices, self.n_patches),
         )
 
-    def covered_by(self, patches: Bool[np.ndarray, " P"]) -> Bool[np.ndarray, " N"]:
+    def covered_by(self, patches: Bool[ArrayLike, " P"]) -> Bool[np.ndarray, " N"]:
         """(N,) the vertices that at least one of the selected ``patches`` covers."""
         patches = np.asarray(patches, bool)
         if patches.shape != (self.n_patches,):
             raise ValueError(f"patches: expected shape ({self.n_patches},), got {patches.shape}")
         covered = np.asarray(self.vertex_weights) > 0
-        return (covered & patches[np.asarray(self.vertex_patches)]).any(axis=1)
+        return np.asarray((covered & patches[np.asarray(self.vertex_patches)]).any(axis=1))
 
-    def patch_vertices(self) -> list[np.ndarray]:
+    def patch_vertices(self) -> list[Int[np.ndarray, " _"]]:
         """Per patch, the vertices it covers (its cell and rings)."""
         columns = self.matrix().tocsc()
         return [
@@ -136,7 +134,7 @@ def patch_layout(
     n_patches: int,
     *,
     rings: int = 3,
-    active: ArrayLike | None = None,
+    active: Bool[ArrayLike, " N"] | None = None,
 ) -> PatchLayout:
     """The patch layout of a mesh (host-side, once per mesh).
 
@@ -187,7 +185,7 @@ def patch_layout(
     )
     weight = member.astype(np.float64)
     for r in range(1, rings + 1):
-        grown = ((adjacency @ member + member) > 0).astype(np.float64).tocsr()
+        grown = sp.csr_matrix((adjacency @ member + member) > 0, dtype=np.float64)
         new = grown - member.astype(np.float64)
         new.eliminate_zeros()
         weight = weight + new * ((rings + 1 - r) / (rings + 1))
@@ -220,7 +218,7 @@ def patch_layout(
 
 def pbs_basis(
     neutral: Float[ArrayLike, "N 3"], shapes: Float[ArrayLike, "M N 3"], n_basis: int = 19
-) -> tuple[Float[np.ndarray, "Bm1 N 3"], np.ndarray]:
+) -> tuple[Float32[np.ndarray, "Bm1 N 3"], Int[np.ndarray, " Bm1"]]:
     """(offsets (n_basis - 1, N, 3), indices into ``shapes``): the neutral is the basis's
     origin and the other n_basis - 1 are extreme shapes by farthest-point selection in shape
     space (Euclidean over all coordinates), starting from the largest offset."""
@@ -246,7 +244,7 @@ def pbs_basis(
     return (shapes[index] - neutral).astype(np.float32), index
 
 
-def check_basis(basis: Float[ArrayLike, "B N 3"], n_vertices: int) -> Array:
+def check_basis(basis: Float[ArrayLike, "B N 3"], n_vertices: int) -> Float32[Array, "B N 3"]:
     """A basis of offsets: finite, (B, N, 3), no all-zero and no repeated shape."""
     basis = np.asarray(basis, np.float32)
     if basis.ndim != 3 or basis.shape[1:] != (n_vertices, 3) or len(basis) == 0:
@@ -265,7 +263,7 @@ def check_basis(basis: Float[ArrayLike, "B N 3"], n_vertices: int) -> Array:
     return jnp.asarray(basis)
 
 
-def _check_points(name: str, x, n_vertices: int, batch: bool = False) -> None:
+def _check_points(name: str, x: ArrayLike, n_vertices: int, batch: bool = False) -> None:
     """``check_points`` for (V, 3), or with ``batch`` any leading axes (..., V, 3)."""
     shape = np.shape(x)
     if batch and len(shape) > 2:
@@ -450,7 +448,9 @@ def local_fit_solve(
     return cho_solve(factor, jnp.einsum("ph,bhk,hk->pb", weighted, handle_basis, displacements))
 
 
-def check_handle_index(handle_index: Int[ArrayLike, " H"], n_vertices: int) -> np.ndarray:
+def check_handle_index(
+    handle_index: Int[ArrayLike, " H"], n_vertices: int
+) -> Int[np.ndarray, " H"]:
     """``handle_index`` as (H,) distinct integer vertex indices in [0, ``n_vertices``), else
     ValueError naming it."""
     index = np.asarray(handle_index)
@@ -507,7 +507,7 @@ def global_blendshape_dialogue(
     source: Float[ArrayLike, "F N 3"],
     target: Float[ArrayLike, "F N 3"],
     handle_index: Int[ArrayLike, " H"],
-    moved: ArrayLike,
+    moved: Bool[ArrayLike, " H"],
     ridge: float = 1e-3,
 ) -> tuple[Float[Array, "F N 3"], Float[Array, "F N 3"]]:
     """Dialogue replacement with global blendshapes (the GBS row of CANRig's Table 6).

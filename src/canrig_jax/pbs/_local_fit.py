@@ -25,7 +25,8 @@ pass above; ``fit_displacements`` minimises the region-weighted ||S(d) - B||^2 (
 direct and zero displacements as for the network. Units follow the mesh (ICT: cm).
 """
 
-from typing import Any, ClassVar
+from collections.abc import Callable
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -33,7 +34,7 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float, Int, PyTree
 
 from ..canrig import (
     CLAMP,
@@ -45,6 +46,7 @@ from ..canrig import (
     Layout,
     influence_mask,
 )
+from ..canrig._layout import Local
 from ._basis import PatchLayout, _pbs_shape, check_basis, local_fit_factor, local_fit_solve
 
 
@@ -73,18 +75,18 @@ class LocalFitRig(AbstractHandleRig):
 
     def deform(
         self,
-        prepared: Any,
+        prepared: PyTree,
         canonical: Float[Array, "V 3"],
         edit: HandleEdit,
         layout: Layout = DENSE,
-        local: Any = None,
+        local: Local | None = None,
     ) -> Float[Array, "V 3"]:
         del prepared, canonical, layout, local
         return local_fit_deform(self, edit)
 
     def fit(
         self,
-        prepared: Any,
+        prepared: PyTree,
         canonical: Float[Array, "V 3"],
         edit: HandleEdit,
         target: Float[Array, "V 3"],
@@ -105,10 +107,12 @@ def local_fit_rig(
     """A ``LocalFitRig``, validated (``basis``: offsets from the neutral, no repeated or
     all-zero shape, the layout's vertex count)."""
     basis = check_basis(basis, layout.n_vertices)
-    return LocalFitRig(layout, jnp.asarray(basis, jnp.float32), float(ridge))
+    return LocalFitRig(layout=layout, basis=jnp.asarray(basis, jnp.float32), ridge=float(ridge))
 
 
-def _linear_map(rig: LocalFitRig, edit):
+def _linear_map(
+    rig: LocalFitRig, edit: HandleEdit
+) -> Callable[[Float[Array, "H 3"]], Float[Array, "V 3"]]:
     """d -> g * W_layout X(d) S_basis (the offset from the base) for a ``HandleEdit``, its
     factors computed once: the patch masks at the seeds, the gate g at every vertex."""
     masks = influence_mask(edit.distance, edit.radius, edit.falloff, rig.clamp)  # (V, H)
@@ -133,12 +137,14 @@ def local_fit_deform(rig: LocalFitRig, edit: HandleEdit) -> Float[Array, "V 3"]:
 
 def local_fit_lsmr(
     rig: LocalFitRig,
-    edit,
+    edit: HandleEdit,
     target: Float[Array, "V 3"],
     region: Float[Array, " V"],
     penalty: float,
     steps: int,
-):
+) -> tuple[
+    Float[Array, "H 3"], Float[Array, "V 3"], Float[Array, "V 3"], lx.RESULTS, Int[Array, ""]
+]:
     """``steps`` LSMR iterations on sum_v region_v ||S(d)_v - target_v||^2 + penalty ||d||^2
     from ``edit.displacements``: (fitted displacements, their shape, the start's shape, the
     lineax result, the iterations run). ``fit_displacements`` picks the best candidate."""

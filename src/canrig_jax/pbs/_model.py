@@ -35,13 +35,13 @@ gives its weights. No base shape, no masks, not zero-preserving: it reconstructs
 the canonical shape only.
 """
 
-from typing import Any, ClassVar
+from typing import ClassVar, Protocol, runtime_checkable
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
 from ..canrig import influence_mask
 from ..canrig._mlp import ZeroPreservingMLP
@@ -62,6 +62,20 @@ def patch_means(layout: PatchLayout, points: Float[Array, "*B N 3"]) -> Float[Ar
     lead = points.shape[:-2]
     flat = points.reshape(-1, *points.shape[-2:])
     return jax.vmap(one)(flat).reshape(*lead, p, 3)
+
+
+@runtime_checkable
+class PatchData(Protocol):
+    """What a model's ``from_edit`` reads of its training set (a ``PBSTrainingSet``)."""
+
+    @property
+    def layout(self) -> PatchLayout: ...
+
+    @property
+    def neutral(self) -> Float[Array, "N 3"]: ...
+
+    @property
+    def basis(self) -> Float[Array, "Bm1 N 3"]: ...
 
 
 class AbstractCANRigPBS(eqx.Module):
@@ -88,7 +102,7 @@ class AbstractCANRigPBS(eqx.Module):
 
     def __init__(
         self,
-        canonical: Float[np.ndarray, "V 3"],
+        canonical: Float[ArrayLike, "V 3"],
         n_patches: int,
         n_weights: int,
         *,
@@ -139,13 +153,13 @@ class AbstractCANRigPBS(eqx.Module):
     def from_edit(
         self,
         queries: Float[Array, "heads P d"],
-        data: Any,
+        data: PatchData,
         handle_vertices: Int[Array, " H"],
         handle_distance: Float[Array, "P H"],
         base: Float[Array, "N 3"],
         displacements: Float[Array, "H 3"],
-        radius: Float[Array, ""],
-        falloff: Float[Array, ""],
+        radius: float | Float[ArrayLike, ""],
+        falloff: float | Float[ArrayLike, ""],
         patch_base: Float[Array, "P 3"] | None = None,
     ) -> Float[Array, "P Bm1"]:
         """S_pred for one training-style edit (``predict_pbs_weights``): ``data`` a
@@ -188,7 +202,8 @@ class AbstractCANRigPBS(eqx.Module):
         ``patch_base``: ``patch_means(layout, base)``; ``mask``: the handles' influence at
         each patch's seed (``influence_mask``), clamped here; ``handle_basis``: the basis
         offsets at the handle vertices, required by a ``local_prior`` model."""
-        if self.local_prior and handle_basis is None:
+        log_ridge = self.log_ridge
+        if log_ridge is not None and handle_basis is None:
             raise ValueError("handle_basis: required by a local_prior model, got None")
         enc = self.encoder
         keys = enc.encode_keys(handle_canonical)
@@ -201,10 +216,10 @@ class AbstractCANRigPBS(eqx.Module):
             out = eqx.filter_vmap(lambda mlp, x: mlp(x))(self.patch_mlp, attended)
         else:
             out = _per_row(self.patch_mlp, attended)
-        if not self.local_prior:
+        if log_ridge is None or handle_basis is None:  # not a local_prior model
             return out
         clamped = jnp.where(mask < enc.clamp, 0.0, mask)
-        return out + _local_pbs_fit(handle_basis, displacements, clamped, jnp.exp(self.log_ridge))
+        return out + _local_pbs_fit(handle_basis, displacements, clamped, jnp.exp(log_ridge))
 
 
 class PerPatchPBS(AbstractCANRigPBS):
@@ -281,7 +296,7 @@ class ShapeTransformer(eqx.Module):
 
     def __init__(
         self,
-        canonical: Float[np.ndarray, "V 3"],
+        canonical: Float[ArrayLike, "V 3"],
         n_weights: int,
         *,
         latent: int = 64,
@@ -298,7 +313,7 @@ class ShapeTransformer(eqx.Module):
         if latent % n_heads:
             raise ValueError(f"latent: expected a multiple of n_heads={n_heads}, got {latent}")
         centre = canonical.mean(axis=0)
-        self.centre = tuple(float(c) for c in centre)
+        self.centre = (float(centre[0]), float(centre[1]), float(centre[2]))
         self.position_scale = float(np.sqrt(((canonical - centre) ** 2).sum(axis=1).mean()))
         self.displacement_scale = float(displacement_scale)
         self.fourier = int(fourier)
@@ -326,13 +341,13 @@ class ShapeTransformer(eqx.Module):
     def from_edit(
         self,
         queries: Float[Array, "P latent"],
-        data: Any,
+        data: PatchData,
         handle_vertices: Int[Array, " H"],
         handle_distance: Float[Array, "P H"],
         base: Float[Array, "N 3"],
         displacements: Float[Array, "H 3"],
-        radius: Float[Array, ""],
-        falloff: Float[Array, ""],
+        radius: float | Float[ArrayLike, ""],
+        falloff: float | Float[ArrayLike, ""],
         patch_base: Float[Array, "P 3"] | None = None,
     ) -> Float[Array, "P Bm1"]:
         """S_pred for one training-style edit: the baseline ignores the base, masks and

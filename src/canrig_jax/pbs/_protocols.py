@@ -7,7 +7,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-from jaxtyping import Bool, Float, Int
+from jaxtyping import ArrayLike, Bool, Float, Int
 
 from .._metrics import CM_TO_MM
 from ._basis import PatchLayout
@@ -54,11 +54,11 @@ def check_pbs_training_matches(
 
 def reach_floor(
     layout: PatchLayout,
-    patch_distance_cm: Float[np.ndarray, "P N"],
-    handles: Int[np.ndarray, " H"],
-    source: Float[np.ndarray, "T N 3"],
-    target: Float[np.ndarray, "T N 3"],
-    region: Bool[np.ndarray, " N"],
+    patch_distance_cm: Float[ArrayLike, "P N"],
+    handles: Int[ArrayLike, " H"],
+    source: Float[ArrayLike, "T N 3"],
+    target: Float[ArrayLike, "T N 3"],
+    region: Bool[ArrayLike, " N"],
     *,
     reach_cm: float,
 ) -> tuple[float, int]:

@@ -11,13 +11,12 @@ not move (``support``). ``fit`` is the family's default: Gauss-Newton with the a
 Jacobian. Units follow the mesh (ICT: cm).
 """
 
-from typing import Any
-
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ..canrig import DENSE, AbstractHandleRig, HandleEdit, Layout, edit_mask
+from ..canrig._layout import Local
 from ._basis import PatchLayout, check_basis
 from ._model import AbstractCANRigPBS, patch_means, pbs_delta_shape
 
@@ -61,7 +60,7 @@ class PBSRig(AbstractHandleRig):
         canonical: Float[Array, "V 3"],
         edit: HandleEdit,
         layout: Layout = DENSE,
-        local: Any = None,
+        local: Local | None = None,
     ) -> Float[Array, "V 3"]:
         del layout, local  # no per-vertex attention to lay out
         seeds = self.layout.seeds
@@ -94,4 +93,4 @@ def pbs_rig(
     n_out = network.patch_mlp.layers[-1].weight.shape[-2]
     if basis.shape[0] != n_out:
         raise ValueError(f"basis: {basis.shape[0]} offsets, the network predicts {n_out} weights")
-    return PBSRig(network, layout, jnp.asarray(np.asarray(basis), jnp.float32))
+    return PBSRig(network=network, layout=layout, basis=jnp.asarray(np.asarray(basis), jnp.float32))

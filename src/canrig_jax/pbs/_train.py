@@ -16,16 +16,16 @@ The loop, checkpoints (atomic, resumable bit-identically) and the Adam schedule 
 CANRig trainer's (``_checkpoint.train_resumably``, ``_train.adam``).
 """
 
-from __future__ import annotations
-
 import dataclasses
 import os
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+import scipy.sparse as sp
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._checkpoint import load_checkpoint as _load_file
 from .._checkpoint import read_checkpoint_state as _read_state_file
@@ -95,12 +95,13 @@ class PBSTrainOptions:
         if self.batch < 1 or self.n_vertices < 1 or self.steps < 0:
             raise ValueError("batch, n_vertices: expected >= 1; steps: expected >= 0")
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> PBSTrainOptions:
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+    def from_dict(cls, d: dict[str, Any]) -> "PBSTrainOptions":
+        values: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+        return cls(**values)
 
 
 class PBSTrainingSet(eqx.Module):
@@ -129,18 +130,20 @@ class PBSTrainingSet(eqx.Module):
     patch_base: Float[Array, "M1 P 3"]
 
 
-def seed_distances(layout: PatchLayout, graph, limit: float = np.inf) -> np.ndarray:
+def seed_distances(
+    layout: PatchLayout, graph: sp.spmatrix, limit: float = np.inf
+) -> Float[np.ndarray, "P N"]:
     """(P, N) geodesic distance from each patch's seed to every vertex (cm)."""
     return weighted_geodesic_distance(graph, np.asarray(layout.seeds), limit=limit)
 
 
 def build_pbs_training_set(
-    neutral: Float[np.ndarray, "N 3"],
-    shapes: Float[np.ndarray, "M N 3"],
+    neutral: Float[ArrayLike, "N 3"],
+    shapes: Float[ArrayLike, "M N 3"],
     layout: PatchLayout,
-    basis: Float[np.ndarray, "Bm1 N 3"],
-    distances: Float[np.ndarray, "P N"],
-    pool: Int[np.ndarray, " Q"],
+    basis: Float[ArrayLike, "Bm1 N 3"],
+    distances: Float[ArrayLike, "P N"],
+    pool: Int[ArrayLike, " Q"],
 ) -> PBSTrainingSet:
     """The training set: PBS fits of ``shapes`` and the seed-to-pool distances (``distances``
     from ``seed_distances``)."""
@@ -199,7 +202,8 @@ def sample_pbs_examples(
     if o.model == "shape_transformer":
         neutral[:] = True
     handles = np.stack([rng.choice(n_pool, n, replace=False) for _ in range(e)])
-    radius = np.exp(rng.uniform(*np.log(o.radius_cm), e))
+    log_low, log_high = np.log(o.radius_cm)
+    radius = np.exp(rng.uniform(log_low, log_high, e))
     falloff = rng.uniform(*o.falloff_per_cm, e)
     vertices = rng.integers(0, n_moving, (e, o.n_vertices))
     return PBSExamples(
@@ -213,7 +217,11 @@ def sample_pbs_examples(
 
 
 def make_pbs_model(
-    options: PBSTrainOptions, neutral, n_patches: int, n_weights: int, scale: float
+    options: PBSTrainOptions,
+    neutral: Float[ArrayLike, "N 3"],
+    n_patches: int,
+    n_weights: int,
+    scale: float,
 ) -> AbstractCANRigPBS | ShapeTransformer:
     """The untrained model of ``options.model`` (``scale``: the displacement scale, cm)."""
     neutral = np.asarray(neutral)
@@ -253,10 +261,10 @@ def predict_pbs_weights(
     handle_distance: Float[Array, "P H"],
     base: Float[Array, "N 3"],
     displacements: Float[Array, "H 3"],
-    radius: Float[Array, ""],
-    falloff: Float[Array, ""],
+    radius: float | Float[ArrayLike, ""],
+    falloff: float | Float[ArrayLike, ""],
     *,
-    queries: Array | None = None,
+    queries: Float[Array, "..."] | None = None,
     patch_base: Float[Array, "P 3"] | None = None,
 ) -> Float[Array, "P Bm1"]:
     """S_pred for one edit (the Shape Transformer ignores the base, masks and radius).
@@ -284,7 +292,14 @@ def _shape_at(data: PBSTrainingSet, base, weights, vertices):
     return base[vertices] + jnp.einsum("sb,bsk->sk", blended, data.basis[:, vertices])
 
 
-def pbs_example_loss(model, data: PBSTrainingSet, ex: PBSExamples, weight_loss: float):
+def pbs_example_loss(
+    model: AbstractCANRigPBS | ShapeTransformer,
+    data: PBSTrainingSet,
+    ex: PBSExamples,
+    weight_loss: float,
+) -> tuple[Float[Array, ""], dict[str, Float[Array, ""]]]:
+    """Eq. 8's loss over the batch ``ex`` (module docstring) and its parts: the mean
+    per-vertex error (mm) and the weights' mean squared error."""
     queries = model.encode_patches(data.seeds)  # once per batch
 
     def one(target, base_index, handles, radius, falloff, vertices):
@@ -336,7 +351,12 @@ def _optimiser(options: PBSTrainOptions):
     )
 
 
-def load_pbs_model(path, neutral, n_patches: int, n_weights: int):
+def load_pbs_model(
+    path: str | os.PathLike,
+    neutral: Float[ArrayLike, "N 3"],
+    n_patches: int,
+    n_weights: int,
+) -> tuple[AbstractCANRigPBS | ShapeTransformer, dict[str, Any]]:
     """(model, header) of a ``train_pbs`` checkpoint."""
     state = _read_state_file(path, PBS_CHECKPOINT_FORMAT)
     options = PBSTrainOptions.from_dict(state["options"])
@@ -354,7 +374,7 @@ def train_pbs(
     displacement_scale: float = 1.0,
     progress: bool = True,
     stop_after: int | None = None,
-):
+) -> tuple[AbstractCANRigPBS | ShapeTransformer, int, float, list[dict[str, Any]]]:
     """Train (or resume from ``checkpoint``) CANRig-PBS or the Shape Transformer until
     ``options.steps`` or ``options.max_minutes``. Returns (model, step, seconds, history)."""
     if not isinstance(options, PBSTrainOptions):
@@ -405,11 +425,11 @@ def pbs_reconstruct(
     data: PBSTrainingSet,
     handle_vertices: Int[Array, " H"],
     handle_distance: Float[Array, "P H"],
-    base: Float[Array, "*F N 3"],
+    base: Float[Array, "N 3"] | Float[Array, "F N 3"],
     targets: Float[Array, "F N 3"],
     radius: float,
     falloff: float,
-    queries: Array | None = None,
+    queries: Float[Array, "..."] | None = None,
 ) -> Float[Array, "F N 3"]:
     """Whole-head shapes with the handles moved to each target (displacements target - base
     at the handles), mapped over the targets; ``base`` is one shape for all of them or one
