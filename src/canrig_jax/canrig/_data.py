@@ -291,7 +291,7 @@ def sample_examples(
     n_vertices: int,
     options: ExampleOptions,
     *,
-    handle_sets: Int[ArrayLike, "S n"] | None = None,
+    handle_sets: Int[np.ndarray | Array, "S n"] | None = None,
     n_capture: int = 0,
 ) -> Examples:
     """One batch of example indices; handle arrays are padded to the batch's largest handle

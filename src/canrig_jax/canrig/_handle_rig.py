@@ -180,7 +180,8 @@ class AbstractHandleRig(eqx.Module):
     def support(self, edit: HandleEdit) -> Bool[Array, " V"]:
         """(V,) the vertices ``edit`` may move: those inside some handle's clamped mask. Every
         other vertex keeps the base shape exactly (the family's locality, tested)."""
-        return jnp.any(edit_mask(edit, self.clamp) > 0, axis=-1)
+        mask = influence_mask(edit.distance, edit.radius, edit.falloff, self.clamp)  # dense
+        return jnp.any(mask > 0, axis=-1)
 
     @abc.abstractmethod
     def deform(

@@ -89,9 +89,10 @@ class TrainOptions:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "TrainOptions":
         d = dict(d)
-        ex = d.pop("examples")
-        ex = {k: tuple(v) if isinstance(v, list) else v for k, v in ex.items()}
-        return cls(**d, examples=ExampleOptions(**ex))
+        examples: dict[str, Any] = {
+            k: tuple(v) if isinstance(v, list) else v for k, v in d.pop("examples").items()
+        }
+        return cls(**d, examples=ExampleOptions(**examples))
 
 
 @functools.lru_cache(maxsize=8)

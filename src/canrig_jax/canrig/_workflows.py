@@ -375,7 +375,7 @@ def clip_edit(
         )
     edit = rig.edit(handles, displacements, radius, falloff, base=clip[frame], beta=beta)
     layout = rig.layout(handles, radius, falloff)
-    fade = smoothstep_fade(n, frame, half_window)
+    fade = smoothstep_fade(n, int(frame), int(half_window))
     lo, hi = frame - half_window, frame + half_window + 1
     scaled = fade[lo:hi, None, None] * np.asarray(edit.displacements)[None]
     edited = call_blas_safe(

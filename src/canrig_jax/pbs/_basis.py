@@ -186,13 +186,13 @@ def patch_layout(
     weight = member.astype(np.float64)
     for r in range(1, rings + 1):
         grown = sp.csr_matrix((adjacency @ member + member) > 0, dtype=np.float64)
-        new = grown - member.astype(np.float64)
+        new = sp.csr_matrix(grown - member.astype(np.float64))
         new.eliminate_zeros()
         weight = weight + new * ((rings + 1 - r) / (rings + 1))
         member = grown
     weight = sp.csr_matrix(weight)
-    weight = sp.diags(1.0 / np.asarray(weight.sum(axis=1)).ravel()) @ weight  # rows sum to 1
-    weight = weight.tocsr()
+    # rows sum to 1
+    weight = sp.csr_matrix(sp.diags(1.0 / np.asarray(weight.sum(axis=1)).ravel()) @ weight)
     counts = np.diff(weight.indptr)
     c = int(counts.max())
     patches = np.zeros((n, c), np.int32)

@@ -93,4 +93,8 @@ def pbs_rig(
     n_out = network.patch_mlp.layers[-1].weight.shape[-2]
     if basis.shape[0] != n_out:
         raise ValueError(f"basis: {basis.shape[0]} offsets, the network predicts {n_out} weights")
-    return PBSRig(network=network, layout=layout, basis=jnp.asarray(np.asarray(basis), jnp.float32))
+    # pyright reads the family's AbstractVar ``clamp`` as an __init__ field (equinox types it
+    # as Annotated); here it is a property, not a field
+    return PBSRig(  # pyright: ignore[reportCallIssue]
+        network=network, layout=layout, basis=jnp.asarray(np.asarray(basis), jnp.float32)
+    )

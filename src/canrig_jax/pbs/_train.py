@@ -131,7 +131,7 @@ class PBSTrainingSet(eqx.Module):
 
 
 def seed_distances(
-    layout: PatchLayout, graph: sp.spmatrix, limit: float = np.inf
+    layout: PatchLayout, graph: sp.csr_matrix, limit: float = np.inf
 ) -> Float[np.ndarray, "P N"]:
     """(P, N) geodesic distance from each patch's seed to every vertex (cm)."""
     return weighted_geodesic_distance(graph, np.asarray(layout.seeds), limit=limit)
