@@ -10,8 +10,6 @@ The experiment scripts (``experiments/canrig_pbs.py``, ``canrig_pbs_train.py``,
 cm, errors in mm.
 """
 
-from __future__ import annotations
-
 import argparse
 import dataclasses
 import time
@@ -128,7 +126,7 @@ class WholeHeadOptions:
             if getattr(self, name) < (0 if name in ("rings", "n_random") else 1):
                 raise ValueError(f"{name}: expected a positive count, got {getattr(self, name)}")
 
-    def quick(self) -> WholeHeadOptions:
+    def quick(self) -> "WholeHeadOptions":
         """``--quick``: 60 patches, 60 random training poses."""
         return dataclasses.replace(self, patches=60, n_random=60)
 

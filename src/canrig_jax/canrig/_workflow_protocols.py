@@ -9,8 +9,6 @@ The experiment scripts (``experiments/canrig_workflows.py``, ``canrig_workflows_
 in cm (the rig's units), errors in mm.
 """
 
-from __future__ import annotations
-
 import dataclasses
 import json
 import warnings
