@@ -114,14 +114,14 @@ class BlockLayout(eqx.Module):
         flat = x.reshape(-1, x.shape[-1])
         return jnp.take(flat, self.position, axis=0, mode="fill", fill_value=0)
 
-    def sum_handles(self, x: Shaped[Array, "B W *C"], n_handles: int) -> Shaped[Array, " _ *C"]:
+    def sum_handles(self, x: Shaped[Array, "B W *C"], n_handles: int) -> Shaped[Array, " H *C"]:
         """The transpose of ``handles``: per handle, the sum over the blocks listing it."""
         flat = x.reshape(-1, *x.shape[2:])
         return jax.ops.segment_sum(flat, self.chosen.reshape(-1), num_segments=n_handles)
 
     def sum_handle_pairs(
         self, x: Shaped[Array, "B W W *C"], n_handles: int
-    ) -> Shaped[Array, "_ _ *C"]:
+    ) -> Shaped[Array, "H H *C"]:
         """Per pair of handles, the sum over the blocks listing both (a normal matrix's
         assembly from per-block products)."""
         rows, cols = self.chosen[:, :, None], self.chosen[:, None, :]
@@ -156,14 +156,14 @@ class PartsLayout(eqx.Module):
 
     def sum_handles(
         self, x: tuple[Shaped[Array, "_ _ *C"], ...], n_handles: int
-    ) -> Shaped[Array, " _ *C"]:
+    ) -> Shaped[Array, " H *C"]:
         return _sum(
             part.sum_handles(local, n_handles) for part, local in zip(self.parts, x, strict=True)
         )
 
     def sum_handle_pairs(
         self, x: tuple[Shaped[Array, "_ _ _ *C"], ...], n_handles: int
-    ) -> Shaped[Array, "_ _ *C"]:
+    ) -> Shaped[Array, "H H *C"]:
         return _sum(
             part.sum_handle_pairs(local, n_handles)
             for part, local in zip(self.parts, x, strict=True)

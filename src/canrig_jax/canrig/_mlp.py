@@ -15,7 +15,7 @@ class ZeroPreservingMLP(eqx.Module):
     f(0) = 0 exactly for any weights, provided activation(0) == 0."""
 
     layers: tuple[eqx.nn.Linear, ...]
-    activation: Callable[[Array], Array] = eqx.field(static=True)
+    activation: Callable[[Float[Array, "*shape"]], Float[Array, "*shape"]] = eqx.field(static=True)
     skip: eqx.nn.Linear | None = None
 
     def __init__(
@@ -25,7 +25,7 @@ class ZeroPreservingMLP(eqx.Module):
         *,
         width: int = 64,
         n_layers: int = 3,
-        activation: Callable[[Array], Array] = jax.nn.gelu,
+        activation: Callable[[Float[Array, "*shape"]], Float[Array, "*shape"]] = jax.nn.gelu,
         linear_skip: bool = False,
         key: PRNGKeyArray,
     ):

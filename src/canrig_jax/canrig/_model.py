@@ -413,7 +413,7 @@ def _zero_preserving(
     arch: Architecture,
     n_in: int,
     n_out: int,
-    activation: Callable[[Array], Array],
+    activation: Callable[[Float[Array, "*shape"]], Float[Array, "*shape"]],
     key: PRNGKeyArray,
 ) -> ZeroPreservingMLP:
     return ZeroPreservingMLP(
