@@ -103,6 +103,7 @@ def test_attached_keeps_distances_outside_the_attached_parts(head, attached):
     assert np.isfinite(before).mean() > 0.5  # the check covers the skin, not just inf == inf
 
 
+@pytest.mark.bad_input
 def test_attached_edge_graph_refuses_bad_masks(head, attached):
     vertices, _, _, bridged, _ = head
     _, interior, face = attached

@@ -64,6 +64,7 @@ def _cotan_laplacian(vertices, faces):
 # -- bad input --------------------------------------------------------------------------------
 
 
+@pytest.mark.bad_input
 @pytest.mark.parametrize(
     "mutate, name",
     [

@@ -95,6 +95,7 @@ def test_transfer_across_topology_matches_the_carried_ground_truth(data_dir, fac
     assert error_mm.mean() < 0.2 and np.percentile(error_mm, 95) < 1.0
 
 
+@pytest.mark.bad_input
 def test_bad_input(face, face_rig):
     correspondence = identity_correspondence(face.faces, face.n_vertices)
     with pytest.raises(ValueError, match="^source_rig:"):
@@ -176,6 +177,7 @@ def test_anchored_transfer_off_is_plain_and_onto_itself_reproduces(face, face_ri
     assert np.all(anchored[np.linalg.norm(face.deltas[:6], axis=-1) < 0.5 * STATIC_CM] == 0)
 
 
+@pytest.mark.bad_input
 @pytest.mark.parametrize("bad", [-1e-3, np.nan, np.inf, "0.01"])
 def test_anchored_transfer_bad_threshold(face, face_rig, bad):
     correspondence = identity_correspondence(face.faces, face.n_vertices)
@@ -242,6 +244,7 @@ def test_per_part_anchoring_holds_whole_parts_only(data_dir, mouth_and_eye):
     np.testing.assert_array_equal(np.asarray(everywhere.deltas), per_vertex)
 
 
+@pytest.mark.bad_input
 @pytest.mark.parametrize(
     ("labels", "threshold"),
     [

@@ -18,6 +18,7 @@ def test_matches_the_shipped_fan_split(data_dir, path):
     np.testing.assert_array_equal(triangulate_quads(polys), faces)
 
 
+@pytest.mark.bad_input
 def test_triangles_padded_by_repetition_or_minus_one_and_bad_input():
     polys = np.array([[0, 1, 2, 3], [4, 5, 6, 6], [7, 8, 9, -1]])
     expected = [[0, 1, 2], [0, 2, 3], [4, 5, 6], [7, 8, 9]]

@@ -229,6 +229,7 @@ def test_vmap_over_views_matches_a_loop(head):
     assert not np.array_equal(np.asarray(tri[0]), np.asarray(tri[1]))
 
 
+@pytest.mark.bad_input
 def test_bad_input(head):
     vertices, faces = head
     camera = front_camera(vertices, 16)

@@ -223,6 +223,7 @@ def test_lambert_image_is_lit_from_the_light(head):
     assert np.asarray(front)[0, 0] < 1e-3  # background
 
 
+@pytest.mark.bad_input
 def test_bad_input(head):
     vertices, faces = head
     camera = front_camera(vertices, 16)

@@ -207,6 +207,7 @@ def test_reuse_by_search_larger_tau_finds_more(take):
     assert out["error_before_mm"] == pytest.approx(before)
 
 
+@pytest.mark.bad_input
 def test_time_edit_model_row_describes_the_model(take):
     rig, (poses, desired, linear) = take["rig"], take["frames"]
     chosen = take["edit_frames"][:3]
@@ -354,6 +355,7 @@ def test_search_by_region_keeps_the_library_below_the_percentile(take):
         assert np.all(np.diff(hits.energies) >= 0)
 
 
+@pytest.mark.bad_input
 def test_protocols_name_the_bad_argument(take, models):
     rig, frames = take["rig"], take["frames"]
     edit_frames, held_out = take["edit_frames"], take["held_out"]

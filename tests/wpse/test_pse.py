@@ -227,6 +227,7 @@ def test_duplicated_poses_raise_or_merge(tiny_rig, tiny_edits):
     )
 
 
+@pytest.mark.bad_input
 def test_bad_input(tiny_rig, tiny_edits):
     poses, edits = tiny_edits
     fit = fit_pose_space_edit

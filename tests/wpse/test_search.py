@@ -39,6 +39,7 @@ def test_region_ignores_channels_that_do_not_move_it():
     assert result.energies[1] < 1e-2 < result.energies[2]
 
 
+@pytest.mark.bad_input
 def test_bad_input(tiny_rig):
     alpha = blendshape_metric(tiny_rig.deltas)
     library = np.zeros((3, tiny_rig.n_blendshapes), np.float32)

@@ -109,6 +109,7 @@ def test_temporal_change_of_a_ramp_and_a_jump():
         temporal_change(np.full((5, 2, 3), np.nan))
 
 
+@pytest.mark.bad_input
 def test_reuse_finds_the_matching_edit_and_nothing_far_away(tiny_rig, tiny_edits):
     """A query at a library pose gets that edit back (the found model reproduces its own
     edits); with a threshold below every energy nothing is found and nothing corrected."""

@@ -19,14 +19,16 @@ shapes themselves are taken as sculpted.
 
 import dataclasses
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
 
 import numpy as np
+from jaxtyping import ArrayLike, Bool, Float, Float32, Int
 
 from .._metrics import CM_TO_MM
 from .._warnings import warn
 from ..data import arkit_name_of
-from ..mesh import check_mesh, closest_point_correspondence, connected_components
+from ..mesh import SimilarityFit, check_mesh, closest_point_correspondence, connected_components
 from ..rig import (
     UNIT_IN_CM,
     BlendshapeRig,
@@ -42,6 +44,7 @@ from ._data import (
     transfer_poses,
 )
 from ._evaluation import STATIC_MM
+from ._model import RigAnyFace
 from ._orientation import (
     OrientationDecision,
     decide_orientation,
@@ -81,7 +84,7 @@ class Style:
     falloff: float = 0.0
     floor: float = 0.0
 
-    def apply(self, displacements: np.ndarray) -> np.ndarray:
+    def apply(self, displacements: Float[ArrayLike, "P V 3"]) -> Float32[np.ndarray, "P V 3"]:
         """(P, V, 3) displacements -> the same, styled (float32)."""
         d = np.asarray(displacements, np.float64)
         length = np.linalg.norm(d, axis=-1, keepdims=True)
@@ -101,7 +104,11 @@ STYLE_GRID = {
 heads)."""
 
 
-def fit_style(generated, sculpted, skin) -> Style:
+def fit_style(
+    generated: Float[ArrayLike, "k V 3"],
+    sculpted: Float[ArrayLike, "k V 3"],
+    skin: Bool[ArrayLike, " V"],
+) -> Style:
     """The ``STYLE_GRID`` style whose generated shapes best match the artist's.
 
     Args:
@@ -150,11 +157,13 @@ class Template:
     """
 
     rig: BlendshapeRig
-    landmarks: np.ndarray
+    landmarks: Int[np.ndarray, " 68"]
     name: str = "template"
 
     @classmethod
-    def from_rig(cls, dataset: AutorigDataset, rig: BlendshapeRig, name: str = "template"):
+    def from_rig(
+        cls, dataset: AutorigDataset, rig: BlendshapeRig, name: str = "template"
+    ) -> "Template":
         """A template from any rig with faces (cm, +y up, facing +z): its landmarks are
         fitted like a head's (``place_landmarks``)."""
         if not isinstance(rig, BlendshapeRig):
@@ -166,14 +175,22 @@ class Template:
         return cls(rig, landmarks, name)
 
 
-def skin_of(vertices, faces) -> np.ndarray:
+def skin_of(
+    vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"]
+) -> Bool[np.ndarray, " V"]:
     """(V,) bool: the largest connected component (a head's skin; eyes, teeth, lashes are
     separate parts)."""
     labels = connected_components(np.asarray(faces), len(vertices))
     return labels == np.bincount(labels).argmax()
 
 
-def place_landmarks(dataset: AutorigDataset, vertices, faces, *, region=None):
+def place_landmarks(
+    dataset: AutorigDataset,
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    *,
+    region: Bool[ArrayLike, " V"] | None = None,
+) -> tuple[Int[np.ndarray, " 68"], SimilarityFit, str]:
     """The ICT landmarks on a head (cm, +y up, facing +z): the ICT face part fitted by
     trimmed ICP (``fit_head_landmarks``); where that fails (a face-only mask, a stylised
     head), the inner face (eyes, nose, mouth; ``inner_face``) with a looser trim.
@@ -231,7 +248,7 @@ class AutoRig:
     method: str
     style: Style
     orientation: OrientationDecision
-    landmarks: np.ndarray
+    landmarks: Int[np.ndarray, " 68"] | None
     fit: dict
     examples: tuple[str, ...]
     seconds: dict
@@ -280,18 +297,18 @@ def _check_examples(examples, n_vertices: int) -> dict[str, np.ndarray]:
 
 
 def auto_rig(
-    vertices,
-    faces,
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
     *,
     method: str | None = None,
     dataset: AutorigDataset | None = None,
     template: Template | None = None,
-    examples=None,
-    model=None,
-    up=None,
-    forward=None,
+    examples: BlendshapeRig | Mapping[str, Float[ArrayLike, "V 3"]] | None = None,
+    model: tuple[RigAnyFace, PoseSet] | None = None,
+    up: str | None = None,
+    forward: str | None = None,
     orientation: OrientationDecision | None = None,
-    landmarks=None,
+    landmarks: Int[ArrayLike, " 68"] | Sequence[int] | None = None,
     names: str = "arkit",
     progress: Callable[[str], None] | None = None,
 ) -> AutoRig:
@@ -470,7 +487,7 @@ def _pose_displacements(method: str, dataset, head: _Head, model):
     return np.asarray(generated.displacements, np.float64), poses
 
 
-def default_model(method: str):
+def default_model(method: str) -> Path:
     """The packaged checkpoint of a network method."""
     from ._train import DEFAULT_CHECKPOINT, RESIDUAL_CHECKPOINT
 

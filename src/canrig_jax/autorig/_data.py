@@ -16,15 +16,20 @@ network is trained on.
 """
 
 import dataclasses
+import os
 import warnings
+from typing import Any
 
 import numpy as np
+from jaxtyping import ArrayLike, Bool, Float, Float32, Float64, Int
 from scipy.spatial import cKDTree
 
 from .._warnings import warn
 from ..data import ICTFaceModel, ict_identity, load_ict
 from ..mesh import (
     Remeshed,
+    SimilarityFit,
+    TriangleCorrespondence,
     closest_point_correspondence,
     connected_components,
     decimate,
@@ -67,7 +72,7 @@ class PoseSet:
     def labels(self) -> tuple[str, ...]:
         return tuple("+".join(self.basis_names[i] for i in c) for c in self.combinations)
 
-    def vectors(self) -> np.ndarray:
+    def vectors(self) -> Float32[np.ndarray, "P A"]:
         """(P, A) float32 pose vectors A_i (ones on the pose's expressions)."""
         out = np.zeros((self.n_poses, self.n_basis), np.float32)
         for p, combo in enumerate(self.combinations):
@@ -118,7 +123,7 @@ def quartic_pose_set(rig: BlendshapeRig, per_order: dict[int, int] | None = None
     return PoseSet(tuple(rig.names), tuple(combos))
 
 
-def pose_displacements(rig: BlendshapeRig, poses: PoseSet) -> np.ndarray:
+def pose_displacements(rig: BlendshapeRig, poses: PoseSet) -> Float32[np.ndarray, "P V 3"]:
     """(P, V, 3) float32 ground truth: the rig at weight 1 on each pose's expressions."""
     if not isinstance(rig, BlendshapeRig) or not isinstance(poses, PoseSet):
         raise TypeError(
@@ -145,7 +150,7 @@ def head_rig(face_rig: BlendshapeRig, head: ICTFaceModel) -> BlendshapeRig:
     return BlendshapeRig(head.neutral, head.deltas, face_rig.correctives, head.names, head.faces)
 
 
-def vertex_parts(head: ICTFaceModel) -> np.ndarray:
+def vertex_parts(head: ICTFaceModel) -> Int[np.ndarray, " V"]:
     """(V,) index into ``head.part_names`` of every vertex."""
     part = np.empty(head.n_vertices, np.int32)
     for i, (lo, hi) in enumerate(head.part_vertex_range):
@@ -167,12 +172,12 @@ class RiggedHead:
     """
 
     name: str
-    vertices: np.ndarray
-    faces: np.ndarray
-    displacements: np.ndarray
-    landmarks: np.ndarray
-    parts: np.ndarray
-    identity: np.ndarray
+    vertices: Float[np.ndarray, "V 3"]
+    faces: Int[np.ndarray, "F 3"]
+    displacements: Float[np.ndarray, "P V 3"]
+    landmarks: Int[np.ndarray, " 68"]
+    parts: Int[np.ndarray, " V"]
+    identity: Float[np.ndarray, " n"]
     topology: str
 
     @property
@@ -184,7 +189,7 @@ TOPOLOGIES = ("decimate_<n>", "subdivide_<n>")
 
 
 def remesh_head(
-    vertices: np.ndarray, faces: np.ndarray, topology: str
+    vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"], topology: str
 ) -> tuple[Remeshed, Remeshed | None]:
     """``decimate_<n>``: quadric decimation to ~n vertices; ``subdivide_<n>``: decimation to
     ~n vertices then one midpoint subdivision (~4n vertices, a regular 1-to-4 pattern).
@@ -201,12 +206,12 @@ def remesh_head(
 
 def make_head(
     head: ICTFaceModel,
-    displacements: np.ndarray,
-    coefficients: np.ndarray,
+    displacements: Float[ArrayLike, "P Vh 3"],
+    coefficients: Float[ArrayLike, " n"],
     topology: str,
     *,
     name: str,
-    data_dir=None,
+    data_dir: str | os.PathLike | None = None,
 ) -> RiggedHead:
     """An ICT identity remeshed to ``topology`` with the head's pose displacements carried.
 
@@ -254,13 +259,13 @@ class AutorigDataset:
 
     poses: PoseSet
     head: ICTFaceModel
-    head_displacements: np.ndarray
+    head_displacements: Float[np.ndarray, "P V 3"]
     train: list[RiggedHead]
     test: dict[str, list[RiggedHead]]
 
 
 def ict_autorig_dataset(
-    data_dir=None,
+    data_dir: str | os.PathLike | None = None,
     *,
     n_train: int = 24,
     n_test: int = 8,
@@ -321,7 +326,10 @@ def ict_autorig_dataset(
 
 
 def ict_pose_source(
-    data_dir=None, *, per_order: dict[int, int] | None = None, progress: bool = True
+    data_dir: str | os.PathLike | None = None,
+    *,
+    per_order: dict[int, int] | None = None,
+    progress: bool = True,
 ) -> AutorigDataset:
     """What deformation transfer and copying carry onto a new head, without any training
     or held-out identity: the generic ICT head, the pose set (``quartic_pose_set``) and every
@@ -341,8 +349,12 @@ def ict_pose_source(
 
 
 def fit_head_landmarks(
-    dataset: AutorigDataset, vertices, faces, *, region=None
-) -> tuple[np.ndarray, object]:
+    dataset: AutorigDataset,
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    *,
+    region: Bool[ArrayLike, " V"] | None = None,
+) -> tuple[Int[np.ndarray, " 68"], SimilarityFit]:
     """The ICT Multi-PIE landmarks placed on a new head with no hand-picked vertices: the
     ICT face part fitted to the head by a trimmed-ICP similarity
     (``canrig_jax.mesh.fit_landmarks``; the head in centimetres, y up, facing +z), each
@@ -373,7 +385,13 @@ def fit_head_landmarks(
         raise ValueError(message + " (the ICT face part is fitted to it)") from error
 
 
-def face_placement(dataset: AutorigDataset, vertices, faces, *, fit=None):
+def face_placement(
+    dataset: AutorigDataset,
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    *,
+    fit: SimilarityFit | None = None,
+) -> tuple[Float64[np.ndarray, " 3"], float]:
     """Centre and scale that place a head in the unit sphere as the model's training heads
     were placed, derived from the face instead of the head's bounding box (which moves with
     where the head was cropped: a neck, shoulders or none): the ICT face part is fitted to
@@ -395,7 +413,12 @@ def face_placement(dataset: AutorigDataset, vertices, faces, *, fit=None):
     return fit.apply(centre[None])[0], float(fit.scale * radius)
 
 
-def head_correspondence(dataset: AutorigDataset, vertices, faces, landmarks):
+def head_correspondence(
+    dataset: AutorigDataset,
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    landmarks: Int[ArrayLike, " 68"],
+) -> TriangleCorrespondence:
     """The correspondence of the generic ICT head (``dataset.head``) with a new head
     (``closest_point_correspondence``: landmark similarity, thin-plate warp, component
     matching, closest points). ``landmarks``: (68,) vertices of the ICT Multi-PIE landmarks
@@ -427,7 +450,7 @@ head's largest component: face, head and neck, mouth and eye sockets) and per pa
 elsewhere."""
 
 
-def anchor_parts(head: ICTFaceModel, anchor: str) -> np.ndarray | None:
+def anchor_parts(head: ICTFaceModel, anchor: str) -> Int[np.ndarray, " V"] | None:
     """The ``static_parts`` labels of ``transfer_deltas`` for an ``ANCHOR_MODES`` entry on
     the generic ICT head: None for "vertex"; its connected components for "part"; the same
     with the largest component (the skin) -1 (per vertex) for "skin_vertex"."""
@@ -443,12 +466,12 @@ def anchor_parts(head: ICTFaceModel, anchor: str) -> np.ndarray | None:
 
 def transfer_poses(
     dataset: AutorigDataset,
-    head,
-    correspondence=None,
+    head: Any,
+    correspondence: TriangleCorrespondence | None = None,
     *,
     static_below: float | None = None,
     anchor: str = "vertex",
-) -> np.ndarray:
+) -> Float[np.ndarray, "P V 3"]:
     """The deformation-transfer baseline: every ground-truth pose of the generic ICT head
     carried onto ``head`` (Sumner & Popović; landmark + closest-point correspondence).
 
@@ -489,7 +512,9 @@ def transfer_poses(
     return np.asarray(transferred.deltas)
 
 
-def copy_poses(dataset: AutorigDataset, head, correspondence=None) -> np.ndarray:
+def copy_poses(
+    dataset: AutorigDataset, head: Any, correspondence: TriangleCorrespondence | None = None
+) -> Float[np.ndarray, "P V 3"]:
     """The copy baseline: every ground-truth pose of the generic ICT head sampled at the
     corresponding surface point of each ``head`` vertex (no deformation-gradient solve),
     rotated into the head's orientation (the similarity of the carried ICT neutral onto the

@@ -15,7 +15,7 @@ Vertices with ``vertex_mask`` 0 (padding, isolated) stay at zero and do not coup
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, PRNGKeyArray
 
 from ..mesh import MeshOperators
 
@@ -97,7 +97,14 @@ class LearnedDiffusion(eqx.Module):
     times: Float[Array, " C"]
     method: str = eqx.field(static=True)
 
-    def __init__(self, width: int, method: str = "spectral", init_time: float = 0.0, *, key=None):
+    def __init__(
+        self,
+        width: int,
+        method: str = "spectral",
+        init_time: float = 0.0,
+        *,
+        key: PRNGKeyArray | None = None,
+    ):
         if method not in METHODS:
             raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
         if width < 1:
@@ -113,7 +120,9 @@ class LearnedDiffusion(eqx.Module):
             return spectral_diffusion(features, times, operators)
         return implicit_diffusion(features, times, operators)
 
-    def with_gradient(self, features: Float[Array, "V *N C"], operators: MeshOperators):
+    def with_gradient(
+        self, features: Float[Array, "V *N C"], operators: MeshOperators
+    ) -> tuple[Float[Array, "V *N C"], Float[Array, "V *N C"], Float[Array, "V *N C"]]:
         """(diffused, grad_x, grad_y) of the diffused features in the vertex frames."""
         if self.method == "spectral":
             return spectral_diffusion_and_gradient(features, jnp.abs(self.times), operators)

@@ -29,7 +29,9 @@ from ._features import mass_weighted_mean
 OUTPUTS = ("vertices", "faces", "global_mean")
 
 
-def per_vertex(layer, x):
+def per_vertex(
+    layer: Callable[[Float[Array, " C"]], Float[Array, " D"]], x: Float[Array, "V *N C"]
+) -> Float[Array, "V *N D"]:
     """Apply a layer on the last axis of (V, ..., C) features (leading axes flattened)."""
     flat = x.reshape(-1, x.shape[-1])
     out = jax.vmap(layer)(flat)
@@ -170,7 +172,9 @@ class DiffusionNet(eqx.Module):
         self.outputs = outputs
         self.final_activation = final_activation
 
-    def __call__(self, features: Float[Array, "V C_in"], operators: MeshOperators) -> Array:
+    def __call__(
+        self, features: Float[Array, "V C_in"], operators: MeshOperators
+    ) -> Float[Array, "V out"] | Float[Array, "F out"] | Float[Array, " out"]:
         """Outputs for one mesh: (V, out), (F, out) or (out,) as configured.
 
         Raises ValueError (before tracing) when ``features`` is not (V, in_size) for the

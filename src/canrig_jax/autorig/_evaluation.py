@@ -15,6 +15,7 @@ Inputs are centimetres (ICT, MakeHuman after ``load_makehuman``); outputs millim
 from collections.abc import Sequence
 
 import numpy as np
+from jaxtyping import ArrayLike, Bool, Float, Int
 
 from .._metrics import CM_TO_MM
 from ..data import to_arkit
@@ -24,13 +25,13 @@ STATIC_MM = 0.01
 ACTIVE_MM = 0.5
 
 
-def pose_classes(poses: PoseSet) -> dict[str, np.ndarray]:
+def pose_classes(poses: PoseSet) -> dict[str, Int[np.ndarray, " _n"]]:
     """{"single": the single-expression pose indices, "combinations": the others}."""
     a = poses.n_basis
     return {"single": np.arange(a), "combinations": np.arange(a, poses.n_poses)}
 
 
-def static_mask(truth: np.ndarray) -> np.ndarray:
+def static_mask(truth: Float[ArrayLike, "*batch V 3"]) -> Bool[np.ndarray, "*batch V"]:
     """(..., V) bool: ground-truth displacement (cm, (..., V, 3)) below ``STATIC_MM``."""
     return np.linalg.norm(np.asarray(truth, np.float64), axis=-1) * CM_TO_MM < STATIC_MM
 
@@ -48,7 +49,9 @@ def _distances_mm(predicted, truth) -> np.ndarray:
 
 
 def class_errors(
-    predicted: Sequence[np.ndarray], truth: Sequence[np.ndarray], poses: PoseSet
+    predicted: Sequence[Float[ArrayLike, "P _V 3"]],
+    truth: Sequence[Float[ArrayLike, "P _V 3"]],
+    poses: PoseSet,
 ) -> dict[str, dict[str, float]]:
     """Errors of several heads' predictions (each (P, V, 3), cm) by pose class.
 
@@ -77,7 +80,10 @@ def class_errors(
 
 
 def worst_poses(
-    predicted: Sequence[np.ndarray], truth: Sequence[np.ndarray], poses: PoseSet, n: int = 5
+    predicted: Sequence[Float[ArrayLike, "P _V 3"]],
+    truth: Sequence[Float[ArrayLike, "P _V 3"]],
+    poses: PoseSet,
+    n: int = 5,
 ) -> list[dict]:
     """The ``n`` poses with the largest MAE (mm) over all heads' vertices, largest first:
     [{"pose": label, "mae_mm": value}, ...]."""
@@ -90,7 +96,7 @@ def worst_poses(
 
 def shared_shape_matrix(
     source_names: Sequence[str], target_names: Sequence[str]
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[Int[np.ndarray, " S"], Float[np.ndarray, "S K_source"]]:
     """How a source rig's shapes (ICT) give a target rig's (ARKit), by ARKit name.
 
     Returns (target_index (S,), matrix (S, K_source)): the S target shapes with a source,
@@ -138,8 +144,10 @@ def _sculpted(predicted, truth, skin) -> tuple[np.ndarray, np.ndarray, dict[str,
 
 
 def sculpted_shape_errors(
-    predicted: np.ndarray, truth: np.ndarray, skin: np.ndarray
-) -> dict[str, np.ndarray]:
+    predicted: Float[ArrayLike, "S V 3"],
+    truth: Float[ArrayLike, "S V 3"],
+    skin: Bool[ArrayLike, " V"],
+) -> dict[str, Float[np.ndarray, " S"]]:
     """Per shape, against person-made targets (each (S, V, 3), cm): where a generated rig
     fails, shape by shape.
 
@@ -151,7 +159,9 @@ def sculpted_shape_errors(
 
 
 def sculpted_target_errors(
-    predicted: np.ndarray, truth: np.ndarray, skin: np.ndarray
+    predicted: Float[ArrayLike, "S V 3"],
+    truth: Float[ArrayLike, "S V 3"],
+    skin: Bool[ArrayLike, " V"],
 ) -> dict[str, float]:
     """Errors against person-made targets (each (S, V, 3), cm).
 

@@ -2,7 +2,7 @@
 
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import check_real, is_concrete
 from ..mesh import MeshOperators
@@ -28,7 +28,9 @@ def heat_kernel_signature(
     return (operators.eigenvectors**2) @ decay.T
 
 
-def hks_times(eigenvalues, n_times: int = 16) -> np.ndarray:
+def hks_times(
+    eigenvalues: Float[ArrayLike, " k"], n_times: int = 16
+) -> Float[np.ndarray, " n_times"]:
     """Log-spaced times from 4 ln 10 / lambda_max to 4 ln 10 / lambda_min (non-zero
     eigenvalues), Sun et al.'s range."""
     values = np.asarray(eigenvalues)

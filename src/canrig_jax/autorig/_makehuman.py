@@ -7,6 +7,7 @@ import dataclasses
 import os
 
 import numpy as np
+from jaxtyping import Bool, Float32, Int, Int32
 
 from ..data import data_file, read_arrays
 
@@ -24,19 +25,19 @@ class MakeHumanHead:
         component_labels: (4920,) connected component of each vertex (0: the skin).
     """
 
-    neutral: np.ndarray
-    faces: np.ndarray
-    deltas: np.ndarray
+    neutral: Float32[np.ndarray, "V 3"]
+    faces: Int32[np.ndarray, "F 3"]
+    deltas: Float32[np.ndarray, "K V 3"]
     names: tuple[str, ...]
-    component_labels: np.ndarray
+    component_labels: Int[np.ndarray, " V"]
 
     @property
-    def vertices(self) -> np.ndarray:
+    def vertices(self) -> Float32[np.ndarray, "V 3"]:
         """The neutral (the name ``transfer_poses`` and ``copy_poses`` read)."""
         return self.neutral
 
     @property
-    def skin(self) -> np.ndarray:
+    def skin(self) -> Bool[np.ndarray, " V"]:
         """(V,) bool: the vertices of the largest component (the skin; the others are eye,
         teeth and tongue proxies)."""
         labels = self.component_labels

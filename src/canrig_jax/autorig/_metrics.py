@@ -1,9 +1,12 @@
 """Evaluation of generated rigs: vertex errors and inner-part penetration."""
 
+from collections.abc import Sequence
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._metrics import CM_TO_MM
 
@@ -39,11 +42,11 @@ def _pose_winding_numbers(posed, inner_index, enclosing):
 
 
 def outside_fraction(
-    vertices: np.ndarray,
-    faces: np.ndarray,
-    inner: np.ndarray,
-    enclosing_faces: np.ndarray,
-) -> np.ndarray:
+    vertices: Float[ArrayLike, "*P V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    inner: Bool[ArrayLike, " V"],
+    enclosing_faces: Bool[ArrayLike, " F"],
+) -> Float[np.ndarray, "*P"]:
     """Per pose, the fraction of ``inner`` vertices (bool (V,)) whose winding number w.r.t.
     the ``enclosing_faces`` (bool (F,)) of the same mesh is below one half in magnitude,
     i.e. that lie outside the enclosing surface.
@@ -68,7 +71,9 @@ def outside_fraction(
     return fraction[0] if single else fraction
 
 
-def inner_outside(head, displacements: np.ndarray, part_names) -> np.ndarray:
+def inner_outside(
+    head: Any, displacements: Float[ArrayLike, "P V 3"], part_names: Sequence[str]
+) -> Bool[np.ndarray, "P N"]:
     """(P, N) bool: which inner-part vertices (teeth, gums, eyeballs; N of them, in vertex
     order) lie outside the skin (face, head and neck) of ``head`` posed by each of
     ``displacements`` (P, V, 3)."""
@@ -88,13 +93,21 @@ def inner_outside(head, displacements: np.ndarray, part_names) -> np.ndarray:
     return np.abs(np.asarray(w)) < 0.5
 
 
-def penetration(head, displacements: np.ndarray, part_names) -> float:
+def penetration(
+    head: Any, displacements: Float[ArrayLike, "P V 3"], part_names: Sequence[str]
+) -> float:
     """Mean over poses of the fraction of inner-part vertices (teeth, gums, eyeballs) outside
     the skin (face, head and neck) of ``head`` posed by ``displacements`` (P, V, 3)."""
     return float(inner_outside(head, displacements, part_names).mean())
 
 
-def penetration_free_set(head, part_names, truth=None, *, threshold: float = 0.0):
+def penetration_free_set(
+    head: Any,
+    part_names: Sequence[str],
+    truth: Float[ArrayLike, "P V 3"] | None = None,
+    *,
+    threshold: float = 0.0,
+) -> tuple[Int[np.ndarray, " Q"], Bool[np.ndarray, " N"]]:
     """Where the ground truth has no penetration (Table 3 of RigAnyFace, made separable):
     the inner-part vertices inside the skin at rest (this leaves out e.g. the fronts of the
     eyeballs that show through the eye openings) and the poses whose ground truth puts at
@@ -118,7 +131,9 @@ def penetration_free_set(head, part_names, truth=None, *, threshold: float = 0.0
     return poses, vertices
 
 
-def error_stats(predicted: np.ndarray, truth: np.ndarray, scale: float = 1.0) -> dict:
+def error_stats(
+    predicted: Float[ArrayLike, "*P V 3"], truth: Float[ArrayLike, "*P V 3"], scale: float = 1.0
+) -> dict:
     """{"mae_mm", "q95_mm"} of per-vertex distances over all poses; inputs in centimetres,
     or in unit-sphere units with ``scale`` the head's cm per unit."""
     distance = np.linalg.norm(np.asarray(predicted) - np.asarray(truth), axis=-1) * scale

@@ -33,7 +33,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Float, Float64, PRNGKeyArray
 
 from ..mesh import MeshOperators
 from ._diffusion_net import DiffusionNet, DiffusionNetBlock, per_vertex
@@ -297,7 +297,9 @@ class RigAnyFace(eqx.Module):
         return out.reshape(n_chunks * pose_chunk, n_vertices, 3)[:n_poses]
 
 
-def normalise(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+def normalise(
+    vertices: Float[ArrayLike, "V 3"],
+) -> tuple[Float64[np.ndarray, "V 3"], Float64[np.ndarray, " 3"], float]:
     """Centre and scale a head into the unit sphere, as RigAnyFace evaluates.
 
     Returns (normalised vertices, centre (3,), scale) with normalised = (v - centre) / scale;

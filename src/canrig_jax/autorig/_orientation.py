@@ -25,9 +25,11 @@ from importlib.resources import files
 from pathlib import Path
 
 import numpy as np
+from jaxtyping import ArrayLike, Bool, Float, Int
 from scipy.spatial import cKDTree
 
 from ..mesh import check_mesh, connected_components
+from ._data import AutorigDataset
 
 AXES = ("x", "y", "z")
 CONVENTION = "+y up, +z forward (ICT)"
@@ -63,7 +65,7 @@ class HeadOrientation:
         margins: the cues' values (symmetry ratio, sharpness ratio, up votes).
     """
 
-    rotation: np.ndarray | None
+    rotation: Float[np.ndarray, "3 3"] | None
     up: str | None
     forward: str | None
     lateral: str | None
@@ -97,7 +99,9 @@ class HeadOrientation:
         return ", ".join(parts)
 
 
-def head_orientation(vertices, faces, *, max_points: int = 4000) -> HeadOrientation:
+def head_orientation(
+    vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"], *, max_points: int = 4000
+) -> HeadOrientation:
     """The up, forward and left-right axes of a head (see the module docstring).
 
     Args:
@@ -298,7 +302,7 @@ class OrientationError(ValueError):
     to state it (``up=``/``forward=``; ``canrig autorig --up/--forward``)."""
 
 
-def axis_rotations() -> np.ndarray:
+def axis_rotations() -> Float[np.ndarray, "24 3 3"]:
     """(24, 3, 3) the proper rotations that permute and flip the axes."""
     import itertools
 
@@ -312,7 +316,7 @@ def axis_rotations() -> np.ndarray:
     return np.stack(out)
 
 
-def parse_axis(text, argument: str) -> np.ndarray:
+def parse_axis(text: str, argument: str) -> Float[np.ndarray, " 3"]:
     """A signed axis ("+y", "-z", "x") as a unit vector; ValueError naming ``argument``."""
     spelled = str(text).strip().lower()
     sign = -1.0 if spelled.startswith("-") else 1.0
@@ -349,7 +353,7 @@ class OrientationDecision:
             the found rotation's angle from ``rotation``} (empty when stated).
     """
 
-    rotation: np.ndarray
+    rotation: Float[np.ndarray, "3 3"]
     up: str
     forward: str
     source: str
@@ -363,7 +367,7 @@ class OrientationDecision:
         return f"up {self.up}, facing {self.forward} ({self.source})"
 
 
-def stated_orientation(up, forward) -> OrientationDecision:
+def stated_orientation(up: str, forward: str) -> OrientationDecision:
     """The decision a caller states: ``up`` and ``forward`` as signed axes of the head."""
     u, f = parse_axis(up, "up"), parse_axis(forward, "forward")
     if abs(float(u @ f)) > 0:
@@ -372,7 +376,7 @@ def stated_orientation(up, forward) -> OrientationDecision:
     return OrientationDecision(rotation, _axis_name(u), _axis_name(f), "stated", {})
 
 
-def inner_face(dataset) -> np.ndarray:
+def inner_face(dataset: AutorigDataset) -> Bool[np.ndarray, " Vs"]:
     """(Vs,) bool: the generic ICT head's inner face (see ``INNER_FACE_CM``)."""
     from ._data import vertex_parts
 
@@ -415,7 +419,7 @@ method) runs without the data folder: ``orientation_points`` of the generic ICT 
 centimetres, derived from the ICT Face Model like the packaged network weights."""
 
 
-def orientation_points(dataset=None) -> np.ndarray:
+def orientation_points(dataset: AutorigDataset | None = None) -> Float[np.ndarray, "N 3"]:
     """(N, 3) cm: the regular subsample of the ICT inner face that ``decide_orientation``
     fits (``SEARCH_POINTS`` at most), from ``dataset`` (``ict_pose_source()``) or, when None,
     the packaged copy (``ORIENTATION_TEMPLATE``)."""
@@ -428,7 +432,14 @@ def orientation_points(dataset=None) -> np.ndarray:
     return template[:: max(1, int(np.ceil(template.shape[0] / SEARCH_POINTS)))]
 
 
-def decide_orientation(dataset, vertices, faces, *, up=None, forward=None):
+def decide_orientation(
+    dataset: AutorigDataset | None,
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    *,
+    up: str | None = None,
+    forward: str | None = None,
+) -> OrientationDecision:
     """Which way a head (centimetres) faces, decided from a fit of the ICT inner face, or
     refused — never guessed.
 

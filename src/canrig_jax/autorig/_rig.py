@@ -9,12 +9,14 @@ expressions reproduces the predicted combination pose.
 """
 
 import dataclasses
+import os
 import time
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from ..mesh import MeshOperators, check_mesh, mesh_operators
 from ..rig import BlendshapeRig, Corrective
@@ -41,7 +43,14 @@ DEFAULT_POSE_CHUNK = 16
 
 
 @eqx.filter_jit
-def predict_displacements(model, poses, vertices, operators, pose_chunk=None, base=None):
+def predict_displacements(
+    model: RigAnyFace,
+    poses: Float[Array, "P A"],
+    vertices: Float[Array, "V 3"],
+    operators: MeshOperators,
+    pose_chunk: int | None = None,
+    base: Float[Array, "P V 3"] | None = None,
+) -> Float[Array, "P V 3"]:
     """The jitted forward pass ``model(poses, vertices, operators)``: (P, V, 3) displacements
     of every pose (no validation; ``generate_rig`` is the checked entry point). ``base``:
     a residual model's base displacements (unit-sphere units)."""
@@ -64,7 +73,7 @@ class GeneratedRig:
     """
 
     rig: BlendshapeRig
-    displacements: np.ndarray
+    displacements: Float[np.ndarray, "P V 3"]
     seconds: dict
     orientation: HeadOrientation | None = None
     rotated: bool = False
@@ -89,7 +98,10 @@ def pad_to_bucket(operators: MeshOperators, bucket: int) -> MeshOperators:
 
 
 def rig_from_poses(
-    neutral: np.ndarray, faces: np.ndarray, displacements: np.ndarray, poses: PoseSet
+    neutral: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    displacements: Float[ArrayLike, "P V 3"],
+    poses: PoseSet,
 ) -> BlendshapeRig:
     """A ``BlendshapeRig`` whose poses reproduce ``displacements`` (P, V, 3)."""
     a = poses.n_basis
@@ -117,18 +129,18 @@ def rig_from_poses(
 def generate_rig(
     model: RigAnyFace,
     poses: PoseSet,
-    vertices,
-    faces,
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
     *,
     k: int = 128,
     operators: MeshOperators | None = None,
-    cache=False,
+    cache: str | os.PathLike | bool | None = False,
     memory_budget: int = DEFAULT_MEMORY_BUDGET,
     bucket: int = 256,
     pose_chunk: int | None = DEFAULT_POSE_CHUNK,
-    base=None,
+    base: Float[ArrayLike, "P V 3"] | None = None,
     orientation: str = "check",
-    placement: tuple | None = None,
+    placement: tuple[Float[ArrayLike, " 3"], float] | None = None,
 ) -> GeneratedRig:
     """Build the rig of a neutral head (any triangulation, any number of parts).
 

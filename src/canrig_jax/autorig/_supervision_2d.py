@@ -29,11 +29,13 @@ unrigged head: its heads are drawn from ``rigged`` only.
 
 import dataclasses
 import os
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike, Float, Int, Int32
 
 from .._checkpoint import (
     load_checkpoint,
@@ -43,6 +45,7 @@ from .._checkpoint import (
 )
 from .._metrics import CM_TO_MM
 from ..render import (
+    Camera,
     RasterSettings,
     interpolate,
     orbit_cameras,
@@ -53,6 +56,7 @@ from ..render import (
     silhouette,
 )
 from ._data import PoseSet, RiggedHead
+from ._model import RigAnyFace
 from ._train import RigAnyFaceTrainOptions, TrainingSet, batch_loss, make_model, optimiser
 
 CHECKPOINT_FORMAT_2D = "riganyface-2d-checkpoint-1"
@@ -116,7 +120,7 @@ class Supervision2DOptions:
             sigma=self.sigma, gamma=self.gamma, tile_size=8, faces_per_tile=self.faces_per_tile
         )
 
-    def cameras(self):
+    def cameras(self) -> Camera:
         return orbit_cameras(
             (0.0, self.target_y, 0.0),
             3.0,
@@ -132,7 +136,7 @@ class Supervision2DOptions:
         return d
 
 
-def padded_faces(heads: list[RiggedHead]) -> jnp.ndarray:
+def padded_faces(heads: list[RiggedHead]) -> Int32[Array, "N F 3"]:
     """(N, F, 3) int32 faces of ``heads`` padded with degenerate (0, 0, 0) triangles, which
     the rasteriser skips (zero screen area)."""
     n_faces = max(h.faces.shape[0] for h in heads)
@@ -142,7 +146,15 @@ def padded_faces(heads: list[RiggedHead]) -> jnp.ndarray:
     return jnp.asarray(out)
 
 
-def loss_2d(predicted, truth, vertices, faces, landmarks, cameras, options: Supervision2DOptions):
+def loss_2d(
+    predicted: Float[Array, "Q V 3"],
+    truth: Float[Array, "Q V 3"],
+    vertices: Float[Array, "V 3"],
+    faces: Int[Array, "F 3"],
+    landmarks: Int[Array, " L"],
+    cameras: Camera,
+    options: Supervision2DOptions,
+) -> tuple[Float[Array, ""], dict[str, Float[Array, ""]]]:
     """2D loss of one head: ``predicted`` and ``truth`` (Q, V, 3) displacements (unit-sphere
     units) of its ``vertices`` (V, 3). Returns (loss, dict of the three terms)."""
     settings = options.settings()
@@ -250,7 +262,7 @@ def _train_step(
     return eqx.apply_updates(model, updates), opt_state, loss, metrics
 
 
-def rigged_reference(data: TrainingSet, rigged: np.ndarray) -> float:
+def rigged_reference(data: TrainingSet, rigged: Int[ArrayLike, " R"]) -> float:
     """Mean square displacement (unit-sphere units) over the rigged heads only: the 3D loss
     scale and the model's output scale (no unrigged head's 3D rig enters it)."""
     mask = np.asarray(data.operators.vertex_mask)[rigged]
@@ -260,18 +272,18 @@ def rigged_reference(data: TrainingSet, rigged: np.ndarray) -> float:
 
 def train_2d(
     data: TrainingSet,
-    faces,
+    faces: Int[ArrayLike, "N F 3"],
     poses: PoseSet,
-    rigged,
+    rigged: Int[ArrayLike, " R"] | Sequence[int],
     options: RigAnyFaceTrainOptions,
     opts2d: Supervision2DOptions,
     *,
     stage: str,
-    init=None,
+    init: RigAnyFace | None = None,
     checkpoint: str | os.PathLike | None = None,
     progress: bool = True,
     stop_after: int | None = None,
-):
+) -> tuple[RigAnyFace, int, float, list]:
     """Train one stage (``"2d"``, ``"3d+2d"`` or ``"3d"``) for ``options.steps`` steps (or
     ``options.max_minutes``), resuming from ``checkpoint`` when it exists. ``init``: the
     model to start from (stage 2 starts from stage 1's), else a fresh one. ``rigged``: indices
@@ -378,7 +390,7 @@ def _step_function(data, faces, poses, rigged, options, opts2d, stage, optim, re
     return one_step
 
 
-def load_model_2d(path, poses: PoseSet | None = None):
+def load_model_2d(path: str | os.PathLike, poses: PoseSet | None = None) -> tuple[RigAnyFace, dict]:
     """(model, header) of a ``train_2d`` checkpoint."""
     state = read_checkpoint_state(path, CHECKPOINT_FORMAT_2D)
     options = RigAnyFaceTrainOptions(**state["options"])

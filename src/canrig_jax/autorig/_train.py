@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Float32, Float64, Int, PyTree
 
 from .._checkpoint import (
     load_checkpoint,
@@ -184,8 +184,12 @@ class TrainingSet(eqx.Module):
 
 
 def head_inputs(
-    vertices, faces, *, k: int, cache=None
-) -> tuple[np.ndarray, MeshOperators, np.ndarray, float]:
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    *,
+    k: int,
+    cache: str | os.PathLike | bool | None = None,
+) -> tuple[Float32[np.ndarray, "V 3"], MeshOperators, Float64[np.ndarray, " 3"], float]:
     """(unit-sphere vertices, operators, centre, scale) of one head."""
     unit, centre, scale = normalise(vertices)
     return unit.astype(np.float32), mesh_operators(unit, faces, k=k, cache=cache), centre, scale
@@ -196,9 +200,9 @@ def training_set(
     poses: PoseSet,
     *,
     k: int,
-    cache=None,
+    cache: str | os.PathLike | bool | None = None,
     progress: bool = True,
-    base: list[np.ndarray] | None = None,
+    base: list[Float[ArrayLike, "P _V 3"]] | None = None,
 ) -> TrainingSet:
     """Normalise, compute (cached) operators and stack ``heads`` for training.
 
@@ -273,14 +277,14 @@ def static_vertex_error(
 def batch_loss(
     model: RigAnyFace,
     data: TrainingSet,
-    heads,
-    poses,
-    landmark_weight,
-    reference,
+    heads: Int[Array, " B"],
+    poses: Int[Array, "B Q"],
+    landmark_weight: float | Float[Array, ""],
+    reference: float | Float[Array, ""],
     loss_kind: str = "squared",
-    static_weight=0.0,
+    static_weight: float | Float[Array, ""] = 0.0,
     balance_poses: float = 0.0,
-):
+) -> tuple[Float[Array, ""], Float[Array, ""]]:
     """Loss and mean vertex error (unit-sphere units) of ``heads`` (B,) x ``poses`` (B, Q)."""
 
     def one(h, pose_ids):
@@ -326,18 +330,18 @@ def batch_loss(
 
 @eqx.filter_jit
 def train_step(
-    model,
-    opt_state,
-    data,
-    heads,
-    poses,
-    optim,
-    landmark_weight,
-    reference,
-    loss_kind="squared",
-    static_weight=0.0,
-    balance_poses=0.0,
-):
+    model: RigAnyFace,
+    opt_state: PyTree,
+    data: TrainingSet,
+    heads: Int[Array, " B"],
+    poses: Int[Array, "B Q"],
+    optim: optax.GradientTransformation,
+    landmark_weight: float | Float[Array, ""],
+    reference: float | Float[Array, ""],
+    loss_kind: str = "squared",
+    static_weight: float | Float[Array, ""] = 0.0,
+    balance_poses: float = 0.0,
+) -> tuple[RigAnyFace, PyTree, Float[Array, ""], Float[Array, ""]]:
     (loss, distance), grads = eqx.filter_value_and_grad(batch_loss, has_aux=True)(
         model,
         data,
@@ -361,7 +365,7 @@ class RigAnyFaceTrainResult:
     history: list
 
 
-def load_riganyface(path) -> tuple[RigAnyFace, PoseSet, dict]:
+def load_riganyface(path: str | os.PathLike) -> tuple[RigAnyFace, PoseSet, dict]:
     """(model, pose set, header) of a training checkpoint, or of its weights-only copy
     (``export_riganyface``). The packaged default (``DEFAULT_CHECKPOINT``) is first checked
     against its recorded SHA-256 (``CorruptFileError`` naming the file if it differs)."""

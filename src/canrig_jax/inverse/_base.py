@@ -7,12 +7,12 @@ families that share code (coordinate descent) have their own abstract base.
 """
 
 import abc
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
 from equinox import AbstractClassVar, AbstractVar
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from ._problem import InverseProblem
 
@@ -55,12 +55,12 @@ class AbstractInverseMethod(eqx.Module):
         problem: InverseProblem,
         offset: Float[Array, " N"],
         init: Float[Array, " K"],
-        key: jax.Array,
+        key: PRNGKeyArray,
     ) -> Iterate:
         """Solve for one frame; ``offset`` = (b - b0).ravel() in rig units. jit/vmap-safe."""
 
 
-def check_alpha(alpha) -> None:
+def check_alpha(alpha: Any) -> None:
     if isinstance(alpha, jax.core.Tracer):
         return
     if not alpha >= 0:
@@ -69,13 +69,13 @@ def check_alpha(alpha) -> None:
         raise ValueError(f"alpha: expected a finite weight, got {alpha}")
 
 
-def check_upper(upper) -> None:
+def check_upper(upper: Any) -> None:
     if isinstance(upper, jax.core.Tracer):
         return
     if not upper > 0:
         raise ValueError(f"upper: expected a positive upper bound, got {upper}")
 
 
-def check_count(name: str, value) -> None:
+def check_count(name: str, value: Any) -> None:
     if isinstance(value, bool) or not (isinstance(value, int) and value >= 1):
         raise ValueError(f"{name}: expected an integer >= 1, got {value!r}")

@@ -47,7 +47,7 @@ import jax
 import jax.numpy as jnp
 from equinox import AbstractVar
 from jax.custom_batching import custom_vmap
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
 from .._linalg import spd_solve
 from ._base import AbstractInverseMethod, Iterate, check_alpha, check_count, check_upper
@@ -76,15 +76,16 @@ def check_order(order: str) -> None:
 
 def objective(
     problem: InverseProblem,
-    weights: Float[Array, " K"],
-    offset: Float[Array, " N"],
-    alpha: float,
+    weights: Float[ArrayLike, " K"],
+    offset: Float[ArrayLike, " N"],
+    alpha: float | Float[Array, ""],
 ) -> Float[Array, ""]:
     """1/2 ||f(w) - b||^2 + alpha 1^T w under the full rig; ``offset`` = (b - b0).ravel().
 
     Computed in coefficient space, 1/2 (a^T Q a - 2 a^T M^T (b - b0) + ||b - b0||^2), which
     shares the projection M^T (b - b0) with the solvers instead of forming a second 3V-vector
     (float32: absolute error ~1e-7 ||b - b0||^2)."""
+    weights, offset = jnp.asarray(weights), jnp.asarray(offset)
     return problem.objective(weights, problem.projection(offset), offset @ offset, alpha)
 
 
@@ -141,7 +142,13 @@ class AbstractCoordinateDescent(AbstractInverseMethod):
     def rig_part(self, problem: InverseProblem) -> InverseProblem:
         """The problem of the rig the method assumes (all of it, or its linear part)."""
 
-    def __call__(self, problem, offset, init, key) -> Iterate:
+    def __call__(
+        self,
+        problem: InverseProblem,
+        offset: Float[Array, " N"],
+        init: Float[Array, " K"],
+        key: PRNGKeyArray,
+    ) -> Iterate:
         """Passes of coordinate descent from ``init`` (each followed by the Newton step when
         ``newton``), to the tolerance or, with ``trace``, all ``passes``."""
         sweep = _Sweep.build(self, problem, offset, key)
@@ -500,7 +507,13 @@ class Seol(AbstractInverseMethod):
         if self.order not in ("decreasing", "increasing"):
             raise ValueError(f"order: Seol takes 'decreasing' or 'increasing', got {self.order!r}")
 
-    def __call__(self, problem, offset, init, key) -> Iterate:
+    def __call__(
+        self,
+        problem: InverseProblem,
+        offset: Float[Array, " N"],
+        init: Float[Array, " K"],
+        key: PRNGKeyArray,
+    ) -> Iterate:
         shapes = problem.columns[: problem.n_blendshapes]
 
         def step(carry, i):

@@ -8,6 +8,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax.numpy as jnp
 from jax.custom_batching import sequential_vmap
+from jaxtyping import Array, Float, PRNGKeyArray
 
 from ..rig import evaluate
 from ._base import AbstractInverseMethod, Iterate, check_alpha, check_count, check_upper
@@ -44,7 +45,13 @@ class JaxoptLBFGSB(AbstractInverseMethod):
         if self.objective not in ("gram", "evaluate"):
             raise ValueError(f"objective: expected 'gram' or 'evaluate', got {self.objective!r}")
 
-    def __call__(self, problem: InverseProblem, offset, init, key) -> Iterate:
+    def __call__(
+        self,
+        problem: InverseProblem,
+        offset: Float[Array, " N"],
+        init: Float[Array, " K"],
+        key: PRNGKeyArray,
+    ) -> Iterate:
         projection, offset_sq = problem.projection(offset), offset @ offset
         params, steps, error = _run_lbfgsb(self, problem, offset, init)
         fun = _objective(self, problem, offset)

@@ -3,9 +3,11 @@
 from typing import ClassVar
 
 import jax.numpy as jnp
+from jaxtyping import Array, Float, PRNGKeyArray
 
 from .._linalg import spd_solve
 from ._base import AbstractInverseMethod, Iterate, check_alpha
+from ._problem import InverseProblem
 
 
 def _closed_form(problem, offset, weights) -> Iterate:
@@ -21,7 +23,13 @@ class Joshi(AbstractInverseMethod):
     upper: ClassVar[float] = 1.0
     penalises_l1: ClassVar[bool] = False
 
-    def __call__(self, problem, offset, init, key) -> Iterate:
+    def __call__(
+        self,
+        problem: InverseProblem,
+        offset: Float[Array, " N"],
+        init: Float[Array, " K"],
+        key: PRNGKeyArray,
+    ) -> Iterate:
         weights = jnp.clip(problem.pseudoinverse @ offset, 0.0, 1.0)
         return _closed_form(problem, offset, weights)
 
@@ -41,11 +49,19 @@ class Cetinaslan(AbstractInverseMethod):
     def __check_init__(self):
         check_alpha(self.alpha)
 
-    def __call__(self, problem, offset, init, key) -> Iterate:
+    def __call__(
+        self,
+        problem: InverseProblem,
+        offset: Float[Array, " N"],
+        init: Float[Array, " K"],
+        key: PRNGKeyArray,
+    ) -> Iterate:
         return _closed_form(problem, offset, ridge_weights(problem, offset, self.alpha))
 
 
-def ridge_weights(problem, offset, alpha):
+def ridge_weights(
+    problem: InverseProblem, offset: Float[Array, " N"], alpha: float | Float[Array, ""]
+) -> Float[Array, " K"]:
     """(K,) clip((B^T B + 2 alpha I)^-1 B^T (b - b0), 0, 1); ``alpha`` may be traced.
 
     A K x K Cholesky solve (``canrig_jax._linalg``: one matrix per LAPACK call under ``vmap``);

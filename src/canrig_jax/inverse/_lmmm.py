@@ -24,6 +24,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array, Float, PRNGKeyArray
 
 from .._linalg import eigvalsh
 from ._base import AbstractInverseMethod, Iterate, check_alpha, check_count, check_upper
@@ -67,7 +68,13 @@ class LMMM(AbstractInverseMethod):
         check_count("iterations", self.iterations)
         check_upper(self.upper)
 
-    def __call__(self, problem: InverseProblem, offset, init, key) -> Iterate:
+    def __call__(
+        self,
+        problem: InverseProblem,
+        offset: Float[Array, " N"],
+        init: Float[Array, " K"],
+        key: PRNGKeyArray,
+    ) -> Iterate:
         k = problem.n_blendshapes
         # tables are sorted by order, so the pair columns follow the K blendshape columns
         pairs = tuple(c for c in problem.combinations if c.shape[1] == 2)

@@ -7,6 +7,7 @@ method assumed, and compared with the clean (noise-free) target.
 
 import jax
 import numpy as np
+from jaxtyping import ArrayLike, Float
 
 from .._metrics import CM_TO_MM
 from ..rig import UNIT_IN_CM, BlendshapeRig, evaluate
@@ -22,8 +23,8 @@ CARDINALITY_TOL = 1e-3
 
 
 def frame_metrics(
-    rig: BlendshapeRig, weights: np.ndarray, clean: np.ndarray
-) -> dict[str, np.ndarray]:
+    rig: BlendshapeRig, weights: Float[ArrayLike, "T K"], clean: Float[ArrayLike, "T V 3"]
+) -> dict[str, Float[np.ndarray, " T"]]:
     """Per-frame metrics of weights (T, K) against clean meshes (T, V, 3) in rig units.
 
     Returns (T,) arrays: ``rmse_mm`` = sqrt(||f(w) - b||^2 / V), ``p95_mm`` (95th percentile of
@@ -46,7 +47,7 @@ def frame_metrics(
     }
 
 
-def roughness(weights: np.ndarray) -> float:
+def roughness(weights: Float[ArrayLike, "T K"]) -> float:
     """sum_i sum_t (w_{t-1,i} - 2 w_{t,i} + w_{t+1,i})^2 over a take (T, K)."""
     weights = np.asarray(weights, np.float64)
     if weights.ndim != 2 or weights.shape[0] < 3:
@@ -54,7 +55,9 @@ def roughness(weights: np.ndarray) -> float:
     return float((np.diff(weights, n=2, axis=0) ** 2).sum())
 
 
-def summarize(rig: BlendshapeRig, weights: np.ndarray, clean: np.ndarray) -> dict[str, float]:
+def summarize(
+    rig: BlendshapeRig, weights: Float[ArrayLike, "T K"], clean: Float[ArrayLike, "T V 3"]
+) -> dict[str, float]:
     """Means over frames of ``frame_metrics``, with ``rmse_mean_mm`` (mean of per-frame RMSE)
     and ``rmse_p95_mm`` (mean of per-frame p95 error), as in the paper's tables."""
     m = frame_metrics(rig, weights, clean)

@@ -51,7 +51,7 @@ class InverseProblem(eqx.Module):
     neutral: Float[Array, "V 3"]
     columns: Float[Array, "P N"]
     gram: Float[Array, "P P"]
-    combinations: tuple[Int[Array, "C n"], ...]
+    combinations: tuple[Int[Array, "_C _order"], ...]
     blendshape_norms: Float[Array, " K"]
     pseudoinverse: Float[Array, "K N"]
     pair_hessian_bounds: Float[Array, "N 3"]
@@ -95,7 +95,7 @@ class InverseProblem(eqx.Module):
         weights: Float[Array, " K"],
         projection: Float[Array, " P"],
         offset_sq: Float[Array, ""],
-        alpha: float,
+        alpha: float | Float[Array, ""],
     ) -> Float[Array, ""]:
         """1/2 ||f(w) - b||^2 + alpha 1^T w from p = M^T (b - b0) and ||b - b0||^2:
         1/2 (a^T Q a - 2 a^T p + ||b - b0||^2) + alpha 1^T w, P x P work."""

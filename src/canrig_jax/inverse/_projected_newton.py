@@ -35,9 +35,11 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array, Float, PRNGKeyArray
 
 from .._linalg import spd_solve
 from ._base import AbstractInverseMethod, Iterate, check_alpha, check_count, check_upper
+from ._problem import InverseProblem
 
 
 class QuarticNewton(AbstractInverseMethod):
@@ -69,7 +71,13 @@ class QuarticNewton(AbstractInverseMethod):
         if not isinstance(self.tol, jax.core.Tracer) and not 0 <= self.tol < 1:
             raise ValueError(f"tol: expected a relative tolerance in [0, 1), got {self.tol}")
 
-    def __call__(self, problem, offset, init, key) -> Iterate:
+    def __call__(
+        self,
+        problem: InverseProblem,
+        offset: Float[Array, " N"],
+        init: Float[Array, " K"],
+        key: PRNGKeyArray,
+    ) -> Iterate:
         gram, alpha, upper = problem.gram, self.alpha, self.upper
         projection = problem.projection(offset)
         lengths = 0.5 ** jnp.arange(self.line_steps, dtype=gram.dtype)

@@ -20,8 +20,10 @@ import time
 
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import ArrayLike, Float, Float64, Int
 
 from ..rig import BlendshapeRig
+from ._base import AbstractInverseMethod
 from ._coordinate_descent import QuarticCD
 from ._problem import InverseProblem, prepare
 from ._solve import Stream, solve_sequence
@@ -59,7 +61,7 @@ class NumpyDenseRig:
         """P = K + number of correctives (all orders)."""
         return self.n_blendshapes + sum(indices.shape[0] for indices, _ in self.tables)
 
-    def __call__(self, weights: np.ndarray) -> np.ndarray:
+    def __call__(self, weights: Float[ArrayLike, " K"]) -> Float64[np.ndarray, " N"]:
         """(3V,) mesh at ``weights`` (K,): the whole rig, every term."""
         mesh = self.neutral + weights @ self.deltas
         for indices, dense in self.tables:
@@ -69,11 +71,11 @@ class NumpyDenseRig:
 
 def numpy_quartic_cd(
     rig: BlendshapeRig | NumpyDenseRig,
-    target: np.ndarray,
+    target: Float[ArrayLike, "V 3"],
     alpha: float,
     passes: int,
-    order: np.ndarray,
-) -> np.ndarray:
+    order: Int[ArrayLike, " K"] | Int[ArrayLike, "P K"],
+) -> Float64[np.ndarray, " K"]:
     """Algorithm 1 of Racković et al. 2023 with the full rig re-evaluated per coordinate.
 
     Args:
@@ -124,14 +126,17 @@ def numpy_quartic_cd(
     return weights
 
 
-def decreasing_norm_order(problem: InverseProblem) -> np.ndarray:
+def decreasing_norm_order(problem: InverseProblem) -> Int[np.ndarray, " K"]:
     """(K,) blendshapes by decreasing ||b_i|| (stable), the library's ``"decreasing"`` order."""
     return np.argsort(-np.asarray(problem.blendshape_norms), kind="stable")
 
 
 def time_batched(
-    problem: InverseProblem, targets, method, repeats: int = 3
-) -> tuple[float, np.ndarray]:
+    problem: InverseProblem,
+    targets: Float[ArrayLike, "T V 3"],
+    method: AbstractInverseMethod,
+    repeats: int = 3,
+) -> tuple[float, Float[np.ndarray, "T K"]]:
     """(best-of-``repeats`` seconds per frame, (T, K) weights) of ``solve_sequence`` over the
     whole take (one vmapped call), compiled and warmed up first."""
     targets = jnp.asarray(targets, jnp.float32)
@@ -145,8 +150,12 @@ def time_batched(
 
 
 def time_single_frames(
-    problem: InverseProblem, targets, method, warm_start: bool = False, repeats: int = 3
-) -> tuple[float, np.ndarray]:
+    problem: InverseProblem,
+    targets: Float[ArrayLike, "T V 3"],
+    method: AbstractInverseMethod,
+    warm_start: bool = False,
+    repeats: int = 3,
+) -> tuple[float, Float[np.ndarray, "T K"]]:
     """(best-of-``repeats`` median seconds per frame, (T, K) weights) of ``Stream``: one
     compiled call per frame, each waited for (as a live capture would), host-side input
     checks included."""
@@ -167,7 +176,7 @@ def time_single_frames(
 
 def measure_reference(
     rig: BlendshapeRig,
-    targets: np.ndarray,
+    targets: Float[ArrayLike, "T V 3"],
     alpha: float = 0.5,
     passes: int = 5,
     n_reference_frames: int = 3,
@@ -214,11 +223,11 @@ def measure_reference(
 
 def minimum(
     problem: InverseProblem,
-    target: np.ndarray,
+    target: Float[ArrayLike, "V 3"],
     alpha: float,
     upper: float = 1.0,
-    init: np.ndarray | None = None,
-) -> np.ndarray:
+    init: Float[ArrayLike, " K"] | None = None,
+) -> Float64[np.ndarray, " K"]:
     """(K,) float64 minimiser of 1/2 ||f(w) - b||^2 + alpha 1^T w on [0, upper]^K by SciPy's
     L-BFGS-B (float64, tight tolerances), independently of the library's solvers: the
     objective in coefficient space from the problem's Gram matrix, its gradient written out

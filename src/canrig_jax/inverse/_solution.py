@@ -2,7 +2,7 @@
 
 import equinox as eqx
 import optimistix as optx
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Shaped
 
 
 class Solution(eqx.Module):
@@ -24,4 +24,4 @@ class Solution(eqx.Module):
     objective: Float[Array, ""]
     history: Float[Array, " T"]
     result: optx.RESULTS
-    stats: dict[str, Array]
+    stats: dict[str, Shaped[Array, ""]]

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .._checks import check_finite, is_concrete
 from ..rig import BlendshapeRig
@@ -116,7 +116,7 @@ def solve(
     method: AbstractInverseMethod,
     *,
     init: Float[ArrayLike, " K"] | None = None,
-    key: jax.Array | None = None,
+    key: PRNGKeyArray | None = None,
 ) -> Solution:
     """Recover rig weights from a target mesh (units of the rig) with ``method``.
 
@@ -167,7 +167,7 @@ def solve_sequence(
     method: AbstractInverseMethod,
     *,
     warm_start: bool = False,
-    key: jax.Array | None = None,
+    key: PRNGKeyArray | None = None,
 ) -> Solution:
     """Solve a whole take; returns a Solution whose leaves have a leading frame axis.
 
@@ -216,7 +216,7 @@ class Stream:
         method: AbstractInverseMethod,
         *,
         warm_start: bool = False,
-        key: jax.Array | None = None,
+        key: PRNGKeyArray | None = None,
     ):
         _check_method(method)
         self.problem = _check_problem(problem)

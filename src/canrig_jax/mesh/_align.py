@@ -17,6 +17,7 @@ surface (a head facing elsewhere, e.g. stored z up) or whose scale says other un
 import dataclasses
 
 import numpy as np
+from jaxtyping import ArrayLike, Bool, Float, Float64, Int
 from scipy.spatial import cKDTree
 
 from ._checks import check_mesh
@@ -36,19 +37,19 @@ class SimilarityFit:
     """
 
     scale: float
-    rotation: np.ndarray
-    translation: np.ndarray
+    rotation: Float[np.ndarray, "3 3"]
+    translation: Float[np.ndarray, " 3"]
     rms: float
     iterations: int
 
-    def apply(self, points: np.ndarray) -> np.ndarray:
+    def apply(self, points: Float[ArrayLike, "*N 3"]) -> Float64[np.ndarray, "*N 3"]:
         return self.scale * np.asarray(points, np.float64) @ self.rotation.T + self.translation
 
 
 def similarity_icp(
-    source_points: np.ndarray,
-    target_vertices: np.ndarray,
-    target_faces: np.ndarray,
+    source_points: Float[ArrayLike, "N 3"],
+    target_vertices: Float[ArrayLike, "V 3"],
+    target_faces: Int[ArrayLike, "F 3"],
     *,
     trim: float = 0.9,
     iterations: int = 100,
@@ -92,17 +93,17 @@ def similarity_icp(
 
 
 def fit_landmarks(
-    source_vertices: np.ndarray,
-    source_landmarks: np.ndarray,
-    source_region: np.ndarray,
-    target_vertices: np.ndarray,
-    target_faces: np.ndarray,
+    source_vertices: Float[ArrayLike, "Vs 3"],
+    source_landmarks: Int[ArrayLike, " L"],
+    source_region: Bool[ArrayLike, " Vs"],
+    target_vertices: Float[ArrayLike, "V 3"],
+    target_faces: Int[ArrayLike, "F 3"],
     *,
-    target_region: np.ndarray | None = None,
+    target_region: Bool[ArrayLike, " V"] | None = None,
     trim: float = 0.9,
     max_rms: float | None = None,
     max_scale_ratio: float = 2.0,
-) -> tuple[np.ndarray, SimilarityFit]:
+) -> tuple[Int[np.ndarray, " L"], SimilarityFit]:
     """A template's landmarks placed on a new head: trimmed-ICP similarity of the template's
     ``source_region`` vertices onto the target, then each transformed landmark snapped to the
     nearest target vertex (of ``target_region`` when given).

@@ -1,9 +1,12 @@
 """The one check of a triangle mesh, shared by everything in ``mesh`` and above it."""
 
+from typing import Any
+
 import numpy as np
+from jaxtyping import Float64, Int64
 
 
-def check_vertices(vertices, name: str = "vertices") -> np.ndarray:
+def check_vertices(vertices: Any, name: str = "vertices") -> Float64[np.ndarray, "V 3"]:
     """Validate (V, 3) vertex positions, V > 0, real and finite; return them as float64.
 
     Raises ValueError naming the argument ``name`` (the caller's name for the positions,
@@ -20,7 +23,9 @@ def check_vertices(vertices, name: str = "vertices") -> np.ndarray:
     return vertices
 
 
-def check_mesh(vertices, faces, *, name: str = "vertices") -> tuple[np.ndarray, np.ndarray]:
+def check_mesh(
+    vertices: Any, faces: Any, *, name: str = "vertices"
+) -> tuple[Float64[np.ndarray, "V 3"], Int64[np.ndarray, "F 3"]]:
     """Validate a triangle mesh; return (V, 3) float64 vertices and (F, 3) int64 faces.
 
     Raises ValueError naming the positions' argument ``name`` or ``faces`` for a wrong

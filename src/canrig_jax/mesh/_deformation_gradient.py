@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float, Float64, Int
 
 from .._checks import check_real
 from ._checks import check_mesh
@@ -39,7 +39,9 @@ from ._checks import check_mesh
 _EDGES = ((0, 1), (1, 2), (2, 0))
 
 
-def triangle_edges(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def triangle_edges(
+    vertices: Float[np.ndarray, "*batch V 3"], faces: Int[np.ndarray, "T 3"]
+) -> Float[np.ndarray, "*batch T 3 3"]:
     """(..., T, 3, 3) edge vectors: column e of triangle t is x[faces[t, b]] - x[faces[t, a]]
     for the edges (0,1), (1,2), (2,0)."""
     return np.stack(
@@ -47,7 +49,9 @@ def triangle_edges(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     )
 
 
-def triangle_frames(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def triangle_frames(
+    vertices: Float[np.ndarray, "*batch V 3"], faces: Int[np.ndarray, "T 3"]
+) -> tuple[Float[np.ndarray, "*batch T 3 3"], Float[np.ndarray, "*batch T"]]:
     """(..., T, 3, 3) frames [e1, e2, n / sqrt|n|] (Sumner & Popović 2004) and (..., T) areas."""
     p0, p1, p2 = (vertices[..., faces[:, j], :] for j in range(3))
     e1, e2 = p1 - p0, p2 - p0
@@ -138,9 +142,9 @@ class DeformationGradientBlend:
 
     def __init__(
         self,
-        neutral: np.ndarray,
-        deltas: np.ndarray,
-        faces: np.ndarray,
+        neutral: Float[ArrayLike, "V 3"],
+        deltas: Float[ArrayLike, "K V 3"],
+        faces: Int[ArrayLike, "F 3"],
         *,
         min_area: float = 1e-8,
         min_angle_to_pi: float = np.deg2rad(10.0),
@@ -212,7 +216,9 @@ class DeformationGradientBlend:
             (normal_matrix + ridge * sp.identity(self.n_vertices)).tocsc()
         )
 
-    def __call__(self, weights: np.ndarray, batch_size: int = 64) -> np.ndarray:
+    def __call__(
+        self, weights: Float[ArrayLike, "*batch K"], batch_size: int = 64
+    ) -> Float64[np.ndarray, "*batch V 3"]:
         weights = np.asarray(weights)
         check_real("weights", weights)
         weights = weights.astype(np.float64)

@@ -23,7 +23,7 @@ without them.
 
 import numpy as np
 import scipy.sparse as sp
-from jaxtyping import ArrayLike
+from jaxtyping import ArrayLike, Bool, Float, Float32, Int
 from scipy.sparse.csgraph import connected_components, dijkstra
 from scipy.spatial import cKDTree
 
@@ -33,7 +33,7 @@ MIN_EDGE_LENGTH = 1e-12
 """csgraph treats stored zeros as missing edges: lengths are floored at this."""
 
 
-def mesh_edges(faces: np.ndarray) -> np.ndarray:
+def mesh_edges(faces: Int[ArrayLike, "F 3"]) -> Int[np.ndarray, "E 2"]:
     """(E, 2) unique undirected edges (i < j) of a triangle mesh."""
     faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[1] != 3:
@@ -47,7 +47,9 @@ def mesh_edges(faces: np.ndarray) -> np.ndarray:
 
 
 def edge_graph(
-    vertices: np.ndarray, faces: np.ndarray, edge_factor: np.ndarray | None = None
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    edge_factor: Float[ArrayLike, " E"] | None = None,
 ) -> sp.csr_matrix:
     """(V, V) symmetric sparse graph, edge weights = 3D edge length (times ``edge_factor``,
     one positive factor per edge of ``mesh_edges(faces)``, if given)."""
@@ -70,7 +72,9 @@ def edge_graph(
 
 
 def bridged_edge_graph(
-    vertices: np.ndarray, faces: np.ndarray, edge_factor: np.ndarray | None = None
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    edge_factor: Float[ArrayLike, " E"] | None = None,
 ) -> sp.csr_matrix:
     """``edge_graph`` plus a directed edge (weight: the 3D distance) from every vertex of every
     connected component but the largest to its nearest vertex of the largest.
@@ -97,7 +101,10 @@ def bridged_edge_graph(
 
 
 def attached_edge_graph(
-    graph: sp.csr_matrix, vertices: np.ndarray, attach: ArrayLike, onto: ArrayLike
+    graph: sp.csr_matrix,
+    vertices: Float[ArrayLike, "V 3"],
+    attach: Bool[ArrayLike, " V"],
+    onto: Bool[ArrayLike, " V"],
 ) -> sp.csr_matrix:
     """``graph`` (``edge_graph`` or ``bridged_edge_graph``, (V, V)) with the vertices of
     ``attach`` (a (V,) boolean mask) made one-way exits onto ``onto`` (a (V,) boolean mask,
@@ -161,8 +168,8 @@ def _check_graph(graph) -> sp.csr_matrix:
 
 
 def weighted_geodesic_distance(
-    graph: sp.csr_matrix, sources: ArrayLike, *, limit: float = np.inf
-) -> np.ndarray:
+    graph: sp.csr_matrix, sources: Int[ArrayLike, " H"], *, limit: float = np.inf
+) -> Float32[np.ndarray, "H V"]:
     """(H, V) float32 shortest-path distance from each source vertex to every vertex, along
     ``graph`` (``edge_graph``, or a directed one such as ``bridged_edge_graph``).
 
@@ -187,8 +194,12 @@ def weighted_geodesic_distance(
 
 
 def farthest_point_vertices(
-    vertices: np.ndarray, n: int, start: int = 0, *, graph: sp.csr_matrix | None = None
-) -> np.ndarray:
+    vertices: Float[ArrayLike, "V 3"],
+    n: int,
+    start: int = 0,
+    *,
+    graph: sp.csr_matrix | None = None,
+) -> Int[np.ndarray, " n"]:
     """(n,) vertex indices by farthest-point sampling from vertex ``start``: evenly spread
     points (e.g. handles, as an animator would place them).
 

@@ -31,6 +31,7 @@ import dataclasses
 import hashlib
 import os
 import time
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax
@@ -40,7 +41,7 @@ import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.csgraph
 import scipy.sparse.linalg as spla
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, DTypeLike, Float, Int, Shaped
 
 from .._cache import cache_dir, mesh_fingerprint
 from .._io import save_npz
@@ -84,18 +85,18 @@ class MeshGeometry:
         from_cache: whether this came from the disk cache.
     """
 
-    vertices: np.ndarray
-    faces: np.ndarray
+    vertices: Float[np.ndarray, "V 3"]
+    faces: Int[np.ndarray, "F 3"]
     laplacian: sp.csr_matrix
-    mass: np.ndarray
-    eigenvalues: np.ndarray
-    eigenvectors: np.ndarray
-    frames: np.ndarray
+    mass: Float[np.ndarray, " V"]
+    eigenvalues: Float[np.ndarray, " k"]
+    eigenvectors: Float[np.ndarray, "V k"]
+    frames: Float[np.ndarray, "V 3 3"]
     gradient_x: sp.csr_matrix
     gradient_y: sp.csr_matrix
     n_components: int
     n_zero_eigenvalues: int
-    isolated_vertices: np.ndarray
+    isolated_vertices: Int[np.ndarray, " I"]
     n_degenerate_faces: int
     seconds: float
     from_cache: bool = False
@@ -114,8 +115,8 @@ class MeshGeometry:
 
 
 def laplacian_and_mass(
-    vertices: np.ndarray, faces: np.ndarray, mollify_factor: float = 1e-5
-) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
+    vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"], mollify_factor: float = 1e-5
+) -> tuple[sp.csr_matrix, Float[np.ndarray, " V"], Int[np.ndarray, " I"]]:
     """Robust weak Laplacian (V, V), lumped mass (V,) and the isolated vertices.
 
     Isolated vertices are excluded from robust-laplacian's construction and get an empty row
@@ -168,7 +169,9 @@ def _block_eigenpairs(block: sp.csr_matrix, k: int) -> tuple[np.ndarray, np.ndar
     return scipy.linalg.eigh(block.toarray(), subset_by_index=[0, k - 1], driver="evr", **options)
 
 
-def eigenbasis(laplacian: sp.spmatrix, mass: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+def eigenbasis(
+    laplacian: sp.spmatrix, mass: Float[ArrayLike, " V"], k: int
+) -> tuple[Float[np.ndarray, " k"], Float[np.ndarray, "V k"]]:
     """The k smallest eigenpairs of L phi = lambda M phi, M-orthonormal, ascending.
 
     With M diagonal this is the standard problem A psi = lambda psi, A = M^-1/2 L M^-1/2,
@@ -210,7 +213,9 @@ def eigenbasis(laplacian: sp.spmatrix, mass: np.ndarray, k: int) -> tuple[np.nda
     return np.concatenate(values)[keep], eigenvectors
 
 
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def vertex_normals(
+    vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"]
+) -> Float[np.ndarray, "V 3"]:
     """(V, 3) unit area-weighted vertex normals; +z where undefined (isolated, degenerate)."""
     cross = np.cross(
         vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]]
@@ -225,7 +230,7 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return normals / length[:, None]
 
 
-def tangent_frames(normals: np.ndarray) -> np.ndarray:
+def tangent_frames(normals: Float[ArrayLike, "V 3"]) -> Float[np.ndarray, "V 3 3"]:
     """(V, 3, 3) right-handed frames [x, y, n] (rows): x is world x projected on the
     tangent plane (world y where the normal is within ~25 degrees of x), y = n cross x."""
     candidate = np.tile(np.array([1.0, 0.0, 0.0]), (normals.shape[0], 1))
@@ -238,7 +243,10 @@ def tangent_frames(normals: np.ndarray) -> np.ndarray:
 
 
 def gradient_operators(
-    vertices: np.ndarray, faces: np.ndarray, frames: np.ndarray, regularization: float = 1e-5
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    frames: Float[ArrayLike, "V 3 3"],
+    regularization: float = 1e-5,
 ) -> tuple[sp.csr_matrix, sp.csr_matrix]:
     """Sparse (V, V) operators giving each vertex's gradient components in its frame.
 
@@ -275,7 +283,11 @@ def gradient_operators(
 
 
 def compute_geometry(
-    vertices, faces, *, k: int = 128, mollify_factor: float = 1e-5
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    *,
+    k: int = 128,
+    mollify_factor: float = 1e-5,
 ) -> MeshGeometry:
     """All operators of one mesh, without the cache. See the module docstring."""
     start = time.perf_counter()
@@ -338,7 +350,9 @@ def _sparse_from_arrays(z, prefix: str, n: int) -> sp.csr_matrix:
     )
 
 
-def geometry_cache_key(vertices, faces, k: int, mollify_factor: float) -> str:
+def geometry_cache_key(
+    vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"], k: int, mollify_factor: float
+) -> str:
     """Cache key: SHA-256 of the mesh (float64 vertices, int64 faces) and the parameters."""
     vertices, faces = check_mesh(vertices, faces)
     recipe = f"{mesh_fingerprint(vertices, faces)}k{k}m{mollify_factor!r}v{OPERATORS_VERSION}"
@@ -346,8 +360,8 @@ def geometry_cache_key(vertices, faces, k: int, mollify_factor: float) -> str:
 
 
 def mesh_geometry(
-    vertices,
-    faces,
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
     *,
     k: int = 128,
     mollify_factor: float = 1e-5,
@@ -428,7 +442,7 @@ class SparseMatrix(eqx.Module):
         return jax.ops.segment_sum(on_diagonal, self.rows, num_segments=n)
 
     @classmethod
-    def from_scipy(cls, matrix: sp.spmatrix, dtype=jnp.float32) -> "SparseMatrix":
+    def from_scipy(cls, matrix: sp.spmatrix, dtype: DTypeLike = jnp.float32) -> "SparseMatrix":
         coo = sp.coo_matrix(matrix)
         return cls(
             jnp.asarray(coo.row, jnp.int32),
@@ -480,7 +494,9 @@ class MeshOperators(eqx.Module):
     face_mask: Float[Array, " F"]
 
     @classmethod
-    def from_geometry(cls, geometry: MeshGeometry, dtype=jnp.float32) -> "MeshOperators":
+    def from_geometry(
+        cls, geometry: MeshGeometry, dtype: DTypeLike = jnp.float32
+    ) -> "MeshOperators":
         f = lambda x: jnp.asarray(x, dtype)  # noqa: E731
         return cls(
             mass=f(geometry.mass),
@@ -553,7 +569,9 @@ def stack_operators(operators: list[MeshOperators]) -> MeshOperators:
     return jax.tree.map(lambda *xs: jnp.stack(xs), *padded)
 
 
-def pad_vertices(values: list, n_vertices: int | None = None) -> Array:
+def pad_vertices(
+    values: Sequence[Shaped[ArrayLike, " _ *rest"]], n_vertices: int | None = None
+) -> Shaped[Array, "B V *rest"]:
     """Stack per-vertex arrays (V_i, ...) of different lengths, zero-padded to (B, V, ...).
 
     ``n_vertices`` (default: the longest V_i) must be at least every V_i. Raises ValueError
@@ -582,8 +600,8 @@ def pad_vertices(values: list, n_vertices: int | None = None) -> Array:
 
 
 def mesh_operators(
-    vertices,
-    faces,
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
     *,
     k: int = 128,
     mollify_factor: float = 1e-5,

@@ -21,6 +21,7 @@ import dataclasses
 
 import numpy as np
 import scipy.sparse as sp
+from jaxtyping import ArrayLike, Float, Int
 from scipy.spatial import cKDTree
 
 from ._operators import check_mesh
@@ -38,11 +39,11 @@ class SurfaceMap:
         distance: (N,) distance from each query point to its surface point (0 when exact).
     """
 
-    triangle: np.ndarray
-    barycentric: np.ndarray
-    source_faces: np.ndarray
+    triangle: Int[np.ndarray, " N"]
+    barycentric: Float[np.ndarray, "N 3"]
+    source_faces: Int[np.ndarray, "F 3"]
     n_source: int
-    distance: np.ndarray
+    distance: Float[np.ndarray, " N"]
 
     @property
     def n_points(self) -> int:
@@ -56,7 +57,7 @@ class SurfaceMap:
             (self.barycentric.ravel(), (rows, cols)), shape=(self.n_points, self.n_source)
         )
 
-    def carry(self, values: np.ndarray) -> np.ndarray:
+    def carry(self, values: Float[ArrayLike, "..."]) -> Float[np.ndarray, "..."]:
         """Interpolate per-vertex data (..., n_source, C) or (..., n_source) to the points."""
         values = np.asarray(values)
         axis = values.ndim - 2 if values.ndim >= 2 else 0
@@ -82,8 +83,8 @@ class Remeshed:
         method: "decimate", "subdivide" or "flip_quad_split".
     """
 
-    vertices: np.ndarray
-    faces: np.ndarray
+    vertices: Float[np.ndarray, "N 3"]
+    faces: Int[np.ndarray, "F 3"]
     map: SurfaceMap
     method: str
 
@@ -91,7 +92,7 @@ class Remeshed:
     def n_vertices(self) -> int:
         return int(self.vertices.shape[0])
 
-    def nearest_vertices(self, source_points: np.ndarray) -> np.ndarray:
+    def nearest_vertices(self, source_points: Float[ArrayLike, "L 3"]) -> Int[np.ndarray, " L"]:
         """(L,) index of the new vertex nearest each source point (e.g. landmark positions)."""
         return cKDTree(self.vertices).query(np.asarray(source_points, np.float64))[1]
 
@@ -139,9 +140,9 @@ def _closest_on_triangles(p, a, b, c):
 
 
 def closest_surface_points(
-    points: np.ndarray,
-    vertices: np.ndarray,
-    faces: np.ndarray,
+    points: Float[ArrayLike, "N 3"],
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
     *,
     n_candidates: int = 16,
 ) -> SurfaceMap:
@@ -187,7 +188,9 @@ def closest_surface_points(
     )
 
 
-def vertex_surface_map(faces: np.ndarray, n_vertices: int, vertex_ids: np.ndarray) -> SurfaceMap:
+def vertex_surface_map(
+    faces: Int[ArrayLike, "F 3"], n_vertices: int, vertex_ids: Int[ArrayLike, " N"]
+) -> SurfaceMap:
     """Exact map of ``vertex_ids`` of a mesh onto itself (a face at each vertex, one-hot)."""
     face_of = np.full(n_vertices, -1, np.int64)
     corner_of = np.zeros(n_vertices, np.int64)
@@ -217,8 +220,8 @@ def _check_no_isolated(vertices: np.ndarray, faces: np.ndarray) -> None:
 
 
 def decimate(
-    vertices: np.ndarray,
-    faces: np.ndarray,
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
     target_vertices: int,
     *,
     aggressiveness: float = 7.0,
@@ -297,7 +300,7 @@ def decimate(
     )
 
 
-def subdivide(vertices: np.ndarray, faces: np.ndarray) -> Remeshed:
+def subdivide(vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"]) -> Remeshed:
     """Midpoint subdivision: a vertex at every edge midpoint, each triangle split in four."""
     vertices, faces = check_mesh(vertices, faces)
     _check_no_isolated(vertices, faces)
@@ -339,7 +342,7 @@ def subdivide(vertices: np.ndarray, faces: np.ndarray) -> Remeshed:
     return Remeshed(new_vertices, new_faces, surface_map, "subdivide")
 
 
-def quad_pairs(faces: np.ndarray) -> np.ndarray:
+def quad_pairs(faces: Int[ArrayLike, "F 3"]) -> Int[np.ndarray, " Q"]:
     """(Q,) indices i where faces i, i+1 are one fan-split quad: (a, b, c), (a, c, d)."""
     faces = np.asarray(faces)
     candidate = (faces[:-1, 0] == faces[1:, 0]) & (faces[:-1, 2] == faces[1:, 1])
@@ -354,7 +357,7 @@ def quad_pairs(faces: np.ndarray) -> np.ndarray:
     return np.asarray(pairs, np.int64)
 
 
-def flip_quad_split(vertices: np.ndarray, faces: np.ndarray) -> Remeshed:
+def flip_quad_split(vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"]) -> Remeshed:
     """Split every fan-split quad (a, b, c), (a, c, d) along the other diagonal:
     (a, b, d), (b, c, d). Vertices and the rest of the triangles are unchanged."""
     vertices, faces = check_mesh(vertices, faces)

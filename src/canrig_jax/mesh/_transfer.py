@@ -42,6 +42,7 @@ import dataclasses
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from jaxtyping import ArrayLike, Float, Float64, Int
 from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
@@ -70,18 +71,20 @@ class TriangleCorrespondence:
             component matched to each target connected component (None otherwise).
     """
 
-    source_triangle: np.ndarray
+    source_triangle: Int[np.ndarray, " T *S"]
     vertex_map: SurfaceMap
-    target_faces: np.ndarray
+    target_faces: Int[np.ndarray, "T 3"]
     method: str
-    component_match: np.ndarray | None = None
+    component_match: Int[np.ndarray, " C"] | None = None
 
     @property
     def n_target_vertices(self) -> int:
         return int(self.vertex_map.n_points)
 
 
-def identity_correspondence(faces: np.ndarray, n_vertices: int) -> TriangleCorrespondence:
+def identity_correspondence(
+    faces: Int[ArrayLike, "F 3"], n_vertices: int
+) -> TriangleCorrespondence:
     """The correspondence of a mesh with itself (same topology, any shape)."""
     faces = np.asarray(faces, np.int64)
     return TriangleCorrespondence(
@@ -93,8 +96,8 @@ def identity_correspondence(faces: np.ndarray, n_vertices: int) -> TriangleCorre
 
 
 def similarity_transform(
-    source_points: np.ndarray, target_points: np.ndarray
-) -> tuple[float, np.ndarray, np.ndarray]:
+    source_points: Float[ArrayLike, "L 3"], target_points: Float[ArrayLike, "L 3"]
+) -> tuple[float, Float[np.ndarray, "3 3"], Float[np.ndarray, " 3"]]:
     """Least-squares scale s, rotation R and translation t with target ~ s R source + t
     (Umeyama 1991). Points are (L, 3), L >= 3."""
     x = np.asarray(source_points, np.float64)
@@ -185,12 +188,12 @@ def _smoothed_pull(
 
 
 def closest_point_correspondence(
-    source_vertices: np.ndarray,
-    source_faces: np.ndarray,
-    target_vertices: np.ndarray,
-    target_faces: np.ndarray,
-    source_landmarks: np.ndarray,
-    target_landmarks: np.ndarray,
+    source_vertices: Float[ArrayLike, "Vs 3"],
+    source_faces: Int[ArrayLike, "Fs 3"],
+    target_vertices: Float[ArrayLike, "V 3"],
+    target_faces: Int[ArrayLike, "F 3"],
+    source_landmarks: Int[ArrayLike, " L"],
+    target_landmarks: Int[ArrayLike, " L"],
     *,
     nonrigid: bool = True,
     match_components: bool = True,
@@ -284,18 +287,18 @@ def _difference_operator(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
 
 
 def transfer_deltas(
-    source_neutral: np.ndarray,
-    source_deltas: np.ndarray,
-    source_faces: np.ndarray,
-    target_neutral: np.ndarray,
+    source_neutral: Float[ArrayLike, "Vs 3"],
+    source_deltas: Float[ArrayLike, "K Vs 3"],
+    source_faces: Int[ArrayLike, "Fs 3"],
+    target_neutral: Float[ArrayLike, "V 3"],
     correspondence: TriangleCorrespondence,
     *,
     screening: float = 1e-3,
     min_area: float = 1e-10,
     batch_size: int = 8,
     static_below: float | None = None,
-    static_parts: np.ndarray | None = None,
-) -> np.ndarray:
+    static_parts: Int[ArrayLike, " Vs"] | None = None,
+) -> Float64[np.ndarray, "K V 3"]:
     """Transfer every blendshape (``source_deltas``) of a source mesh onto ``target_neutral``.
 
     Args:

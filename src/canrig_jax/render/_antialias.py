@@ -33,7 +33,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._checks import check_finite
 from ._camera import Camera, project_points
@@ -120,9 +120,9 @@ _antialias_jit = eqx.filter_jit(_antialias)
 
 
 def antialias(
-    image: Float[Array, "H W *C"],
-    vertices: Float[Array, "V 3"],
-    faces: Int[Array, "F 3"],
+    image: Float[ArrayLike, "H W *C"],
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
     camera: Camera,
     fragments: Fragments,
     *,
@@ -156,8 +156,8 @@ def antialias(
 
 
 def silhouette(
-    vertices: Float[Array, "V 3"],
-    faces: Int[Array, "F 3"],
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
     camera: Camera,
     fragments: Fragments | None = None,
     *,

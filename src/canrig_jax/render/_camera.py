@@ -13,11 +13,13 @@ the same kind stack (``stack_cameras``) and ``jax.vmap`` maps over views.
 """
 
 import math
+from collections.abc import Iterable, Sequence
+from typing import Any
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import check_finite, is_concrete
 
@@ -38,10 +40,10 @@ class Camera(eqx.Module):
         projection: ``"perspective"`` or ``"orthographic"``, static.
     """
 
-    rotation: Float[Array, "3 3"]
-    position: Float[Array, " 3"]
-    focal: Float[Array, ""]
-    principal: Float[Array, " 2"]
+    rotation: Float[Array, "*views 3 3"]
+    position: Float[Array, "*views 3"]
+    focal: Float[Array, "*views"]
+    principal: Float[Array, "*views 2"]
     image_size: tuple[int, int] = eqx.field(static=True)
     projection: str = eqx.field(static=True, default="perspective")
 
@@ -73,7 +75,7 @@ def _check_image_size(image_size) -> tuple[int, int]:
     return height, width
 
 
-def check_camera(camera) -> None:
+def check_camera(camera: Any) -> None:
     """ValueError naming ``camera`` when it is not a usable ``Camera`` (concrete fields only:
     traced fields, inside ``jax.vmap``/``jit``, are left to the caller)."""
     if not isinstance(camera, Camera):
@@ -95,11 +97,11 @@ def check_camera(camera) -> None:
 
 
 def look_at(
-    eye,
-    target,
-    up=(0.0, 1.0, 0.0),
+    eye: Float[ArrayLike, " 3"] | Sequence[float],
+    target: Float[ArrayLike, " 3"] | Sequence[float],
+    up: Float[ArrayLike, " 3"] | Sequence[float] = (0.0, 1.0, 0.0),
     *,
-    image_size,
+    image_size: int | tuple[int, int],
     fov_degrees: float | None = 30.0,
     ortho_width: float | None = None,
     projection: str = "perspective",
@@ -150,12 +152,12 @@ def look_at(
 
 
 def orbit_cameras(
-    target,
+    target: Float[ArrayLike, " 3"] | Sequence[float],
     distance: float,
-    yaw_degrees,
+    yaw_degrees: float | Float[ArrayLike, " N"] | Sequence[float],
     *,
     pitch_degrees: float = 0.0,
-    image_size,
+    image_size: int | tuple[int, int],
     fov_degrees: float = 30.0,
     projection: str = "perspective",
     ortho_width: float | None = None,
@@ -185,7 +187,7 @@ def orbit_cameras(
     return stack_cameras(cameras)
 
 
-def stack_cameras(cameras) -> Camera:
+def stack_cameras(cameras: Iterable[Camera]) -> Camera:
     """One ``Camera`` whose array fields have a leading view axis (for ``jax.vmap``)."""
     cameras = list(cameras)
     if not cameras:

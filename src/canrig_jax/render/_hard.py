@@ -29,12 +29,13 @@ screen area, e.g. the (0, 0, 0) padding of ``padded_faces``) cover nothing.
 """
 
 import math
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._camera import Camera, project_points
 from ._raster import _check_inputs
@@ -58,7 +59,7 @@ class Fragments(eqx.Module):
     overflow: Int[Array, ""]
 
     @property
-    def covered(self) -> Array:
+    def covered(self) -> Bool[Array, "H W"]:
         """(H, W) bool: a triangle is seen at the pixel."""
         return self.triangle >= 0
 
@@ -80,7 +81,16 @@ class Interpolation(eqx.Module):
     mask: Float[Array, "H W"]
 
 
-def edge_functions(tri_uv, pu, pv):
+def edge_functions(
+    tri_uv: Float[ArrayLike, "*#batch 3 2"],
+    pu: Float[ArrayLike, "*#batch"],
+    pv: Float[ArrayLike, "*#batch"],
+) -> tuple[
+    Float[Array, "*#batch"],
+    Float[Array, "*#batch"],
+    Float[Array, "*#batch"],
+    Float[Array, "*#batch"],
+]:
     """Edge functions (twice the signed areas) of points (pu, pv) in triangles with screen
     corners ``tri_uv`` (..., 3, 2), broadcast: (w0, w1, w2, area), w_i opposite corner i,
     area = w0 + w1 + w2 (twice the triangle's signed area); w_i / area are the screen-space
@@ -158,7 +168,7 @@ def _rasterise_hard(vertices, faces, camera: Camera, chunk_size: int, chunk_budg
 _rasterise_hard_jit = eqx.filter_jit(_rasterise_hard)
 
 
-def check_budget(name: str, value) -> None:
+def check_budget(name: str, value: Any) -> None:
     """A static work budget (chunks, edges): a finite number > 0, or a ValueError naming it."""
     if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
         raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
@@ -171,8 +181,8 @@ def _check_chunks(chunk_size, chunk_budget) -> None:
 
 
 def rasterise_hard(
-    vertices: Float[Array, "V 3"],
-    faces: Int[Array, "F 3"],
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
     camera: Camera,
     *,
     chunk_size: int = 4,
@@ -226,7 +236,7 @@ def _interpolate(vertices, faces, camera: Camera, fragments: Fragments, attribut
 _interpolate_jit = eqx.filter_jit(_interpolate)
 
 
-def check_fragments(fragments, camera: Camera) -> None:
+def check_fragments(fragments: Any, camera: Camera) -> None:
     """ValueError naming ``fragments`` unless it is a ``Fragments`` of ``camera``'s image size
     (checked on shapes; a leading view axis, under ``jax.vmap``, is the caller's)."""
     if not isinstance(fragments, Fragments):
@@ -239,11 +249,11 @@ def check_fragments(fragments, camera: Camera) -> None:
 
 
 def interpolate(
-    vertices: Float[Array, "V 3"],
-    faces: Int[Array, "F 3"],
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
     camera: Camera,
     fragments: Fragments,
-    attributes: Float[Array, "V C"] | None = None,
+    attributes: Float[ArrayLike, "V C"] | None = None,
 ) -> Interpolation:
     """Barycentrics, depth and ``attributes`` at every covered pixel centre, in the triangle
     ``fragments`` (from ``rasterise_hard``) sees there, recomputed from the projected

@@ -1,26 +1,32 @@
 """Orthographic mesh rendering with matplotlib: a per-vertex scalar (e.g. error in mm) as
 colour, modulated by Lambert shading, triangles painted back to front."""
 
+import os
+
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from jaxtyping import ArrayLike, Float, Int  # noqa: E402
+from matplotlib.axes import Axes  # noqa: E402
+from matplotlib.cm import ScalarMappable  # noqa: E402
 from matplotlib.collections import PolyCollection  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
 
 
 def plot_vertex_scalar(
-    ax: plt.Axes,
-    vertices: np.ndarray,
-    faces: np.ndarray,
-    values: np.ndarray,
+    ax: Axes,
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    values: Float[ArrayLike, " V"],
     *,
     vmin: float = 0.0,
     vmax: float = 5.0,
     cmap: str = "inferno",
     view: str = "front",
     title: str | None = None,
-):
+) -> ScalarMappable:
     """Draw ``values`` (V,) on the mesh seen from the front (+z towards the viewer) or the
     side (+x). Returns the ScalarMappable for a colour bar."""
     vertices = np.asarray(vertices, np.float64)
@@ -52,7 +58,7 @@ def plot_vertex_scalar(
     return mapper
 
 
-def save_figure(fig: plt.Figure, path, dpi: int = 110) -> None:
+def save_figure(fig: Figure, path: str | os.PathLike, dpi: int = 110) -> None:
     """Save a figure atomically (PNG) and close it."""
     from .._io import atomic_path
 

@@ -37,12 +37,13 @@ nothing was dropped.
 
 import dataclasses
 import math
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._checks import check_finite, is_concrete
 from ._camera import Camera, check_camera, project_points, screen_displacement
@@ -327,10 +328,10 @@ def _check_inputs(vertices, faces, camera, attributes) -> tuple[Array, Array, Ar
 
 
 def rasterise(
-    vertices: Float[Array, "V 3"],
-    faces: Int[Array, "F 3"],
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
     camera: Camera,
-    attributes: Float[Array, "V C"] | None = None,
+    attributes: Float[ArrayLike, "V C"] | None = None,
     *,
     settings: RasterSettings = RasterSettings(),  # noqa: B008 (frozen, hashable)
 ) -> Rendering:
@@ -347,7 +348,9 @@ def rasterise(
     return _rasterise_jit(vertices, faces, camera, attributes, settings)
 
 
-def vertex_normals(vertices: Float[Array, "V 3"], faces: Int[Array, "F 3"]) -> Float[Array, "V 3"]:
+def vertex_normals(
+    vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"]
+) -> Float[Array, "V 3"]:
     """Area-weighted unit vertex normals, differentiable (``canrig_jax.mesh.vertex_normals``
     is the NumPy one)."""
     v0, v1, v2 = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
@@ -366,12 +369,12 @@ up and right, and a weaker fill from the left."""
 
 
 def lambert_image(
-    vertices: Float[Array, "V 3"],
-    faces: Int[Array, "F 3"],
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
     camera: Camera,
     *,
-    lights=DEFAULT_LIGHTS,
-    intensities=(0.8, 0.35),
+    lights: Float[ArrayLike, "L 3"] | Sequence[Sequence[float]] = DEFAULT_LIGHTS,
+    intensities: Float[ArrayLike, " L"] | Sequence[float] = (0.8, 0.35),
     ambient: float = 0.15,
     background: float = 0.0,
     settings: RasterSettings = RasterSettings(),  # noqa: B008
@@ -400,9 +403,9 @@ def lambert_image(
 
 
 def displacement_field(
-    neutral: Float[Array, "V 3"],
-    posed: Float[Array, "V 3"],
-    faces: Int[Array, "F 3"],
+    neutral: Float[ArrayLike, "V 3"],
+    posed: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
     camera: Camera,
     *,
     settings: RasterSettings = RasterSettings(),  # noqa: B008

@@ -1,14 +1,14 @@
 """An independent reference for the rasterisers' hard limit: NumPy ray casting."""
 
 import numpy as np
-from jaxtyping import ArrayLike, Float, Int
+from jaxtyping import ArrayLike, Bool, Float, Float64, Int
 
 from ._camera import Camera
 
 
 def ray_cast(
     vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"], camera: Camera
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[Bool[np.ndarray, "H W"], Float64[np.ndarray, "H W"]]:
     """Moeller-Trumbore ray-triangle intersection (NumPy, float64) of one ray through every
     pixel centre of ``camera`` (from the eye, or parallel for an orthographic camera).
 

@@ -17,6 +17,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 CHROMIUM_ENV_VAR = "CANRIG_CHROMIUM"
 """An explicit Chromium (or Chrome) executable, tried before the names on ``PATH``."""
@@ -241,7 +242,7 @@ class HeadlessChromium:
             raise BrowserError(f"{url}: {result['errorText']}")
         self.wait_event("Page.loadEventFired", since)
 
-    def evaluate(self, expression: str):
+    def evaluate(self, expression: str) -> Any:
         """The value of a JavaScript expression in the page (promises awaited)."""
         result = self.send(
             "Runtime.evaluate",

@@ -26,7 +26,7 @@ class ErrorGlb:
     """What ``export_error_glb`` wrote."""
 
     path: Path
-    vertex_error_mm: np.ndarray
+    vertex_error_mm: Float[np.ndarray, " V"]
     """(V,) the coloured error: each vertex's mean over the frames (mm)."""
     vmax_mm: float
     """The error drawn pure red (and everything above it)."""
@@ -34,9 +34,9 @@ class ErrorGlb:
     """The vertex with the largest mean error (within ``region`` when given)."""
     worst_frame: int
     """The frame where the worst vertex's error is largest."""
-    colors: np.ndarray
+    colors: Float[np.ndarray, "V 3"]
     """(V, 3) the linear RGB written as ``COLOR_0``."""
-    times: np.ndarray
+    times: Float[np.ndarray, " T"]
     """(T,) key time of each frame (s)."""
 
 

@@ -6,6 +6,7 @@ import http.server
 import os
 import threading
 import urllib.parse
+from collections.abc import Callable
 from pathlib import Path
 
 from ._glb import GlbSummary, inspect_glb
@@ -83,7 +84,9 @@ class ViewerServer:
     Raises ValueError naming the file when it is not a glb with a mesh (``inspect_glb``) and
     naming the port when it is out of range or in use."""
 
-    def __init__(self, glb: str | os.PathLike, *, port: int = 0, log=None):
+    def __init__(
+        self, glb: str | os.PathLike, *, port: int = 0, log: Callable[[str], None] | None = None
+    ):
         self.summary = inspect_glb(glb)
         if not isinstance(port, int) or not 0 <= port <= 65535:
             raise ValueError(f"--port {port}: expected a port number 0-65535 (0: any free port)")

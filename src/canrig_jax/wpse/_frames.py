@@ -176,16 +176,18 @@ def _frame_axes(frames: LocalFrames, posed: Float[Array, "V 3"]):
     return tangent, _cross(normal, tangent), normal
 
 
-def frame_matrices(frames: LocalFrames, posed: Float[Array, "V 3"]) -> Float[Array, "S 3 3"]:
+def frame_matrices(frames: LocalFrames, posed: Float[ArrayLike, "V 3"]) -> Float[Array, "S 3 3"]:
     """(S, 3, 3) orthonormal frames; columns are tangent, bitangent, normal in world space."""
+    posed = jnp.asarray(posed)
     return jnp.stack([jnp.stack(axis, axis=-1) for axis in _frame_axes(frames, posed)], axis=-1)
 
 
 def local_to_world(
-    frames: LocalFrames, posed: Float[Array, "V 3"], local: Float[Array, "S 3"]
+    frames: LocalFrames, posed: Float[ArrayLike, "V 3"], local: Float[ArrayLike, "S 3"]
 ) -> Float[Array, "S 3"]:
     """Frame coordinates at ``frames.vertices`` of the mesh ``posed`` into world offsets
     (``to_world(frame_matrices(...), local)`` without forming the matrices)."""
+    posed = jnp.asarray(posed)
     tangent, bitangent, normal = _frame_axes(frames, posed)
     a, b, c = _coordinates(jnp.asarray(local))
     return jnp.stack(

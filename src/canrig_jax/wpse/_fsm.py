@@ -58,7 +58,7 @@ def coactivation_pairs(
 def fix_shape_rig(
     rig: BlendshapeRig,
     triggers: Int[ArrayLike, "N n"],
-    sculpt: Callable[[np.ndarray], np.ndarray],
+    sculpt: Callable[[Float[np.ndarray, "B K"]], Float[ArrayLike, "B V 3"]],
 ) -> BlendshapeRig:
     """``rig`` plus one fix shape per row of ``triggers``, sculpted at its corner.
 

@@ -43,12 +43,15 @@ def euclidean_metric(n_blendshapes: int) -> Float[np.ndarray, "1 K"]:
 
 
 def pose_distance_sq(
-    metric: Float[Array, "S K"], weights: Float[Array, " K"], poses: Float[Array, "P K"]
-) -> Float[Array, "S P"]:
+    metric: Float[ArrayLike, "#S K"],
+    weights: Float[ArrayLike, " K"],
+    poses: Float[ArrayLike, "P K"],
+) -> Float[Array, "#S P"]:
     """Squared per-vertex distances sum_j alpha_{v,j} (w_j - w_{j,i})^2 as one matmul.
 
     The (K, P) right operand is padded with zero columns to ``dot_width(P)`` and the product
     sliced back (exact: the padding only adds columns that are dropped)."""
+    metric, weights, poses = jnp.asarray(metric), jnp.asarray(weights), jnp.asarray(poses)
     diff_sq = (weights[None, :] - poses) ** 2  # (P, K)
     p = poses.shape[0]
     diff_sq = jnp.pad(diff_sq, ((0, dot_width(p) - p), (0, 0)))
@@ -65,14 +68,17 @@ def dot_width(p: int) -> int:
 
 
 def pairwise_pose_distance_sq(
-    metric: Float[Array, "S K"], poses: Float[Array, "P K"]
-) -> Float[Array, "S P P"]:
+    metric: Float[ArrayLike, "#S K"], poses: Float[ArrayLike, "P K"]
+) -> Float[Array, "#S P P"]:
     """Squared per-vertex distances between all pairs of poses (the basis matrices' input)."""
+    metric, poses = jnp.asarray(metric), jnp.asarray(poses)
     diff_sq = (poses[:, None, :] - poses[None, :, :]) ** 2  # (P, P, K)
     p = poses.shape[0]
     return (metric @ diff_sq.reshape(p * p, -1).T).reshape(-1, p, p)
 
 
-def gaussian_kernel(distance_sq: Array, sigma: float | Array) -> Array:
+def gaussian_kernel(
+    distance_sq: Float[Array, "*shape"], sigma: Float[ArrayLike, ""] | Float[Array, "*#shape"]
+) -> Float[Array, "*shape"]:
     """phi(r) = exp(-r^2 / (2 sigma^2))."""
     return jnp.exp(-distance_sq / (2.0 * jnp.square(sigma)))

@@ -55,7 +55,7 @@ def retained_fraction(
 
 def temporal_change(
     frames: Float[ArrayLike, "T V 3"],
-) -> dict[str, float | np.ndarray]:
+) -> dict[str, float | Float[np.ndarray, " T_1"]]:
     """How fast a per-vertex quantity (a correction, or the mesh itself) changes over a take.
 
     Returns ``max_step`` = max_t,v |x_{t+1,v} - x_{t,v}| (units per frame),

@@ -18,13 +18,13 @@ Duplicated edit poses make every Phi singular: ``fit_pose_space_edit`` raises un
 tends to), and ``_layers.py`` routes a new edit close to an old one to a new layer instead.
 """
 
-from typing import Literal
+from typing import Any, Literal
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Float32, Int
 
 from .._checks import check_finite as _check_finite
 from .._linalg import cho_solve, cholesky
@@ -58,7 +58,7 @@ class PoseSpaceEdit(eqx.Module):
 
     poses: Float[Array, "P K"]
     vertices: Int[Array, " S"]
-    metric: Float[Array, "S K"]
+    metric: Float[Array, "#S K"]
     coefficients: Float[Array, "S 3 P"]
     sigma: Float[Array, ""]
     frames: LocalFrames | None
@@ -73,7 +73,7 @@ class PoseSpaceEdit(eqx.Module):
         return int(self.poses.shape[1])
 
 
-def check_sigma(sigma) -> None:
+def check_sigma(sigma: Any) -> None:
     if np.ndim(sigma) != 0:
         raise ValueError(f"sigma: expected a scalar, got shape {np.shape(sigma)}")
     if not isinstance(sigma, jax.core.Tracer):
@@ -82,7 +82,9 @@ def check_sigma(sigma) -> None:
             raise ValueError(f"sigma: expected a finite value > 0, got {value}")
 
 
-def check_edits(rig: BlendshapeRig, poses, edits) -> tuple[np.ndarray, np.ndarray]:
+def check_edits(
+    rig: BlendshapeRig, poses: Any, edits: Any
+) -> tuple[Float32[np.ndarray, "P K"], Float32[np.ndarray, "P V 3"]]:
     """Validate edit poses (P, K) and displacements (P, V, 3) against a rig."""
     poses = np.asarray(poses, np.float32)
     edits = np.asarray(edits, np.float32)
@@ -102,7 +104,9 @@ def check_edits(rig: BlendshapeRig, poses, edits) -> tuple[np.ndarray, np.ndarra
     return poses, edits
 
 
-def duplicate_groups(poses: np.ndarray, tol: float = DUPLICATE_DISTANCE) -> list[list[int]]:
+def duplicate_groups(
+    poses: Float[np.ndarray, "P K"], tol: float = DUPLICATE_DISTANCE
+) -> list[list[int]]:
     """Groups of edit indices whose poses lie within ``tol`` of each other (transitively)."""
     p = poses.shape[0]
     distance = np.linalg.norm(poses[:, None, :] - poses[None, :, :], axis=-1)
@@ -166,7 +170,7 @@ class EditData(eqx.Module):
 
     poses: Float[Array, "P K"]
     vertices: Int[Array, " S"]
-    metric: Float[Array, "S K"]
+    metric: Float[Array, "#S K"]
     displacements: Float[Array, "S P 3"]
     frames: LocalFrames | None
     n_vertices: int = eqx.field(static=True)
@@ -240,7 +244,7 @@ def _edits_to_local(rig, frames, poses, edits):
     return jax.vmap(to_local)(rotation, edits)
 
 
-def fit_prepared(data: EditData, sigma, ridge: float = 1e-6) -> PoseSpaceEdit:
+def fit_prepared(data: EditData, sigma: Float[ArrayLike, ""], ridge: float = 1e-6) -> PoseSpaceEdit:
     """Solve the RBF systems of prepared edits at one sigma."""
     check_sigma(sigma)
     if not np.isfinite(ridge) or ridge < 0:
@@ -287,7 +291,9 @@ def _reproduction_error(metric, poses, displacements, coefficients, sigma):
     return error / jnp.maximum(jnp.max(jnp.linalg.norm(displacements, axis=-1)), 1e-30)
 
 
-def reproduction_error(data: EditData, coefficients: Float[Array, "S P 3"], sigma) -> float:
+def reproduction_error(
+    data: EditData, coefficients: Float[Array, "S P 3"], sigma: Float[ArrayLike, ""]
+) -> float:
     """max_v,i |Phi_v X_v - D_v|_i / max |D|: how far the fitted edits miss their own poses
     (relative to the largest edit; 0 for no edits)."""
     if data.displacements.size == 0:
@@ -297,13 +303,16 @@ def reproduction_error(data: EditData, coefficients: Float[Array, "S P 3"], sigm
     )
 
 
-def local_frames_of(rig: BlendshapeRig, vertices) -> LocalFrames:
+def local_frames_of(rig: BlendshapeRig, vertices: Int[ArrayLike, " S"]) -> LocalFrames:
     return local_frames(np.asarray(rig.faces), vertices, rig.n_vertices)
 
 
 def basis_matrices(
-    metric: Float[Array, "S K"], poses: Float[Array, "P K"], sigma, ridge: float = 0.0
-) -> Float[Array, "S P P"]:
+    metric: Float[Array, "#S K"],
+    poses: Float[Array, "P K"],
+    sigma: Float[ArrayLike, ""],
+    ridge: float | Float[Array, ""] = 0.0,
+) -> Float[Array, "#S P P"]:
     """Phi_v + ridge I for every row of the metric."""
     phi = gaussian_kernel(pairwise_pose_distance_sq(metric, poses), sigma)
     return phi + ridge * jnp.eye(poses.shape[0], dtype=phi.dtype)
@@ -311,11 +320,11 @@ def basis_matrices(
 
 @jax.jit
 def solve_coefficients(
-    metric: Float[Array, "S K"],
+    metric: Float[Array, "#S K"],
     poses: Float[Array, "P K"],
     edits: Float[Array, "S P 3"],
     sigma: Float[Array, ""],
-    ridge: float,
+    ridge: float | Float[Array, ""],
 ) -> Float[Array, "S P 3"]:
     """X_v = Phi_v^{-1} D_v by a batched Cholesky factorisation (one Phi when shared)."""
     phi = basis_matrices(metric, poses, sigma, ridge)
@@ -329,12 +338,15 @@ def solve_coefficients(
 
 
 def correction(
-    model: PoseSpaceEdit, weights: Float[Array, " K"], posed: Float[Array, "V 3"] | None = None
+    model: PoseSpaceEdit,
+    weights: Float[ArrayLike, " K"],
+    posed: Float[ArrayLike, "V 3"] | None = None,
 ) -> Float[Array, "S 3"]:
     """World-space correction at ``model.vertices`` for pose ``weights``; jit- and vmap-safe.
 
     ``posed`` (V, 3), the base rig's mesh at ``weights``, is needed for local frames.
     """
+    weights = jnp.asarray(weights)
     r2 = pose_distance_sq(model.metric, weights, model.poses)  # (S, P) or (1, P)
     phi = gaussian_kernel(r2, model.sigma)
     offsets = jnp.einsum(
@@ -347,7 +359,7 @@ def correction(
     return local_to_world(model.frames, posed, offsets)
 
 
-def check_pose(model: PoseSpaceEdit, weights, posed) -> None:
+def check_pose(model: PoseSpaceEdit, weights: Any, posed: Any) -> None:
     """Shapes of a run-time pose and base mesh (and finiteness when concrete)."""
     if np.shape(weights) != (model.n_blendshapes,):
         raise ValueError(

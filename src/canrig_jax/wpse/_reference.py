@@ -9,12 +9,19 @@ import time
 
 import jax
 import numpy as np
+from jaxtyping import ArrayLike, Float, Float64, Int
 
 from .._threads import single_threaded_blas
-from ._pse import apply
+from ._pse import PoseSpaceEdit, apply
 
 
-def reference_coefficients(metric, poses, displacements, sigma, ridge=0.0):
+def reference_coefficients(
+    metric: Float[ArrayLike, "Sm K"],
+    poses: Float[ArrayLike, "P K"],
+    displacements: Float[ArrayLike, "S P 3"],
+    sigma: Float[ArrayLike, ""],
+    ridge: float = 0.0,
+) -> Float64[np.ndarray, "S P 3"]:
     """(S, P, 3) X_v = (Phi_v + ridge I)^{-1} D_v with Phi from the (S or 1, K) metric."""
     metric = np.asarray(metric, np.float64)
     poses = np.asarray(poses, np.float64)
@@ -26,7 +33,12 @@ def reference_coefficients(metric, poses, displacements, sigma, ridge=0.0):
     return np.linalg.solve(phi, displacements)
 
 
-def reference_frames(posed, faces, vertices, neighbour):
+def reference_frames(
+    posed: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    vertices: Int[ArrayLike, " S"],
+    neighbour: Int[ArrayLike, " S"],
+) -> Float64[np.ndarray, "S 3 3"]:
     """(S, 3, 3) frames [tangent, bitangent, normal] as columns, from the full (F, 3) face
     list: area-weighted normal of the triangles around each vertex, tangent towards
     ``neighbour`` projected onto the tangent plane."""
@@ -44,7 +56,12 @@ def reference_frames(posed, faces, vertices, neighbour):
     return out
 
 
-def reference_vertex_frames(posed, faces, vertices, neighbour):
+def reference_vertex_frames(
+    posed: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    vertices: Int[ArrayLike, " S"],
+    neighbour: Int[ArrayLike, " S"],
+) -> Float64[np.ndarray, "S 3 3"]:
     """(S, 3, 3) frames like ``reference_frames``, vectorised: every triangle's normal
     accumulated onto its three vertices over the whole mesh (np.add.at), in float64."""
     posed = np.asarray(posed, np.float64)
@@ -62,7 +79,13 @@ def reference_vertex_frames(posed, faces, vertices, neighbour):
     return np.stack([tangent, np.cross(normal, tangent), normal], axis=-1)
 
 
-def reference_correction(metric, poses, coefficients, sigma, weights):
+def reference_correction(
+    metric: Float[ArrayLike, "Sm K"],
+    poses: Float[ArrayLike, "P K"],
+    coefficients: Float[np.ndarray, "S P 3"],
+    sigma: Float[ArrayLike, ""],
+    weights: Float[ArrayLike, " K"],
+) -> Float[np.ndarray, "S 3"]:
     """(S, 3) sum_i x_{v,i} exp(-||w - w_i||_v^2 / (2 sigma^2)) in the coefficients' axes."""
     distance_sq = np.asarray(metric) @ ((np.asarray(weights) - np.asarray(poses)) ** 2).T
     phi = np.exp(-distance_sq / (2.0 * sigma**2))
@@ -74,7 +97,7 @@ class NumpyEditEvaluator:
 
     Evaluates the same equations as ``pse.apply`` on the same float32 arrays."""
 
-    def __init__(self, model):
+    def __init__(self, model: PoseSpaceEdit):
         self.poses = np.asarray(model.poses)
         self.metric = np.asarray(model.metric)
         self.coefficients = np.asarray(model.coefficients)
@@ -87,7 +110,9 @@ class NumpyEditEvaluator:
             self.weight = np.asarray(model.frames.weight)
             self.neighbour = np.asarray(model.frames.neighbour)
 
-    def __call__(self, weights, posed):
+    def __call__(
+        self, weights: Float[np.ndarray, " K"], posed: Float[np.ndarray, "V 3"]
+    ) -> Float[np.ndarray, "V 3"]:
         distance_sq = self.metric @ ((weights - self.poses) ** 2).T
         phi = np.exp(distance_sq * (-0.5 / self.sigma**2))
         offsets = np.einsum(
@@ -112,7 +137,12 @@ class NumpyEditEvaluator:
         return out
 
 
-def time_runtime(model, weights, posed, passes: int = 5) -> dict:
+def time_runtime(
+    model: PoseSpaceEdit,
+    weights: Float[ArrayLike, "T K"],
+    posed: Float[ArrayLike, "T V 3"],
+    passes: int = 5,
+) -> dict:
     """Per-frame seconds of ``jax.jit(wpse.apply)`` (compiled first, one frame per call) and
     of ``NumpyEditEvaluator`` on the same frames, in this process.
 

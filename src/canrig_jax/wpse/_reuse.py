@@ -23,8 +23,8 @@ class ReuseResult:
     """``corrections`` (T, V, 3): world-space correction of every query frame by the edits
     found for it; ``found``: the library indices used at each frame (best first)."""
 
-    corrections: np.ndarray
-    found: tuple[np.ndarray, ...]
+    corrections: Float[np.ndarray, "T V 3"]
+    found: tuple[Int[np.ndarray, " _n"], ...]
 
 
 def reuse_edits(

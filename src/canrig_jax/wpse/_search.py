@@ -31,8 +31,8 @@ class SearchResult:
     """Candidates below the threshold: ``indices`` into the library, best first, and their
     ``energies``."""
 
-    indices: np.ndarray
-    energies: np.ndarray
+    indices: Int[np.ndarray, " M"]
+    energies: Float[np.ndarray, " M"]
 
 
 def search_edits(

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from .._linalg import inv
 from ._pse import EditData, basis_matrices
@@ -62,13 +62,14 @@ def gui_from_sigma(sigma: float) -> float:
 
 
 def loo_residuals(
-    metric: Float[Array, "S K"],
-    poses: Float[Array, "P K"],
-    displacements: Float[Array, "S P 3"],
-    sigma,
-    ridge: float = 1e-6,
+    metric: Float[ArrayLike, "#S K"],
+    poses: Float[ArrayLike, "P K"],
+    displacements: Float[ArrayLike, "S P 3"],
+    sigma: Float[ArrayLike, ""],
+    ridge: float | Float[Array, ""] = 1e-6,
 ) -> Float[Array, "S P 3"]:
     """Leave-one-out errors X_{v,i} / (Phi_v^-1)_{ii} of every edit at every vertex."""
+    metric, poses, displacements = (jnp.asarray(x) for x in (metric, poses, displacements))
     phi = basis_matrices(metric, poses, sigma, ridge)
     inverse = inv(phi)  # (S or 1, P, P)
     coefficients = jnp.einsum(
@@ -81,11 +82,11 @@ def loo_residuals(
 
 
 def loo_error(
-    metric: Float[Array, "S K"],
-    poses: Float[Array, "P K"],
-    displacements: Float[Array, "S P 3"],
-    sigma,
-    ridge: float = 1e-6,
+    metric: Float[ArrayLike, "#S K"],
+    poses: Float[ArrayLike, "P K"],
+    displacements: Float[ArrayLike, "S P 3"],
+    sigma: Float[ArrayLike, ""],
+    ridge: float | Float[Array, ""] = 1e-6,
 ) -> Float[Array, ""]:
     """Mean over edits and vertices of the squared leave-one-out error."""
     residual = loo_residuals(metric, poses, displacements, sigma, ridge)
@@ -106,8 +107,8 @@ class SigmaFit:
 
     sigma: float
     loo_rms: float
-    grid: np.ndarray
-    grid_rms: np.ndarray
+    grid: Float[np.ndarray, " G"]
+    grid_rms: Float[np.ndarray, " G"]
     successful: bool
     steps: int
 

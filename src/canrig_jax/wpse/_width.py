@@ -25,7 +25,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from ._pse import EditData
 from ._sigma import loo_residuals
@@ -46,9 +46,9 @@ class WidthFit:
 
     sigma: float
     loo_min_sigma: float
-    grid: np.ndarray
-    loo_mean: np.ndarray
-    loo_per_edit: np.ndarray
+    grid: Float[np.ndarray, " G"]
+    loo_mean: Float[np.ndarray, " G"]
+    loo_per_edit: Float[np.ndarray, "G P"]
     standard_error: float
     se_factor: float
 
@@ -61,7 +61,7 @@ def _loo_distance_per_edit(metric, poses, displacements, sigma, ridge, scored):
 
 
 def loo_distance_per_edit(
-    data: EditData, sigma, ridge: float = 1e-6, max_vertices: int = 500
+    data: EditData, sigma: Float[ArrayLike, ""], ridge: float = 1e-6, max_vertices: int = 500
 ) -> Float[Array, " P"]:
     """Mean over the edited vertices (every k-th when more than ``max_vertices``) of the
     distance between edit i and its leave-one-out prediction, for every edit i that was
@@ -88,7 +88,7 @@ def _vertex_sample(data: EditData, max_vertices: int):
     return metric, data.poses, displacements
 
 
-def default_width_grid(data: EditData, size: int = 41) -> np.ndarray:
+def default_width_grid(data: EditData, size: int = 41) -> Float[np.ndarray, " size"]:
     """``size`` widths log-spaced over [0.02, 5] times the median pairwise edit distance
     under the mean metric (the same span as ``fit_sigma``'s grid, four times denser)."""
     poses = np.asarray(data.poses, np.float64)
