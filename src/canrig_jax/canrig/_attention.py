@@ -14,8 +14,11 @@ handle (and no beta column) gets weight 0 on every handle, not 0/0.
 Layout is heads-first, (heads, V, d), so both products are batched matrix multiplies.
 """
 
+import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
+
+from ._layout import Local
 
 
 def masked_attention_weights(
@@ -54,3 +57,13 @@ def masked_cross_attention(
     logits = jnp.matmul(queries, jnp.swapaxes(keys, -1, -2)) * scale
     weights, normaliser = masked_attention_weights(logits, mask, beta)
     return jnp.matmul(weights, values) / normaliser
+
+
+class Trace(eqx.Module):
+    """One forward pass with its intermediates: the shape (N, 3), the attended vectors
+    (N, latent) in vertex order, and the attention weights (heads, ...) in the layout's local
+    form (a tuple of them for a ``PartsLayout``; they do not depend on the displacements)."""
+
+    shape: Float[Array, "N 3"]
+    attended: Float[Array, "N latent"]
+    attention: Local

@@ -10,6 +10,7 @@ a ``jax.custom_jvp``. The variables are whitened by the normal matrix J^T W J of
 """
 
 from collections.abc import Callable
+from typing import Any, Protocol, runtime_checkable
 
 import jax
 import jax.numpy as jnp
@@ -18,13 +19,51 @@ import optimistix as optx
 from jaxtyping import Array, Float
 
 from .._linalg import cho_solve, cholesky, solve_triangular
+from ._attention import Trace
 from ._handle_rig import FitOptions, FitState, HandleEdit, edit_mask
 from ._layout import DENSE, Layout, Local
-from ._model import AbstractCANRig, Trace
+
+
+@runtime_checkable
+class AttentionRig(Protocol):
+    """What the fit needs of an attention rig (``AbstractCANRig`` is one): its forward pass
+    with intermediates, the value and output MLPs and the interpolation prior."""
+
+    @property
+    def clamp(self) -> float: ...
+
+    @property
+    def n_heads(self) -> int: ...
+
+    @property
+    def interpolation_prior(self) -> bool: ...
+
+    def trace(
+        self,
+        queries: Any,
+        base: Any,
+        handle_canonical: Any,
+        handle_base: Any,
+        displacements: Any,
+        mask: Any,
+        beta: Any = None,
+        layout: Any = DENSE,
+        local_queries: Any = None,
+    ) -> Trace: ...
+
+    def deform(
+        self, prepared: Any, canonical: Any, edit: Any, layout: Any = DENSE, local: Any = None
+    ) -> Any: ...
+
+    def encode_values(self, displacements: Any, handle_base: Any) -> Any: ...
+
+    def decode(self, attended: Any, base: Any, queries: Any) -> Any: ...
+
+    def interpolation_weights(self, mask: Any) -> Any: ...
 
 
 def trace_edit(
-    model: AbstractCANRig,
+    model: AttentionRig,
     queries: Float[Array, "heads V d"],
     canonical: Float[Array, "V 3"],
     edit: HandleEdit,
@@ -46,7 +85,7 @@ def trace_edit(
 
 
 def _value_jacobian(
-    model: AbstractCANRig, displacements: Float[Array, "H 3"], handle_base: Float[Array, "H 3"]
+    model: AttentionRig, displacements: Float[Array, "H 3"], handle_base: Float[Array, "H 3"]
 ) -> Float[Array, "H heads e 3"]:
     """(H, heads, e, 3): d values_h / d d_h per handle."""
 
@@ -57,7 +96,7 @@ def _value_jacobian(
 
 
 def _decode_jacobian(
-    model: AbstractCANRig,
+    model: AttentionRig,
     attended: Float[Array, "V latent"],
     base: Float[Array, "V 3"],
     queries: Float[Array, "heads V d"],
@@ -73,7 +112,7 @@ def _decode_jacobian(
 
 
 def displacement_jacobian(
-    model: AbstractCANRig,
+    model: AttentionRig,
     queries: Float[Array, "heads V d"],
     canonical: Float[Array, "V 3"],
     edit: HandleEdit,
@@ -133,7 +172,7 @@ def apply_jacobian(
 
 
 def _differentiable_shape(
-    model: AbstractCANRig,
+    model: AttentionRig,
     queries: Float[Array, "heads V d"],
     canonical: Float[Array, "V 3"],
     edit: HandleEdit,
@@ -184,7 +223,7 @@ def normal_matrix(
 
 
 def gauss_newton(
-    model: AbstractCANRig,
+    model: AttentionRig,
     queries: Float[Array, "heads V d"],
     canonical: Float[Array, "V 3"],
     edit: HandleEdit,

@@ -177,6 +177,12 @@ class AbstractHandleRig(eqx.Module):
         work; ``None``: the rig has no attention to lay out (always the dense pass)."""
         del radius, falloff
 
+    def local(self, prepared: PyTree, layout: Layout) -> PyTree:
+        """``prepared`` gathered into ``layout``'s local form once, for ``deform``'s ``local``
+        (``NeuralRig`` caches it for its vertex blocks); ``None``: the rig has nothing laid out
+        per vertex (the default)."""
+        del prepared, layout
+
     def support(self, edit: HandleEdit) -> Bool[Array, " V"]:
         """(V,) the vertices ``edit`` may move: those inside some handle's clamped mask. Every
         other vertex keeps the base shape exactly (the family's locality, tested)."""

@@ -58,7 +58,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Float64, PRNGKeyArray
 
-from ._attention import masked_attention_weights
+from ._attention import Trace, masked_attention_weights
+from ._attention_fit import gauss_newton, trace_edit
 from ._handle_rig import AbstractHandleRig, FitOptions, FitState, HandleEdit
 from ._layout import DENSE, Layout, Local, influence_reach
 from ._masks import CLAMP
@@ -133,6 +134,10 @@ class AbstractCANRig(AbstractHandleRig):
     ) -> Float64[np.ndarray, " H"]:
         return influence_reach(radius, falloff, self.clamp)
 
+    def local(self, prepared: Float[Array, "heads V d"], layout: Layout) -> Local:
+        """The queries gathered into ``layout``'s vertex blocks (the layout's first step)."""
+        return layout.vertices(prepared, axis=-2)
+
     def deform(
         self,
         prepared: Float[Array, "heads V d"],
@@ -141,7 +146,6 @@ class AbstractCANRig(AbstractHandleRig):
         layout: Layout = DENSE,
         local: Local | None = None,
     ) -> Float[Array, "V 3"]:
-        from ._attention_fit import trace_edit  # it needs this module's classes
 
         return trace_edit(self, prepared, canonical, edit, layout, local).shape
 
@@ -155,7 +159,6 @@ class AbstractCANRig(AbstractHandleRig):
         layout: Layout,
         options: FitOptions,
     ) -> FitState:
-        from ._attention_fit import gauss_newton  # it needs this module's classes
 
         return gauss_newton(self, prepared, canonical, edit, target, region, layout, options)
 
@@ -331,16 +334,6 @@ class AbstractCANRig(AbstractHandleRig):
             layout,
             local_queries,
         ).shape
-
-
-class Trace(eqx.Module):
-    """One forward pass with its intermediates: the shape (N, 3), the attended vectors
-    (N, latent) in vertex order, and the attention weights (heads, ...) in the layout's local
-    form (a tuple of them for a ``PartsLayout``; they do not depend on the displacements)."""
-
-    shape: Float[Array, "N 3"]
-    attended: Float[Array, "N latent"]
-    attention: Local
 
 
 def _architecture(

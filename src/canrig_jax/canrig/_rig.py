@@ -107,7 +107,7 @@ class NeuralRig(eqx.Module):
         model: the handle rig.
         canonical: (V, 3) the mesh's neutral (cm).
         queries: ``model.prepare(canonical)`` (the attention rig's queries; None otherwise).
-        block_queries: those queries gathered into the vertex blocks (None without queries).
+        block_queries: ``model.local(queries, blocks)`` (None for rigs with nothing per vertex).
         device_blocks: the vertex blocks (B, S) (padded with V) and each vertex's slot (V,).
     """
 
@@ -153,12 +153,10 @@ class NeuralRig(eqx.Module):
         )
         self.device_blocks = (jnp.asarray(blocks), jnp.asarray(position))
         self.queries = eqx.filter_jit(type(model).prepare)(model, self.canonical)
-        self.block_queries = None
-        if self.queries is not None:
-            # the queries gathered into the blocks once (the layout's first step, cached)
-            chosen = jnp.zeros((len(blocks), 1), jnp.int32)
-            blocked = BlockLayout(*self.device_blocks, chosen=chosen)
-            self.block_queries = blocked.vertices(self.queries, axis=-2)
+        # what the rig lays out per vertex block, gathered into the blocks once (cached)
+        chosen = jnp.zeros((len(blocks), 1), jnp.int32)
+        blocked = BlockLayout(*self.device_blocks, chosen=chosen)
+        self.block_queries = model.local(self.queries, blocked)
 
     @property
     def graph(self) -> sp.csr_matrix:
