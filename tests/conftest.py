@@ -36,10 +36,11 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.bad_input)
 
 
-@pytest.fixture(autouse=True)
-def _type_check_off_for_bad_input(request):
-    """The run-time type check off during a ``bad_input`` test (restored after it)."""
-    if request.node.get_closest_marker("bad_input") is None:
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    """The run-time type check off while a ``bad_input`` test runs, its fixtures' set-up and
+    tear-down included (a fixture may build the stand-ins the test passes); restored after."""
+    if item.get_closest_marker("bad_input") is None:
         yield
         return
     before = jaxtyping.config.jaxtyping_disable

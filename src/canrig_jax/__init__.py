@@ -19,8 +19,6 @@ file that is not what its name says), ``run_command(argv)`` (the ``canrig`` cons
 and ``__version__``.
 """
 
-from __future__ import annotations
-
 import importlib
 import importlib.metadata
 import re
@@ -32,10 +30,22 @@ from ._io import CorruptFileError
 from ._warnings import CanrigWarning
 
 if TYPE_CHECKING:
-    from . import autorig, canrig, data, inverse, mesh, render, rig, viewer, watchdog, wpse
+    from . import autorig, canrig, data, inverse, mesh, pbs, render, rig, viewer, watchdog, wpse
 
 _SUBPACKAGES = frozenset(
-    ("data", "mesh", "rig", "inverse", "wpse", "canrig", "pbs", "autorig", "render", "viewer", "watchdog")
+    (
+        "data",
+        "mesh",
+        "rig",
+        "inverse",
+        "wpse",
+        "canrig",
+        "pbs",
+        "autorig",
+        "render",
+        "viewer",
+        "watchdog",
+    )
 )
 """The public subpackages, imported on first attribute access."""
 

@@ -6,14 +6,14 @@ value is unknown at trace time); validate concrete inputs at the public boundary
 
 from typing import Any
 
-import jax
 import numpy as np
+from jax.core import Tracer
 from jaxtyping import Float32, Shaped
 
 
 def is_concrete(x: Any) -> bool:
     """True unless ``x`` is a JAX tracer (its values are known)."""
-    return not isinstance(x, jax.core.Tracer)
+    return not isinstance(x, Tracer)
 
 
 def check_finite(name: str, x: Any) -> None:

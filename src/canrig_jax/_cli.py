@@ -68,7 +68,7 @@ def add_dataclass_options(
     for field, hint in _fields(cls):
         if field.name in exclude:
             continue
-        if dataclasses.is_dataclass(hint):
+        if isinstance(hint, type) and dataclasses.is_dataclass(hint):
             add_dataclass_options(
                 parser,
                 hint,
@@ -103,7 +103,7 @@ def from_args(cls: type[T], args: argparse.Namespace | Mapping, **overrides) -> 
     values.update(overrides)
     kwargs = {}
     for field, hint in _fields(cls):
-        if dataclasses.is_dataclass(hint):
+        if isinstance(hint, type) and dataclasses.is_dataclass(hint):
             kwargs[field.name] = from_args(hint, values)
         elif field.name in values:
             value = values[field.name]

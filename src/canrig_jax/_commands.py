@@ -179,6 +179,7 @@ def _autorig(args) -> None:
         dataset = autorig.ict_pose_source(progress=False)
     template = None
     if args.template:
+        assert dataset is not None  # --template means --method transfer
         rig = _load_rig(args.template, "--template", crop="head")
         progress(f"fitting the template {args.template} ({rig.n_blendshapes} shapes)")
         try:

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 from jax.custom_batching import custom_vmap, sequential_vmap
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 BATCHED_REFERENCE = os.environ.get("CANRIG_BENCH_BATCHED_LAPACK") == "1"
 """For ``benchmarks/bench_linalg.py`` only: ``CANRIG_BENCH_BATCHED_LAPACK=1`` (read at import)
@@ -126,8 +126,8 @@ def _solve_lower(lower, rhs, transpose: bool):
 
 
 def solve_triangular(
-    lower: Float[Array, "*#batch n n"],
-    rhs: Float[Array, "*#batch n"] | Float[Array, "*#batch n m"],
+    lower: Float[ArrayLike, "*#batch n n"],
+    rhs: Float[ArrayLike, "*#batch n"] | Float[ArrayLike, "*#batch n m"],
     *,
     transpose: bool = False,
     vector: bool | None = None,
@@ -151,8 +151,8 @@ def solve_triangular(
 
 
 def cho_solve(
-    lower: Float[Array, "*#batch n n"],
-    rhs: Float[Array, "*#batch n"] | Float[Array, "*#batch n m"],
+    lower: Float[ArrayLike, "*#batch n n"],
+    rhs: Float[ArrayLike, "*#batch n"] | Float[ArrayLike, "*#batch n m"],
     *,
     vector: bool | None = None,
 ) -> Float[Array, "*#batch n"] | Float[Array, "*#batch n m"]:
@@ -179,7 +179,7 @@ def _cholesky_jvp(primals, tangents):
     return lower, lower @ phi
 
 
-def cholesky(matrix: Float[Array, "*batch n n"]) -> Float[Array, "*batch n n"]:
+def cholesky(matrix: Float[ArrayLike, "*batch n n"]) -> Float[Array, "*batch n n"]:
     """Lower Cholesky factor L (L L^T = A) of symmetric positive definite matrices (only
     A's lower triangle is read); NaN for a matrix that is not positive definite."""
     if BATCHED_REFERENCE:
@@ -188,8 +188,8 @@ def cholesky(matrix: Float[Array, "*batch n n"]) -> Float[Array, "*batch n n"]:
 
 
 def spd_solve(
-    matrix: Float[Array, "*#batch n n"],
-    rhs: Float[Array, "*#batch n"] | Float[Array, "*#batch n m"],
+    matrix: Float[ArrayLike, "*#batch n n"],
+    rhs: Float[ArrayLike, "*#batch n"] | Float[ArrayLike, "*#batch n m"],
     *,
     vector: bool | None = None,
 ) -> Float[Array, "*#batch n"] | Float[Array, "*#batch n m"]:
@@ -216,7 +216,7 @@ def _eigvalsh_jvp(primals, tangents):
     return values, jnp.einsum("ji,jk,ki->i", vectors, 0.5 * (tangent + tangent.T), vectors)
 
 
-def eigvalsh(matrix: Float[Array, "*batch n n"]) -> Float[Array, "*batch n"]:
+def eigvalsh(matrix: Float[ArrayLike, "*batch n n"]) -> Float[Array, "*batch n"]:
     """Eigenvalues of symmetric matrices in ascending order (derivative valid where they are
     distinct)."""
     if BATCHED_REFERENCE:
@@ -242,7 +242,7 @@ def _inv_jvp(primals, tangents):
     return inverse, -inverse @ tangent @ inverse
 
 
-def inv(matrix: Float[Array, "*batch n n"]) -> Float[Array, "*batch n n"]:
+def inv(matrix: Float[ArrayLike, "*batch n n"]) -> Float[Array, "*batch n n"]:
     """Inverses of square matrices by LU with partial pivoting (for systems that rounding
     may leave indefinite, where ``cholesky`` would give NaN); jit/vmap/grad-safe."""
     if BATCHED_REFERENCE:

@@ -12,7 +12,11 @@ import sys
 import warnings
 from collections.abc import Iterator
 
+import jaxtyping
+
 _PACKAGE_DIR = os.path.dirname(os.path.abspath(__file__)) + os.sep
+_CHECKER_DIR = os.path.dirname(os.path.abspath(jaxtyping.__file__)) + os.sep
+"""jaxtyping's wrappers: the test run's type check calls the package's functions through them."""
 
 
 class CanrigWarning(UserWarning):
@@ -25,7 +29,7 @@ def user_stacklevel() -> int:
     at the first frame outside the ``canrig_jax`` package."""
     frame = sys._getframe(2)  # the caller of the function that calls warnings.warn
     level = 2
-    while frame is not None and frame.f_code.co_filename.startswith(_PACKAGE_DIR):
+    while frame is not None and frame.f_code.co_filename.startswith((_PACKAGE_DIR, _CHECKER_DIR)):
         frame = frame.f_back
         level += 1
     return level

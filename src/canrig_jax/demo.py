@@ -54,7 +54,8 @@ def _demo(args, progress) -> None:
     quartic = np.asarray(evaluate_batch(rig, capture))
     linear = np.asarray(evaluate_batch(rig.linear(), capture))
     progress("the nonlinear deformation-gradient blend: factorising its Poisson system")
-    blend = DeformationGradientBlend(rig.neutral, rig.deltas, np.asarray(rig.faces))
+    assert rig.faces is not None  # the ICT rig carries its triangles
+    blend = DeformationGradientBlend(rig.neutral, rig.deltas, rig.faces)
     nonlinear = []
     for start in range(0, len(capture), BLEND_CHUNK):
         stop = min(start + BLEND_CHUNK, len(capture))

@@ -29,7 +29,7 @@ import traceback
 from collections.abc import Callable
 from typing import TypeVar
 
-T = TypeVar("T")
+_T = TypeVar("_T")
 
 EXIT_STATUS = 70
 """The process's exit status when the watchdog fires (EX_SOFTWARE)."""
@@ -108,6 +108,8 @@ class Watchdog:
 def _native_stderr():
     """Standard error as a file with a descriptor (what ``faulthandler`` writes to), or None."""
     for stream in (sys.stderr, sys.__stderr__):
+        if stream is None:
+            continue
         try:
             stream.fileno()
             return stream
@@ -164,7 +166,7 @@ DEFAULT_LIMIT = 1800.0
 two progress reports seen here (operators of a large head, an evaluation pass)."""
 
 
-def run_watched(main: Callable[..., T], what: str, *args, **kwargs) -> T:
+def run_watched(main: Callable[..., _T], what: str, *args, **kwargs) -> _T:
     """``main(*args, **kwargs)`` inside ``watchdog(limit_from_environment(DEFAULT_LIMIT), what)``:
     how the ``canrig`` command and the experiments run."""
     with watchdog(limit_from_environment(DEFAULT_LIMIT), what):

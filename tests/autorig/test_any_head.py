@@ -162,6 +162,7 @@ def test_fit_style_recovers_a_grid_style(gain, falloff, floor):
     assert found.gain == pytest.approx(float(gain))
 
 
+@pytest.mark.bad_input
 def test_fit_style_shape_errors_name_the_arguments():
     generated = _poses(5, p=2, v=50)
     with pytest.raises(ValueError, match="generated, sculpted"):

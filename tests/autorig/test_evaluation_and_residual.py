@@ -210,6 +210,7 @@ def test_evaluation_classes_partition_the_poses_and_the_vertices(tiny_poses):
     assert len({w["pose"] for w in worst}) == 3
 
 
+@pytest.mark.bad_input
 def test_shared_shapes_sum_ict_split_halves(ict_head, data_dir):
     mh = load_makehuman(data_dir)
     target_index, matrix = shared_shape_matrix(ict_head.names, mh.names)
@@ -418,6 +419,7 @@ def test_part_matching_on_makehuman_is_plausible_and_reported(ict_head, data_dir
         )
 
 
+@pytest.mark.bad_input
 def test_anchor_modes_label_the_ict_parts_and_refuse_bad_input(ict_head):
     """``anchor_parts``: no labels per vertex; per part, ICT's connected components; with the
     skin per vertex, the largest component (face, head and neck, mouth and eye sockets:

@@ -111,6 +111,7 @@ def test_region_and_scale(ict_face, take, tmp_path):
     assert left.min() > 240 and right[0] > 240 and right[1:].max() < 40, (left, right)
 
 
+@pytest.mark.bad_input
 def test_bad_input_names_the_argument(ict_face, take, tmp_path):
     meshes, error = take
     faces = ict_face.faces

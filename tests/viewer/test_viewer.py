@@ -181,6 +181,7 @@ def test_play_runs_the_take_and_the_slider_scrubs_it(page):
     assert page.browser.errors == []
 
 
+@pytest.mark.bad_input
 def test_vertex_colors_are_shown(take, browser, tmp_path):
     """A glb with COLOR_0 (an error map: red where jawOpen moves, white elsewhere): the page
     paints the mouth red, and the colour toggle turns it back to grey."""

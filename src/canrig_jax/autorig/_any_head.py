@@ -157,7 +157,7 @@ class Template:
     """
 
     rig: BlendshapeRig
-    landmarks: Int[np.ndarray, " 68"]
+    landmarks: Int[np.ndarray, " L"]
     name: str = "template"
 
     @classmethod
@@ -180,7 +180,7 @@ def skin_of(
 ) -> Bool[np.ndarray, " V"]:
     """(V,) bool: the largest connected component (a head's skin; eyes, teeth, lashes are
     separate parts)."""
-    labels = connected_components(np.asarray(faces), len(vertices))
+    labels = connected_components(np.asarray(faces), np.shape(vertices)[0])
     return labels == np.bincount(labels).argmax()
 
 
@@ -190,7 +190,7 @@ def place_landmarks(
     faces: Int[ArrayLike, "F 3"],
     *,
     region: Bool[ArrayLike, " V"] | None = None,
-) -> tuple[Int[np.ndarray, " 68"], SimilarityFit, str]:
+) -> tuple[Int[np.ndarray, " L"], SimilarityFit, str]:
     """The ICT landmarks on a head (cm, +y up, facing +z): the ICT face part fitted by
     trimmed ICP (``fit_head_landmarks``); where that fails (a face-only mask, a stylised
     head), the inner face (eyes, nose, mouth; ``inner_face``) with a looser trim.
@@ -248,7 +248,7 @@ class AutoRig:
     method: str
     style: Style
     orientation: OrientationDecision
-    landmarks: Int[np.ndarray, " 68"] | None
+    landmarks: Int[np.ndarray, " L"] | None
     fit: dict
     examples: tuple[str, ...]
     seconds: dict
@@ -308,7 +308,7 @@ def auto_rig(
     up: str | None = None,
     forward: str | None = None,
     orientation: OrientationDecision | None = None,
-    landmarks: Int[ArrayLike, " 68"] | Sequence[int] | None = None,
+    landmarks: Int[ArrayLike, " L"] | Sequence[int] | None = None,
     names: str = "arkit",
     progress: Callable[[str], None] | None = None,
 ) -> AutoRig:
@@ -458,7 +458,7 @@ def _assemble(vertices, faces, displacements, pose_set, source_names, names) -> 
 class _Head:
     vertices: np.ndarray
     faces: np.ndarray
-    landmarks: np.ndarray
+    landmarks: np.ndarray | None
     skin: np.ndarray
 
 
@@ -467,6 +467,7 @@ def _pose_displacements(method: str, dataset, head: _Head, model):
     dataset (None): its poses come with the model."""
     base = None
     if method in ("transfer", "transfer-residual"):
+        assert head.landmarks is not None  # placed for every method but "raf"
         correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
         base = transfer_poses(dataset, head, correspondence, static_below=ANCHOR_CM)
         if method == "transfer":

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float, Float32, Float64, Int
-from scipy.spatial import cKDTree
+from scipy.spatial import KDTree
 
 from .._warnings import warn
 from ..data import ICTFaceModel, ict_identity, load_ict
@@ -115,7 +115,7 @@ def quartic_pose_set(rig: BlendshapeRig, per_order: dict[int, int] | None = None
             raise ValueError(
                 f"per_order: asked for {count} order-{order} combinations, the rig has {available}"
             )
-        if count == 0:
+        if count == 0 or table is None:
             continue
         size = np.linalg.norm(np.asarray(table.deltas), axis=-1).sum(axis=1)
         best = np.argsort(-size, kind="stable")[:count]
@@ -175,7 +175,7 @@ class RiggedHead:
     vertices: Float[np.ndarray, "V 3"]
     faces: Int[np.ndarray, "F 3"]
     displacements: Float[np.ndarray, "P V 3"]
-    landmarks: Int[np.ndarray, " 68"]
+    landmarks: Int[np.ndarray, " L"]
     parts: Int[np.ndarray, " V"]
     identity: Float[np.ndarray, " n"]
     topology: str
@@ -223,7 +223,7 @@ def make_head(
     """
     neutral = ict_identity(coefficients, data_dir, model=head)
     coarse, fine = remesh_head(neutral, head.faces, topology)
-    carried = coarse.map.carry(displacements.astype(np.float64))
+    carried = coarse.map.carry(np.asarray(displacements, np.float64))
     source_parts = vertex_parts(head)
     corner = np.argmax(coarse.map.barycentric, axis=1)
     parts = source_parts[head.faces[coarse.map.triangle, corner]]
@@ -233,7 +233,7 @@ def make_head(
         corner = np.argmax(fine.map.barycentric, axis=1)
         parts = parts[coarse.faces[fine.map.triangle, corner]]
         vertices, faces = fine.vertices, fine.faces
-    landmarks = cKDTree(vertices).query(neutral[head.landmarks])[1]
+    landmarks = KDTree(vertices).query(neutral[head.landmarks])[1]
     return RiggedHead(
         name=name,
         vertices=np.asarray(vertices, np.float32),
@@ -354,7 +354,7 @@ def fit_head_landmarks(
     faces: Int[ArrayLike, "F 3"],
     *,
     region: Bool[ArrayLike, " V"] | None = None,
-) -> tuple[Int[np.ndarray, " 68"], SimilarityFit]:
+) -> tuple[Int[np.ndarray, " L"], SimilarityFit]:
     """The ICT Multi-PIE landmarks placed on a new head with no hand-picked vertices: the
     ICT face part fitted to the head by a trimmed-ICP similarity
     (``canrig_jax.mesh.fit_landmarks``; the head in centimetres, y up, facing +z), each
@@ -417,7 +417,7 @@ def head_correspondence(
     dataset: AutorigDataset,
     vertices: Float[ArrayLike, "V 3"],
     faces: Int[ArrayLike, "F 3"],
-    landmarks: Int[ArrayLike, " 68"],
+    landmarks: Int[ArrayLike, " L"],
 ) -> TriangleCorrespondence:
     """The correspondence of the generic ICT head (``dataset.head``) with a new head
     (``closest_point_correspondence``: landmark similarity, thin-plate warp, component

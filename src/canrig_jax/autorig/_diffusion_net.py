@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
+from .._checks import is_concrete
 from ..mesh import MeshOperators
 from ._diffusion import LearnedDiffusion
 from ._features import mass_weighted_mean
@@ -187,9 +188,7 @@ class DiffusionNet(eqx.Module):
                 f"features: expected shape ({n_vertices}, {self.first.in_features}) "
                 f"(vertices of the operators, in_size), got {shape}"
             )
-        if not isinstance(features, jax.core.Tracer) and not np.all(
-            np.isfinite(np.asarray(features))
-        ):
+        if is_concrete(features) and not np.all(np.isfinite(np.asarray(features))):
             raise ValueError("features: contains non-finite values")
         mask = operators.vertex_mask[:, None]
         x = per_vertex(self.first, features) * mask

@@ -121,7 +121,7 @@ def penetration_free_set(
     Measured with ``inner_outside(...)[poses][:, vertices]``, the ground truth scores 0
     (threshold 0) and so does the neutral head.
     """
-    truth = head.displacements if truth is None else truth
+    truth = np.asarray(head.displacements if truth is None else truth)
     if not 0.0 <= threshold < 1.0:
         raise ValueError(f"threshold: expected a fraction in [0, 1), got {threshold}")
     rest = inner_outside(head, np.zeros((1, *np.shape(head.vertices))), part_names)[0]

@@ -188,7 +188,7 @@ class RigAnyFace(eqx.Module):
             self.last = eqx.tree_at(
                 lambda m: (m.weight, m.bias),
                 self.last,
-                (jnp.zeros_like(self.last.weight), jnp.zeros_like(self.last.bias)),
+                (jnp.zeros_like(self.last.weight), jnp.zeros(3, self.last.weight.dtype)),
             )
             self.base_in = eqx.nn.Linear(3, width, use_bias=False, key=k_base)
         self.residual = bool(residual)
@@ -207,11 +207,11 @@ class RigAnyFace(eqx.Module):
 
     def __call__(
         self,
-        poses: Float[Array, "P A"],
-        vertices: Float[Array, "V 3"],
+        poses: Float[ArrayLike, "P A"],
+        vertices: Float[ArrayLike, "V 3"],
         operators: MeshOperators,
         *,
-        base: Float[Array, "P V 3"] | None = None,
+        base: Float[ArrayLike, "P V 3"] | None = None,
         pose_chunk: int | None = None,
     ) -> Float[Array, "P V 3"]:
         """Displacements (unit-sphere units) of every vertex for every pose vector.
@@ -249,6 +249,8 @@ class RigAnyFace(eqx.Module):
                 f"base: expected shape ({np.shape(poses)[0]}, {n_vertices}, 3), "
                 f"got {np.shape(base)}"
             )
+        poses, vertices = jnp.asarray(poses), jnp.asarray(vertices)
+        base = None if base is None else jnp.asarray(base)
         mask = operators.vertex_mask[:, None]
         code = self.global_code(vertices, operators)
         x = per_vertex(self.first, input_features(vertices, operators)) * mask

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float, Int
-from scipy.spatial import cKDTree
+from scipy.spatial import KDTree
 
 from ..mesh import check_mesh, connected_components
 from ._data import AutorigDataset
@@ -78,7 +78,7 @@ class HeadOrientation:
     @property
     def conventional(self) -> bool:
         """True when the head already faces +z with +y up."""
-        return self.determined and np.allclose(self.rotation, np.eye(3))
+        return self.rotation is not None and np.allclose(self.rotation, np.eye(3))
 
     @property
     def contradicts(self) -> bool:
@@ -139,7 +139,7 @@ def head_orientation(
     # -- forward: the sharpest extreme (the nose tip) -------------------------------------
     others = [a for a in range(3) if a != lateral_axis]
     spreads = _extreme_spreads(p, others)
-    ranked = sorted(spreads, key=spreads.get)
+    ranked = sorted(spreads, key=lambda axis: spreads[axis])
     sharpness = spreads[ranked[1]] / max(spreads[ranked[0]], 1e-12)
     margins["sharpness"] = float(sharpness)
     margins["spreads"] = {_signed(a, s): value for (a, s), value in spreads.items()}
@@ -175,7 +175,7 @@ def _mirror_asymmetry(p: np.ndarray, max_points: int) -> list[float]:
     """Per axis, the mean distance from each mirrored point of a regular subsample of ``p``
     (at most ``max_points``) to the nearest point of the subsample (unit-sphere units)."""
     sample = p[:: max(1, int(np.ceil(p.shape[0] / max_points)))]
-    tree = cKDTree(sample)
+    tree = KDTree(sample)
     asymmetry = []
     for a in range(3):
         mirrored = sample.copy()
@@ -382,7 +382,7 @@ def inner_face(dataset: AutorigDataset) -> Bool[np.ndarray, " Vs"]:
 
     head = dataset.head
     neutral = np.asarray(head.neutral, np.float64)
-    near = cKDTree(neutral[np.asarray(head.landmarks)]).query(neutral)[0] < INNER_FACE_CM
+    near = KDTree(neutral[np.asarray(head.landmarks)]).query(neutral)[0] < INNER_FACE_CM
     return near & (vertex_parts(head) == list(head.part_names).index("Face"))
 
 
@@ -413,7 +413,7 @@ def _coarse_icp(points, tree, start, iterations: int = 25):
     return rotation, scale, rms
 
 
-ORIENTATION_TEMPLATE = Path(str(files(__package__) / "models" / "ict_inner_face.npy"))
+ORIENTATION_TEMPLATE = Path(str(files("canrig_jax.autorig") / "models" / "ict_inner_face.npy"))
 """The points ``decide_orientation`` fits, packaged so that it (and ``auto_rig``'s network
 method) runs without the data folder: ``orientation_points`` of the generic ICT head, float32
 centimetres, derived from the ICT Face Model like the packaged network weights."""
@@ -463,14 +463,14 @@ def decide_orientation(
 
     if (up is None) != (forward is None):
         raise ValueError("up, forward: state both of the head's axes or neither")
-    if up is not None:
+    if up is not None and forward is not None:
         return stated_orientation(up, forward)
     vertices, faces = check_mesh(vertices, faces)
     v = np.asarray(vertices, np.float64)
     points = np.asarray(orientation_points(dataset), np.float64)
     size = float(np.linalg.norm(np.ptp(points, axis=0)))
     starts = axis_rotations()
-    tree = cKDTree(v)
+    tree = KDTree(v)
     found, ratios = [], []
     for start in starts:
         rotation, scale, rms = _coarse_icp(points, tree, start)

@@ -33,7 +33,7 @@ DEFAULT_MEMORY_BUDGET = 4 * 2**30
 def activation_bytes(model: RigAnyFace, n_vertices: int, n_poses: int, k: int) -> int:
     """Rough peak activation memory of one forward pass (float32): a few (V, P, width)
     tensors per conditional block plus the dense operators (V, k)."""
-    width = model.first.out_features
+    width = int(model.first.out_features)
     per_block = 8 * n_vertices * n_poses * width
     return 4 * (per_block + 4 * n_vertices * k)
 
@@ -104,6 +104,7 @@ def rig_from_poses(
     poses: PoseSet,
 ) -> BlendshapeRig:
     """A ``BlendshapeRig`` whose poses reproduce ``displacements`` (P, V, 3)."""
+    displacements = np.asarray(displacements)
     a = poses.n_basis
     deltas = displacements[:a]
     terms: dict[frozenset, np.ndarray] = {}  # corrective of each combination so far
@@ -184,7 +185,7 @@ def generate_rig(
     after_orientation = time.perf_counter()
     original = vertices
     if rotation is not None:  # an axis permutation with signs: exact in floating point
-        vertices = vertices @ rotation.T
+        vertices = np.asarray(vertices @ rotation.T)
         if base is not None:
             base = base @ rotation.T
         if placement is not None:
@@ -226,7 +227,7 @@ def generate_rig(
 
 def _check_rig_inputs(
     model, poses, vertices, faces, k, bucket, memory_budget, pose_chunk, base, orientation
-):
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """``generate_rig``'s checks: (vertices, faces, base float64 or None)."""
     if not isinstance(model, RigAnyFace):
         raise TypeError(f"model: expected a trained RigAnyFace, got {type(model).__name__}")
@@ -261,7 +262,9 @@ def _check_rig_inputs(
     return vertices, faces, base
 
 
-def _orientation_for_model(vertices, faces, orientation: str, operators):
+def _orientation_for_model(
+    vertices: np.ndarray, faces: np.ndarray, orientation: str, operators: MeshOperators | None
+) -> tuple[HeadOrientation | None, np.ndarray | None]:
     """(what ``head_orientation`` found or None, the rotation that turns the head into the
     model's convention or None); raises for a head ``orientation`` does not let through."""
     found, rotation = None, None

@@ -171,8 +171,11 @@ def loss_2d(
             def mask(posed):
                 return silhouette(posed, faces, camera, fragments(posed))
 
-            def field(attributes):
-                return interpolate(vertices, faces, camera, neutral, attributes)
+            def field(attributes: Float[Array, "V C"]) -> tuple[Array | None, Array]:
+                """(no silhouette, the attributes at the pixels)"""
+                values = interpolate(vertices, faces, camera, neutral, attributes).attributes
+                assert values is not None  # attributes were given
+                return None, values
 
             neutral = fragments(vertices)
             inside = neutral.covered[..., None]
@@ -181,8 +184,11 @@ def loss_2d(
             def mask(posed):
                 return rasterise(posed, faces, camera, settings=settings).silhouette
 
-            def field(attributes):
-                return rasterise(vertices, faces, camera, attributes, settings=settings)
+            def field(attributes: Float[Array, "V C"]) -> tuple[Array | None, Array]:
+                """(the silhouette, the attributes at the pixels)"""
+                rendering = rasterise(vertices, faces, camera, attributes, settings=settings)
+                assert rendering.attributes is not None  # attributes were given
+                return rendering.silhouette, rendering.attributes
 
             inside = None
         sil_pred = jax.vmap(mask)(posed_pred)
@@ -190,13 +196,16 @@ def loss_2d(
         mask_term = jnp.mean((sil_pred - sil_true) ** 2)
         flow_pred = screen_displacement(camera, vertices, posed_pred)  # (Q, V, 2)
         flow_true = screen_displacement(camera, vertices, posed_true)
-        error = field(jnp.moveaxis(flow_pred - flow_true, 0, 1).reshape(vertices.shape[0], -1))
-        target = field(jnp.moveaxis(flow_true, 0, 1).reshape(vertices.shape[0], -1))
+        covered, error = field(
+            jnp.moveaxis(flow_pred - flow_true, 0, 1).reshape(vertices.shape[0], -1)
+        )
+        _, target = field(jnp.moveaxis(flow_true, 0, 1).reshape(vertices.shape[0], -1))
         if inside is None:
-            inside = error.silhouette[..., None]
+            assert covered is not None  # the soft rasteriser's silhouette
+            inside = covered[..., None]
         area = jnp.maximum(jnp.sum(inside), 1.0)
-        flow_error = jnp.sum(inside * error.attributes**2) / area
-        flow_scale = jnp.sum(inside * target.attributes**2) / area
+        flow_error = jnp.sum(inside * error**2) / area
+        flow_scale = jnp.sum(inside * target**2) / area
         lm_pred, _ = project_points(camera, posed_pred[:, landmarks])
         lm_true, _ = project_points(camera, posed_true[:, landmarks])
         lm_error = jnp.mean(jnp.sum((lm_pred - lm_true) ** 2, -1))
@@ -265,6 +274,7 @@ def _train_step(
 def rigged_reference(data: TrainingSet, rigged: Int[ArrayLike, " R"]) -> float:
     """Mean square displacement (unit-sphere units) over the rigged heads only: the 3D loss
     scale and the model's output scale (no unrigged head's 3D rig enters it)."""
+    rigged = np.asarray(rigged)
     mask = np.asarray(data.operators.vertex_mask)[rigged]
     squared = np.sum(np.asarray(data.displacements)[rigged] ** 2, axis=-1)
     return float((squared * mask[:, None]).sum() / (mask.sum() * squared.shape[1]))

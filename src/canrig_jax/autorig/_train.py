@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from jaxtyping import Array, ArrayLike, Float, Float32, Float64, Int, PyTree
+from jaxtyping import Array, ArrayLike, Bool, Float, Float32, Float64, Int, PyTree
 
 from .._checkpoint import (
     load_checkpoint,
@@ -49,7 +49,7 @@ from ._data import PoseSet, RiggedHead
 from ._model import RigAnyFace, normalise
 
 CHECKPOINT_FORMAT = "riganyface-checkpoint-1"
-DEFAULT_CHECKPOINT = Path(str(files(__package__) / "models" / "riganyface.eqx.xz"))
+DEFAULT_CHECKPOINT = Path(str(files("canrig_jax.autorig") / "models" / "riganyface.eqx.xz"))
 """The default RigAnyFace model, shipped inside the package (``canrig_jax/autorig/models/``;
 ``load_riganyface`` reads it and checks its SHA-256, ``DEFAULT_CHECKPOINT_SHA256``): what
 ``canrig autorig`` loads unless given ``--model``. It is ``export_riganyface`` of the training
@@ -63,7 +63,9 @@ previous default's) over ``autorig_long`` (Euclidean + static, 7,000 steps), who
 brow shapes moved about a tenth of the true amount."""
 DEFAULT_CHECKPOINT_SHA256 = "7e894ad4fd0f19962d9643221c3aab5fa48df509e2b1ef92ddc0747177f5b106"
 """SHA-256 of the file ``DEFAULT_CHECKPOINT`` (a damaged or replaced file is refused)."""
-RESIDUAL_CHECKPOINT = Path(str(files(__package__) / "models" / "riganyface_residual.eqx.xz"))
+RESIDUAL_CHECKPOINT = Path(
+    str(files("canrig_jax.autorig") / "models" / "riganyface_residual.eqx.xz")
+)
 """The packaged DT + learned residual model (``auto_rig(method="transfer-residual")``):
 ``export_riganyface`` of ``experiments/results/autorig/checkpoint_raf_anchored_dt_residual.eqx``
 (a residual on anchored deformation transfer, chosen on validation identities)."""
@@ -259,14 +261,15 @@ def mean_square_displacement(data: TrainingSet) -> float:
 
 
 def static_vertex_error(
-    predicted: Float[Array, "P V 3"],
-    truth: Float[Array, "P V 3"],
-    mask: Float[Array, " V"],
+    predicted: Float[ArrayLike, "P V 3"],
+    truth: Float[ArrayLike, "P V 3"],
+    mask: Float[ArrayLike, " V"] | Bool[ArrayLike, " V"],
     threshold: float | Float[Array, ""],
 ) -> Float[Array, ""]:
     """Mean length of the predicted motion at the (pose, vertex) pairs whose ground truth
     moves less than ``threshold`` (same units), over real vertices (``mask``); 0 when there
     are none. Zero exactly when every static vertex is predicted still."""
+    predicted, truth, mask = jnp.asarray(predicted), jnp.asarray(truth), jnp.asarray(mask)
     still = (jnp.linalg.norm(truth, axis=-1) < threshold) * mask[None]
     squared = jnp.sum(predicted**2, axis=-1)
     positive = squared > 0

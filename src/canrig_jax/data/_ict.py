@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
-import trimesh
 from jaxtyping import ArrayLike, Bool, Float, Float32, Int, Int32
 from scipy.sparse.csgraph import connected_components
+from trimesh.exchange.obj import load_obj
 
 from .._io import CorruptFileError
 from ._paths import data_file, read_arrays
@@ -252,7 +252,7 @@ def _read_obj(path: Path, with_polygons: bool = False) -> tuple[np.ndarray, list
     try:
         with warnings.catch_warnings():  # trimesh's UV code warns on the all-NaN material slices
             warnings.simplefilter("ignore", RuntimeWarning)
-            loaded = trimesh.exchange.obj.load_obj(
+            loaded = load_obj(
                 io.StringIO(text), maintain_order=True, skip_materials=True, group_material=False
             )
         geometries = loaded.get("geometry", {}) if isinstance(loaded, dict) else {}

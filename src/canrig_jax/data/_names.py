@@ -69,7 +69,7 @@ def _canonical(names: Sequence[str], argument: str) -> list[str]:
             f"'EyeBlinkLeft', ICT 'eyeBlink_L' or numbered 'AK_09_EyeBlinkLeft' spelling "
             f"expected): {unknown}"
         )
-    return arkit
+    return [a for a in arkit if a is not None]  # all of them (no name is unknown)
 
 
 _NUMBERED = re.compile(r"AK_\d+_", re.IGNORECASE)

@@ -10,10 +10,10 @@ import abc
 from typing import Any, NamedTuple
 
 import equinox as eqx
-import jax
 from equinox import AbstractClassVar, AbstractVar
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
+from .._checks import is_concrete
 from ._problem import InverseProblem
 
 
@@ -61,7 +61,7 @@ class AbstractInverseMethod(eqx.Module):
 
 
 def check_alpha(alpha: Any) -> None:
-    if isinstance(alpha, jax.core.Tracer):
+    if not is_concrete(alpha):
         return
     if not alpha >= 0:
         raise ValueError(f"alpha: expected a non-negative, finite weight, got {alpha}")
@@ -70,7 +70,7 @@ def check_alpha(alpha: Any) -> None:
 
 
 def check_upper(upper: Any) -> None:
-    if isinstance(upper, jax.core.Tracer):
+    if not is_concrete(upper):
         return
     if not upper > 0:
         raise ValueError(f"upper: expected a positive upper bound, got {upper}")

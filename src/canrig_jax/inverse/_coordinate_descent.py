@@ -49,6 +49,7 @@ from equinox import AbstractVar
 from jax.custom_batching import custom_vmap
 from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
+from .._checks import is_concrete
 from .._linalg import spd_solve
 from ._base import AbstractInverseMethod, Iterate, check_alpha, check_count, check_upper
 from ._problem import InverseProblem
@@ -135,7 +136,7 @@ class AbstractCoordinateDescent(AbstractInverseMethod):
         check_count("passes", self.passes)
         check_upper(self.upper)
         check_order(self.order)
-        if not isinstance(self.tol, jax.core.Tracer) and not 0 <= self.tol < 1:
+        if is_concrete(self.tol) and not 0 <= self.tol < 1:
             raise ValueError(f"tol: expected a relative tolerance in [0, 1), got {self.tol}")
 
     @abc.abstractmethod
@@ -391,6 +392,7 @@ def _traced_passes(sweep: _Sweep, init, gradient0) -> Iterate:
         return (weights, gradient), per_update
 
     (weights, _), history = jax.lax.scan(traced, (init, gradient0), jnp.arange(passes))
+    assert history is not None  # a traced sweep records every update
     return Iterate(weights, history.reshape(-1), jnp.asarray(passes), jnp.asarray(True))
 
 

@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray
 
+from .._checks import is_concrete
 from .._linalg import spd_solve
 from ._base import AbstractInverseMethod, Iterate, check_alpha, check_count, check_upper
 from ._problem import InverseProblem
@@ -68,7 +69,7 @@ class QuarticNewton(AbstractInverseMethod):
         check_count("iterations", self.iterations)
         check_count("line_steps", self.line_steps)
         check_upper(self.upper)
-        if not isinstance(self.tol, jax.core.Tracer) and not 0 <= self.tol < 1:
+        if is_concrete(self.tol) and not 0 <= self.tol < 1:
             raise ValueError(f"tol: expected a relative tolerance in [0, 1), got {self.tol}")
 
     def __call__(

@@ -63,6 +63,7 @@ class NumpyDenseRig:
 
     def __call__(self, weights: Float[ArrayLike, " K"]) -> Float64[np.ndarray, " N"]:
         """(3V,) mesh at ``weights`` (K,): the whole rig, every term."""
+        weights = np.asarray(weights)
         mesh = self.neutral + weights @ self.deltas
         for indices, dense in self.tables:
             mesh = mesh + np.prod(weights[indices], axis=1) @ dense
@@ -171,6 +172,7 @@ def time_single_frames(
             seconds.append(time.perf_counter() - start)
         if np.median(seconds) < best:
             best, weights = float(np.median(seconds)), np.stack(frames)
+    assert weights is not None  # repeats >= 1
     return best, weights
 
 

@@ -18,7 +18,7 @@ import dataclasses
 
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float, Float64, Int
-from scipy.spatial import cKDTree
+from scipy.spatial import KDTree
 
 from ._checks import check_mesh
 from ._remesh import closest_surface_points
@@ -156,5 +156,5 @@ def fit_landmarks(
         if mask.shape != (tv.shape[0],) or not mask.any():
             raise ValueError(f"target_region: expected a non-empty (V,) mask, got {mask.shape}")
         candidates = np.flatnonzero(mask)
-    nearest = cKDTree(tv[candidates]).query(fit.apply(sv[landmarks]))[1]
+    nearest = KDTree(tv[candidates]).query(fit.apply(sv[landmarks]))[1]
     return candidates[nearest].astype(np.int64), fit

@@ -1,8 +1,10 @@
-"""The one check of a triangle mesh, shared by everything in ``mesh`` and above it."""
+"""The check of a triangle mesh, shared by everything in ``mesh`` and above it, and the typed
+shape of a sparse operator."""
 
 from typing import Any
 
 import numpy as np
+import scipy.sparse as sp
 from jaxtyping import Float64, Int64
 
 
@@ -47,3 +49,9 @@ def check_mesh(
             f"found range [{lo}, {hi}]"
         )
     return vertices, faces
+
+
+def sparse_shape(matrix: sp.spmatrix) -> tuple[int, int]:
+    """(rows, columns) of a SciPy sparse matrix (its ``shape``, typed)."""
+    rows, columns = matrix.shape
+    return int(rows), int(columns)

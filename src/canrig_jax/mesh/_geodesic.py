@@ -21,13 +21,15 @@ them, none enters, so distances between two vertices outside them are those of t
 without them.
 """
 
+from typing import Any
+
 import numpy as np
 import scipy.sparse as sp
 from jaxtyping import ArrayLike, Bool, Float, Float32, Int
 from scipy.sparse.csgraph import connected_components, dijkstra
-from scipy.spatial import cKDTree
+from scipy.spatial import KDTree
 
-from ._checks import check_mesh, check_vertices
+from ._checks import check_mesh, check_vertices, sparse_shape
 
 MIN_EDGE_LENGTH = 1e-12
 """csgraph treats stored zeros as missing edges: lengths are floored at this."""
@@ -92,7 +94,7 @@ def bridged_edge_graph(
         return graph
     main = np.flatnonzero(label == np.argmax(np.bincount(label)))
     others = np.flatnonzero(label != label[main[0]])
-    length, nearest = cKDTree(vertices[main]).query(vertices[others])
+    length, nearest = KDTree(vertices[main]).query(vertices[others])
     n = len(vertices)
     exits = sp.csr_matrix(
         (np.maximum(length, MIN_EDGE_LENGTH), (others, main[nearest])), shape=(n, n)
@@ -124,7 +126,7 @@ def attached_edge_graph(
     n = len(vertices)
     if graph.shape != (n, n):
         raise ValueError(f"graph: expected shape ({n}, {n}), got {graph.shape}")
-    masks = []
+    masks: list[np.ndarray] = []
     for name, value in (("attach", attach), ("onto", onto)):
         value = np.asarray(value)
         if value.shape != (n,) or value.dtype != bool:
@@ -143,7 +145,7 @@ def attached_edge_graph(
     keep = ~(attach[coo.col] & ~attach[coo.row])  # no edge into attach from outside
     targets = np.flatnonzero(onto)
     sources = np.flatnonzero(attach)
-    length, nearest = cKDTree(vertices[targets]).query(vertices[sources])
+    length, nearest = KDTree(vertices[targets]).query(vertices[sources])
     rows = np.concatenate([coo.row[keep], sources])
     cols = np.concatenate([coo.col[keep], targets[nearest]])
     data = np.concatenate([coo.data[keep], np.maximum(length, MIN_EDGE_LENGTH)])
@@ -159,7 +161,7 @@ def _min_duplicates(rows, cols, data, n) -> sp.csr_matrix:
     return sp.csr_matrix((data[order][first], (key // n, key % n)), shape=(n, n))
 
 
-def _check_graph(graph) -> sp.csr_matrix:
+def _check_graph(graph: Any) -> sp.csr_matrix:
     if not sp.issparse(graph) or graph.ndim != 2 or graph.shape[0] != graph.shape[1]:
         raise TypeError(
             f"graph: expected a square scipy.sparse matrix (edge_graph), got {type(graph).__name__}"
@@ -178,7 +180,7 @@ def weighted_geodesic_distance(
     """
     graph = _check_graph(graph)
     sources = np.asarray(sources)
-    n = graph.shape[0]
+    n = sparse_shape(graph)[0]
     if sources.ndim != 1 or sources.size == 0:
         raise ValueError(f"sources: expected a non-empty 1-D index array, got {sources.shape}")
     if not np.issubdtype(sources.dtype, np.integer):
@@ -218,7 +220,7 @@ def farthest_point_vertices(
         raise ValueError(f"start: expected a vertex index in [0, {len(vertices)}), got {start}")
     if graph is not None:
         graph = _check_graph(graph)
-        if graph.shape != (len(vertices), len(vertices)):
+        if sparse_shape(graph) != (len(vertices), len(vertices)):
             raise ValueError(
                 f"graph: expected shape ({len(vertices)}, {len(vertices)}), got {graph.shape}"
             )

@@ -45,7 +45,7 @@ from jaxtyping import Array, ArrayLike, DTypeLike, Float, Int, Shaped
 
 from .._cache import cache_dir, mesh_fingerprint
 from .._io import save_npz
-from ._checks import check_mesh
+from ._checks import check_mesh, sparse_shape
 from ._topology import connected_components
 
 OPERATORS_VERSION = 2
@@ -153,7 +153,7 @@ def _block_eigenpairs(block: sp.csr_matrix, k: int) -> tuple[np.ndarray, np.ndar
     ``DENSE_EIGEN_MAX`` with k at least 1/8 of them (there the O(n^3) reduction costs less
     than shift-invert Lanczos); shift-invert Lanczos near a tiny negative shift otherwise (the
     block is singular: constants are in its null space)."""
-    n = block.shape[0]
+    n = sparse_shape(block)[0]
     dense = n <= DENSE_EIGEN_MAX_SMALL or (n <= DENSE_EIGEN_MAX and 8 * k >= n) or k >= n - 1
     if not dense:
         shift = 1e-8 * block.diagonal().sum() / n
@@ -182,6 +182,7 @@ def eigenbasis(
     with zero mass (isolated) are left out and get zero rows. Ties are broken by component
     order (stable sort).
     """
+    mass = np.asarray(mass)
     n = mass.shape[0]
     eigenvectors = np.zeros((n, k))
     if k == 0:
@@ -217,6 +218,7 @@ def vertex_normals(
     vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"]
 ) -> Float[np.ndarray, "V 3"]:
     """(V, 3) unit area-weighted vertex normals; +z where undefined (isolated, degenerate)."""
+    vertices, faces = np.asarray(vertices), np.asarray(faces)
     cross = np.cross(
         vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]]
     )
@@ -233,6 +235,7 @@ def vertex_normals(
 def tangent_frames(normals: Float[ArrayLike, "V 3"]) -> Float[np.ndarray, "V 3 3"]:
     """(V, 3, 3) right-handed frames [x, y, n] (rows): x is world x projected on the
     tangent plane (world y where the normal is within ~25 degrees of x), y = n cross x."""
+    normals = np.asarray(normals)
     candidate = np.tile(np.array([1.0, 0.0, 0.0]), (normals.shape[0], 1))
     near = np.abs(normals[:, 0]) > 0.9
     candidate[near] = (0.0, 1.0, 0.0)
@@ -255,6 +258,7 @@ def gradient_operators(
     min ||E_i g - (f_j - f_i)||^2 + eps ||g||^2, eps = ``regularization`` times the mean
     squared edge length at i (scale-free): g_i = (E_i^T E_i + eps I)^{-1} E_i^T (f_N - f_i).
     """
+    vertices, faces, frames = np.asarray(vertices), np.asarray(faces), np.asarray(frames)
     n = vertices.shape[0]
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     edges = np.concatenate([edges, edges[:, ::-1]])

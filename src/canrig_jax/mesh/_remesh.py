@@ -22,7 +22,7 @@ import dataclasses
 import numpy as np
 import scipy.sparse as sp
 from jaxtyping import ArrayLike, Float, Int
-from scipy.spatial import cKDTree
+from scipy.spatial import KDTree
 
 from ._operators import check_mesh
 from ._topology import connected_components
@@ -94,7 +94,7 @@ class Remeshed:
 
     def nearest_vertices(self, source_points: Float[ArrayLike, "L 3"]) -> Int[np.ndarray, " L"]:
         """(L,) index of the new vertex nearest each source point (e.g. landmark positions)."""
-        return cKDTree(self.vertices).query(np.asarray(source_points, np.float64))[1]
+        return np.asarray(KDTree(self.vertices).query(np.asarray(source_points, np.float64))[1])
 
 
 # --------------------------------------------------------------------------------------------
@@ -156,10 +156,10 @@ def closest_surface_points(
     vertices, faces = check_mesh(vertices, faces)
     n_candidates = min(n_candidates, faces.shape[0])
     centroids = vertices[faces].mean(axis=1)
-    _, near = cKDTree(centroids).query(points, k=n_candidates)
+    _, near = KDTree(centroids).query(points, k=n_candidates)
     near = near.reshape(points.shape[0], -1)
     # Triangles at the nearest vertex (padded with the nearest centroid's triangle).
-    _, nearest_vertex = cKDTree(vertices).query(points)
+    _, nearest_vertex = KDTree(vertices).query(points)
     incidence = sp.csr_matrix(
         (np.ones(faces.size), (faces.ravel(), np.repeat(np.arange(faces.shape[0]), 3))),
         shape=(vertices.shape[0], faces.shape[0]),
@@ -192,6 +192,7 @@ def vertex_surface_map(
     faces: Int[ArrayLike, "F 3"], n_vertices: int, vertex_ids: Int[ArrayLike, " N"]
 ) -> SurfaceMap:
     """Exact map of ``vertex_ids`` of a mesh onto itself (a face at each vertex, one-hot)."""
+    faces, vertex_ids = np.asarray(faces), np.asarray(vertex_ids)
     face_of = np.full(n_vertices, -1, np.int64)
     corner_of = np.zeros(n_vertices, np.int64)
     for j in range(3):
@@ -266,7 +267,7 @@ def decimate(
                 sub_faces.astype(np.int32),
                 target_reduction=1.0 - goal / component.size,
                 agg=aggressiveness,
-            )
+            )[:2]
             out_f = np.asarray(out_f, np.int64)
             out_f = out_f[
                 (out_f[:, 0] != out_f[:, 1])

@@ -44,7 +44,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from jaxtyping import ArrayLike, Float, Float64, Int
 from scipy.interpolate import RBFInterpolator
-from scipy.spatial import cKDTree
+from scipy.spatial import KDTree
 
 from .._checks import check_real
 from ._deformation_gradient import triangle_frames
@@ -143,7 +143,7 @@ def _match_components(source, source_faces, source_labels, target, target_faces,
     of the target component's size is refused (ValueError naming ``target_vertices``)."""
     source_area = _component_areas(source, source_faces, source_labels)
     target_area = _component_areas(target, target_faces, target_labels)
-    trees = {c: cKDTree(source[source_labels == c]) for c in np.unique(source_labels)}
+    trees = {c: KDTree(source[source_labels == c]) for c in np.unique(source_labels)}
     labels = np.array(sorted(trees))
     match = np.zeros(target_labels.max() + 1, np.int64)
     for label in np.unique(target_labels):

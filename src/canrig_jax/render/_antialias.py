@@ -142,7 +142,7 @@ def antialias(
     """
     vertices, faces, _ = _check_inputs(vertices, faces, camera, None)
     check_fragments(fragments, camera)
-    if not hasattr(image, "shape"):
+    if not isinstance(image, jax.Array | np.ndarray):
         image = np.asarray(image, np.float32)
     if image.ndim not in (2, 3) or tuple(image.shape[:2]) != tuple(camera.image_size):
         raise ValueError(

@@ -95,6 +95,7 @@ def edge_functions(
     corners ``tri_uv`` (..., 3, 2), broadcast: (w0, w1, w2, area), w_i opposite corner i,
     area = w0 + w1 + w2 (twice the triangle's signed area); w_i / area are the screen-space
     barycentric coordinates."""
+    tri_uv = jnp.asarray(tri_uv)
     au, av = tri_uv[..., 0, 0], tri_uv[..., 0, 1]
     bu, bv = tri_uv[..., 1, 0], tri_uv[..., 1, 1]
     cu, cv = tri_uv[..., 2, 0], tri_uv[..., 2, 1]

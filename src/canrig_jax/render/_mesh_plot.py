@@ -12,6 +12,7 @@ from jaxtyping import ArrayLike, Float, Int  # noqa: E402
 from matplotlib.axes import Axes  # noqa: E402
 from matplotlib.cm import ScalarMappable  # noqa: E402
 from matplotlib.collections import PolyCollection  # noqa: E402
+from matplotlib.colors import Normalize  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
 
@@ -34,19 +35,23 @@ def plot_vertex_scalar(
         vertices = vertices[:, [2, 1, 0]] * np.array([-1.0, 1.0, 1.0])
     elif view != "front":
         raise ValueError(f"view: expected 'front' or 'side', got {view!r}")
+    faces = np.asarray(faces)
     tri = vertices[faces]
     normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     normal /= np.linalg.norm(normal, axis=1, keepdims=True) + 1e-12
     visible = normal[:, 2] > 0
     order = np.argsort(tri[visible, :, 2].mean(axis=1))
     face_value = np.asarray(values, np.float64)[faces].mean(axis=1)[visible][order]
-    mapper = plt.cm.ScalarMappable(norm=plt.Normalize(vmin, vmax), cmap=cmap)
+    mapper = ScalarMappable(norm=Normalize(vmin, vmax), cmap=cmap)
     shade = (0.35 + 0.65 * normal[visible, 2][order])[:, None]
     colours = mapper.to_rgba(face_value)
     colours[:, :3] *= shade
     ax.add_collection(
         PolyCollection(
-            tri[visible][order][:, :, :2], facecolors=colours, edgecolors=colours, linewidths=0.3
+            list(tri[visible][order][:, :, :2]),
+            facecolors=colours,
+            edgecolors=colours,
+            linewidths=0.3,
         )
     )
     ax.set_xlim(vertices[:, 0].min(), vertices[:, 0].max())

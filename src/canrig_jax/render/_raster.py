@@ -218,16 +218,12 @@ def _rasterise(vertices, faces, camera: Camera, attributes, settings: RasterSett
 
         sil, dep, att = jax.lax.map(one, flat.reshape(n_chunks, chunk, 2))
 
-        def image(x):
-            return (
-                None
-                if x is None
-                else x.reshape(n_chunks * chunk, *x.shape[2:])[:n_pixels].reshape(
-                    height, width, *x.shape[2:]
-                )
-            )
+        def image(x: Array) -> Array:
+            flat = x.reshape(n_chunks * chunk, *x.shape[2:])[:n_pixels]
+            return flat.reshape(height, width, *x.shape[2:])
 
-        return Rendering(image(sil), image(dep), image(att), jnp.asarray(n_faces, jnp.int32))
+        attributes = None if att is None else image(att)
+        return Rendering(image(sil), image(dep), attributes, jnp.asarray(n_faces, jnp.int32))
     t = settings.tile_size
     k = min(settings.faces_per_tile, n_faces)
     ny, nx = -(-height // t), -(-width // t)
@@ -266,14 +262,13 @@ def _rasterise(vertices, faces, camera: Camera, attributes, settings: RasterSett
 
     sil, dep, att = jax.vmap(one_tile)(tile_pixels, index, chosen)
 
-    def image(x):
-        if x is None:
-            return None
+    def image(x: Array) -> Array:
         rest = x.shape[2:]
         x = x.reshape(ny, nx, t, t, *rest).swapaxes(1, 2).reshape(ny * t, nx * t, *rest)
         return x[:height, :width]
 
-    return Rendering(image(sil), image(dep), image(att), max_count)
+    attributes = None if att is None else image(att)
+    return Rendering(image(sil), image(dep), attributes, max_count)
 
 
 _rasterise_jit = eqx.filter_jit(_rasterise)
@@ -353,6 +348,7 @@ def vertex_normals(
 ) -> Float[Array, "V 3"]:
     """Area-weighted unit vertex normals, differentiable (``canrig_jax.mesh.vertex_normals``
     is the NumPy one)."""
+    vertices, faces = jnp.asarray(vertices), jnp.asarray(faces)
     v0, v1, v2 = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
     cross = jnp.cross(v1 - v0, v2 - v0)
     normals = jnp.zeros_like(vertices)
@@ -395,6 +391,7 @@ def lambert_image(
     normals = vertex_normals(vertices, faces)
     rendering = _rasterise_jit(vertices, faces, camera, normals, settings)
     n = rendering.attributes
+    assert n is not None  # rasterised with the normals as attributes
     n = n / jnp.sqrt(jnp.sum(n**2, -1, keepdims=True) + 1e-12)
     diffuse = jnp.maximum(jnp.einsum("hwc,lc->hwl", n, directions), 0.0)
     shade = ambient + diffuse @ jnp.asarray(intensities, jnp.float32)

@@ -236,8 +236,9 @@ def check_weights(rig: BlendshapeRig, weights: Any) -> None:
 
 
 def combination_coefficients(
-    weights: Float[ArrayLike, " K *frames"], indices: Int[ArrayLike, "C n"]
-) -> Float[ArrayLike, " C *frames"]:
+    weights: Float[Array, " K *frames"] | Float[np.ndarray, " K *frames"],
+    indices: Int[Array, "C n"] | Int[np.ndarray, "C n"],
+) -> Float[Array, " C *frames"] | Float[np.ndarray, " C *frames"]:
     """prod_{i in combination} w_i for every row of ``indices`` (NumPy in, NumPy out; JAX in,
     JAX out)."""
     return functools.reduce(operator.mul, [weights[indices[:, j]] for j in range(indices.shape[1])])
@@ -289,9 +290,8 @@ def evaluate_batch(
         isinstance(chunk, bool) or not isinstance(chunk, int | np.integer) or chunk < 1
     ):
         raise ValueError(f"chunk: expected a positive integer or None, got {chunk!r}")
-    traced = isinstance(poses, jax.core.Tracer)
-    if not traced:
-        poses = native(np.asarray(poses))
+    traced = not is_concrete(poses)
+    poses = jnp.asarray(poses) if traced else native(np.asarray(poses))
     check_real("poses", poses)
     if poses.ndim != 2 or poses.shape[1] != rig.n_blendshapes:
         raise ValueError(
@@ -299,7 +299,7 @@ def evaluate_batch(
             f"{rig.n_blendshapes} blendshapes, got {tuple(poses.shape)}"
         )
     if traced:
-        return _evaluate_many(rig, poses)
+        return _evaluate_many(rig, jnp.asarray(poses))
     if not np.all(np.isfinite(poses)):
         bad = np.flatnonzero(~np.all(np.isfinite(poses), axis=1))[:5]
         raise ValueError(f"poses: non-finite weights in rows {bad.tolist()}")

@@ -191,9 +191,11 @@ def load_gltf_rig(path: str | os.PathLike) -> BlendshapeRig:
         raise FileNotFoundError(f"path: glTF file {path} not found")
     document, blob = _read_glb(path)  # checks the container before trimesh reads it
     try:
-        loaded = trimesh.load(path, force="mesh", process=False)
+        loaded = trimesh.load(os.fspath(path), force="mesh", process=False)
     except Exception as error:  # trimesh raises many kinds on a damaged file
         raise CorruptFileError(f"path: corrupt glTF file {path} ({error})") from error
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise CorruptFileError(f"path: glTF file {path} holds no triangle mesh")
     mesh = document["meshes"][0]
     extras = mesh.get("extras", {})
     primitive = mesh["primitives"][0]

@@ -29,7 +29,8 @@ def morph_target_weights(
     weights = np.asarray(weights, np.float64)
     columns = [weights]
     for table in rig.correctives:  # the rig's own product, on (K, T) columns of weights
-        columns.append(combination_coefficients(weights.T, np.asarray(table.indices)).T)
+        product = combination_coefficients(weights.T, np.asarray(table.indices))
+        columns.append(np.asarray(product).T)
     return np.concatenate(columns, axis=1).astype(np.float32)
 
 

@@ -47,6 +47,7 @@ def ict_quartic_rig(
     """
     options = options or SynthesisOptions()
     linear = ict_linear_rig(data_dir, parts)
+    assert linear.faces is not None  # the ICT rig carries its triangles
     mesh_key = mesh_fingerprint(linear.neutral, linear.deltas, linear.faces)
     recipe = f"{mesh_key}{dataclasses.asdict(options)}v{SYNTHESIS_VERSION}"
     key = hashlib.sha256(recipe.encode()).hexdigest()[:16]

@@ -150,6 +150,7 @@ def overlapping_pairs(
     deltas: Float[ArrayLike, "K V 3"], names: Sequence[str], options: SynthesisOptions
 ) -> list[tuple[int, int]]:
     """Pairs of blendshapes whose supports share ``min_overlap`` vertices, minus exclusions."""
+    deltas = np.asarray(deltas)
     support = (np.linalg.norm(deltas, axis=2) > options.support_tol).astype(np.int32)
     shared = support @ support.T
     excluded = {frozenset(pair) for pair in exclusive_pairs(names, options.exclude)}

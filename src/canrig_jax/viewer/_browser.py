@@ -164,7 +164,8 @@ class HeadlessChromium:
     def _dispatch(self, message: dict) -> None:
         method, params = message.get("method"), message.get("params", {})
         if method == "Runtime.consoleAPICalled":
-            level = {"warning": "warning", "assert": "error"}.get(params["type"], params["type"])
+            kind = str(params["type"])
+            level = {"warning": "warning", "assert": "error"}.get(kind, kind)
             text = " ".join(
                 str(a.get("value", a.get("description", a.get("type"))))
                 for a in params.get("args", [])
@@ -195,8 +196,11 @@ class HeadlessChromium:
         message = {"id": ident, "method": method, "params": params or {}}
         if session:
             message["sessionId"] = self._session
+        write = self._command_write
+        if write is None:  # closed
+            raise BrowserError(f"Chromium has exited ({self._tail()})")
         try:
-            os.write(self._command_write, json.dumps(message).encode() + b"\0")
+            os.write(write, json.dumps(message).encode() + b"\0")
         except OSError as error:
             raise BrowserError(f"{method}: cannot talk to Chromium ({error})") from None
         deadline = time.monotonic() + self.timeout

@@ -1,12 +1,12 @@
 """Per-vertex colours for the viewer's ``COLOR_0`` channel (error maps)."""
 
 import numpy as np
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float
 
 from .._checks import check_finite, check_real
 
 
-def error_colors(error: Float[np.ndarray, " V"], vmax: float) -> Float[np.ndarray, "V 3"]:
+def error_colors(error: Float[ArrayLike, " V"], vmax: float) -> Float[np.ndarray, "V 3"]:
     """(V, 3) linear RGB in [0, 1] of (V,) non-negative errors: white at 0, pure red at
     ``vmax`` and above (write with ``rig.export_animated_gltf(..., vertex_colors=)``)."""
     error = np.asarray(error)

@@ -14,7 +14,7 @@ import os
 from pathlib import Path
 
 import numpy as np
-from jaxtyping import Bool, Float, Int
+from jaxtyping import ArrayLike, Bool, Float, Int
 
 from .._checks import check_finite, check_real
 from ..rig import BlendshapeRig, export_animated_gltf
@@ -42,15 +42,15 @@ class ErrorGlb:
 
 def export_error_glb(
     path: str | os.PathLike,
-    meshes: Float[np.ndarray, "T V 3"],
-    faces: Int[np.ndarray, "F 3"],
-    error_mm: Float[np.ndarray, "T V"],
+    meshes: Float[ArrayLike, "T V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    error_mm: Float[ArrayLike, "T V"],
     *,
     vmax_mm: float | None = None,
-    region: Bool[np.ndarray, " V"] | None = None,
-    times: Float[np.ndarray, " T"] | None = None,
+    region: Bool[ArrayLike, " V"] | None = None,
+    times: Float[ArrayLike, " T"] | None = None,
     fps: float = 30.0,
-    neutral: Float[np.ndarray, "V 3"] | None = None,
+    neutral: Float[ArrayLike, "V 3"] | None = None,
     units: str = "cm",
 ) -> ErrorGlb:
     """Write ``meshes`` as an animated glb coloured by ``error_mm`` (atomically).

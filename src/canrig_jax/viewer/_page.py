@@ -30,8 +30,8 @@ class ViewerPage:
 
     def set_morph(self, name: str, value: float | None) -> None:
         """Hold morph target ``name`` at ``value`` over the animation (None: let go)."""
-        value = "null" if value is None else repr(float(value))
-        self.browser.evaluate(f"window.canrig.setMorph({json.dumps(name)}, {value})")
+        shown = "null" if value is None else repr(float(value))
+        self.browser.evaluate(f"window.canrig.setMorph({json.dumps(name)}, {shown})")
 
     def set_wireframe(self, on: bool) -> None:
         self.browser.evaluate(f"window.canrig.setWireframe({json.dumps(bool(on))})")

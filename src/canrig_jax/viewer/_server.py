@@ -72,7 +72,7 @@ class _Handler(http.server.BaseHTTPRequestHandler):
 class _Server(http.server.ThreadingHTTPServer):
     daemon_threads = True
     summary: GlbSummary
-    log = None
+    log: Callable[[str], None] | None = None
 
 
 class ViewerServer:
@@ -104,7 +104,8 @@ class ViewerServer:
 
     @property
     def address(self) -> tuple[str, int]:
-        return self._server.server_address[:2]
+        host, port = self._server.server_address[:2]
+        return str(host), int(port)
 
     @property
     def url(self) -> str:

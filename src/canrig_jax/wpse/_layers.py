@@ -91,9 +91,9 @@ def fit_layered(
     if layer_sigma is None:
         widths = [sigma] * n_layers
     elif np.ndim(layer_sigma) == 0:
-        widths = [sigma] + [float(layer_sigma)] * (n_layers - 1)
+        widths = [sigma] + [float(np.asarray(layer_sigma))] * (n_layers - 1)
     else:
-        widths = [sigma, *[float(s) for s in layer_sigma]]
+        widths = [sigma, *[float(s) for s in np.asarray(layer_sigma)]]
         if len(widths) < n_layers:
             raise ValueError(
                 f"layer_sigma: expected at least {n_layers - 1} widths, got {len(widths) - 1}"

@@ -45,6 +45,7 @@ def retained_fraction(
 ) -> float:
     """Projection of the probe correction on the reference one over a vertex region,
     sum <c_probe, c_ref> / sum ||c_ref||^2 (1: kept entirely, 0: lost)."""
+    region = np.asarray(region)
     reference = np.asarray(reference, np.float64)[region]
     probe = np.asarray(probe, np.float64)[region]
     energy = float(np.sum(reference**2))

@@ -27,6 +27,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Float32, Int
 
 from .._checks import check_finite as _check_finite
+from .._checks import is_concrete
 from .._linalg import cho_solve, cholesky
 from ..rig import BlendshapeRig, evaluate
 from ._frames import LocalFrames, frame_matrices, local_frames, local_to_world, to_local
@@ -76,7 +77,7 @@ class PoseSpaceEdit(eqx.Module):
 def check_sigma(sigma: Any) -> None:
     if np.ndim(sigma) != 0:
         raise ValueError(f"sigma: expected a scalar, got shape {np.shape(sigma)}")
-    if not isinstance(sigma, jax.core.Tracer):
+    if is_concrete(sigma):
         value = float(sigma)
         if not np.isfinite(value) or value <= 0:
             raise ValueError(f"sigma: expected a finite value > 0, got {value}")
@@ -356,6 +357,8 @@ def correction(
     )
     if model.frames is None:
         return offsets
+    if posed is None:
+        raise ValueError("posed: the model stores local frames; pass the base rig's mesh")
     return local_to_world(model.frames, posed, offsets)
 
 

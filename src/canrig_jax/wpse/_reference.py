@@ -43,7 +43,7 @@ def reference_frames(
     list: area-weighted normal of the triangles around each vertex, tangent towards
     ``neighbour`` projected onto the tangent plane."""
     posed = np.asarray(posed, np.float64)
-    faces = np.asarray(faces)
+    faces, vertices, neighbour = np.asarray(faces), np.asarray(vertices), np.asarray(neighbour)
     out = np.empty((len(vertices), 3, 3))
     for s, v in enumerate(np.asarray(vertices)):
         tri = posed[faces[np.any(faces == v, axis=1)]]
@@ -65,7 +65,7 @@ def reference_vertex_frames(
     """(S, 3, 3) frames like ``reference_frames``, vectorised: every triangle's normal
     accumulated onto its three vertices over the whole mesh (np.add.at), in float64."""
     posed = np.asarray(posed, np.float64)
-    faces = np.asarray(faces)
+    faces, vertices, neighbour = np.asarray(faces), np.asarray(vertices), np.asarray(neighbour)
     p0, p1, p2 = (posed[faces[:, j]] for j in range(3))
     face_normal = np.cross(p1 - p0, p2 - p0)
     vertex_normal = np.zeros_like(posed)
@@ -162,6 +162,7 @@ def time_runtime(
     """
     if passes < 1:
         raise ValueError(f"passes: expected >= 1, got {passes}")
+    weights, posed = np.asarray(weights), np.asarray(posed)
     run = jax.jit(apply)
     jax.block_until_ready(run(model, weights[0], posed[0]))
     reference = NumpyEditEvaluator(model)
