@@ -10,7 +10,7 @@ ict-quartic correctives exist on the face part only) at the Live Link capture's 
 second half and 100 random sparse poses of another seed (``canrig.held_out_poses``). The
 trained rows read OUT/models/NAME/checkpoint.eqx (a missing one is skipped). Writes
 results.json, table.md, COMMAND, patch_layout.png, pbs_error.png (and whole_head_edit.png,
-table6_error.png with trained models). The protocols are ``canrig_jax.canrig._pbs_protocols``.
+table6_error.png with trained models). The protocols are ``canrig_jax.pbs._whole_head_protocols``.
 """
 
 from __future__ import annotations
@@ -37,7 +37,8 @@ from canrig_jax.canrig import (  # noqa: E402
     influence_mask,
     weighted_geodesic_distance,
 )
-from canrig_jax.canrig._pbs_protocols import (  # noqa: E402
+from canrig_jax.pbs import PBS_VARIANTS, PBSTrainOptions, load_pbs_model, pbs_shape  # noqa: E402
+from canrig_jax.pbs._whole_head_protocols import (  # noqa: E402
     EVAL_FALLOFF_PER_CM,
     EVAL_RADIUS_CM,
     FIGURE8_TAG,
@@ -60,7 +61,6 @@ from canrig_jax.canrig._pbs_protocols import (  # noqa: E402
     whole_head,
     whole_head_options_from_args,
 )
-from canrig_jax.pbs import PBS_VARIANTS, PBSTrainOptions, load_pbs_model, pbs_shape  # noqa: E402
 from canrig_jax.render import plot_vertex_scalar, save_figure  # noqa: E402
 from canrig_jax.watchdog import run_watched  # noqa: E402
 

@@ -190,8 +190,8 @@ def wpse_take(args) -> dict:
 
 def canrig_workflows_take(args) -> dict:
     """Dialogue replacement (direct) with the committed CANRig checkpoint."""
-    # the workflow experiment's own settings (a sibling script)
-    from canrig_workflows import (
+    # the workflow experiment's own settings
+    from canrig_jax.pbs._workflow_protocols import (
         DIALOGUE_HANDLES,
         DIALOGUE_RADIUS_CM,
         FALLOFF_PER_CM,

@@ -70,7 +70,9 @@ def test_pbs_graph_option_refuses_another_attachment(tmp_path):
 @pytest.mark.slow
 def test_pbs_quick_attached_graph_end_to_end(tmp_path):
     argv = ["--quick", "--no-progress", "--out", str(tmp_path), "--graph", "attached"]
-    _run("canrig_pbs", [*argv, "--train", "per_patch", "--steps", "20", "--decay-steps", "20"])
+    _run(
+        "canrig_pbs_train", [*argv, "--model", "per_patch", "--steps", "20", "--decay-steps", "20"]
+    )
     meta = json.loads((tmp_path / "models" / "per_patch" / "train.json").read_text())
     assert meta["graph"] == "attached" and meta["attach_onto"] == ["Face"]
     _run("canrig_pbs", argv)
@@ -84,7 +86,7 @@ def test_pbs_quick_attached_graph_end_to_end(tmp_path):
     # the handle sweep: no network goes below the reach floor, more handles never raise it,
     # the exact zero outside the region holds for every count; re-running replaces the section
     for _ in range(2):
-        _run("canrig_pbs", [*argv, "--table6-sweep", "2", "8"])
+        _run("canrig_pbs_table6_sweep", [*argv, "--counts", "2", "8"])
     sweep = json.loads((tmp_path / "results.json").read_text())["table6_handle_sweep"]
     rows = sweep["mouth_difference_mm"]
     assert rows["2"]["reach_floor_mm"] >= rows["8"]["reach_floor_mm"]

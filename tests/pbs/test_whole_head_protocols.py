@@ -1,4 +1,5 @@
-"""The evaluation protocols of patch blendshapes on the whole ICT head (``_pbs_protocols``) on
+"""The evaluation protocols of patch blendshapes on the whole ICT head
+(``pbs._whole_head_protocols``) on
 a small setup of the real head (40 patches, a few poses): the options' command line, exact
 representation of basis shapes, Table 5's rows against their limits (no motion, an infinite
 ridge), the handles' reach and the mouth handles' isolation, Table 6's floor, and the
@@ -14,7 +15,10 @@ import numpy as np
 import pytest
 
 from canrig_jax.canrig import CLAMP, influence_mask, influence_reach, parameter_count
-from canrig_jax.canrig._pbs_protocols import (
+from canrig_jax.data import load_ict
+from canrig_jax.mesh import edge_graph
+from canrig_jax.pbs import PBSTrainOptions, patch_layout, pbs_basis, seed_distances, train_pbs
+from canrig_jax.pbs._whole_head_protocols import (
     DIALOGUE_REACH_CM,
     EVAL_FALLOFF_PER_CM,
     EVAL_RADIUS_CM,
@@ -46,9 +50,6 @@ from canrig_jax.canrig._pbs_protocols import (
     whole_head,
     whole_head_options_from_args,
 )
-from canrig_jax.data import load_ict
-from canrig_jax.mesh import edge_graph
-from canrig_jax.pbs import PBSTrainOptions, patch_layout, pbs_basis, seed_distances, train_pbs
 from canrig_jax.rig import evaluate_batch, ict_linear_rig, random_sparse_poses
 
 RESULTS = Path(__file__).resolve().parents[2] / "experiments" / "results"

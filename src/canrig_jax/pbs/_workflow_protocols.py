@@ -19,18 +19,19 @@ import numpy as np
 from jaxtyping import Float, Int
 
 from .._metrics import CM_TO_MM
-from ..data import load_livelinkface
-from ..mesh import farthest_point_vertices
-from ..pbs._basis import global_blendshape_dialogue, patch_layout, pbs_basis
-from ..pbs._local_fit import local_fit_rig
-from ..rig import BlendshapeRig, ict_quartic_rig, random_sparse_poses
-from ._data import EVAL_FALLOFF_PER_CM, RADII_CM, evaluate_poses, held_out_poses, split_capture
-from ._handle_rig import FitOptions, Handles
-from ._layout import influence_reach
-from ._masks import influence_mask
-from ._rig import NeuralRig
-from ._train import load_model
-from ._workflows import (
+from ..canrig._data import (
+    EVAL_FALLOFF_PER_CM,
+    RADII_CM,
+    evaluate_poses,
+    held_out_poses,
+    split_capture,
+)
+from ..canrig._handle_rig import FitOptions, Handles
+from ..canrig._layout import influence_reach
+from ..canrig._masks import influence_mask
+from ..canrig._rig import NeuralRig
+from ..canrig._train import load_model
+from ..canrig._workflows import (
     ClipEdit,
     clip_edit,
     dialogue_replacement,
@@ -40,6 +41,11 @@ from ._workflows import (
     max_acceleration,
     pose_a_to_b,
 )
+from ..data import load_livelinkface
+from ..mesh import farthest_point_vertices
+from ..rig import BlendshapeRig, ict_quartic_rig, random_sparse_poses
+from ._basis import global_blendshape_dialogue, patch_layout, pbs_basis
+from ._local_fit import local_fit_rig
 
 FALLOFF_PER_CM = EVAL_FALLOFF_PER_CM
 """Falloff of every workflow's masks (per cm), as CANRig's evaluation."""

@@ -24,9 +24,15 @@ from jaxtyping import Bool, Float, Int
 from .._cli import add_dataclass_options, from_args
 from .._metrics import CM_TO_MM
 from ..autorig import head_rig
+from ..canrig._data import held_out_poses, split_capture
+from ..canrig._layout import influence_reach
+from ..canrig._masks import CLAMP, influence_mask
+from ..canrig._model import parameter_count
+from ..canrig._workflows import expression_region
 from ..data import ICTFaceModel, load_ict, load_livelinkface
 from ..mesh import attached_edge_graph, bridged_edge_graph, edge_graph, farthest_point_vertices
-from ..pbs._basis import (
+from ..rig import BlendshapeRig, evaluate_batch, ict_quartic_rig, random_sparse_poses
+from ._basis import (
     PatchLayout,
     fit_pbs,
     global_blendshape_dialogue,
@@ -36,20 +42,14 @@ from ..pbs._basis import (
     pbs_basis,
     pbs_shape,
 )
-from ..pbs._protocols import check_pbs_training_matches, reach_floor
-from ..pbs._train import (
+from ._protocols import check_pbs_training_matches, reach_floor
+from ._train import (
     PBSTrainingSet,
     build_pbs_training_set,
     load_pbs_model,
     pbs_reconstruct,
     seed_distances,
 )
-from ..rig import BlendshapeRig, evaluate_batch, ict_quartic_rig, random_sparse_poses
-from ._data import held_out_poses, split_capture
-from ._layout import influence_reach
-from ._masks import CLAMP, influence_mask
-from ._model import parameter_count
-from ._workflows import expression_region
 
 SKIN = ("Face", "Head and Neck")
 """The ICT parts Table 5's handles (and the training handles) are drawn from."""

@@ -20,7 +20,8 @@ from canrig_jax.canrig import (
     influence_mask,
     pose_a_to_b,
 )
-from canrig_jax.canrig._workflow_protocols import (
+from canrig_jax.pbs import local_fit_rig, patch_layout, pbs_basis
+from canrig_jax.pbs._workflow_protocols import (
     DIALOGUE_HANDLES,
     DIALOGUE_RADIUS_CM,
     FALLOFF_PER_CM,
@@ -42,7 +43,6 @@ from canrig_jax.canrig._workflow_protocols import (
     workflow_data,
     workflows_markdown,
 )
-from canrig_jax.pbs import local_fit_rig, patch_layout, pbs_basis
 from canrig_jax.rig import evaluate_batch, random_sparse_poses
 
 RESULTS = Path(__file__).resolve().parents[2] / "experiments" / "results"
