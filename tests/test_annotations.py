@@ -60,10 +60,6 @@ ALLOWED: frozenset[str] = frozenset(
         "autorig/_recipes.py",
         "autorig/_report.py",
         "autorig/_supervision_2d_protocols.py",
-        "pbs/_whole_head_protocols.py",
-        "pbs/_workflow_protocols.py",
-        "wpse/_probes.py",
-        "wpse/_protocols.py",
     }
 )
 

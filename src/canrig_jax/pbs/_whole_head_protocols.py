@@ -19,7 +19,9 @@ from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Bool, Float, Int
+import scipy.sparse as sp
+from jax import Array
+from jaxtyping import ArrayLike, Bool, Float, Float32, Int
 
 from .._cli import add_dataclass_options, from_args
 from .._metrics import CM_TO_MM
@@ -42,6 +44,7 @@ from ._basis import (
     pbs_basis,
     pbs_shape,
 )
+from ._model import AbstractCANRigPBS, ShapeTransformer
 from ._protocols import check_pbs_training_matches, reach_floor
 from ._train import (
     PBSTrainingSet,
@@ -178,26 +181,26 @@ class WholeHead:
     options: WholeHeadOptions
     model: ICTFaceModel
     rig: BlendshapeRig
-    neutral: np.ndarray
-    faces: np.ndarray
-    active: np.ndarray
-    parts: list
+    neutral: Float32[np.ndarray, "N 3"]
+    faces: Int[np.ndarray, "F 3"]
+    active: Bool[np.ndarray, " N"]
+    parts: list[str]
     layout: PatchLayout
     layout_seconds: float
-    capture: np.ndarray
-    capture_train: np.ndarray
-    train: np.ndarray
-    test: np.ndarray
-    train_shapes: np.ndarray
-    test_shapes: np.ndarray
-    basis: np.ndarray
-    picked: np.ndarray
-    skin: np.ndarray
-    handle_region: np.ndarray
-    graph: object
+    capture: Float32[np.ndarray, "C K"]
+    capture_train: Float32[np.ndarray, "C_train K"]
+    train: Float32[np.ndarray, "T K"]
+    test: Float32[np.ndarray, "S K"]
+    train_shapes: Float32[np.ndarray, "T N 3"]
+    test_shapes: Float32[np.ndarray, "S N 3"]
+    basis: Float32[np.ndarray, "Bm1 N 3"]
+    picked: Int[np.ndarray, " Bm1"]
+    skin: Bool[np.ndarray, " N"]
+    handle_region: Bool[np.ndarray, " N"]
+    graph: sp.csr_matrix
 
 
-def mask_graph(options: WholeHeadOptions, model: ICTFaceModel):
+def mask_graph(options: WholeHeadOptions, model: ICTFaceModel) -> sp.csr_matrix:
     """The masks' edge graph (``options.graph``) of the ICT head."""
     neutral, faces = np.asarray(model.neutral, np.float32), np.asarray(model.faces)
     if options.graph == "mesh":
@@ -275,7 +278,7 @@ def whole_head(
     )
 
 
-def pbs_training_set(head: WholeHead) -> tuple[PBSTrainingSet, np.ndarray]:
+def pbs_training_set(head: WholeHead) -> tuple[PBSTrainingSet, Float[np.ndarray, "P N"]]:
     """The training set of the head (``build_pbs_training_set``: up to ``POOL_SIZE`` random
     candidate handles in the handle region, seed [0, 3]) and the (P, N) seed distances along
     the masks' graph (cm)."""
@@ -305,7 +308,9 @@ def check_model_matches(options: WholeHeadOptions, folder: str | Path) -> None:
 # --------------------------------------------------------------------------- Table 5
 
 
-def pbs_representation(head: WholeHead) -> tuple[dict, np.ndarray, np.ndarray]:
+def pbs_representation(
+    head: WholeHead,
+) -> tuple[dict, Float[np.ndarray, "S N"], Float[np.ndarray, "S P B"]]:
     """How well PBS represents the held-out shapes (per-patch least squares, ``fit_pbs``):
     the summary (the layout's patch sizes, mean / p95 / face / max error in mm), the (T, N)
     per-vertex errors (mm) and the fitted weights (T, P, B - 1)."""
@@ -428,7 +433,14 @@ def handle_reach(head: WholeHead, handle_distance: Float[np.ndarray, "P H"]) -> 
     return out
 
 
-def table5_reconstruct(net, data, handles, handle_distance, targets, queries=None):
+def table5_reconstruct(
+    net: AbstractCANRigPBS | ShapeTransformer,
+    data: PBSTrainingSet,
+    handles: Int[ArrayLike, " H"],
+    handle_distance: Float[ArrayLike, "P H"],
+    targets: Float[ArrayLike, "F N 3"],
+    queries: Float[Array, "..."] | None = None,
+) -> Float[Array, "F N 3"]:
     """Table 5's reconstruction: base the neutral, the handles moved to each target, masks of
     radius ``EVAL_RADIUS_CM`` and falloff ``EVAL_FALLOFF_PER_CM`` (``pbs_reconstruct``)."""
     return pbs_reconstruct(
@@ -450,7 +462,7 @@ def table5_trained_row(
     checkpoint: str | Path,
     handles: Int[np.ndarray, " H"],
     handle_distance: Float[np.ndarray, "P H"],
-):
+) -> tuple[AbstractCANRigPBS | ShapeTransformer, dict]:
     """The trained model of ``checkpoint`` (checked to match the head's options) and its
     Table 5 row on the held-out shapes: errors by region, training minutes and steps,
     parameters (and its trained ridge when it has the local prior)."""
@@ -465,8 +477,9 @@ def table5_trained_row(
         steps=int(state["step"]),
         parameters=parameter_count(net),
     )
-    if getattr(net, "local_prior", False):
-        row["local_prior_ridge"] = float(jnp.exp(net.log_ridge))
+    log_ridge = net.log_ridge if isinstance(net, AbstractCANRigPBS) else None
+    if log_ridge is not None:  # a local_prior model
+        row["local_prior_ridge"] = float(jnp.exp(log_ridge))
     return net, row
 
 
@@ -503,11 +516,11 @@ class DialogueClips:
     (N,), the mouth patches (P,: seeded in the mask) and the evaluated mouth region (N,:
     every vertex a mouth patch covers)."""
 
-    source: np.ndarray
-    target: np.ndarray
-    mouth: np.ndarray
-    mouth_patch: np.ndarray
-    region: np.ndarray
+    source: Float32[np.ndarray, "F N 3"]
+    target: Float32[np.ndarray, "F N 3"]
+    mouth: Bool[np.ndarray, " N"]
+    mouth_patch: Bool[np.ndarray, " P"]
+    region: Bool[np.ndarray, " N"]
 
 
 def dialogue_clips(head: WholeHead, n_frames: int) -> DialogueClips:

@@ -12,11 +12,11 @@ in cm (the rig's units), errors in mm.
 import dataclasses
 import json
 import warnings
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
-from jaxtyping import Float, Int
+from jaxtyping import ArrayLike, Bool, Float, Float32, Int
 
 from .._metrics import CM_TO_MM
 from ..canrig._data import (
@@ -91,9 +91,9 @@ class WorkflowData:
     half and 100 random sparse poses (``held_out_poses``, as ``canrig_eval.py``)."""
 
     quartic: BlendshapeRig
-    capture: np.ndarray
-    capture_test: np.ndarray
-    shapes: np.ndarray
+    capture: Float32[np.ndarray, "F K"]
+    capture_test: Float32[np.ndarray, "F_test K"]
+    shapes: Float32[np.ndarray, "S V 3"]
 
 
 def workflow_data(data_dir: str | Path | None = None) -> WorkflowData:
@@ -122,7 +122,9 @@ def network_rig(checkpoint: str | Path, quartic: BlendshapeRig) -> tuple[NeuralR
     }
 
 
-def local_fit_training_shapes(quartic: BlendshapeRig, capture: np.ndarray) -> np.ndarray:
+def local_fit_training_shapes(
+    quartic: BlendshapeRig, capture: Float[np.ndarray, "F K"]
+) -> Float32[np.ndarray, "T V 3"]:
     """(T, V, 3) the network's training shapes (``build_training_set``'s poses, seed 0): the
     capture's first half and 800 random sparse poses; never a held-out pose."""
     capture_train, _ = split_capture(capture)
@@ -146,7 +148,7 @@ def random_pairs(n_poses: int, n_pairs: int, rng: np.random.Generator) -> Int[np
 
 def select_local_fit(
     quartic: BlendshapeRig,
-    capture: np.ndarray,
+    capture: Float[np.ndarray, "F K"],
     *,
     seed: int = 0,
     n_pairs: int = 30,
@@ -185,6 +187,7 @@ def select_local_fit(
                 progress(f"  selection on training pairs: {row}")
                 if best is None or row["mm"] < best[0]["mm"]:
                     best = (row, rig)
+    assert best is not None  # LOCAL_FIT_GRID has at least one configuration
     chosen, rig = best
     protocol = {
         "rig": LOCAL_FIT_DESCRIPTION,
@@ -195,7 +198,7 @@ def select_local_fit(
 
 
 def local_fit_from_selection(
-    quartic: BlendshapeRig, capture: np.ndarray, selected: Mapping
+    quartic: BlendshapeRig, capture: Float[np.ndarray, "F K"], selected: Mapping
 ) -> NeuralRig:
     """The ``LocalFitRig`` that ``select_local_fit`` chose (``selected``: its protocol entry's
     ``"selected"``, with ``patches``, ``basis`` and ``ridge``), rebuilt without the search."""
@@ -229,7 +232,7 @@ def results_of_the_same_pairs(path: str | Path, pairs: int, seed: int, flag: str
 
 def table4_protocol(
     n_shapes: int, n_vertices: int, n_pairs: int, seed: int
-) -> tuple[np.ndarray, dict[int, list[np.ndarray]], np.random.Generator]:
+) -> tuple[Int[np.ndarray, "n 2"], dict[int, list[Int[np.ndarray, " _"]]], np.random.Generator]:
     """Table 4's random protocol: (n_pairs, 2) (A, B) pairs of shape indices, per handle
     count of ``HANDLE_COUNTS`` one random set of distinct vertices per pair, and the handle
     generator in the state the rest of the experiment continues from (the layers draw
@@ -280,7 +283,12 @@ def unreached_floor(
     return table
 
 
-def a_to_b_cell(direct, fitted, fitted_vertices, own_direct) -> dict:
+def a_to_b_cell(
+    direct: Sequence[float] | Float[ArrayLike, " n"],
+    fitted: Sequence[float] | Float[ArrayLike, " m"],
+    fitted_vertices: Sequence[Float[ArrayLike, " V"]],
+    own_direct: Sequence[float] | Float[ArrayLike, " m"],
+) -> dict:
     """One Table 4 cell from per-pair mean errors (mm; the first pairs fitted too), the
     fitted pairs' per-vertex errors (each (V,), mm) and each fit's own direct error
     (``FitSolution``'s ``direct_error``, its start evaluated inside the fit's compiled
@@ -377,7 +385,7 @@ def layers_protocol(
     pairs: Int[np.ndarray, "n 2"],
     handle_rng: np.random.Generator,
     options: FitOptions,
-) -> tuple[dict, dict[str, np.ndarray]]:
+) -> tuple[dict, dict[str, Float[np.ndarray, "n L"]]]:
     """Figure 15: per pair, ``iterative_layers`` from A towards B over ``LAYER_SCHEDULE``
     (new random handles per layer from ``handle_rng``), direct and fitted. Returns the
     summary (each kind's mean error after each layer, mm; whether the fitted errors never
@@ -411,10 +419,10 @@ class ClipEditRun:
     """``clip_edit_protocol``'s clip (F, V, 3), its edit, the edited frame and the target
     shape at that frame (V, 3), all in cm."""
 
-    clip: np.ndarray
+    clip: Float32[np.ndarray, "F V 3"]
     edited: ClipEdit
     frame: int
-    target: np.ndarray
+    target: Float32[np.ndarray, "V 3"]
 
 
 def _clip_handles(quartic, clip, target, frame, mouth) -> np.ndarray:
@@ -431,7 +439,10 @@ def _clip_handles(quartic, clip, target, frame, mouth) -> np.ndarray:
 
 
 def clip_edit_protocol(
-    rig: NeuralRig, quartic: BlendshapeRig, clip_weights: np.ndarray, options: FitOptions
+    rig: NeuralRig,
+    quartic: BlendshapeRig,
+    clip_weights: Float[np.ndarray, "F K"],
+    options: FitOptions,
 ) -> tuple[dict, ClipEditRun]:
     """Figure 10: the clip of ``clip_weights`` (F, K) with the jaw opened 0.3 wider at its
     middle frame: handles on the mouth and chin fitted (inside the mouth mask) to that
@@ -498,13 +509,15 @@ class DialogueRun:
     """``dialogue_table``'s source and target clips (F, V, 3), the mouth handles, and each
     CANRig output ("direct", "fitted": (F, V, 3)), all in cm."""
 
-    source: np.ndarray
-    target: np.ndarray
+    source: Float32[np.ndarray, "F V 3"]
+    target: Float32[np.ndarray, "F V 3"]
     handles: Handles
-    outputs: dict
+    outputs: dict[str, Float32[np.ndarray, "F V 3"]]
 
 
-def dialogue_handle_vertices(rig: NeuralRig, mouth: np.ndarray) -> np.ndarray:
+def dialogue_handle_vertices(
+    rig: NeuralRig, mouth: Bool[np.ndarray, " V"]
+) -> Int[np.ndarray, " H"]:
     """(``DIALOGUE_HANDLES``,) farthest points among the mouth vertices farther than the
     masks' reach from the mouth mask's border (``interior_vertices``), so no handle's mask
     leaves the mouth."""
@@ -550,8 +563,8 @@ GBS_PROTOCOL = (
 def dialogue_table(
     rig: NeuralRig,
     quartic: BlendshapeRig,
-    capture: np.ndarray,
-    mouth: np.ndarray,
+    capture: Float[np.ndarray, "F K"],
+    mouth: Bool[np.ndarray, " V"],
     options: FitOptions,
     n_frames: int,
     seed: int,

@@ -8,7 +8,8 @@ Meshes are in the rig's units (ICT: centimetres); sizes are reported in millimet
 (e.g. ``mesh.DeformationGradientBlend``).
 """
 
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import jax
 import numpy as np
@@ -19,7 +20,7 @@ from ..rig import BlendshapeRig, evaluate_batch
 from ._layers import apply_layered, fit_layered
 from ._metric import blendshape_metric
 from ._protocol import retained_fraction
-from ._protocols import Channels, channel_region
+from ._protocols import Channels, Sculpt, channel_region
 from ._pse import PoseSpaceEdit, apply, fit_pose_space_edit
 from ._search import search_edits
 
@@ -32,7 +33,7 @@ def locality_probe(
     poses: Float[ArrayLike, "T K"],
     edit_frames: Int[ArrayLike, " P"],
     linear: Float[ArrayLike, "T V 3"],
-    sculpt: Callable[[np.ndarray], np.ndarray],
+    sculpt: Sculpt,
     rng: np.random.Generator,
     *,
     eye_channels: Channels,
@@ -84,11 +85,11 @@ def overshoot_sweep(
     rig: BlendshapeRig,
     fsm: BlendshapeRig,
     models: Mapping[str, PoseSpaceEdit],
-    sculpt: Callable[[np.ndarray], np.ndarray],
+    sculpt: Sculpt,
     *,
     sigma: float,
     t: Float[ArrayLike, " N"] | None = None,
-) -> tuple[dict, dict[str, np.ndarray]]:
+) -> tuple[dict, dict[str, Float[np.ndarray, " N"]]]:
     """Figure 9: the pair of channels with the largest fix shape of ``fsm`` swept together
     along ``t`` (both weights t, the others 0); the largest vertex correction (mm) of the
     wanted mesh (``desired``), the FSM, a WPSE model of the one edit at t = 1
@@ -103,6 +104,8 @@ def overshoot_sweep(
     if t.ndim != 1 or not all(np.any(t == x) for x in shown):
         raise ValueError(f"t: expected a 1-D sweep containing {shown}")
     table = fsm.corrective(2)
+    if table is None:
+        raise ValueError("fsm: expected a rig with fix shapes of channel pairs, got none")
     largest = int(np.argmax(np.linalg.norm(np.asarray(table.deltas), axis=2).max(axis=1)))
     pair = np.asarray(table.indices[largest])
     sweep = np.zeros((t.size, rig.n_blendshapes), np.float32)
@@ -131,7 +134,7 @@ def overshoot_sweep(
 def layering_probe(
     rig: BlendshapeRig,
     pose: Float[ArrayLike, " K"],
-    sculpt: Callable[[np.ndarray], np.ndarray],
+    sculpt: Sculpt,
     *,
     sigma: float,
     step: float = 0.05,
@@ -172,7 +175,7 @@ def layering_probe(
             jax.vmap(apply_layered, (None, 0, 0)),
         ),
     }
-    out = {"pose_distance": float(np.linalg.norm(b - a)), "sigma": sigma}
+    out: dict[str, Any] = {"pose_distance": float(np.linalg.norm(b - a)), "sigma": sigma}
     out["layer_sigma"] = layer_sigma
     for name, (model, run) in models.items():
         err = per_vertex_distance(np.asarray(run(model, two, base)), base + edits) * CM_TO_MM

@@ -50,6 +50,10 @@ SWEEP_FACTORS = np.geomspace(0.25, 2.0, 7)
 Channels = Sequence[int] | Int[ArrayLike, " C"]
 """Blendshape indices: a list of ints or an integer array."""
 
+Sculpt = Callable[[Float[np.ndarray, "*B K"]], Float[np.ndarray, "*B V 3"]]
+"""The mesh the artist wants: NumPy weights (..., K) -> NumPy meshes (..., V, 3) in rig
+units (e.g. ``mesh.DeformationGradientBlend``)."""
+
 _apply_frames = jax.jit(jax.vmap(apply, (None, 0, 0)))
 
 
@@ -94,7 +98,7 @@ class MethodComparison:
     """
 
     errors: dict[str, dict[str, dict[str, float]]]
-    maps: dict[str, np.ndarray]
+    maps: dict[str, Float[np.ndarray, "H V"]]
     sigma: dict[str, dict]
     sweep: dict[str, list[tuple[float, float]]]
     rest_correction: dict[str, float]
@@ -126,7 +130,7 @@ def compare_methods(
     held_out: Int[ArrayLike, " H"],
     *,
     budgets: Sequence[int],
-    sculpt: Callable[[np.ndarray], np.ndarray],
+    sculpt: Sculpt,
     others: Mapping[str, Float[ArrayLike, "H V 3"]] | None = None,
     support_tol: float = 0.0,
 ) -> MethodComparison:
@@ -282,7 +286,7 @@ def temporal_smoothness(
     *,
     sigma: float,
     support_tol: float = 0.0,
-) -> tuple[dict, dict[str, np.ndarray]]:
+) -> tuple[dict, dict[str, Float[np.ndarray, " _"]]]:
     """One edit at the worst frame of ``take`` not among ``edit_frames``, applied over the
     whole take (Seol et al.'s Figure 6: an edit should change smoothly over time).
 
@@ -325,7 +329,8 @@ def temporal_smoothness(
         "max_correction_mm": float(size.max()),
         "frames": int(take.size),
     }
-    return summary, {"size": size, "step": change["step"], "take_step": motion["step"]}
+    curves = {"size": size, "step": change["step"], "take_step": motion["step"]}
+    return summary, {k: np.asarray(v) for k, v in curves.items()}
 
 
 def channel_region(
