@@ -54,12 +54,6 @@ JAXTYPING_DTYPES = frozenset(
 ALLOWED: frozenset[str] = frozenset(
     {
         # experiment protocols moved into the library
-        "autorig/_any_head_protocols.py",
-        "autorig/_evaluation_protocols.py",
-        "autorig/_protocols.py",
-        "autorig/_recipes.py",
-        "autorig/_report.py",
-        "autorig/_supervision_2d_protocols.py",
     }
 )
 

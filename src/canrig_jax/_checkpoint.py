@@ -163,6 +163,12 @@ def _deserialise(path, leaves: bytes, like):
         ) from error
 
 
+def parameter_count(model: eqx.Module) -> int:
+    """Number of trainable scalars (array leaves)."""
+    leaves = jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_array))
+    return int(sum(leaf.size for leaf in leaves))
+
+
 def run_training(
     step_fn: Callable[[int], dict],
     save_fn: Callable[[int, float, list], None],

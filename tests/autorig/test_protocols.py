@@ -14,6 +14,7 @@ from canrig_jax.autorig import (
     ANCHOR_MODES,
     CHIN_LANDMARK,
     STATIC_MM,
+    AutorigDataset,
     RiggedHead,
     anchored_base_key,
     cached_transfer,
@@ -25,6 +26,7 @@ from canrig_jax.autorig import (
 
 ROOT = Path(__file__).resolve().parents[2]
 TRANSFER = "canrig_jax.autorig._protocols.transfer_poses"  # replaced by a recording stand-in
+DATASET = object.__new__(AutorigDataset)  # a stand-in of the right type: only passed through
 
 
 def _grid_head(rows: int = 6, cols: int = 4, poses: int = 3) -> RiggedHead:
@@ -93,30 +95,30 @@ def test_cached_transfer_reads_back_what_it_stored(tmp_path, monkeypatch):
 
     monkeypatch.setattr(TRANSFER, transfer)
     head = _grid_head()
-    first = cached_transfer(None, head, tmp_path / "cache", seed=0)
+    first = cached_transfer(DATASET, head, tmp_path / "cache", seed=0)
     assert first.dtype == np.float32
     np.testing.assert_array_equal(first, head.displacements.astype(np.float32))
-    again = cached_transfer(None, head, tmp_path / "cache", seed=0)
+    again = cached_transfer(DATASET, head, tmp_path / "cache", seed=0)
     np.testing.assert_array_equal(again, first)
     assert len(calls) == 1
     # the kinds are stored apart: anchored, anchored per part, another seed
-    anchored = cached_transfer(None, head, tmp_path / "cache", 0, static_below=0.05)
+    anchored = cached_transfer(DATASET, head, tmp_path / "cache", 0, static_below=0.05)
     np.testing.assert_array_equal(anchored, 2 * first)
-    cached_transfer(None, head, tmp_path / "cache", 0, static_below=0.05, anchor="part")
-    cached_transfer(None, head, tmp_path / "cache", 1)
+    cached_transfer(DATASET, head, tmp_path / "cache", 0, static_below=0.05, anchor="part")
+    cached_transfer(DATASET, head, tmp_path / "cache", 1)
     assert len(calls) == 4 and len(list((tmp_path / "cache").glob("*.npy"))) == 4
     np.testing.assert_array_equal(
-        cached_transfer(None, head, tmp_path / "cache", 0, static_below=0.05), anchored
+        cached_transfer(DATASET, head, tmp_path / "cache", 0, static_below=0.05), anchored
     )
     assert len(calls) == 4
     # the same name with another vertex count: recomputed
     other = _grid_head(rows=5)
     np.testing.assert_array_equal(
-        cached_transfer(None, other, tmp_path / "cache", 0), other.displacements
+        cached_transfer(DATASET, other, tmp_path / "cache", 0), other.displacements
     )
     assert len(calls) == 5
-    cached_transfer(None, head, None, 0)
-    cached_transfer(None, head, None, 0)
+    cached_transfer(DATASET, head, None, 0)
+    cached_transfer(DATASET, head, None, 0)
     assert len(calls) == 7
 
 
@@ -131,13 +133,13 @@ def test_transfer_bases_are_plain_and_anchored_per_mode(monkeypatch):
 
     monkeypatch.setattr(TRANSFER, transfer)
     head = _grid_head()
-    bases = transfer_bases(None, head, anchors=("vertex", "part"))
+    bases = transfer_bases(DATASET, head, anchors=("vertex", "part"))
     assert list(bases) == ["plain", "anchored", "anchored_part"]
     assert calls == [(None, "vertex"), (ANCHOR_CM, "vertex"), (ANCHOR_CM, "part")]
     assert ANCHOR_CM == pytest.approx(STATIC_MM / 10)  # cm
     assert [float(b[0, 0, 0]) for b in bases.values()] == [1, 2, 3]
     plain = np.zeros((2, 3, 3))
-    given = transfer_bases(None, head, plain=plain, anchors=())
+    given = transfer_bases(DATASET, head, plain=plain, anchors=())
     assert list(given) == ["plain"] and given["plain"] is plain and len(calls) == 3
     assert [anchored_base_key(m) for m in ANCHOR_MODES] == [
         "anchored" if m == "vertex" else f"anchored_{m}" for m in ANCHOR_MODES

@@ -19,6 +19,7 @@ from canrig_jax.autorig import (
     HELDOUT_SPLIT,
     RESIDUAL_MODEL,
     AutorigDataset,
+    MakeHumanHead,
     PoseSet,
     RigAnyFaceTrainOptions,
     RiggedHead,
@@ -35,6 +36,7 @@ from canrig_jax.autorig import (
     rig_timing,
 )
 from canrig_jax.data import ICTFaceModel
+from canrig_jax.mesh import MeshOperators
 from canrig_jax.rig import BlendshapeRig
 
 MODULE = "canrig_jax.autorig._evaluation_protocols"
@@ -112,6 +114,15 @@ def _scale(vertices) -> float:
     return float(np.abs(vertices).max()) + 1.0
 
 
+_OPERATORS: dict[int, MeshOperators] = {}
+
+
+def _operators(k: int) -> MeshOperators:
+    """A stand-in ``MeshOperators`` of the right type per eigenvector count ``k`` (only passed
+    through: which one arrives says which ``k`` it was made with)."""
+    return _OPERATORS.setdefault(k, object.__new__(MeshOperators))
+
+
 def _stand_ins(monkeypatch, calls: list) -> None:
     """Replace correspondence, transfer, copying, generation, operators and penetration by
     functions of the head, so each row's predictions are known: copy = truth, DT = 1.1 truth,
@@ -136,7 +147,9 @@ def _stand_ins(monkeypatch, calls: list) -> None:
     monkeypatch.setattr(f"{MODULE}.transfer_bases", bases)
     monkeypatch.setattr(f"{MODULE}.copy_poses", lambda d, head, c: head.displacements.copy())
     monkeypatch.setattr(f"{MODULE}.generate_rows", generate)
-    monkeypatch.setattr(f"{MODULE}.head_inputs", lambda v, f, k: (None, f"ops{k}", None, _scale(v)))
+    monkeypatch.setattr(
+        f"{MODULE}.head_inputs", lambda v, f, k: (None, _operators(k), None, _scale(v))
+    )
     monkeypatch.setattr(
         f"{MODULE}.penetration", lambda head, d, parts: float(np.abs(d).max() * len(parts))
     )
@@ -167,7 +180,7 @@ def test_evaluate_splits_scores_every_row_on_both_splits(monkeypatch):
             )
             assert errors["mae_unit_sphere_x1000"] == pytest.approx(1000 * unit.mean(), abs=1e-12)
     # the network ran on each head's own operators (k eigenvectors), once per head
-    assert [c[1] for c in calls] == ["ops7"] * 4
+    assert len(calls) == 4 and all(c[1] is _operators(7) for c in calls)
     # penetration: the rows' and the truth's, mean over all four heads
     heads = [h for split in dataset.test.values() for h in split]
     biggest = [np.abs(h.displacements).max() * 2 for h in heads]  # two part names
@@ -243,7 +256,14 @@ def test_makehuman_shapes_peak_ratio_and_regions():
     rng = np.random.default_rng(0)
     truth = rng.normal(size=(3, 8, 3))
     skin = np.arange(8) < 6
-    mh = types.SimpleNamespace(skin=skin)
+    mh = MakeHumanHead(
+        neutral=np.zeros((8, 3), np.float32),
+        faces=np.asarray([[0, 1, 2]], np.int32),
+        deltas=np.zeros((1, 8, 3), np.float32),
+        names=("jawOpen",),
+        component_labels=np.where(skin, 0, 1),  # the largest component is the skin
+    )
+    assert np.array_equal(mh.skin, skin)
     labels = ["eyeBlinkLeft", "jawOpen", "cheekSquintLeft"]
     shapes = makehuman_shapes((mh, truth, {"half": truth / 2, "same": truth}, labels))
     assert shapes["labels"] == labels and shapes["upper_face"] == [True, False, True]
@@ -330,7 +350,18 @@ def test_rig_timing_alternates_two_triangulations_and_takes_medians(monkeypatch)
     import trimesh
 
     sphere = trimesh.creation.icosphere(subdivisions=4)  # 2,562 vertices
-    head = types.SimpleNamespace(neutral=np.asarray(sphere.vertices) * 10, faces=sphere.faces)
+    n = len(sphere.vertices)
+    head = ICTFaceModel(
+        neutral=(np.asarray(sphere.vertices) * 10).astype(np.float32),
+        faces=np.asarray(sphere.faces, np.int32),
+        deltas=np.zeros((1, n, 3), np.float32),
+        names=("jawOpen",),
+        part_names=("Face",),
+        part_vertex_range=np.asarray([[0, n]], np.int32),
+        component_labels=np.zeros(n, np.int32),
+        landmarks=np.zeros(68, np.int32),
+        vertex_ids=np.arange(n, dtype=np.int32),
+    )
     seen, seconds = [], iter(range(100, 0, -1))
 
     def generate(model, poses, v, f):

@@ -105,13 +105,14 @@ def test_the_two_stage_run_starts_stage_two_from_stage_one(monkeypatch, tmp_path
     data = object.__new__(TrainingSet)
     common = dict(folder=tmp_path, steps=300, stage1_fraction=0.4, seed=1, progress=False)
     opts = Supervision2DOptions()
-    model, info = train_2d_run("3d_only", data, None, POSES, [0], opts, **common)
+    faces = np.zeros((1, 1, 3), np.int32)  # only passed through
+    model, info = train_2d_run("3d_only", data, faces, POSES, [0], opts, **common)
     assert calls == [("3d", 300, 50, None, tmp_path / "checkpoint_3d_only.eqx")]
     assert (info["steps"], info["seconds"], [r["step"] for r in info["history"]]) == (
         300, 60.0, [10, 300]
     )  # fmt: skip
     calls.clear()
-    model, info = train_2d_run("2d_unrigged_plus_3d", data, None, POSES, [0], opts, **common)
+    model, info = train_2d_run("2d_unrigged_plus_3d", data, faces, POSES, [0], opts, **common)
     (stage1, steps1, _, init1, path1), (stage2, steps2, warm2, init2, path2) = calls
     assert (stage1, steps1, init1, path1.name) == ("2d", 120, None, "checkpoint_2d_stage1.eqx")
     assert (stage2, steps2, warm2, path2.name) == ("3d+2d", 180, 36, "checkpoint_2d_stage2.eqx")
@@ -120,7 +121,7 @@ def test_the_two_stage_run_starts_stage_two_from_stage_one(monkeypatch, tmp_path
     assert info["seconds"] == 120.0
     assert [r["step"] for r in info["history"]] == [10, 120, 130, 300]  # counted from stage 1
     with pytest.raises(ValueError, match="name: expected one of"):
-        train_2d_run("2d_only", data, None, POSES, [0], opts, **common)
+        train_2d_run("2d_only", data, faces, POSES, [0], opts, **common)
     assert SUPERVISION_2D_RUNS == ("3d_only", "2d_unrigged_plus_3d")
 
 
@@ -143,7 +144,8 @@ def test_chunk_overflow_is_the_worst_over_heads_poses_and_views(monkeypatch):
     object.__setattr__(data, "vertices", np.zeros((2, 4, 3)))
     object.__setattr__(data, "displacements", displacements)
     opts = Supervision2DOptions(yaw_degrees=(0.0, 35.0), chunk_budget=4.0)
-    assert chunk_overflow(data, [None, None], opts) == 7
+    faces = np.zeros((2, 1, 3), np.int32)  # only passed through to the stand-in
+    assert chunk_overflow(data, faces, opts) == 7
     assert seen == [(x, 4.0) for x in (0, 0, 5, 5, 0, 0, 7, 7)]  # two views per state
 
 

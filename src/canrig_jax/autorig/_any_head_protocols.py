@@ -8,8 +8,6 @@ Heads are as stored: +y up, facing +z, centimetres; errors in millimetres on the
 largest component).
 """
 
-from __future__ import annotations
-
 import dataclasses
 import os
 import subprocess
@@ -20,6 +18,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
+from jaxtyping import ArrayLike, Float, Float32, Int
 
 from ..data import ARKIT_NAMES, data_file, read_arrays, save_obj
 from ..rig import BlendshapeRig
@@ -49,7 +48,14 @@ class SculptedHead:
     cm (+y up, facing +z), ``faces`` (F, 3), the S ``names``, and ``skin``: (V,) its largest
     component (``skin_of``)."""
 
-    def __init__(self, name: str, vertices, faces, deltas, names: Sequence[str]):
+    def __init__(
+        self,
+        name: str,
+        vertices: Float[ArrayLike, "V 3"],
+        faces: Int[ArrayLike, "F 3"],
+        deltas: Float[ArrayLike, "S V 3"],
+        names: Sequence[str],
+    ):
         self.name = name
         self.vertices = np.asarray(vertices, np.float32)
         self.faces = np.asarray(faces, np.int32)
@@ -62,20 +68,21 @@ class SculptedHead:
             )
         self.skin = skin_of(self.vertices, self.faces)
 
-    def shapes(self, names: Sequence[str]) -> np.ndarray:
+    def shapes(self, names: Sequence[str]) -> Float32[np.ndarray, "n V 3"]:
         """(len(names), V, 3) the artist's shapes of ``names``, cm."""
         return np.stack([self.deltas[self.names.index(n)] for n in names])
 
 
-def load_rocketbox_head(name: str, data_dir=None) -> SculptedHead:
+def load_rocketbox_head(name: str, data_dir: str | os.PathLike | None = None) -> SculptedHead:
     """A Rocketbox head (``rocketbox/<name>_head.npz`` in the data folder) with its ARKit
     shapes."""
     path = data_file(f"rocketbox/{name}_head.npz", data_dir)
     z = read_arrays(path, ("neutral", "faces", "deltas", "names"))
-    return SculptedHead(name, z["neutral"], z["faces"], z["deltas"], z["names"])
+    names = [str(n) for n in z["names"]]
+    return SculptedHead(name, z["neutral"], z["faces"], z["deltas"], names)
 
 
-def ict_sculpted_heads(n: int, data_dir=None) -> list[SculptedHead]:
+def ict_sculpted_heads(n: int, data_dir: str | os.PathLike | None = None) -> list[SculptedHead]:
     """The first ``n`` held-out ICT identities at the unseen resolution
     (``ict_autorig_dataset``'s test heads), their 53 ICT shapes as 51 ARKit ones (the halves
     summed, ``shared_shape_matrix``); named ``ict_<head name>``."""
@@ -129,7 +136,6 @@ def few_shot_rows(
     str(k) -> errors with their ``"no_motion"``, ``"style"`` and ``"seconds"``; the landmark
     fit {"ok", "by", "rms_cm"})."""
     first = auto_rig(head.vertices, head.faces, method="transfer", dataset=dataset)
-    common = dict(dataset=dataset, orientation=first.orientation, landmarks=first.landmarks)
     scored = [n for n in head.names if n in first.rig.names]
     methods = {"no_motion": _no_motion_errors(head, scored)}
     few: dict = {}
@@ -140,7 +146,15 @@ def few_shot_rows(
             rest = [n for n in scored if n not in given]
             examples = {n: head.shapes([n])[0] for n in given} or None
             t = time.perf_counter()
-            result = auto_rig(head.vertices, head.faces, method=method, examples=examples, **common)
+            result = auto_rig(
+                head.vertices,
+                head.faces,
+                method=method,
+                examples=examples,
+                dataset=dataset,
+                orientation=first.orientation,
+                landmarks=first.landmarks,
+            )
             row = sculpted_head_errors(result.rig, head, rest)
             row["no_motion"] = _no_motion_errors(head, rest)
             row["style"] = dataclasses.asdict(result.style)
@@ -169,11 +183,16 @@ def face_crop_fit(head: SculptedHead, dataset: AutorigDataset) -> dict:
         return {"ok": False, "error": str(error)[:300], "vertices": len(vertices)}
 
 
-def orientation_cases(heads: Mapping[str, tuple], dataset: AutorigDataset, log: Log = print):
+def orientation_cases(
+    heads: Mapping[str, tuple[Float[ArrayLike, "_V 3"], Int[np.ndarray, "_F 3"]]],
+    dataset: AutorigDataset | None,
+    log: Log = print,
+) -> dict:
     """``decide_orientation`` on every axis-aligned rotation (``axis_rotations``) of each head
     (name -> (vertices, faces)) and of its mirror image (x flipped, triangles reversed): a
     case is recovered (the decision undoes the turn; a mirror image is recognised as one),
-    refused (``OrientationError``) or silently wrong.
+    refused (``OrientationError``) or silently wrong. ``dataset``: ``decide_orientation``'s
+    (None: the packaged template).
 
     Returns {"per_head": name -> counts of "cases", "recovered", "refused",
     "silently_wrong"}, the same summed over heads, and "refused_fraction_full_heads" (heads

@@ -9,15 +9,15 @@ Displacements are in centimetres, (P, V, 3) per head (P poses of ``dataset.poses
 millimetres. The scripts ``experiments/autorig*.py`` call these; the tests call them here.
 """
 
-from __future__ import annotations
-
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
+from jaxtyping import ArrayLike, Bool, Float
 
-from ..mesh import decimate
+from ..data import ICTFaceModel
+from ..mesh import MeshOperators, decimate
 from ..rig import BlendshapeRig, export_gltf, load_gltf_rig
 from ._data import (
     AutorigDataset,
@@ -28,6 +28,7 @@ from ._data import (
     head_correspondence,
 )
 from ._evaluation import sculpted_shape_errors
+from ._makehuman import MakeHumanHead
 from ._metrics import error_stats, inner_outside, penetration, penetration_free_set
 from ._model import RigAnyFace, normalise
 from ._protocols import anchored_base_key, crop_below_chin, generate_rows, transfer_bases
@@ -88,8 +89,8 @@ def head_predictions(
     anchors: Sequence[str] = ("vertex",),
     *,
     copy: bool = True,
-    operators=None,
-) -> dict[str, np.ndarray]:
+    operators: MeshOperators | None = None,
+) -> dict[str, Float[np.ndarray, "P V 3"]]:
     """Row -> (P, V, 3) predicted displacements (cm) on one held-out ``head``: copied ICT
     deltas (``copy``), deformation transfer plain and anchored per each mode of ``anchors``
     (rows ``deformation_transfer`` and ``deformation_transfer_<key>``), and each of ``rows``
@@ -116,7 +117,7 @@ def heldout_predictions(
     *,
     copy: bool = False,
     rows: Mapping[str, tuple[str, str | None]] | None = None,
-) -> tuple[dict[str, list[np.ndarray]], list[np.ndarray]]:
+) -> tuple[dict[str, list[Float[np.ndarray, "P _V 3"]]], list[Float[np.ndarray, "P _V 3"]]]:
     """Every ``HELDOUT_SPLIT`` head of ``dataset``: (row -> (P, V, 3) predictions per head,
     (P, V, 3) ground truth per head), cm. Rows: no motion, copied ICT deltas (``copy``),
     deformation transfer plain and anchored per each mode of ``anchors``, and ``rows``
@@ -128,7 +129,7 @@ def heldout_predictions(
             keys = ("plain", *map(anchored_base_key, anchors)) if model.residual else (None,)
             for base in keys:
                 rows[name if base in (None, "plain") else f"{name}+{base}_base"] = (name, base)
-    predicted: dict[str, list[np.ndarray]] = {"no_motion": []}
+    predicted: dict[str, list[Float[np.ndarray, "P _V 3"]]] = {"no_motion": []}
     truth = []
     for head in dataset.test[HELDOUT_SPLIT]:
         truth.append(head.displacements)
@@ -140,7 +141,9 @@ def heldout_predictions(
 
 
 def split_errors(
-    predicted: Sequence[np.ndarray], truth: Sequence[np.ndarray], scales: Sequence[float]
+    predicted: Sequence[Float[ArrayLike, "P _V 3"]],
+    truth: Sequence[Float[ArrayLike, "P _V 3"]],
+    scales: Sequence[float],
 ) -> dict:
     """One row's errors over the heads of a split (``error_stats`` of the (P, V, 3) arrays
     per head, cm -> mm), with the MAE and q95 on the heads normalised to the unit sphere
@@ -182,7 +185,7 @@ def evaluate_splits(
     pen: dict[str, list[float]] = {name: [] for name in (*rows, "ground_truth")}
     out: dict = {"examples": {}}
     for split in SPLITS:
-        predicted: dict[str, list[np.ndarray]] = {}
+        predicted: dict[str, list[Float[np.ndarray, "P _V 3"]]] = {}
         truth, scales = [], []
         for head in dataset.test[split]:
             _, operators, _, scale = head_inputs(head.vertices, head.faces, k=k)
@@ -208,13 +211,22 @@ def evaluate_splits(
     return out
 
 
-def makehuman_shapes(makehuman_example: tuple) -> dict:
+def makehuman_shapes(
+    makehuman_example: tuple[
+        MakeHumanHead,
+        Float[ArrayLike, "S V 3"],
+        Mapping[str, Float[ArrayLike, "S V 3"]],
+        Sequence[str],
+    ],
+) -> dict:
     """Per shape on the MakeHuman head (``sculpted_shape_errors`` on its skin) of every row in
     ``evaluate_makehuman``'s example (head, (S, V, 3) targets, row -> (S, V, 3) predictions,
     S labels): {"labels", "target_peak_mm": (S,), "upper_face": (S,) bool (``UPPER_FACE``),
     "methods": row -> {"skin_mae_mm", "amplitude_ratio", "peak_mm", "peak_ratio"} (S,) each},
     as lists; the peak ratio is the row's largest vertex motion over the target's."""
     mh, truth, predictions, labels = makehuman_example
+    if not predictions:
+        raise ValueError("makehuman_example: expected at least one row of predictions, got none")
     methods, target_peak = {}, None
     for name, predicted in predictions.items():
         errors = sculpted_shape_errors(predicted, truth, mh.skin)
@@ -223,14 +235,16 @@ def makehuman_shapes(makehuman_example: tuple) -> dict:
         methods[name] = {k: v.tolist() for k, v in errors.items()}
     return {
         "labels": [str(n) for n in labels],
-        "target_peak_mm": target_peak.tolist(),
+        "target_peak_mm": np.asarray(target_peak).tolist(),
         "upper_face": [str(n).startswith(UPPER_FACE) for n in labels],
         "methods": methods,
     }
 
 
 def heldout_shapes(
-    heads: Sequence[RiggedHead], predicted: Mapping[str, Sequence[np.ndarray]], poses: PoseSet
+    heads: Sequence[RiggedHead],
+    predicted: Mapping[str, Sequence[Float[np.ndarray, "P _V 3"]]],
+    poses: PoseSet,
 ) -> dict:
     """Per single expression on held-out ICT heads: ``sculpted_shape_errors`` of each row's
     first ``poses.n_basis`` poses against each head's ground truth on its skin (parts 0 and 1:
@@ -264,9 +278,9 @@ def heldout_shapes(
 
 def clean_penetration(
     heads: Sequence[RiggedHead],
-    predicted: Mapping[str, Sequence[np.ndarray]],
+    predicted: Mapping[str, Sequence[Float[ArrayLike, "P _V 3"]]],
     poses: PoseSet,
-    part_names,
+    part_names: Sequence[str],
 ) -> dict:
     """Penetration where the ground truth has none (``penetration_free_set``: per head, the
     inner vertices inside the skin at rest and the poses whose ground truth pushes none of
@@ -278,7 +292,7 @@ def clean_penetration(
     (head, pose) pairs with any vertex outside}), ``penetration_clean_protocol`` and
     ``penetration_remeasured`` (row -> mean over heads of the outside fraction)."""
     predicted = {**predicted, "ground_truth": [head.displacements for head in heads]}
-    clean: dict[str, list[np.ndarray]] = {name: [] for name in predicted}
+    clean: dict[str, list[Bool[np.ndarray, "Q N"]]] = {name: [] for name in predicted}
     plain: dict[str, list[float]] = {name: [] for name in predicted}
     chosen, kept_vertices = [], []
     for i, head in enumerate(heads):
@@ -368,7 +382,7 @@ def placement_errors(
     return stats, protocol
 
 
-def rig_timing(model: RigAnyFace, poses: PoseSet, head, repeats: int = 9) -> dict:
+def rig_timing(model: RigAnyFace, poses: PoseSet, head: ICTFaceModel, repeats: int = 9) -> dict:
     """Seconds to generate the rig of ``head`` (the generic ICT head: ``neutral``, ``faces``)
     decimated to ~1,750 vertices: cold (the first call: compile + operators + network) and
     warm (the median over ``repeats`` calls, alternating two triangulations of similar size

@@ -6,20 +6,21 @@ targets, and a head cut below the chin as a face scan would be.
 The experiment scripts (``experiments/autorig.py``) call these; the tests call them here.
 """
 
-from __future__ import annotations
-
 import dataclasses
+import os
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
-from jaxtyping import Bool, Float
+from jaxtyping import ArrayLike, Bool, Float, Int, Int32
 
 from .._io import atomic_path
+from ..mesh import MeshOperators, TriangleCorrespondence
 from ._any_head import ANCHOR_CM
 from ._data import (
     AutorigDataset,
+    PoseSet,
     RiggedHead,
     copy_poses,
     face_placement,
@@ -28,7 +29,7 @@ from ._data import (
     transfer_poses,
 )
 from ._evaluation import ACTIVE_MM, sculpted_target_errors, shared_shape_matrix
-from ._makehuman import load_makehuman
+from ._makehuman import MakeHumanHead, load_makehuman
 from ._model import RigAnyFace
 from ._rig import GeneratedRig, generate_rig
 
@@ -103,8 +104,8 @@ def crop_below_chin(
 
 
 def face_crop(
-    vertices: Float[np.ndarray, "V 3"], faces
-) -> tuple[Float[np.ndarray, "Vc 3"], np.ndarray]:
+    vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"]
+) -> tuple[Float[np.ndarray, "Vc 3"], Int32[np.ndarray, "Fc 3"]]:
     """The front of a head (cm, +y up, facing +z), as a face-only mask would be: the vertices
     within the front 45 % of its depth and between 10 % and 75 % of its height from the top,
     the triangles wholly inside. Returns ((Vc, 3) vertices, (Fc, 3) int32 triangles
@@ -130,8 +131,8 @@ def anchored_base_key(mode: str) -> str:
 
 def transfer_bases(
     dataset: AutorigDataset,
-    head,
-    correspondence=None,
+    head: RiggedHead | MakeHumanHead,
+    correspondence: TriangleCorrespondence | None = None,
     plain: Float[np.ndarray, "P V 3"] | None = None,
     anchors: Sequence[str] = ("vertex",),
 ) -> dict[str, Float[np.ndarray, "P V 3"]]:
@@ -151,11 +152,11 @@ def transfer_bases(
 def generate_rows(
     models: Mapping[str, RigAnyFace],
     rows: Mapping[str, tuple[str, str | None]],
-    poses,
-    head,
-    bases: Mapping[str, np.ndarray],
-    operators=None,
-    placement=None,
+    poses: PoseSet,
+    head: RiggedHead | MakeHumanHead,
+    bases: Mapping[str, Float[ArrayLike, "P V 3"]],
+    operators: MeshOperators | None = None,
+    placement: tuple[Float[ArrayLike, " 3"], float] | None = None,
 ) -> dict[str, GeneratedRig]:
     """Each evaluation row's rig generated on ``head`` (``head.vertices`` (V, 3) cm,
     ``head.faces``): ``rows`` maps a row name to (a name in ``models``, the key of its base in
@@ -179,10 +180,19 @@ def evaluate_makehuman(
     dataset: AutorigDataset,
     models: Mapping[str, RigAnyFace],
     rows: Mapping[str, tuple[str, str | None]],
-    data_dir=None,
+    data_dir: str | os.PathLike | None = None,
     anchors: Sequence[str] = ("vertex",),
     face_placed: bool = False,
-) -> tuple[dict, dict, tuple]:
+) -> tuple[
+    dict,
+    dict,
+    tuple[
+        MakeHumanHead,
+        Float[np.ndarray, "S V 3"],
+        dict[str, Float[np.ndarray, "S V 3"]],
+        list[str],
+    ],
+]:
     """Every method on the MakeHuman hm08 head against its person-made ARKit targets, over the
     shapes it shares with ICT (evaluation only: nothing is fitted to the targets).
 

@@ -8,12 +8,13 @@ autorig_train.py`` (one model) share these, so that a checkpoint trained by one 
 other with the same options.
 """
 
-from __future__ import annotations
-
 import argparse
 import dataclasses
 from pathlib import Path
 
+from jaxtyping import ArrayLike, Float
+
+from .._checkpoint import parameter_count
 from ._any_head import ANCHOR_CM
 from ._data import ANCHOR_MODES, AutorigDataset, PoseSet
 from ._model import RigAnyFace
@@ -209,7 +210,7 @@ def recipe_training_set(
     if recipe_base(name) is None:
         return training_set(dataset.train, dataset.poses, k=k, progress=progress)
     mode = ANCHORED_RESIDUAL_MODELS.get(name)
-    base = [
+    base: list[Float[ArrayLike, "P _V 3"]] = [
         cached_transfer(
             dataset,
             head,
@@ -227,8 +228,6 @@ def checkpoint_record(model: RigAnyFace, header: dict) -> dict:
     """What results.json's ``training`` records of a model from its checkpoint's header
     (``load_riganyface``): steps, minutes, trainable parameters, the last logged training-batch
     error (mm), the training history (for the loss figure) and the options."""
-    from ..canrig import parameter_count
-
     return {
         "steps": header["step"],
         "minutes": header["seconds"] / 60,

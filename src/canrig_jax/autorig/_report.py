@@ -5,17 +5,18 @@ with their error maps, per-shape motion ratios).
 Errors in the tables are millimetres; error maps run 0-5 mm.
 """
 
-from __future__ import annotations
-
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import matplotlib.pyplot as plt
 import numpy as np
+from jaxtyping import ArrayLike, Float
 
 from .._metrics import CM_TO_MM
 from ..render import plot_vertex_scalar, save_figure
+from ._data import RiggedHead
 from ._evaluation_protocols import UPPER_FACE, makehuman_shapes
+from ._makehuman import MakeHumanHead
 
 
 def autorig_table(results: Mapping) -> str:
@@ -248,7 +249,15 @@ def plot_training_history(training: Mapping[str, Mapping], path: str | Path) -> 
 
 
 def plot_pose_examples(
-    out: str | Path, labels, examples: Mapping, makehuman_example: tuple
+    out: str | Path,
+    labels: Sequence[str],
+    examples: Mapping[str, tuple[RiggedHead, Mapping[str, Float[ArrayLike, "P _V 3"]]]],
+    makehuman_example: tuple[
+        MakeHumanHead,
+        Float[ArrayLike, "S Vm 3"],
+        Mapping[str, Float[ArrayLike, "S Vm 3"]],
+        Sequence[str],
+    ],
 ) -> None:
     """``out``/poses_<split>.png of each held-out example (split -> (head, row -> (P, V, 3)
     predictions)) on its skin (parts 0 and 1), ``out``/makehuman.png and

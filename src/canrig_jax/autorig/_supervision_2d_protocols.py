@@ -7,8 +7,6 @@ evaluation on held-out ICT identities and the MakeHuman head.
 Lengths in centimetres, errors in millimetres, images in pixels.
 """
 
-from __future__ import annotations
-
 import argparse
 import os
 import subprocess
@@ -21,6 +19,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike, Int
 
 from ..data import load_ict
 from ..mesh import decimate
@@ -117,7 +116,7 @@ def _options(steps: int, minutes: float | None, seed: int) -> RigAnyFaceTrainOpt
 def train_2d_run(
     name: str,
     data: TrainingSet,
-    faces,
+    faces: Int[ArrayLike, "N F 3"],
     poses: PoseSet,
     rigged: Sequence[int],
     opts2d: Supervision2DOptions,
@@ -141,21 +140,21 @@ def train_2d_run(
     if name not in SUPERVISION_2D_RUNS:
         raise ValueError(f"name: expected one of {SUPERVISION_2D_RUNS}, got {name!r}")
     folder = Path(folder)
-    common = dict(progress=progress)
     if name == "3d_only":
         model, step, seconds, history = train_2d(
             data, faces, poses, rigged, _options(steps, minutes, seed), opts2d, stage="3d",
-            checkpoint=folder / "checkpoint_3d_only.eqx", **common,
+            checkpoint=folder / "checkpoint_3d_only.eqx", progress=progress,
         )  # fmt: skip
         return model, {"steps": step, "seconds": seconds, "history": history}
     stage1 = int(round(steps * stage1_fraction))
     m1, s1, t1, h1 = train_2d(
         data, faces, poses, rigged, _options(stage1, minutes, seed), opts2d, stage="2d",
-        checkpoint=folder / "checkpoint_2d_stage1.eqx", **common,
+        checkpoint=folder / "checkpoint_2d_stage1.eqx", progress=progress,
     )  # fmt: skip
     model, s2, t2, h2 = train_2d(
         data, faces, poses, rigged, _options(steps - stage1, minutes, seed), opts2d,
-        stage="3d+2d", init=m1, checkpoint=folder / "checkpoint_2d_stage2.eqx", **common,
+        stage="3d+2d", init=m1, checkpoint=folder / "checkpoint_2d_stage2.eqx",
+        progress=progress,
     )  # fmt: skip
     return model, {
         "steps": s1 + s2,
@@ -166,7 +165,11 @@ def train_2d_run(
     }
 
 
-def chunk_overflow(data: TrainingSet, faces, opts2d: Supervision2DOptions) -> int:
+def chunk_overflow(
+    data: TrainingSet,
+    faces: Int[np.ndarray, "N F 3"] | Int[Array, "N F 3"],
+    opts2d: Supervision2DOptions,
+) -> int:
     """Largest ``Fragments.overflow`` of the fast rasteriser over the training heads' neutrals
     and their most displaced pose, in every view of ``opts2d`` (0: its chunk budget drops no
     triangle)."""
@@ -186,7 +189,9 @@ def chunk_overflow(data: TrainingSet, faces, opts2d: Supervision2DOptions) -> in
 
 
 def evaluate_2d(
-    models: Mapping[str, RigAnyFace], dataset: AutorigDataset, data_dir=None
+    models: Mapping[str, RigAnyFace],
+    dataset: AutorigDataset,
+    data_dir: str | os.PathLike | None = None,
 ) -> dict[str, dict]:
     """Each model and no motion (the reference every method must beat) on the held-out ICT
     heads at the unseen resolution (all poses; single expressions; the predicted over the
@@ -241,7 +246,7 @@ def _ict_errors(predicted: list, truth: list, n_basis: int) -> dict[str, float]:
     }
 
 
-def rasteriser_checks(data_dir=None, quick: bool = False) -> dict:
+def rasteriser_checks(data_dir: str | os.PathLike | None = None, quick: bool = False) -> dict:
     """The rasteriser on the generic ICT head (all parts) decimated to ~1,750 vertices: the
     soft rasteriser's gradient against a central difference (relative error), its hard limit
     and the fast path (``rasterise_hard``) against NumPy ray casting (mask IoU, depth error in
@@ -252,7 +257,9 @@ def rasteriser_checks(data_dir=None, quick: bool = False) -> dict:
     vertices = jnp.asarray(d.vertices, jnp.float32)
     faces = jnp.asarray(d.faces, jnp.int32)
     centre = np.asarray(vertices.mean(0))
-    out = {"head": f"ICT generic head, all parts, decimated: {len(d.vertices)} v, {len(faces)} f"}
+    out: dict = {
+        "head": f"ICT generic head, all parts, decimated: {len(d.vertices)} v, {len(faces)} f"
+    }
     out.update(_soft_gradient_check(vertices, faces, centre))
     size = 48 if quick else 128
     camera = look_at(centre + [0, 0, 60.0], centre, image_size=size)

@@ -58,6 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Float64, PRNGKeyArray
 
+from .._checkpoint import parameter_count as parameter_count  # re-exported (canrig, pbs)
 from ._attention import Trace, masked_attention_weights
 from ._attention_fit import gauss_newton, trace_edit
 from ._handle_rig import AbstractHandleRig, FitOptions, FitState, HandleEdit
@@ -546,9 +547,3 @@ class ShapePreservingCANRig(AbstractCANRig):
     def attention_beta(self, beta: float | Float[Array, ""] | None) -> Float[Array, ""]:
         """The extra attention column's logit (default 0, the training value)."""
         return jnp.asarray(0.0 if beta is None else beta)
-
-
-def parameter_count(model: eqx.Module) -> int:
-    """Number of trainable scalars (array leaves)."""
-    leaves = jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_array))
-    return int(sum(leaf.size for leaf in leaves))
