@@ -171,6 +171,14 @@ def test_global_blendshape_dialogue(face, basis, shapes):
         basis, neutral, source, target, index, np.zeros(80, bool)
     )
     np.testing.assert_allclose(np.asarray(again), np.asarray(same), atol=1e-6)
+
+
+@pytest.mark.bad_input
+def test_global_blendshape_dialogue_names_bad_arguments(face, basis, shapes):
+    neutral = face[0]
+    index = np.arange(80)
+    moved = np.ones(80, bool)
+    source, target = shapes[30:34], shapes[34:38]
     with pytest.raises(ValueError, match="moved"):
         global_blendshape_dialogue(basis, neutral, source, target, index, moved[:10])
     with pytest.raises(ValueError, match="target"):
@@ -211,6 +219,7 @@ def test_local_fit_is_a_masked_ridge_solve_per_patch(face, basis, shapes):
     assert np.all(weights[failed] == 0.0) and np.all(np.isfinite(weights))
 
 
+@pytest.mark.bad_input
 @pytest.mark.parametrize(
     ("change", "name"),
     [
@@ -257,6 +266,7 @@ def test_bad_input(case, face, basis):
         call(face, basis)
 
 
+@pytest.mark.bad_input
 def test_bad_input_of_the_fit_and_layout(face, layout, basis):
     neutral = face[0]
     with pytest.raises(ValueError, match="shape"):

@@ -234,7 +234,7 @@ def influence_reach(
     if clamp <= 0.0:
         return np.full(radius.shape, np.inf)
     reach = radius + np.arctanh(1.0 - 2.0 * clamp) / np.asarray(falloff, np.float64)
-    return reach * (1.0 + 1e-3) + 1e-3
+    return np.asarray(reach * (1.0 + 1e-3) + 1e-3)  # an array also for scalar inputs
 
 
 def block_layout(

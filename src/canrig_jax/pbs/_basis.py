@@ -341,7 +341,7 @@ def _fit_pbs(
     neutral: Float[Array, "N 3"],
     basis: Float[Array, "B N 3"],
     shape: Float[Array, "N 3"],
-    ridge: float = 1e-4,
+    ridge: float | Float[Array, ""] = 1e-4,
 ) -> Float[Array, "P B"]:
     """Per-patch least squares: for each patch, the B weights minimising
     sum_v w_vp ||sum_b x_b basis[b, v] - (shape - neutral)[v]||^2 over the vertices it covers
@@ -488,7 +488,7 @@ def _global_blendshape_fit(
     basis: Float[Array, "B N 3"],
     handle_index: Int[Array, " H"],
     displacements: Float[Array, "H 3"],
-    ridge: float = 1e-3,
+    ridge: float | Float[Array, ""] = 1e-3,
 ) -> Float[Array, " B"]:
     """The global-blendshape baseline (GBS, CANRig Tables 5-6): the basis weights whose
     offsets best match ``displacements`` at the handle vertices, by regularised least squares

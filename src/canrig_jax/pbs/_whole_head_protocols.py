@@ -23,13 +23,13 @@ import scipy.sparse as sp
 from jax import Array
 from jaxtyping import ArrayLike, Bool, Float, Float32, Int
 
+from .._checkpoint import parameter_count
 from .._cli import add_dataclass_options, from_args
 from .._metrics import CM_TO_MM
 from ..autorig import head_rig
 from ..canrig._data import held_out_poses, split_capture
 from ..canrig._layout import influence_reach
 from ..canrig._masks import CLAMP, influence_mask
-from ..canrig._model import parameter_count
 from ..canrig._workflows import expression_region
 from ..data import ICTFaceModel, load_ict, load_livelinkface
 from ..mesh import attached_edge_graph, bridged_edge_graph, edge_graph, farthest_point_vertices
