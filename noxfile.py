@@ -41,9 +41,13 @@ def stress(session):
 
 @nox.session
 def lint(session):
-    session.install("ruff")
+    """ruff (lint and format) on the code, then pyright (basic mode, ``[tool.pyright]`` in
+    pyproject.toml) on the package; the annotations pyright reads statically are the ones the
+    test run checks at run time (jaxtyping's import hook with beartype, ``tests/conftest.py``)."""
+    session.install("-e", ".[dev]")
     session.run("ruff", "check", "src", "tests", "experiments", "benchmarks", "noxfile.py")
     session.run("ruff", "format", "--check", "src", "tests", "experiments", "benchmarks")
+    session.run("pyright", "--pythonpath", os.path.join(session.bin, "python"))
 
 
 @nox.session

@@ -15,7 +15,7 @@ import warnings
 
 import jaxtyping
 
-TYPECHECK = os.environ.get("CANRIG_TYPECHECK", "0") != "0"
+TYPECHECK = os.environ.get("CANRIG_TYPECHECK", "1") != "0"
 """Whether this run checks ``canrig_jax``'s annotations (``CANRIG_TYPECHECK=0``: no)."""
 
 TYPECHECKER = "beartype.beartype(conf=beartype.BeartypeConf(is_pep484_tower=True))"

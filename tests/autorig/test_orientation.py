@@ -146,7 +146,7 @@ def test_orientation_check_searches_a_bounded_subsample(ict_heads, monkeypatch):
     import canrig_jax.autorig._orientation as orientation_module  # patched: the k-d tree
 
     built, queried = [], []
-    real = orientation_module.cKDTree
+    real = orientation_module.KDTree
 
     class CountingTree:
         def __init__(self, points, *args, **kwargs):
@@ -157,7 +157,7 @@ def test_orientation_check_searches_a_bounded_subsample(ict_heads, monkeypatch):
             queried.append(len(points))
             return self.tree.query(points, *args, **kwargs)
 
-    monkeypatch.setattr(orientation_module, "cKDTree", CountingTree)
+    monkeypatch.setattr(orientation_module, "KDTree", CountingTree)
     mesh = ict_heads["generic"]
     skin = np.bincount(connected_components(mesh.faces, mesh.n_vertices)).max()
     assert skin > 600
