@@ -29,11 +29,17 @@ import pytest  # noqa: E402
 
 from canrig_jax.data import load_livelinkface, resolve_data_dir  # noqa: E402
 
+LONGEST_FILES = ("test_deadlock.py", "test_local_fit.py", "test_pbs_model.py")
+"""Test files of a minute or more: collected first, so that pytest-xdist (``--dist loadfile``)
+hands them out first and the two workers finish together instead of one waiting on a long file
+handed out last."""
+
 
 def pytest_collection_modifyitems(config, items):
     for item in items:
         if "bad_input" in item.path.parts:
             item.add_marker(pytest.mark.bad_input)
+    items.sort(key=lambda item: item.path.name not in LONGEST_FILES)  # stable: else unchanged
 
 
 @pytest.hookimpl(hookwrapper=True)

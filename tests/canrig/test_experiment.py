@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -102,22 +103,23 @@ def test_reach_floor_counts_only_vertices_no_moved_handle_reaches():
     """Two patches over four vertices; the handle reaches patch 0 only: vertices covered by
     patch 1 alone keep the source, and their error averaged over the region is the floor."""
     layout = PatchLayout(
-        vertex_patches=np.array([[0, 0], [0, 1], [1, 1], [1, 1]]),
-        vertex_weights=np.array([[1.0, 0.0], [0.5, 0.5], [1.0, 0.0], [1.0, 0.0]]),
-        seeds=np.array([0, 2]),
-        cell=np.array([0, 0, 1, 1]),
+        vertex_patches=jnp.array([[0, 0], [0, 1], [1, 1], [1, 1]]),
+        vertex_weights=jnp.array([[1.0, 0.0], [0.5, 0.5], [1.0, 0.0], [1.0, 0.0]]),
+        seeds=jnp.array([0, 2]),
+        cell=jnp.array([0, 0, 1, 1]),
     )
     distances = np.array([[0.0, 0.0, 0.0, 0.0], [99.0, 99.0, 99.0, 99.0]])  # (P, N)
     source = np.zeros((1, 4, 3), np.float32)
     target = np.zeros((1, 4, 3), np.float32)
     target[0, :, 0] = [0.1, 0.2, 0.3, 0.4]  # cm
     region = np.array([True, True, True, False])
-    floor, unreached = reach_floor(layout, distances, [0], source, target, region, reach_cm=1.0)
+    handles = np.array([0])
+    floor, unreached = reach_floor(layout, distances, handles, source, target, region, reach_cm=1.0)
     assert unreached == 1  # vertex 2 (vertex 1 is also covered by the reached patch 0)
     assert floor == pytest.approx(3.0 / 3)  # 3 mm at vertex 2, averaged over 3 region vertices
     # a reach beyond patch 1's seed reaches every vertex: no floor
-    assert reach_floor(layout, distances, [0], source, target, region, reach_cm=100.0) == (0, 0)
+    assert reach_floor(layout, distances, handles, source, target, region, reach_cm=100.0) == (0, 0)
     with pytest.raises(ValueError, match="reach_cm"):
-        reach_floor(layout, distances, [0], source, target, region, reach_cm=0.0)
+        reach_floor(layout, distances, handles, source, target, region, reach_cm=0.0)
     with pytest.raises(ValueError, match="patch_distance_cm"):
-        reach_floor(layout, distances[:1], [0], source, target, region, reach_cm=1.0)
+        reach_floor(layout, distances[:1], handles, source, target, region, reach_cm=1.0)

@@ -178,6 +178,7 @@ def test_bad_farthest_point_arguments(n, start, match):
         farthest_point_vertices(vertices, n, start, graph=smaller_mesh)
 
 
+@pytest.mark.bad_input
 @pytest.mark.parametrize(
     "sources, match",
     [

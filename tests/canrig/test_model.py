@@ -161,6 +161,7 @@ def _bad_calls(rig, handles):
     ]
 
 
+@pytest.mark.bad_input
 def test_bad_input_raises_before_jit(neural_rig, placed):
     for name, call in _bad_calls(neural_rig, placed):
         with pytest.raises(ValueError, match=name):

@@ -112,7 +112,7 @@ class AbstractCANRig(AbstractHandleRig):
     # ------------------------------------------------------------ what the variants change
     @abc.abstractmethod
     def value_input(
-        self, displacements: Float[Array, "*B H 3"], handle_base: Float[Array, "*B H 3"]
+        self, displacements: Float[Array, "*B H 3"], handle_base: Float[Array, "*#B H 3"]
     ) -> Float[Array, "*B H F"]:
         """Input of the value MLP for each handle."""
 
@@ -215,7 +215,7 @@ class AbstractCANRig(AbstractHandleRig):
         return self.split_heads(_per_row(self.key_mlp, self.encode_position(handle_canonical)))
 
     def encode_values(
-        self, displacements: Float[Array, "*B H 3"], handle_base: Float[Array, "*B H 3"]
+        self, displacements: Float[Array, "*B H 3"], handle_base: Float[Array, "*#B H 3"]
     ) -> Float[Array, "*B heads H d"]:
         """Values of the handles: the only step that depends on the displacements."""
         value_input = self.value_input(displacements, handle_base)
@@ -466,7 +466,7 @@ class CANRig(AbstractCANRig):
         self.query_modulation = eqx.nn.Linear(latent, latent, key=km) if query_modulation else None
 
     def value_input(
-        self, displacements: Float[Array, "*B H 3"], handle_base: Float[Array, "*B H 3"]
+        self, displacements: Float[Array, "*B H 3"], handle_base: Float[Array, "*#B H 3"]
     ) -> Float[Array, "*B H F"]:
         del handle_base  # only the shape-preserving variant uses it
         return displacements / self.displacement_scale
@@ -528,7 +528,7 @@ class ShapePreservingCANRig(AbstractCANRig):
         self.value_mlp = _zero_preserving(self.arch, width, latent, jax.nn.gelu, kv)
 
     def value_input(
-        self, displacements: Float[Array, "*B H 3"], handle_base: Float[Array, "*B H 3"]
+        self, displacements: Float[Array, "*B H 3"], handle_base: Float[Array, "*#B H 3"]
     ) -> Float[Array, "*B H F"]:
         embedded = _per_row(self.value_embedding, displacements / self.displacement_scale)
         if self.arch.value_position:

@@ -140,7 +140,7 @@ def make_model(
     )
 
 
-def vertex_penalty(difference: Float[Array, "N 3"], loss: str) -> Float[Array, ""]:
+def vertex_penalty(difference: Float[ArrayLike, "N 3"], loss: str) -> Float[Array, ""]:
     """Mean over vertices of the squared error (mm^2; eq. 3) or, for ``loss="euclidean"``,
     of the smoothed Euclidean error sqrt(e^2 + s^2) (mm), the measure the evaluation reports."""
     squared = jnp.sum(difference**2, axis=1) * CM_TO_MM**2
