@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from ..canrig import DENSE, AbstractHandleRig, HandleEdit, Layout, edit_mask
+from ..canrig import DENSE, AbstractHandleRig, HandleEdit, Layout, influence_mask
 from ..canrig._layout import Local
 from ._basis import PatchLayout, check_basis
 from ._model import AbstractCANRigPBS, patch_means, pbs_delta_shape
@@ -48,9 +48,15 @@ class PBSRig(AbstractHandleRig):
         """The patches' queries at their seeds' canonical positions."""
         return self.network.encode_patches(canonical[self.layout.seeds])
 
+    def seed_mask(self, edit: HandleEdit) -> Float[Array, "P H"]:
+        """The handles' clamped influence at each patch's seed (only the P seed rows of the
+        (V, H) distances are read)."""
+        distance = edit.distance[self.layout.seeds]
+        return influence_mask(distance, edit.radius, edit.falloff, self.clamp)
+
     def support(self, edit: HandleEdit) -> Bool[Array, " V"]:
         """The vertices covered by a patch whose seed lies inside some clamped mask."""
-        reached = jnp.any(edit_mask(edit, self.clamp)[self.layout.seeds] > 0, axis=-1)
+        reached = jnp.any(self.seed_mask(edit) > 0, axis=-1)
         covered = self.layout.vertex_weights > 0
         return jnp.any(covered & reached[self.layout.vertex_patches], axis=-1)
 
@@ -63,7 +69,6 @@ class PBSRig(AbstractHandleRig):
         local: Local | None = None,
     ) -> Float[Array, "V 3"]:
         del layout, local  # no per-vertex attention to lay out
-        seeds = self.layout.seeds
         net = self.network
         weights = net(
             prepared,
@@ -71,7 +76,7 @@ class PBSRig(AbstractHandleRig):
             canonical[edit.index],
             edit.base[edit.index],
             edit.displacements,
-            edit_mask(edit, self.clamp)[seeds],
+            self.seed_mask(edit),
             edit.beta,
             handle_basis=self.basis[:, edit.index] if net.local_prior else None,
         )
