@@ -18,7 +18,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from canrig_jax import inverse
-from canrig_jax._io import save_json, save_text
+from canrig_jax._io import save_results
 from canrig_jax._metrics import per_vertex_distance
 from canrig_jax._provenance import experiment_command, provenance, record_command
 from canrig_jax.data import data_file, load_livelinkface
@@ -275,8 +275,8 @@ def main(argv=None):
         "provenance": provenance(command),
     }
     args.out.mkdir(parents=True, exist_ok=True)
-    save_json(args.out / "results.json", results)
-    save_text(args.out / "table.md", _table(cases, orderings, timing, reference))
+    # keeps the keys and table sections that sibling scripts (inverse_rig_*.py) wrote
+    save_results(args.out, results, _table(cases, orderings, timing, reference))
     if not args.quick:
         record_command(args.out, command)
     for name, case in cases.items():
