@@ -21,7 +21,7 @@ from canrig_jax import inverse
 from canrig_jax._io import save_results
 from canrig_jax._metrics import per_vertex_distance
 from canrig_jax._provenance import experiment_command, provenance, record_command
-from canrig_jax.data import data_file, load_livelinkface
+from canrig_jax.data import load_livelinkface
 from canrig_jax.inverse import (
     measure_reference,
     minimum,
@@ -32,16 +32,14 @@ from canrig_jax.inverse import (
     time_batched,
     time_single_frames,
 )
-from canrig_jax.mesh import triangulate_quads
 from canrig_jax.render import plot_vertex_scalar, save_figure
 from canrig_jax.rig import (
     UNIT_IN_CM,
-    BlendshapeRig,
     evaluate,
     evaluate_batch,
     ict_quartic_rig,
+    makehuman_quartic_rig,
     random_sparse_poses,
-    synthesize_correctives,
 )
 from canrig_jax.watchdog import run_watched
 
@@ -61,25 +59,6 @@ SWEEP = {
     "lmmm": lambda a: inverse.LMMM(alpha=a, iterations=50),
 }
 FIXED = {"seol": lambda a: inverse.Seol(), "joshi": lambda a: inverse.Joshi()}
-
-
-def makehuman_quartic_rig(data_dir=None) -> tuple[BlendshapeRig, dict]:
-    """The MakeHuman hm08 head (decimetres) with its 52 person-made ARKit targets and
-    correctives synthesised by ``synthesize_correctives`` (default options, in cm, converted
-    to the rig's unit). Evaluation only: nothing is fitted to it."""
-    with np.load(data_file("makehuman/hm08_face.npz", data_dir), allow_pickle=False) as z:
-        names = [str(n) for n in z["names"]]
-        arkit = [i for i, n in enumerate(names) if not n.startswith("viseme_")]
-        linear = BlendshapeRig(
-            z["neutral"],
-            z["deltas"][arkit],
-            (),
-            [names[i] for i in arkit],
-            triangulate_quads(z["polys"]),
-            units="dm",
-        )
-    rig, report = synthesize_correctives(linear, progress=False)
-    return rig, {"kept": report.kept, "seconds": report.seconds}
 
 
 def run(problem, targets, method):

@@ -1,5 +1,6 @@
 """The blendshape rig of any corrective order, its (batched) evaluation, corrective synthesis,
-the ict-quartic rig, and rigs carried onto other meshes (remeshing, deformation transfer)."""
+the ict-quartic and MakeHuman quartic rigs, and rigs carried onto other meshes (remeshing,
+deformation transfer)."""
 
 from ._arkit import arkit_channels, rename_to_arkit
 from ._blendshape import (
@@ -21,6 +22,7 @@ from ._gltf_animation import (
 from ._gltf_validate import find_gltf_validator, validate_gltf
 from ._ict_quartic import ict_linear_rig, ict_quartic_rig
 from ._io import load_rig, save_rig
+from ._makehuman import makehuman_quartic_rig
 from ._nonlinear import deformation_gradient_blend
 from ._poses import random_sparse_poses
 from ._synthesis import (
@@ -61,6 +63,7 @@ __all__ = [
     "ict_linear_rig",
     "ict_quartic_rig",
     "load_rig",
+    "makehuman_quartic_rig",
     "overlapping_pairs",
     "remesh_rig",
     "save_rig",
