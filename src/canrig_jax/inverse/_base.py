@@ -10,6 +10,7 @@ import abc
 from typing import Any, NamedTuple
 
 import equinox as eqx
+import numpy as np
 from equinox import AbstractClassVar, AbstractVar
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
@@ -69,9 +70,19 @@ def check_alpha(alpha: Any) -> None:
         raise ValueError(f"alpha: expected a finite weight, got {alpha}")
 
 
-def check_upper(upper: Any) -> None:
+def check_upper(upper: Any, per_weight: bool = False) -> None:
+    """A positive upper bound; with ``per_weight``, also a (K,) array of bounds >= 0 (a bound
+    of 0 holds its weight at 0)."""
     if not is_concrete(upper):
         return
+    if per_weight and np.ndim(upper) == 1:
+        bounds = np.asarray(upper)
+        if bounds.size == 0 or np.any(np.isnan(bounds)) or np.any(bounds < 0):
+            raise ValueError(f"upper: expected per-weight upper bounds >= 0, got {bounds}")
+        return
+    if np.ndim(upper) != 0:
+        want = "a number or a (K,) array" if per_weight else "a number"
+        raise ValueError(f"upper: expected {want}, got shape {np.shape(upper)}")
     if not upper > 0:
         raise ValueError(f"upper: expected a positive upper bound, got {upper}")
 

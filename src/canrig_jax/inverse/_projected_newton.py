@@ -35,7 +35,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .._checks import is_concrete
 from .._linalg import spd_solve
@@ -54,21 +54,23 @@ class QuarticNewton(AbstractInverseMethod):
         tol: stop when an iteration lowers the objective by less than ``tol`` relative to its
             value (0 runs all ``iterations``).
         line_steps: step lengths tried per iteration (1, 1/2, ..., 2^-(line_steps - 1)).
-        upper: upper bound of the box (1 in the paper; ``jnp.inf`` for none).
+        upper: upper bound of the box (1 in the paper; ``jnp.inf`` for none), or (K,)
+            per-weight bounds >= 0 (a bound of 0 holds its weight at exactly 0; how
+            ``Constrained`` keeps one of a mutually exclusive pair off).
     """
 
     alpha: float = 0.0
     iterations: int = eqx.field(static=True, default=50)
     tol: float = 1e-5
     line_steps: int = eqx.field(static=True, default=6)
-    upper: float = 1.0
+    upper: float | Float[ArrayLike, " K"] = 1.0
     penalises_l1: ClassVar[bool] = True
 
     def __check_init__(self):
         check_alpha(self.alpha)
         check_count("iterations", self.iterations)
         check_count("line_steps", self.line_steps)
-        check_upper(self.upper)
+        check_upper(self.upper, per_weight=True)
         if is_concrete(self.tol) and not 0 <= self.tol < 1:
             raise ValueError(f"tol: expected a relative tolerance in [0, 1), got {self.tol}")
 
@@ -80,6 +82,9 @@ class QuarticNewton(AbstractInverseMethod):
         key: PRNGKeyArray,
     ) -> Iterate:
         gram, alpha, upper = problem.gram, self.alpha, self.upper
+        if jnp.ndim(upper) == 1 and jnp.shape(upper) != (problem.n_blendshapes,):
+            k = problem.n_blendshapes
+            raise ValueError(f"upper: expected ({k},) per-weight bounds, got {jnp.shape(upper)}")
         projection = problem.projection(offset)
         lengths = 0.5 ** jnp.arange(self.line_steps, dtype=gram.dtype)
 
