@@ -6,6 +6,8 @@ Subcommands (``canrig SUBCOMMAND --help`` for each):
 - ``canrig animate RIG TAKE.csv -o anim.glb``: drive a rig from a Live Link Face CSV.
 - ``canrig invert RIG MESHES -o take.csv``: the inverse rig of a mesh sequence (a folder of
   OBJ files or an ``.npz``) written as a Live Link Face CSV.
+- ``canrig retarget TAKE.csv --from RIG --to-set SET -o out.csv``: a take carried onto
+  another control set of the same mesh (ARKit -> SRanipal, FACS, ...) as .csv or .glb.
 - ``canrig correct RIG EDITS -o rig.glb``: WPSE from sculpted frames, baked into the glTF.
 - ``canrig view FILE.glb [--port N]``: a local web viewer (127.0.0.1 only) for a rig or take;
   ``--screenshot OUT.png --time T`` renders one frame in headless Chromium instead.
@@ -398,6 +400,131 @@ def _invert(args) -> None:
         )
 
 
+# --------------------------------------------------------------------------------- retarget
+RETARGET_METHODS = {"newton": "QuarticNewton", **INVERSE_METHODS}
+"""``--method`` values of ``canrig retarget`` (QuarticNewton first: it keeps the box and
+converges in a few joint steps)."""
+
+
+def _rig_with_every_shape(path: str, option: str, crop: str | None):
+    """The rig of ``path``: an .fbx with every blend shape (``load_fbx_rig(names="all")``),
+    else as ``_load_rig`` reads it."""
+    from .rig import load_fbx_rig
+
+    p = _input(path, option)
+    if p.suffix.lower() == ".fbx":
+        return load_fbx_rig(p, names="all", crop=crop)
+    return _load_rig(path, option)
+
+
+def _control_set(rig, control_set: str, option: str, path: str):
+    """``rig`` cut to ``control_set`` (``all``: as it is)."""
+    from .rig import select_control_set
+
+    if control_set == "all":
+        return rig
+    try:
+        return select_control_set(rig, control_set)
+    except ValueError as error:
+        raise CommandError(f"{option} {path}: {str(error).replace('control_set: ', '')}") from None
+
+
+def _write_controls_csv(out: Path, take, weights: np.ndarray, names: Sequence[str]) -> None:
+    """The Live Link Face layout (``Timecode``, ``BlendShapeCount``, one column per control,
+    then the take's rotations) for controls of any name; ARKit ones through the app's writer."""
+    from ._io import save_text
+    from .data import capture_from_weights, format_timecode, write_livelink_csv
+    from .rig import control_set_of
+
+    rotations = np.asarray(take.head_eye_rotations, np.float32)
+    if all(control_set_of(n) == "arkit" for n in names):
+        capture = capture_from_weights(
+            weights,
+            names,
+            timecodes=take,
+            head_eye_rotations=rotations,
+            rotation_names=take.rotation_names,
+        )
+        write_livelink_csv(out, capture)
+        return
+    header = ["Timecode", "BlendShapeCount", *names, *take.rotation_names]
+    count = str(len(names) + len(take.rotation_names))
+    sub_frame = np.zeros(take.n_frames) if take.sub_frame is None else take.sub_frame
+    lines = [",".join(header)]
+    for t in range(take.n_frames):
+        stamp = format_timecode(int(take.frame_number[t]), float(sub_frame[t]), int(take.fps))
+        values = np.concatenate([weights[t], rotations[t]]).astype(np.float32)
+        cells = [np.format_float_positional(x, unique=True, trim="0") for x in values]
+        lines.append(",".join([stamp, count, *cells]))
+    save_text(out, "\n".join(lines) + "\n")
+
+
+def _retarget(args) -> None:
+    from . import inverse
+    from ._metrics import CM_TO_MM
+    from .data import read_livelink_csv
+    from .rig import UNIT_IN_CM, control_set_of, evaluate_batch, export_animated_gltf
+
+    out = _output(args.output, (".csv", ".glb"))
+    progress = _Progress(args.quiet)
+    crop = None if args.crop == "none" else args.crop
+    full = _rig_with_every_shape(args.source, "--from", crop)
+    source = _control_set(full, args.from_set, "--from-set", args.source)
+    progress(
+        f"read {args.source} ({args.from_set}): {source.n_blendshapes} controls, "
+        f"{source.n_vertices} vertices"
+    )
+    target_path = args.target or args.source
+    if args.target is not None and Path(args.target).resolve() != Path(args.source).resolve():
+        full = _rig_with_every_shape(args.target, "--to", crop)
+    target = _control_set(full, args.to_set, "--to-set", target_path)
+    progress(f"read {target_path} ({args.to_set}): {target.n_blendshapes} controls")
+    not_arkit = [n for n in source.names if control_set_of(n) != "arkit"]
+    if not_arkit:
+        raise CommandError(
+            f"--from-set {args.from_set}: the take drives ARKit controls, and {len(not_arkit)} "
+            f"of the source's have no ARKit name ({not_arkit[:5]}...); choose --from-set arkit"
+        )
+    take = read_livelink_csv(_input(args.take, "TAKE"), fps=args.fps)
+    progress(f"read {args.take}: {take.n_frames} frames at {take.fps:g} fps")
+    weights = take.weights_for(source.names, missing=args.missing)
+    cls = getattr(inverse, RETARGET_METHODS[args.method])
+    fields = {f.name for f in dataclasses.fields(cls)}
+    if "alpha" not in fields and args.alpha != 0.0:
+        _warn(f"--alpha: --method {args.method} takes no L1 weight; --alpha is not used")
+    method = cls(**({"alpha": args.alpha} if "alpha" in fields else {}))
+    progress(f"retargeting onto {target.n_blendshapes} controls with {method}")
+    options = {"correctives": args.correctives, "warm_start": args.warm_start}
+    try:
+        solution = inverse.retarget(source, weights, target, method, **options)
+    except ValueError as error:
+        if str(error).startswith("target_rig"):
+            raise CommandError(f"--to {target_path}: {error}") from None
+        raise
+    solved = np.asarray(solution.weights, np.float32)
+    if out.suffix.lower() == ".csv":
+        _write_controls_csv(out, take, solved, target.names)
+    else:
+        head = None
+        have = [n for n in ("HeadYaw", "HeadPitch", "HeadRoll") if n in take.rotation_names]
+        if args.head_rotation and len(have) == 3:
+            head = take.head_eye_rotations[:, [take.rotation_names.index(n) for n in have]]
+        times = _key_times(take, args.take)
+        export_animated_gltf(target, solved, out, fps=take.fps, times=times, head_rotation=head)
+    progress(f"wrote {out}: {take.n_frames} frames x {target.n_blendshapes} controls")
+    # offsets from each rig's neutral, in mm: what retarget matches
+    wanted = np.asarray(evaluate_batch(source, weights) - source.neutral)
+    got = np.asarray(evaluate_batch(target, solved) - target.neutral)
+    wanted, got = (x * UNIT_IN_CM[r.units] * CM_TO_MM for x, r in ((wanted, source), (got, target)))
+    error_mm = np.linalg.norm(got - wanted, axis=-1)
+    rmse = np.sqrt((error_mm**2).mean(axis=1))
+    print(
+        f"mesh error of the retargeted curves against the source over {take.n_frames} frames x "
+        f"{target.n_vertices} vertices: per-frame RMSE mean {rmse.mean():.4f} mm, max "
+        f"{rmse.max():.4f} mm; largest vertex error {error_mm.max():.4f} mm"
+    )
+
+
 # ---------------------------------------------------------------------------------- correct
 def _correct(args) -> None:
     from . import wpse
@@ -542,6 +669,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_autorig_parser(sub)
     _add_animate_parser(sub)
     _add_invert_parser(sub)
+    _add_retarget_parser(sub)
     _add_correct_parser(sub)
     _add_view_parser(sub)
     return parser
@@ -694,6 +822,84 @@ def _add_invert_parser(sub) -> None:
     )
     p.add_argument("--reference", help="a .csv take to report the weight error against")
     p.set_defaults(run=_invert)
+
+
+def _add_retarget_parser(sub) -> None:
+    from .rig import CONTROL_SETS
+
+    p = _add_command(
+        sub,
+        "retarget",
+        "Carry a Live Link Face take onto another set of controls of the same mesh (inverse "
+        "rig through the mesh): e.g. ARKit -> SRanipal or FACS on a Rocketbox head.",
+        [("take", "the .csv take (ARKit channels)")],
+        "the target's curves: a .csv (Live Link Face layout, one column per target control) "
+        "or an animated .glb of the target rig",
+    )
+    sets = (*CONTROL_SETS, "all")
+    p.add_argument(
+        "--from",
+        dest="source",
+        required=True,
+        metavar="RIG",
+        help="the rig the take drives: an .fbx (every blend shape is read), .glb or .npz",
+    )
+    p.add_argument(
+        "--from-set",
+        choices=sets,
+        default="arkit",
+        help="the source's controls, by name: the take's ARKit channels (default: %(default)s)",
+    )
+    p.add_argument("--to", dest="target", metavar="RIG", help="the target rig (default: --from)")
+    p.add_argument(
+        "--to-set",
+        choices=sets,
+        required=True,
+        help="the target's controls: arkit (AK_NN_ / ARKit names), facs (AU_NN_), sranipal "
+        "(SR_NN_), visemes (AA_VI_NN_), or all of the rig's shapes",
+    )
+    p.add_argument(
+        "--crop",
+        choices=("head", "none"),
+        default="head",
+        help="an .fbx body cut to the head, or kept whole (default: %(default)s)",
+    )
+    p.add_argument(
+        "--method",
+        choices=tuple(RETARGET_METHODS),
+        default="newton",
+        help="inverse-rig solver (default: %(default)s = QuarticNewton, projected Gauss-Newton)",
+    )
+    p.add_argument(
+        "--alpha",
+        type=float,
+        default=0.0,
+        help="L1 sparsity weight, squared target units (cm^2), for methods that take it "
+        "(default: %(default)s)",
+    )
+    p.add_argument(
+        "--warm-start", action="store_true", help="start each frame from the previous one"
+    )
+    p.add_argument(
+        "--correctives",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="invert on the target's correctives too (default: on)",
+    )
+    p.add_argument("--fps", type=int, help="the take's frame rate (default: from the timecodes)")
+    p.add_argument(
+        "--missing",
+        choices=("zero", "raise"),
+        default="zero",
+        help="a source control the take lacks: weight 0 or an error (default: zero)",
+    )
+    p.add_argument(
+        "--head-rotation",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="a .glb output animates HeadYaw/HeadPitch/HeadRoll (default: on)",
+    )
+    p.set_defaults(run=_retarget)
 
 
 def _add_correct_parser(sub) -> None:

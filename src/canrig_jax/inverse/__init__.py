@@ -8,7 +8,8 @@ Every method is an ``AbstractInverseMethod`` (``METHODS`` lists the classes):
 ``QuarticCD``, ``LinearCD`` (coordinate descent, ``AbstractCoordinateDescent``),
 ``QuarticNewton`` (projected Gauss-Newton on the same objective), ``Seol``,
 ``Joshi``, ``Cetinaslan``, ``LMMM``, ``JaxoptLBFGSB``. Coordinate orders in ``ORDERS``;
-whole takes with ``solve_sequence``; live capture with ``Stream``; metrics
+whole takes with ``solve_sequence``; a take carried onto another control set of the same mesh
+with ``retarget``; live capture with ``Stream``; metrics
 (``summarize``, ``roughness``, ``select_alpha``); the NumPy reference of Algorithm 1
 (``numpy_quartic_cd``, ``minimum``) for checks and speed ratios.
 """
@@ -45,6 +46,7 @@ from ._reference import (
     time_batched,
     time_single_frames,
 )
+from ._retarget import NEUTRAL_TOL_MM, retarget
 from ._solution import Solution
 from ._solve import Stream, solve, solve_sequence
 
@@ -53,6 +55,8 @@ METHODS = (QuarticCD, QuarticNewton, LinearCD, Seol, Joshi, Cetinaslan, LMMM, Ja
 
 __all__ = [
     "CARDINALITY_TOL",
+    "NEUTRAL_TOL_MM",
+    "retarget",
     "NumpyDenseRig",
     "decreasing_norm_order",
     "frame_metrics",

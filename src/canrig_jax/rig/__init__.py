@@ -12,6 +12,7 @@ from ._blendshape import (
     evaluate,
     evaluate_batch,
 )
+from ._control_sets import CONTROL_SETS, control_set_of, select_blendshapes, select_control_set
 from ._fbx import load_fbx_rig
 from ._gltf import export_gltf, load_gltf_rig
 from ._gltf_animation import (
@@ -36,6 +37,10 @@ from ._synthesis import (
 from ._transfer import deformation_transfer, remesh_rig
 
 __all__ = [
+    "CONTROL_SETS",
+    "control_set_of",
+    "select_blendshapes",
+    "select_control_set",
     "arkit_channels",
     "rename_to_arkit",
     "UNIT_IN_CM",
