@@ -11,6 +11,7 @@ from typing import Any, NamedTuple
 
 import equinox as eqx
 import numpy as np
+import optimistix as optx
 from equinox import AbstractClassVar, AbstractVar
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
@@ -26,13 +27,18 @@ class Iterate(NamedTuple):
         history: (T,) objective after each step of the method (pass, iteration); T = 1 for a
             closed form.
         steps: number of passes / iterations actually taken.
-        converged: False when an iterative method stopped at its cap before its tolerance.
+        converged: True only when the method's stated stopping test held (its tolerance was
+            met); False when it stopped at its cap or for any other reason first.
+        result: optional ``optimistix.RESULTS`` naming why the method stopped, for methods
+            with more than one way to stop short of the tolerance (L-BFGS-B's failed line
+            search); None: ``solve`` derives it from ``converged``.
     """
 
     weights: Float[Array, " K"]
     history: Float[Array, " T"]
     steps: Int[Array, ""]
     converged: Bool[Array, ""]
+    result: optx.RESULTS | None = None
 
 
 class AbstractInverseMethod(eqx.Module):

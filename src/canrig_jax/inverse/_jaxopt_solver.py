@@ -7,6 +7,7 @@ from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
+import optimistix as optx
 from jax.custom_batching import sequential_vmap
 from jaxtyping import Array, Float, PRNGKeyArray
 
@@ -19,15 +20,23 @@ class JaxoptLBFGSB(AbstractInverseMethod):
     """``jaxopt.LBFGSB`` on 1/2 ||f(w) - b||^2 + alpha 1^T w over [0, upper]^K (the L1 term is
     smooth on the box), from the initial weights (zero by default).
 
-    A frame whose run ends with a non-finite value (a failed line search can divide by a
-    zero curvature pair; seen for one frame in 335 under ``vmap``) returns the best finite
-    point it has, the start, with ``converged`` False, so ``Solution.result`` names the
-    failure and no NaN reaches the caller.
+    Its stopping test is jaxopt's: the projected gradient step ||clip(w - grad E, 0, upper) -
+    w||_inf <= ``tol`` (absolute, in objective units per unit weight). ``Solution.result``
+    says how the run ended: ``successful`` when that test held; ``max_steps_reached`` when
+    it ran all ``maxiter`` iterations without it; ``stagnation`` when the line search found
+    no acceptable step first (the run stops there: in float32 this is how most frames of a
+    real take end, near but not at the tolerance); ``nonlinear_divergence`` when the run
+    ended with a non-finite value (a failed line search can divide by a zero curvature
+    pair), in which case the weights are the start, never NaN.
 
     Attributes:
+        alpha: L1 weight (>= 0).
+        maxiter: cap on the L-BFGS-B iterations.
+        tol: projected-gradient tolerance (absolute, see above).
         objective: ``"evaluate"`` differentiates ``rig.evaluate`` itself (3V-sized work per
             call); ``"gram"`` the same function in coefficient space (P x P work, about 40x
             cheaper on ict-quartic). Both give the same minimiser.
+        upper: box upper bound.
     """
 
     alpha: float = 0.0
@@ -53,14 +62,21 @@ class JaxoptLBFGSB(AbstractInverseMethod):
         key: PRNGKeyArray,
     ) -> Iterate:
         projection, offset_sq = problem.projection(offset), offset @ offset
-        params, steps, error = _run_lbfgsb(self, problem, offset, init)
+        params, steps, error, failed_linesearch = _run_lbfgsb(self, problem, offset, init)
         fun = _objective(self, problem, offset)
         value = problem.objective(params, projection, offset_sq, self.alpha)
-        finite = jnp.all(jnp.isfinite(params)) & jnp.isfinite(value)
+        finite = jnp.all(jnp.isfinite(params)) & jnp.isfinite(value) & jnp.isfinite(error)
         weights = jnp.where(finite, jnp.clip(params, 0.0, self.upper), init)  # box round-off
         history = jnp.where(finite, value, fun(init))[None]
         converged = finite & (error <= self.tol)
-        return Iterate(weights, history, steps, converged)
+        results = optx.RESULTS
+        short = results.where(failed_linesearch, results.stagnation, results.max_steps_reached)
+        result = results.where(
+            finite,
+            results.where(converged, results.successful, short),
+            results.nonlinear_divergence,
+        )
+        return Iterate(weights, history, steps, converged, result)
 
 
 def _jaxopt():
@@ -90,10 +106,10 @@ def _objective(method: JaxoptLBFGSB, problem: InverseProblem, offset):
 
 @sequential_vmap
 def _run_lbfgsb(method: JaxoptLBFGSB, problem: InverseProblem, offset, init):
-    """(weights, iterations, error) of one frame. jaxopt's L-BFGS-B inverts its small
-    compact-representation matrices with LAPACK: under ``vmap`` the frames run one after
-    another (``sequential_vmap``), so that no LAPACK call ever holds a batch (see
-    ``canrig_jax._linalg``)."""
+    """(weights, iterations, projected-gradient error, line search failed) of one frame.
+    jaxopt's L-BFGS-B inverts its small compact-representation matrices with LAPACK: under
+    ``vmap`` the frames run one after another (``sequential_vmap``), so that no LAPACK call
+    ever holds a batch (see ``canrig_jax._linalg``)."""
     solver = _jaxopt().LBFGSB(
         fun=_objective(method, problem, offset),
         maxiter=method.maxiter,
@@ -102,4 +118,4 @@ def _run_lbfgsb(method: JaxoptLBFGSB, problem: InverseProblem, offset, init):
     )
     bounds = (jnp.zeros_like(init), jnp.full_like(init, method.upper))
     params, state = solver.run(init, bounds=bounds)
-    return params, state.iter_num, state.error
+    return params, state.iter_num, state.error, state.failed_linesearch

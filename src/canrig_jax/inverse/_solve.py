@@ -73,11 +73,12 @@ def _solve_one(problem, target, method, init, key) -> Solution:
     finite = jnp.all(jnp.isfinite(run.weights)) & jnp.isfinite(value)
     weights = jnp.where(finite, run.weights, init)
     value = jnp.where(finite, value, objective(problem, init, offset, l1))
-    result = optx.RESULTS.where(
-        finite,
-        optx.RESULTS.where(run.converged, optx.RESULTS.successful, optx.RESULTS.max_steps_reached),
-        optx.RESULTS.nonlinear_divergence,
-    )
+    stopped = run.result
+    if stopped is None:
+        stopped = optx.RESULTS.where(
+            run.converged, optx.RESULTS.successful, optx.RESULTS.max_steps_reached
+        )
+    result = optx.RESULTS.where(finite, stopped, optx.RESULTS.nonlinear_divergence)
     stats = {"steps": jnp.asarray(run.steps, jnp.int32), "converged": run.converged & finite}
     return Solution(weights=weights, objective=value, history=run.history, result=result,
                     stats=stats)  # fmt: skip
