@@ -426,7 +426,8 @@ def _control_set(rig, control_set: str, option: str, path: str):
     try:
         return select_control_set(rig, control_set)
     except ValueError as error:
-        raise CommandError(f"{option} {path}: {str(error).replace('control_set: ', '')}") from None
+        message = str(error).replace("control_set: the rig", path, 1)
+        raise CommandError(f"{option} {control_set}: {message}") from None
 
 
 def _write_controls_csv(out: Path, take, weights: np.ndarray, names: Sequence[str]) -> None:

@@ -135,7 +135,9 @@ def retarget(
         zero = [rig.names[i] if rig.names else int(i) for i in np.flatnonzero(norms == 0)]
         warn(f"retarget: target_rig blendshapes {zero} have all-zero deltas; their curves are 0")
         rig = _without_shapes(rig, np.flatnonzero(norms == 0).tolist())
-    problem = prepare(rig)
+    # names and faces play no part in the solve: without them, every target of one shape
+    # structure shares one compiled solve
+    problem = prepare(BlendshapeRig(rig.neutral, rig.deltas, rig.correctives, (), None, rig.units))
 
     scale = UNIT_IN_CM[source_rig.units] / UNIT_IN_CM[target_rig.units]
     meshes = evaluate_batch(source_rig, weights)
