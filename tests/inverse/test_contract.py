@@ -28,6 +28,13 @@ METHOD_CASES = (
     inverse.Cetinaslan(alpha=0.5),
     inverse.LMMM(alpha=0.5, iterations=6),
     inverse.JaxoptLBFGSB(alpha=0.5, maxiter=8),
+    # exclusive pairs resolved by re-solving, and a left/right tie (indices valid on every rig)
+    inverse.Constrained(
+        inverse.QuarticNewton(alpha=0.5, iterations=4),
+        exclusive=((0, 1), (2, 3)),
+        ties=((4, 5),),
+        tie_weight=0.5,
+    ),
 )
 
 

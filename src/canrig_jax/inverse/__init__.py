@@ -8,6 +8,8 @@ Every method is an ``AbstractInverseMethod`` (``METHODS`` lists the classes):
 ``QuarticCD``, ``LinearCD`` (coordinate descent, ``AbstractCoordinateDescent``),
 ``QuarticNewton`` (projected Gauss-Newton on the same objective), ``Seol``,
 ``Joshi``, ``Cetinaslan``, ``LMMM``, ``JaxoptLBFGSB``. Coordinate orders in ``ORDERS``;
+mutually exclusive pairs and left/right ties with ``Constrained`` (``exclusive_pairs``,
+``left_right_pairs``);
 whole takes with ``solve_sequence``; a take carried onto another control set of the same mesh
 with ``retarget``; live capture with ``Stream``; metrics
 (``summarize``, ``roughness``, ``select_alpha``); the NumPy reference of Algorithm 1
@@ -15,6 +17,12 @@ with ``retarget``; live capture with ``Stream``; metrics
 """
 
 from ._base import AbstractInverseMethod, Iterate
+from ._constraints import (
+    ARKIT_EXCLUSIVE_PAIRS,
+    Constrained,
+    exclusive_pairs,
+    left_right_pairs,
+)
 from ._coordinate_descent import (
     ORDERS,
     AbstractCoordinateDescent,
@@ -50,11 +58,25 @@ from ._retarget import NEUTRAL_TOL_MM, retarget
 from ._solution import Solution
 from ._solve import Stream, solve, solve_sequence
 
-METHODS = (QuarticCD, QuarticNewton, LinearCD, Seol, Joshi, Cetinaslan, LMMM, JaxoptLBFGSB)
+METHODS = (
+    QuarticCD,
+    QuarticNewton,
+    LinearCD,
+    Seol,
+    Joshi,
+    Cetinaslan,
+    LMMM,
+    JaxoptLBFGSB,
+    Constrained,
+)
 """Every inverse-rig method class (each a final ``AbstractInverseMethod``)."""
 
 __all__ = [
+    "ARKIT_EXCLUSIVE_PAIRS",
     "CARDINALITY_TOL",
+    "Constrained",
+    "exclusive_pairs",
+    "left_right_pairs",
     "NEUTRAL_TOL_MM",
     "retarget",
     "NumpyDenseRig",
