@@ -88,6 +88,7 @@ default RigAnyFace (``canrig_jax.autorig.DEFAULT_CHECKPOINT``) since 2026-12-04.
 STANDARD_EXPERIMENTS = (
     ("build_quartic_rig.py", "--out", "experiments/results/build_quartic_rig"),
     ("inverse_rig.py", "--out", "experiments/results/inverse_rig"),
+    ("inverse_rig_exclusions.py", "--out", "experiments/results/inverse_rig"),  # its section
     ("inverse_rig_retarget.py", "--out", "experiments/results/inverse_rig"),  # its section
     ("wpse.py", "--out", "experiments/results/wpse"),
     ("wpse_timing.py", "--out", "experiments/results/wpse"),  # Table 1's rows, into wpse's

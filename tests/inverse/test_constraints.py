@@ -64,6 +64,12 @@ def test_pairs_from_names():
     # ties: same stem with Left/Right or _L/_R; the exclusive pairs are not tied by default
     assert inverse.left_right_pairs(NAMES) == ((4, 5), (6, 7))
     assert inverse.left_right_pairs(NAMES, exclude=()) == ((0, 1), (2, 3), (4, 5), (6, 7))
+    # both_active: per frame and pair, both members above the threshold
+    weights = np.array([[0.5, 0.002, 0.0, 0.3], [0.5, 0.0005, 0.2, 0.3]])
+    np.testing.assert_array_equal(
+        inverse.both_active(weights, ((0, 1), (2, 3))), [[True, False], [False, True]]
+    )
+    assert inverse.both_active(weights, ((0, 1),), tol=0.0).all()
 
 
 def _constrained(rig, tie_weight=0.0, exclusive=True):

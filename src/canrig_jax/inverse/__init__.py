@@ -20,6 +20,7 @@ from ._base import AbstractInverseMethod, Iterate
 from ._constraints import (
     ARKIT_EXCLUSIVE_PAIRS,
     Constrained,
+    both_active,
     exclusive_pairs,
     left_right_pairs,
 )
@@ -75,6 +76,7 @@ __all__ = [
     "ARKIT_EXCLUSIVE_PAIRS",
     "CARDINALITY_TOL",
     "Constrained",
+    "both_active",
     "exclusive_pairs",
     "left_right_pairs",
     "NEUTRAL_TOL_MM",

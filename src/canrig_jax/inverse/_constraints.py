@@ -40,11 +40,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray
 
 from .._checks import is_concrete
 from ..data import arkit_name_of
 from ._base import AbstractInverseMethod, Iterate
+from ._metrics import CARDINALITY_TOL
 from ._problem import InverseProblem
 from ._projected_newton import QuarticNewton
 
@@ -164,6 +165,24 @@ def left_right_pairs(
                 out.append((i, j))
                 break
     return tuple(out)
+
+
+def both_active(
+    weights: Float[ArrayLike, "*frames K"],
+    pairs: tuple[tuple[int, int], ...],
+    *,
+    tol: float = CARDINALITY_TOL,
+) -> Bool[np.ndarray, "*frames E"]:
+    """(..., E) whether both members of each pair are active (weight > ``tol``; the
+    cardinality's threshold by default, 0 for "both non-zero") in each frame of ``weights``."""
+    weights = np.asarray(weights)
+    pairs = _index_pairs(pairs, "pairs")
+    if weights.ndim < 1 or any(max(p) >= weights.shape[-1] for p in pairs):
+        raise ValueError(f"pairs: index past the {np.shape(weights)[-1:]} weights")
+    if not pairs:
+        return np.zeros((*weights.shape[:-1], 0), bool)
+    left, right = (list(side) for side in zip(*pairs, strict=True))
+    return (weights[..., left] > tol) & (weights[..., right] > tol)
 
 
 def _index_pairs(pairs: Any, argument: str) -> tuple[tuple[int, int], ...]:
