@@ -66,6 +66,24 @@ class AbstractInverseMethod(eqx.Module):
     ) -> Iterate:
         """Solve for one frame; ``offset`` = (b - b0).ravel() in rig units. jit/vmap-safe."""
 
+    def initial_carry(self, problem: InverseProblem) -> Any:
+        """What ``Stream`` hands from one frame's solve to the next besides the weights
+        (``step``), before the first frame; None for methods that reuse nothing else."""
+        return None
+
+    def step(
+        self,
+        problem: InverseProblem,
+        offset: Float[Array, " N"],
+        init: Float[Array, " K"],
+        key: PRNGKeyArray,
+        carry: Any,
+    ) -> tuple[Iterate, Any]:
+        """One frame of a ``Stream``: ``__call__`` and the carry for the next frame (a pytree
+        of fixed structure, e.g. a matrix computed at the solution that the next,
+        warm-started, frame starts from)."""
+        return self(problem, offset, init, key), carry
+
 
 def check_alpha(alpha: Any) -> None:
     if not is_concrete(alpha):

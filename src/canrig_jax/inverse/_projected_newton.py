@@ -40,6 +40,7 @@ from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 from .._checks import is_concrete
 from .._linalg import spd_solve
 from ._base import AbstractInverseMethod, Iterate, check_alpha, check_count, check_upper
+from ._coordinate_descent import _one_frame_or_batch
 from ._problem import InverseProblem
 
 
@@ -57,6 +58,14 @@ class QuarticNewton(AbstractInverseMethod):
         upper: upper bound of the box (1 in the paper; ``jnp.inf`` for none), or (K,)
             per-weight bounds >= 0 (a bound of 0 holds its weight at exactly 0; how
             ``Constrained`` keeps one of a mutually exclusive pair off).
+        refresh: one frame at a time, the Gauss-Newton matrix G Q G^T (the one K x P x P
+            product of an iteration, most of its cost) is recomputed every ``refresh``
+            iterations and reused in between (a chord step: still a descent direction, the
+            line search still only accepts decreases); an iteration that gains less than
+            ``tol`` on a reused matrix recomputes it before the solve may stop, so the
+            stopping test is always passed on a fresh one. 1 (default) recomputes it every
+            iteration. Under ``vmap`` (a take) it is recomputed every iteration whatever
+            ``refresh`` is (the batch shares one branch).
     """
 
     alpha: float = 0.0
@@ -64,12 +73,14 @@ class QuarticNewton(AbstractInverseMethod):
     tol: float = 1e-5
     line_steps: int = eqx.field(static=True, default=6)
     upper: float | Float[ArrayLike, " K"] = 1.0
+    refresh: int = eqx.field(static=True, default=1)
     penalises_l1: ClassVar[bool] = True
 
     def __check_init__(self):
         check_alpha(self.alpha)
         check_count("iterations", self.iterations)
         check_count("line_steps", self.line_steps)
+        check_count("refresh", self.refresh)
         check_upper(self.upper, per_weight=True)
         if is_concrete(self.tol) and not 0 <= self.tol < 1:
             raise ValueError(f"tol: expected a relative tolerance in [0, 1), got {self.tol}")
@@ -81,6 +92,26 @@ class QuarticNewton(AbstractInverseMethod):
         init: Float[Array, " K"],
         key: PRNGKeyArray,
     ) -> Iterate:
+        return self.step(problem, offset, init, key, self.initial_carry(problem))[0]
+
+    def initial_carry(self, problem: InverseProblem) -> tuple[Array, Array, Array]:
+        """(point, Gauss-Newton matrix at it, carried): at w = 0 every product of two or more
+        weights has a zero factor, so G = [I 0] and the matrix is the linear Gram block; a
+        solve from zero starts with it for free."""
+        k = problem.n_blendshapes
+        return jnp.zeros(k, problem.gram.dtype), problem.gram[:k, :k], jnp.asarray(False)
+
+    def step(
+        self,
+        problem: InverseProblem,
+        offset: Float[Array, " N"],
+        init: Float[Array, " K"],
+        key: PRNGKeyArray,
+        carry: tuple[Array, Array, Array],
+    ) -> tuple[Iterate, tuple[Array, Array, Array]]:
+        """The solve from ``init`` with the Gauss-Newton matrix of ``carry`` (exact where
+        ``init`` is its point; from a previous frame's solve it is one iteration old, so it
+        counts as reused); returns the matrix last computed for the next frame."""
         gram, alpha, upper = problem.gram, self.alpha, self.upper
         if jnp.ndim(upper) == 1 and jnp.shape(upper) != (problem.n_blendshapes,):
             k = problem.n_blendshapes
@@ -89,12 +120,16 @@ class QuarticNewton(AbstractInverseMethod):
         lengths = 0.5 ** jnp.arange(self.line_steps, dtype=gram.dtype)
 
         def iteration(state):
-            n, weights, value, _, history = state
+            n, weights, value, gain, history, hessian, at, age = state
             a = problem.coefficients(weights)
             residual = gram @ a - projection  # Q a - p
             jacobian = problem.jacobian(weights)
             grad = jacobian @ residual + alpha
-            hessian = (jacobian @ gram) @ jacobian.T
+            stale = (age >= self.refresh) | (gain <= self.tol * jnp.abs(value))
+            stale = _one_frame_or_batch(stale, jnp.asarray(True))  # a batch: every iteration
+            hessian = jax.lax.cond(stale, lambda: (jacobian @ gram) @ jacobian.T, lambda: hessian)
+            at = jnp.where(stale, weights, at)
+            age = jnp.where(stale, 1, age + 1)
             eps = jnp.minimum(
                 1e-3 * upper, jnp.linalg.norm(weights - jnp.clip(weights - grad, 0.0, upper))
             )
@@ -118,16 +153,22 @@ class QuarticNewton(AbstractInverseMethod):
             weights = jnp.where(better, trials[best], weights)
             gain = jnp.where(better, -decrease[best], 0.0)
             value = value - gain
-            return n + 1, weights, value, gain, history.at[n].set(value)
+            return n + 1, weights, value, gain, history.at[n].set(value), hessian, at, age
 
         def keep_going(state):
-            n, _, value, gain, _ = state
-            return (n < self.iterations) & ((n == 0) | (gain > self.tol * jnp.abs(value)))
+            n, _, value, gain, _, _, _, age = state
+            small = gain <= self.tol * jnp.abs(value)
+            return (n < self.iterations) & ((n == 0) | ~small | (age > 1))
 
         value0 = problem.objective(init, projection, offset @ offset, alpha)
         history0 = jnp.zeros(self.iterations, gram.dtype)
-        state = (jnp.asarray(0), init, value0, jnp.asarray(jnp.inf, gram.dtype), history0)
-        n, weights, value, gain, history = jax.lax.while_loop(keep_going, iteration, state)
+        at0, hessian0, carried = carry
+        age0 = jnp.where(jnp.all(init == at0), 0, jnp.where(carried, 1, self.refresh))
+        gain0 = jnp.asarray(jnp.inf, gram.dtype)
+        state = (jnp.asarray(0), init, value0, gain0, history0, hessian0, at0, age0)
+        n, weights, value, gain, history, hessian, at, age = jax.lax.while_loop(
+            keep_going, iteration, state
+        )
         history = jnp.where(jnp.arange(self.iterations) < n, history, value)
-        converged = gain <= self.tol * jnp.abs(value)
-        return Iterate(weights, history, n, converged)
+        converged = (gain <= self.tol * jnp.abs(value)) & (age == 1)
+        return Iterate(weights, history, n, converged), (at, hessian, jnp.asarray(True))

@@ -6,6 +6,8 @@ per (problem shape, method type and static settings) and is reused by every late
 ``solve_sequence`` and by ``Stream``. Inside a caller's ``jit``/``vmap`` it is traced inline.
 """
 
+from typing import Any
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -19,6 +21,7 @@ from ._base import AbstractInverseMethod
 from ._coordinate_descent import objective
 from ._problem import InverseProblem, prepare
 from ._solution import Solution
+from ._temporal import AbstractTemporalMethod, time_terms_per_frame, window_owner
 
 
 def _check_method(method) -> None:
@@ -62,12 +65,27 @@ def _check_target(problem: InverseProblem, name: str, target, batched: bool) -> 
         check_finite(name, values)
 
 
-def _solve_one(problem, target, method, init, key) -> Solution:
-    """The traced body: one frame, inputs already validated."""
+def _offset_and_init(problem, target, method, init):
     dtype = problem.columns.dtype
     offset = (jnp.asarray(target, dtype) - problem.neutral).reshape(-1)
-    init = jnp.clip(jnp.asarray(init, dtype), 0.0, method.upper)
-    run = method(problem, offset, init, key)
+    return offset, jnp.clip(jnp.asarray(init, dtype), 0.0, method.upper)
+
+
+def _solve_one(problem, target, method, init, key) -> Solution:
+    """The traced body: one frame, inputs already validated."""
+    offset, init = _offset_and_init(problem, target, method, init)
+    return _solution(problem, offset, method, init, method(problem, offset, init, key))
+
+
+def _stream_one(problem, target, method, init, key, carry) -> tuple[Solution, Any]:
+    """One frame of a ``Stream``: the solution and the method's carry for the next frame."""
+    offset, init = _offset_and_init(problem, target, method, init)
+    run, carry = method.step(problem, offset, init, key, carry)
+    return _solution(problem, offset, method, init, run), carry
+
+
+def _solution(problem, offset, method, init, run) -> Solution:
+    """The Solution of a method's Iterate: objective under the full rig, finite or the start."""
     l1 = method.alpha if method.penalises_l1 else 0.0
     value = objective(problem, run.weights, offset, l1)
     finite = jnp.all(jnp.isfinite(run.weights)) & jnp.isfinite(value)
@@ -85,6 +103,7 @@ def _solve_one(problem, target, method, init, key) -> Solution:
 
 
 _solve_jit = eqx.filter_jit(_solve_one)
+_stream_jit = eqx.filter_jit(_stream_one)
 
 
 def _traced_floats(method: AbstractInverseMethod) -> AbstractInverseMethod:
@@ -162,6 +181,41 @@ def _solve_warm(problem, targets, method, keys):
     return solutions
 
 
+@eqx.filter_jit
+def _solve_temporal(problem, targets, method, key):
+    """A temporal method on the whole take: per-frame leaves like ``_solve_batch``."""
+    dtype = problem.columns.dtype
+    n, k = targets.shape[0], problem.n_blendshapes
+    offsets = (targets - problem.neutral).reshape(n, -1)
+    init = jnp.zeros((n, k), dtype)
+    run = method.sequence(problem, offsets, init, key)
+    per_frame = jax.vmap(lambda w, o: objective(problem, w, o, method.alpha))
+    values = per_frame(run.weights, offsets)
+    finite = jnp.all(jnp.isfinite(run.weights)) & jnp.all(jnp.isfinite(values))
+    weights = jnp.where(finite, run.weights, init)
+    values = jnp.where(finite, values, per_frame(init, offsets))
+    owner = jnp.asarray(window_owner(n, method.window))
+    history = run.history.reshape(-1, run.history.shape[-1])[owner]
+    steps = jnp.atleast_1d(jnp.asarray(run.steps, jnp.int32))[owner]
+    converged = jnp.atleast_1d(run.converged)[owner] & finite
+    smooth, speed = time_terms_per_frame(weights, method.smoothness, method.velocity)
+
+    def frame(weights, value, history, steps, converged, smooth, speed):
+        result = optx.RESULTS.where(
+            finite,
+            optx.RESULTS.where(
+                converged, optx.RESULTS.successful, optx.RESULTS.max_steps_reached
+            ),
+            optx.RESULTS.nonlinear_divergence,
+        )
+        stats = {"steps": steps, "converged": converged, "smoothness_term": smooth,
+                 "velocity_term": speed}  # fmt: skip
+        return Solution(weights=weights, objective=value, history=history, result=result,
+                        stats=stats)  # fmt: skip
+
+    return jax.vmap(frame)(weights, values, history, steps, converged, smooth, speed)
+
+
 def solve_sequence(
     problem: InverseProblem | BlendshapeRig,
     targets: Float[ArrayLike, "T V 3"],
@@ -179,6 +233,13 @@ def solve_sequence(
     (``jax.random.split(key, T)``), so the ``random`` order draws a fresh permutation per
     frame and pass.
 
+    A temporal method (``AbstractTemporalMethod``, e.g. ``TemporalNewton``) solves the take
+    jointly instead (``warm_start`` must be False): ``objective[t]`` is still frame t's
+    1/2 ||f(w_t) - b_t||^2 + alpha 1^T w_t, the time terms are in ``stats["smoothness_term"]``
+    and ``stats["velocity_term"]`` (split over frames so that everything sums to the take's
+    E), and ``history[t]`` is the whole take's E after each iteration (of the window that
+    weighs frame t most, when the method solves windows).
+
     Compiled once per problem shape, take length and method type: later calls with other
     targets or another alpha reuse the compiled function. Every frame is checked first: a
     non-finite frame raises a ValueError listing the frames.
@@ -189,6 +250,12 @@ def solve_sequence(
     if not isinstance(warm_start, bool):
         raise TypeError(f"warm_start: expected a bool, got {warm_start!r}")
     targets = jnp.asarray(targets, problem.columns.dtype)
+    if isinstance(method, AbstractTemporalMethod):
+        if warm_start:
+            raise ValueError(
+                "warm_start: a temporal method solves the take jointly; pass warm_start=False"
+            )
+        return _solve_temporal(problem, targets, _traced_floats(method), _key(key))
     keys = jax.random.split(_key(key), targets.shape[0])
     run = _solve_warm if warm_start else _solve_batch
     return run(problem, targets, _traced_floats(method), keys)
@@ -227,15 +294,16 @@ class Stream:
         self.frame = 0
         self.zeros: Array = jnp.zeros(self.problem.n_blendshapes, self.problem.columns.dtype)
         self.previous: Array = self.zeros
+        self.start = self.carry = self.method.initial_carry(self.problem)
 
     def __call__(self, target: Float[ArrayLike, "V 3"]) -> Solution:
         _check_target(self.problem, "target", target, batched=False)
-        init = self.previous if self.warm_start else self.zeros
+        init, carry = (self.previous, self.carry) if self.warm_start else (self.zeros, self.start)
         key = _fold_in(self.key, self.frame)
-        solution = _solve_jit(self.problem, target, self.method, init, key)
+        solution, carry = _stream_jit(self.problem, target, self.method, init, key, carry)
         self.frame += 1
         if self.warm_start:
-            self.previous = solution.weights
+            self.previous, self.carry = solution.weights, carry
         return solution
 
 
