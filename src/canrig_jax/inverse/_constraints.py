@@ -191,7 +191,10 @@ def _index_pairs(pairs: Any, argument: str) -> tuple[tuple[int, int], ...]:
         raise ValueError(f"{argument}: expected index pairs (i, j), got the string {pairs!r}")
     out = []
     for pair in pairs:
-        values = tuple(pair) if not isinstance(pair, str) else ()
+        try:
+            values: tuple[Any, ...] = () if isinstance(pair, str) else tuple(pair)
+        except TypeError:  # not iterable
+            values = ()
         ok = len(values) == 2 and all(
             isinstance(v, int | np.integer) and not isinstance(v, bool) and v >= 0 for v in values
         )
@@ -266,11 +269,11 @@ class Constrained(AbstractInverseMethod):
             )
 
     @property
-    def alpha(self):
+    def alpha(self) -> float | Float[ArrayLike, ""]:
         return self.method.alpha
 
     @property
-    def upper(self):
+    def upper(self) -> float | Float[ArrayLike, ""] | Float[ArrayLike, " K"]:
         return self.method.upper
 
     def tie_penalty(self, weights: Float[ArrayLike, "*frames K"]) -> Float[Array, "*frames"]:
