@@ -12,7 +12,8 @@ mutually exclusive pairs and left/right ties with ``Constrained`` (``exclusive_p
 ``left_right_pairs``);
 whole takes with ``solve_sequence``; a take carried onto another control set of the same mesh
 with ``retarget``; live capture with ``Stream``; metrics
-(``summarize``, ``roughness``, ``select_alpha``); the NumPy reference of Algorithm 1
+(``summarize``, ``roughness``, ``select_alpha``); the sparsity protocol (``alpha_sweep``,
+``sparsest_alpha_within``, ``sparsity_verdict``); the NumPy reference of Algorithm 1
 (``numpy_quartic_cd``, ``minimum``) for checks and speed ratios.
 """
 
@@ -58,6 +59,13 @@ from ._reference import (
 from ._retarget import NEUTRAL_TOL_MM, retarget
 from ._solution import Solution
 from ._solve import Stream, solve, solve_sequence
+from ._sparsity import (
+    SPARSITY_TARGET,
+    alpha_sweep,
+    noisy_meshes,
+    sparsest_alpha_within,
+    sparsity_verdict,
+)
 
 METHODS = (
     QuarticCD,
@@ -75,6 +83,11 @@ METHODS = (
 __all__ = [
     "ARKIT_EXCLUSIVE_PAIRS",
     "CARDINALITY_TOL",
+    "SPARSITY_TARGET",
+    "alpha_sweep",
+    "noisy_meshes",
+    "sparsest_alpha_within",
+    "sparsity_verdict",
     "Constrained",
     "both_active",
     "exclusive_pairs",
