@@ -53,7 +53,7 @@ def lint(session):
 @nox.session
 def bench(session):
     """Speed benchmarks against reference implementations, printed as tables."""
-    session.install("-e", ".")
+    session.install("-e", ".[jaxopt]")  # bench_lbfgsb times inverse.JaxoptLBFGSB
     for script in sorted(Path("benchmarks").glob("bench_*.py")):
         session.run("python", str(script))
 
@@ -88,6 +88,7 @@ default RigAnyFace (``canrig_jax.autorig.DEFAULT_CHECKPOINT``) since 2026-12-04.
 STANDARD_EXPERIMENTS = (
     ("build_quartic_rig.py", "--out", "experiments/results/build_quartic_rig"),
     ("inverse_rig.py", "--out", "experiments/results/inverse_rig"),
+    ("inverse_rig_sparsity.py", "--out", "experiments/results/inverse_rig"),
     ("inverse_rig_exclusions.py", "--out", "experiments/results/inverse_rig"),  # its section
     ("inverse_rig_retarget.py", "--out", "experiments/results/inverse_rig"),  # its section
     ("wpse.py", "--out", "experiments/results/wpse"),
@@ -300,7 +301,7 @@ same commands as each folder's COMMAND file)."""
 def experiments(session):
     """Standard-configuration experiments (long: about eleven hours on 2 cores); pass script
     names to run a subset, e.g. ``nox -s experiments -- inverse_rig.py``."""
-    session.install("-e", ".")
+    session.install("-e", ".[jaxopt]")  # inverse_rig_sparsity times inverse.JaxoptLBFGSB
     for script, *arguments in STANDARD_EXPERIMENTS:
         if not session.posargs or script in session.posargs:
             session.run("python", f"experiments/{script}", *arguments)
