@@ -10,8 +10,10 @@ Every method is an ``AbstractInverseMethod`` (``METHODS`` lists the classes):
 ``Joshi``, ``Cetinaslan``, ``LMMM``, ``JaxoptLBFGSB``. Coordinate orders in ``ORDERS``;
 mutually exclusive pairs and left/right ties with ``Constrained`` (``exclusive_pairs``,
 ``left_right_pairs``);
-whole takes with ``solve_sequence``; a take carried onto another control set of the same mesh
-with ``retarget``; live capture with ``Stream``; metrics
+whole takes with ``solve_sequence``
+(jointly and smooth in time with ``TemporalNewton``);
+a take carried onto another control set of the same mesh with ``retarget``;
+live capture with ``Stream``; metrics
 (``summarize``, ``roughness``, ``select_alpha``); the sparsity protocol (``alpha_sweep``,
 ``sparsest_alpha_within``, ``sparsity_verdict``); the NumPy reference of Algorithm 1
 (``numpy_quartic_cd``, ``minimum``) for checks and speed ratios.
@@ -66,10 +68,14 @@ from ._sparsity import (
     sparsest_alpha_within,
     sparsity_verdict,
 )
+from ._temporal import AbstractTemporalMethod, TemporalNewton, take_objective
+from ._temporal_protocols import select_smoothness, smooth_training_takes
+from ._temporal_reference import holistic_lambdas, numpy_holistic_cd
 
 METHODS = (
     QuarticCD,
     QuarticNewton,
+    TemporalNewton,
     LinearCD,
     Seol,
     Joshi,
@@ -110,6 +116,7 @@ __all__ = [
     "ORDERS",
     "AbstractCoordinateDescent",
     "AbstractInverseMethod",
+    "AbstractTemporalMethod",
     "Cetinaslan",
     "InverseProblem",
     "Iterate",
@@ -127,4 +134,10 @@ __all__ = [
     "solve",
     "solve_sequence",
     "static_order",
+    "take_objective",
+    "TemporalNewton",
+    "holistic_lambdas",
+    "numpy_holistic_cd",
+    "select_smoothness",
+    "smooth_training_takes",
 ]

@@ -37,7 +37,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
 from .._checks import is_concrete
 from .._linalg import cholesky, solve_triangular
@@ -419,13 +419,16 @@ class TemporalNewton(AbstractTemporalMethod):
 
 def take_objective(
     problem: InverseProblem,
-    weights: Float[Array, "T K"],
-    offsets: Float[Array, "T N"],
+    weights: Float[ArrayLike, "T K"],
+    offsets: Float[ArrayLike, "T N"],
     alpha: Any,
     smoothness: Any,
     velocity: Any = 0.0,
 ) -> Float[Array, ""]:
-    """E(W) of a take (module docstring), data terms from the Gram matrix."""
+    """E(W) of a take (module docstring) in squared rig units, data terms from the Gram
+    matrix; ``offsets`` (T, 3V) = b_t - b0 flattened."""
+    dtype = problem.columns.dtype
+    weights, offsets = jnp.asarray(weights, dtype), jnp.asarray(offsets, dtype)
     projections = offsets @ problem.columns.T
     data = jax.vmap(lambda w, p, o: problem.objective(w, p, o @ o, alpha))(
         weights, projections, offsets
