@@ -92,3 +92,16 @@ def test_under_vmap_the_matrix_is_recomputed_every_iteration(take):
     b = inverse.solve_sequence(problem, noisy, inverse.QuarticNewton(alpha=ALPHA))
     np.testing.assert_array_equal(np.asarray(a.weights), np.asarray(b.weights))
     assert jax.tree.structure(a) == jax.tree.structure(b)
+
+
+@pytest.mark.bad_input
+def test_per_weight_bounds_of_the_wrong_length_are_named_before_compiling(take):
+    problem, noisy = take
+    method = inverse.QuarticNewton(upper=np.ones(problem.n_blendshapes + 1))
+    for call in (
+        lambda: inverse.solve(problem, noisy[0], method),
+        lambda: inverse.solve_sequence(problem, noisy, method),
+        lambda: inverse.Stream(problem, method),
+    ):
+        with pytest.raises(ValueError, match=r"upper: expected \(8,\) per-weight bounds"):
+            call()

@@ -35,13 +35,18 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray
 
 from .._checks import is_concrete
 from .._linalg import spd_solve
 from ._base import AbstractInverseMethod, Iterate, check_alpha, check_count, check_upper
 from ._coordinate_descent import _one_frame_or_batch
 from ._problem import InverseProblem
+
+NewtonCarry = tuple[Float[Array, " K"], Float[Array, "K K"], Bool[Array, ""]]
+"""What ``QuarticNewton`` hands from one frame of a ``Stream`` to the next: (the weights at
+which its Gauss-Newton matrix was computed, that (K, K) matrix, whether it was carried from a
+previous solve rather than exact at the start)."""
 
 
 class QuarticNewton(AbstractInverseMethod):
@@ -94,7 +99,7 @@ class QuarticNewton(AbstractInverseMethod):
     ) -> Iterate:
         return self.step(problem, offset, init, key, self.initial_carry(problem))[0]
 
-    def initial_carry(self, problem: InverseProblem) -> tuple[Array, Array, Array]:
+    def initial_carry(self, problem: InverseProblem) -> NewtonCarry:
         """(point, Gauss-Newton matrix at it, carried): at w = 0 every product of two or more
         weights has a zero factor, so G = [I 0] and the matrix is the linear Gram block; a
         solve from zero starts with it for free."""
@@ -107,8 +112,8 @@ class QuarticNewton(AbstractInverseMethod):
         offset: Float[Array, " N"],
         init: Float[Array, " K"],
         key: PRNGKeyArray,
-        carry: tuple[Array, Array, Array],
-    ) -> tuple[Iterate, tuple[Array, Array, Array]]:
+        carry: NewtonCarry,
+    ) -> tuple[Iterate, NewtonCarry]:
         """The solve from ``init`` with the Gauss-Newton matrix of ``carry`` (exact where
         ``init`` is its point; from a previous frame's solve it is one iteration old, so it
         counts as reused); returns the matrix last computed for the next frame."""

@@ -44,6 +44,16 @@ def _check_problem(problem) -> InverseProblem:
     return problem
 
 
+def _check_bounds(problem: InverseProblem, method) -> None:
+    """Per-weight bounds (``upper`` of shape (K,)) must match the rig's weights."""
+    k = problem.n_blendshapes
+    if np.ndim(method.upper) == 1 and np.shape(method.upper) != (k,):
+        raise ValueError(
+            f"upper: expected ({k},) per-weight bounds to match the rig's {k} blendshapes, "
+            f"got shape {np.shape(method.upper)}"
+        )
+
+
 def _check_target(problem: InverseProblem, name: str, target, batched: bool) -> None:
     shape = np.shape(target)
     expected = (problem.n_vertices, 3)
@@ -158,6 +168,7 @@ def solve(
     """
     _check_method(method)
     problem = _check_problem(problem)
+    _check_bounds(problem, method)
     _check_target(problem, "target", target, batched=False)
     init = _check_init(problem, init)
     return _solve_jit(problem, target, _traced_floats(method), init, _key(key))
@@ -246,6 +257,7 @@ def solve_sequence(
     """
     _check_method(method)
     problem = _check_problem(problem)
+    _check_bounds(problem, method)
     _check_target(problem, "targets", targets, batched=True)
     if not isinstance(warm_start, bool):
         raise TypeError(f"warm_start: expected a bool, got {warm_start!r}")
@@ -291,6 +303,7 @@ class Stream:
     ):
         _check_method(method)
         self.problem = _check_problem(problem)
+        _check_bounds(self.problem, method)
         self.method = _traced_floats(method)
         self.warm_start = bool(warm_start)
         self.key = _key(key)
