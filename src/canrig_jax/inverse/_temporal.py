@@ -324,7 +324,7 @@ class TemporalNewton(AbstractTemporalMethod):
         self,
         problem: InverseProblem,
         offsets: Float[Array, "T N"],
-        init: Float[Array, "T K"],
+        init: Float[Array, "_T K"],  # checked against offsets below, naming the argument
         key: PRNGKeyArray,
     ) -> Iterate:
         """Solve a take (whole, or in windows when ``window`` is set). ``init`` (T, K) is
