@@ -56,6 +56,7 @@ from ._reference import (
     minimum,
     numpy_quartic_cd,
     time_batched,
+    time_against_projection,
     time_single_frames,
 )
 from ._retarget import NEUTRAL_TOL_MM, retarget
@@ -111,6 +112,7 @@ __all__ = [
     "select_alpha",
     "summarize",
     "time_batched",
+    "time_against_projection",
     "time_single_frames",
     "METHODS",
     "ORDERS",
