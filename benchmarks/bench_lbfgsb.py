@@ -1,7 +1,7 @@
 """L-BFGS-B (``inverse.JaxoptLBFGSB``) over a take, batched against one frame at a time, on the
 ict-quartic rig, every ratio measured in this run.
 
-    python benchmarks/bench_lbfgsb.py [--frames 60] [--alpha 5.0] [--plain-frames 10]
+    python benchmarks/bench_lbfgsb.py [--frames 60] [--alpha 5.0] [--plain-frames 40]
                                       [--out benchmarks/results/bench_lbfgsb.md]
 
 Targets: the rig at the first ``--frames`` Live Link Face frames plus N(0, 0.03 cm^2) noise
@@ -11,11 +11,12 @@ frame; and the median frame, as ``inverse.time_single_frames`` reports it), and
 ``solve_sequence`` over the take (one call; the library runs jaxopt's frames one after another
 under ``vmap``, ``sequential_vmap``). For the record, jaxopt's solver under a plain
 ``jax.vmap`` (how it was batched before) on the first ``--plain-frames`` frames, in a
-subprocess under ``--timeout``: its cost per frame grows with the batch (88, 343 and 5,670 ms
-per frame for 10, 20 and 40 frames, each measured with ``--plain-only`` on the shared CPU), so
-only a few frames are timed. The goal: batched costs about what its frames cost one by one.
-The iterations and result codes of each frame are compared too (the same work either way).
-A Markdown table is printed and written to ``--out`` (atomically).
+subprocess under ``--timeout``: its cost per frame grows with the batch (with ``--plain-only``
+on this project's 2 cores, idle: 20 ms per frame for 10 frames, 1,250 ms for 40; under load
+88, 343 and 5,670 ms for 10, 20 and 40), so only ``--plain-frames`` frames are timed. The
+goal: batched costs about what its frames cost one by one. The iterations and result codes of
+each frame are compared too (the same work either way). A Markdown table is printed and
+written to ``--out`` (atomically).
 """
 
 from __future__ import annotations
@@ -152,7 +153,7 @@ def main(argv=None) -> str:
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--alpha", type=float, default=5.0, help="L1 weight (cm^2)")
     parser.add_argument(
-        "--plain-frames", type=int, default=10, help="frames of the plain-vmap row (0: skip)"
+        "--plain-frames", type=int, default=40, help="frames of the plain-vmap row (0: skip)"
     )
     parser.add_argument("--timeout", type=float, default=600.0, help="plain-vmap row, seconds")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="Markdown table path")
