@@ -30,7 +30,7 @@ import numpy as np
 
 from canrig_jax import inverse
 from canrig_jax._io import update_results
-from canrig_jax._provenance import experiment_command, record_command
+from canrig_jax._provenance import experiment_command, provenance, record_command
 from canrig_jax.data import load_livelinkface
 from canrig_jax.rig import evaluate_batch, ict_quartic_rig
 
@@ -123,6 +123,7 @@ def main(argv=None):
         "single_frame_converged": best,
         "single_frame_converged_ratio": rows[best]["ratio"] if best else None,
         "streaming": rows,
+        "streaming_provenance": provenance(command),
         "streaming_note": (
             f"ict-quartic, alpha {ALPHA_CM2} cm^2, {len(noisy)} frames one per call; ratio = "
             "median over frames of (solve time / that frame's projection time, timed just "
