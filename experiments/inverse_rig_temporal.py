@@ -503,7 +503,8 @@ def _validation_curve(case, path):
     other.set_yscale("log")
     other.set_ylabel("roughness", color="C1")
     ax.legend(fontsize=7, loc="upper center")
-    ax.set_title("ict: smoothness on the validation half (frames 0-89)", fontsize=9)
+    first, last = case["protocol"]["validation_frames"]
+    ax.set_title(f"ict: smoothness on the validation half (frames {first}-{last})", fontsize=9)
     save_figure(fig, path)
 
 
