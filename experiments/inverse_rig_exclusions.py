@@ -14,7 +14,7 @@ The protocol, fixed before measuring, is ``inverse_rig.py``'s:
   (``inverse.select_alpha``'s 5 % rule on random training poses), read from the committed
   ``experiments/results/inverse_rig/results.json`` (``cases.ict.quartic_cd_converged.alpha``)
   and fixed here, not re-selected;
-- pairs: ``inverse.exclusive_pairs(rig.names)`` (the default ``ARKIT_EXCLUSIVE_PAIRS`` that the
+- pairs: ``rig.exclusive_pairs(rig.names)`` (the default ``rig.MUTUALLY_EXCLUSIVE`` that the
   rig has) and ``inverse.left_right_pairs(rig.names)`` for ties, at ``TIE_WEIGHTS`` (cm^2).
 
 Variants: ``off`` (QuarticNewton alone), ``exclusive``, ``ties_<w>`` and
@@ -43,7 +43,7 @@ from canrig_jax._provenance import experiment_command, provenance, record_comman
 from canrig_jax.data import load_livelinkface
 from canrig_jax.inverse import CARDINALITY_TOL, both_active, summarize, time_batched
 from canrig_jax.render import save_figure
-from canrig_jax.rig import UNIT_IN_CM, evaluate_batch, ict_quartic_rig
+from canrig_jax.rig import UNIT_IN_CM, evaluate_batch, exclusive_pairs, ict_quartic_rig
 from canrig_jax.watchdog import run_watched
 
 NOISE_VARIANCE_CM2 = 0.03  # as in the paper and inverse_rig.py
@@ -112,7 +112,7 @@ def main(argv=None):
     clean = np.asarray(evaluate_batch(rig, take))
     noise = rng.normal(0.0, np.sqrt(NOISE_VARIANCE_CM2) / scale, clean.shape)
     noisy = (clean + noise).astype(np.float32)
-    pairs = inverse.exclusive_pairs(rig.names)
+    pairs = exclusive_pairs(rig.names)
     ties = inverse.left_right_pairs(rig.names)
 
     rows, weights, objectives = {}, {}, {}

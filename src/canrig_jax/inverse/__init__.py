@@ -8,10 +8,12 @@ Every method is an ``AbstractInverseMethod`` (``METHODS`` lists the classes):
 ``QuarticCD``, ``LinearCD`` (coordinate descent, ``AbstractCoordinateDescent``),
 ``QuarticNewton`` (projected Gauss-Newton on the same objective), ``Seol``,
 ``Joshi``, ``Cetinaslan``, ``LMMM``, ``JaxoptLBFGSB``. Coordinate orders in ``ORDERS``;
-mutually exclusive pairs and left/right ties with ``Constrained`` (``exclusive_pairs``,
+mutually exclusive pairs and left/right ties with ``Constrained`` (``rig.exclusive_pairs``,
 ``left_right_pairs``);
 whole takes with ``solve_sequence``
-(jointly and smooth in time with ``TemporalNewton``);
+(jointly and smooth in time with ``TemporalNewton``; its smoothness rule and scores:
+``select_smoothness``, ``smoothness_curve``, ``validation_split``, ``temporal_row``,
+``temporal_targets``);
 a take carried onto another control set of the same mesh with ``retarget``;
 live capture with ``Stream``; metrics
 (``summarize``, ``roughness``, ``select_alpha``); the sparsity protocol (``alpha_sweep``,
@@ -21,10 +23,8 @@ live capture with ``Stream``; metrics
 
 from ._base import AbstractInverseMethod, Iterate
 from ._constraints import (
-    ARKIT_EXCLUSIVE_PAIRS,
     Constrained,
     both_active,
-    exclusive_pairs,
     left_right_pairs,
 )
 from ._coordinate_descent import (
@@ -55,8 +55,8 @@ from ._reference import (
     measure_reference,
     minimum,
     numpy_quartic_cd,
-    time_batched,
     time_against_projection,
+    time_batched,
     time_single_frames,
 )
 from ._retarget import NEUTRAL_TOL_MM, retarget
@@ -70,7 +70,14 @@ from ._sparsity import (
     sparsity_verdict,
 )
 from ._temporal import AbstractTemporalMethod, TemporalNewton, take_objective
-from ._temporal_protocols import select_smoothness, smooth_training_takes
+from ._temporal_protocols import (
+    select_smoothness,
+    smooth_training_takes,
+    smoothness_curve,
+    temporal_row,
+    temporal_targets,
+    validation_split,
+)
 from ._temporal_reference import holistic_lambdas, numpy_holistic_cd
 
 METHODS = (
@@ -88,7 +95,6 @@ METHODS = (
 """Every inverse-rig method class (each a final ``AbstractInverseMethod``)."""
 
 __all__ = [
-    "ARKIT_EXCLUSIVE_PAIRS",
     "CARDINALITY_TOL",
     "SPARSITY_TARGET",
     "alpha_sweep",
@@ -97,7 +103,6 @@ __all__ = [
     "sparsity_verdict",
     "Constrained",
     "both_active",
-    "exclusive_pairs",
     "left_right_pairs",
     "NEUTRAL_TOL_MM",
     "retarget",
@@ -142,4 +147,8 @@ __all__ = [
     "numpy_holistic_cd",
     "select_smoothness",
     "smooth_training_takes",
+    "smoothness_curve",
+    "temporal_row",
+    "temporal_targets",
+    "validation_split",
 ]

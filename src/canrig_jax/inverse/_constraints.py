@@ -2,8 +2,9 @@
 
 Some pairs of controls describe opposite directions of one motion (the jaw cannot move left
 and right at once), yet a solver fitting a noisy target may turn both on a little, each
-cancelling part of the other. ``Constrained`` wraps a method so that no such pair is ever
-both non-zero in its output, losing as little accuracy as it can:
+cancelling part of the other (``rig.exclusive_pairs`` finds them in a rig's names; the list
+``rig.MUTUALLY_EXCLUSIVE`` says why each pair is there). ``Constrained`` wraps a method so that
+no such pair is ever both non-zero in its output, losing as little accuracy as it can:
 
 1. solve with the wrapped method;
 2. while some exclusive pair is both non-zero (and at most once per pair): take the first such
@@ -43,38 +44,11 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray
 
 from .._checks import is_concrete
-from ..data import arkit_name_of
+from ..rig import MUTUALLY_EXCLUSIVE, exclusive_pairs
 from ._base import AbstractInverseMethod, Iterate
 from ._metrics import CARDINALITY_TOL
 from ._problem import InverseProblem
 from ._projected_newton import QuarticNewton
-
-ARKIT_EXCLUSIVE_PAIRS: tuple[tuple[str, str], ...] = (
-    ("jawLeft", "jawRight"),
-    ("mouthLeft", "mouthRight"),
-    ("eyeLookInLeft", "eyeLookOutLeft"),
-    ("eyeLookUpLeft", "eyeLookDownLeft"),
-    ("eyeLookInRight", "eyeLookOutRight"),
-    ("eyeLookUpRight", "eyeLookDownRight"),
-)
-"""ARKit blendshapes that are physically exclusive: the two directions of one motion of a
-rigid part or of one single-axis displacement, which cannot happen at the same time.
-
-- ``jawLeft`` / ``jawRight``: the mandible is one rigid bone; its lateral shift has one sign.
-- ``mouthLeft`` / ``mouthRight``: the lateral shift of the closed lips as a whole, one
-  direction at a time.
-- ``eyeLookIn`` / ``eyeLookOut`` and ``eyeLookUp`` / ``eyeLookDown`` of each eye: the eyeball
-  is rigid; its horizontal and vertical rotations each have one sign. (In and Out of the two
-  eyes are *not* exclusive: looking sideways is one eye In and the other Out, converging is
-  both In.)
-
-Left out on purpose (they co-occur in real expressions, or are not one motion):
-``mouthPucker`` / ``mouthFunnel`` (a rounded pout uses both); ``mouthSmile`` /
-``mouthFrown`` (different muscles pull the corner up and down; grimaces and suppressed smiles
-use both); ``eyeBlink`` / ``eyeWide`` (upper-lid height, but the shapes also move the brow and
-the skin around the eye, and a squinting blink uses both); ``browDown`` / ``browInnerUp`` /
-``browOuterUp`` (the worried brow combines them); ``cheekPuff`` / ``mouthPucker`` and
-``jawOpen`` / ``mouthClose`` (``mouthClose`` is defined relative to an open jaw)."""
 
 _SIDES = (("Left", "Right"), ("_L", "_R"), ("_l", "_r"), ("L", "R"))
 """Suffixes of the left and right members of a left/right pair of control names."""
@@ -90,60 +64,10 @@ def _check_names(names: Any) -> tuple[str, ...]:
     return names
 
 
-def _matches(name: str, names: tuple[str, ...], argument: str) -> list[int]:
-    """Indices of ``names`` that are ``name``, in any ARKit/Unreal/ICT spelling; a name that is
-    neither one of ``names`` nor an ARKit blendshape raises a ValueError naming ``argument``."""
-    if not isinstance(name, str):
-        raise ValueError(f"{argument}: expected pairs of blendshape names, got {name!r}")
-    arkit = arkit_name_of(name)
-    found = [i for i, n in enumerate(names) if n == name or (arkit and arkit_name_of(n) == arkit)]
-    if not found and arkit is None:
-        raise ValueError(
-            f"{argument}: unknown blendshape name {name!r} (neither one of the rig's names nor "
-            "an ARKit blendshape)"
-        )
-    return found
-
-
-def exclusive_pairs(
-    names: tuple[str, ...] | list[str],
-    pairs: tuple[tuple[str, str], ...] = ARKIT_EXCLUSIVE_PAIRS,
-) -> tuple[tuple[int, int], ...]:
-    """Index pairs of a rig's mutually exclusive blendshapes, for ``Constrained(exclusive=)``.
-
-    Args:
-        names: the rig's blendshape names (``rig.names``; ``problem.rig.names`` when
-            ``prepare`` dropped shapes), in any ARKit, Unreal or ICT spelling (``jawLeft``,
-            ``JawLeft``; ``eyeLookIn_L`` for ``eyeLookInLeft``).
-        pairs: pairs of names that must never be both non-zero (default
-            ``ARKIT_EXCLUSIVE_PAIRS``).
-
-    Returns:
-        One (i, j) per pair whose two members the rig has (pairs it lacks a member of are left
-        out), in the order of ``pairs``.
-
-    Raises a ValueError naming ``names`` (not names, or repeated) or ``pairs`` (a name that
-    is neither one of ``names`` nor an ARKit blendshape; a pair of one shape with itself).
-    """
-    names = _check_names(names)
-    out: list[tuple[int, int]] = []
-    for pair in pairs:
-        if isinstance(pair, str) or len(pair) != 2:
-            raise ValueError(f"pairs: expected pairs of two names, got {pair!r}")
-        first, second = (_matches(name, names, "pairs") for name in pair)
-        for i in first:
-            for j in second:
-                if i == j:
-                    raise ValueError(f"pairs: {pair!r} pairs the shape {names[i]!r} with itself")
-                if (i, j) not in out and (j, i) not in out:
-                    out.append((i, j))
-    return tuple(out)
-
-
 def left_right_pairs(
     names: tuple[str, ...] | list[str],
     *,
-    exclude: tuple[tuple[str, str], ...] = ARKIT_EXCLUSIVE_PAIRS,
+    exclude: tuple[tuple[str, str], ...] = MUTUALLY_EXCLUSIVE,
 ) -> tuple[tuple[int, int], ...]:
     """Index pairs (left, right) of controls whose names differ only in the side suffix
     (``eyeBlinkLeft``/``eyeBlinkRight``, ICT ``eyeBlink_L``/``eyeBlink_R``), for
@@ -219,7 +143,7 @@ class Constrained(AbstractInverseMethod):
     """A method whose solutions never have both members of an exclusive pair non-zero, with
     optional left/right ties (see the module docstring for the algorithm).
 
-        pairs = inverse.exclusive_pairs(rig.names)
+        pairs = canrig_jax.rig.exclusive_pairs(rig.names)
         method = inverse.Constrained(inverse.QuarticNewton(alpha=1.0), exclusive=pairs)
         inverse.solve(problem, target, method)
 
@@ -227,7 +151,7 @@ class Constrained(AbstractInverseMethod):
         method: the wrapped method (one of ``SUPPORTED_METHODS``); its ``alpha`` and ``upper``
             are this method's.
         exclusive: (i, j) index pairs that are never both non-zero in the output (exactly 0,
-            not only below ``CARDINALITY_TOL``), e.g. ``exclusive_pairs(rig.names)``.
+            not only below ``CARDINALITY_TOL``), e.g. ``rig.exclusive_pairs(rig.names)``.
         ties: (left, right) index pairs for the tie penalty, e.g.
             ``left_right_pairs(rig.names)``; must not contain an exclusive pair.
         tie_weight: weight of the penalty tie_weight / 2 * sum (w_left - w_right)^2, in the

@@ -37,9 +37,28 @@ MUTUALLY_EXCLUSIVE = (
     ("eyeLookIn_L", "eyeLookOut_L"),
     ("eyeLookIn_R", "eyeLookOut_R"),
 )
-"""Opposite directions of one control: never active together, so no corrective is synthesised
-for them. Matched by canonical ARKit name (``exclusive_pairs``), so they apply to a rig in
-any spelling (ICT ``eyeLookUp_L``, ARKit ``eyeLookUpLeft``, Unreal ``EyeLookUpLeft``)."""
+"""ARKit blendshapes that are physically exclusive: the two directions of one motion of a
+rigid part or of one single-axis displacement, which cannot happen at the same time. No
+corrective is synthesised for them, random training poses never hold both, and
+``inverse.Constrained`` keeps them from being both non-zero. Matched by canonical ARKit name
+(``exclusive_pairs``), so they apply to a rig in any spelling (ICT ``eyeLookUp_L``, ARKit
+``eyeLookUpLeft``, Unreal ``EyeLookUpLeft``).
+
+- ``jawLeft`` / ``jawRight``: the mandible is one rigid bone; its lateral shift has one sign.
+- ``mouthLeft`` / ``mouthRight``: the lateral shift of the closed lips as a whole, one
+  direction at a time.
+- ``eyeLookIn`` / ``eyeLookOut`` and ``eyeLookUp`` / ``eyeLookDown`` of each eye: the eyeball
+  is rigid; its horizontal and vertical rotations each have one sign. (In and Out of the two
+  eyes are *not* exclusive: looking sideways is one eye In and the other Out, converging is
+  both In.)
+
+Left out on purpose (they co-occur in real expressions, or are not one motion):
+``mouthPucker`` / ``mouthFunnel`` (a rounded pout uses both); ``mouthSmile`` /
+``mouthFrown`` (different muscles pull the corner up and down; grimaces and suppressed smiles
+use both); ``eyeBlink`` / ``eyeWide`` (upper-lid height, but the shapes also move the brow and
+the skin around the eye, and a squinting blink uses both); ``browDown`` / ``browInnerUp`` /
+``browOuterUp`` (the worried brow combines them); ``cheekPuff`` / ``mouthPucker`` and
+``jawOpen`` / ``mouthClose`` (``mouthClose`` is defined relative to an open jaw)."""
 
 
 def _canonical(name: str) -> str:
@@ -52,18 +71,43 @@ def _canonical(name: str) -> str:
 def exclusive_pairs(
     names: Sequence[str], exclude: Sequence[tuple[str, str]] = MUTUALLY_EXCLUSIVE
 ) -> list[tuple[int, int]]:
-    """Index pairs (i, j) of ``names`` that ``exclude`` forbids, matched by canonical ARKit
-    name; a name split in halves (ICT's ``browInnerUp_L``/``_R``) matches each half."""
+    """Index pairs (i, j), i < j, of ``names`` that ``exclude`` forbids, matched by canonical
+    ARKit name; a name split in halves (ICT's ``browInnerUp_L``/``_R``) matches each half.
+    Pairs the rig lacks a member of are left out.
+
+    Raises a ValueError naming ``names`` (not a sequence of names) or ``exclude`` (not pairs
+    of two names; a name that is neither one of ``names`` nor an ARKit blendshape, e.g. a
+    typo; a pair of one shape with itself)."""
+    if isinstance(names, str) or not all(isinstance(n, str) for n in names):
+        raise ValueError(f"names: expected a sequence of blendshape names, got {names!r}")
     by_name: dict[str, list[int]] = {}
     for i, name in enumerate(names):
         by_name.setdefault(_canonical(name), []).append(i)
     pairs = set()
-    for a, b in exclude:
+    for pair in exclude:
+        if isinstance(pair, str) or len(pair) != 2 or not all(isinstance(n, str) for n in pair):
+            raise ValueError(f"exclude: expected pairs of two names, got {pair!r}")
+        for name in pair:
+            if name not in names and _canonical(name) not in by_name and not _is_arkit(name):
+                raise ValueError(
+                    f"exclude: unknown blendshape name {name!r} (neither one of the rig's "
+                    "names nor an ARKit blendshape)"
+                )
+        a, b = pair
         for i in by_name.get(_canonical(a), []):
             for j in by_name.get(_canonical(b), []):
-                if i != j:
-                    pairs.add((min(i, j), max(i, j)))
+                if i == j:
+                    raise ValueError(f"exclude: {pair!r} pairs {names[i]!r} with itself")
+                pairs.add((min(i, j), max(i, j)))
     return sorted(pairs)
+
+
+def _is_arkit(name: str) -> bool:
+    try:
+        to_arkit(name)
+    except ValueError:
+        return False
+    return True
 
 
 @dataclasses.dataclass(frozen=True)
