@@ -37,7 +37,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Float, Float64, Int, Int64, PRNGKeyArray
 
 from .._checks import is_concrete
 from .._linalg import cholesky, solve_triangular
@@ -48,7 +48,7 @@ from ._problem import InverseProblem
 # time-difference operators
 
 
-def difference_bands(n_frames: int, order: int) -> np.ndarray:
+def difference_bands(n_frames: int, order: int) -> Float64[np.ndarray, "3 T"]:
     """(3, T) bands of Delta^T Delta for the ``order``-th difference matrix Delta ((T - order)
     x T): row 0 the diagonal, row 1 the entries (t, t + 1), row 2 the entries (t, t + 2)
     (zero past the end, and zero for row 2 when ``order`` is 1). Host-side: T is static."""
@@ -189,7 +189,7 @@ def block_banded_solve(
 # windows
 
 
-def window_starts(n_frames: int, window: int) -> np.ndarray:
+def window_starts(n_frames: int, window: int) -> Int64[np.ndarray, " n"]:
     """First frames of the overlapping windows covering a take: hop = window // 2, the last
     window ending at the take's last frame; one window (the whole take) when T <= window."""
     if n_frames <= window:
@@ -199,14 +199,14 @@ def window_starts(n_frames: int, window: int) -> np.ndarray:
     return np.minimum(np.arange(count) * hop, n_frames - window)
 
 
-def window_taper(window: int) -> np.ndarray:
+def window_taper(window: int) -> Float64[np.ndarray, " W"]:
     """(window,) positive tent weights min(j + 1, window - j) used to blend windows."""
     j = np.arange(window)
     return np.minimum(j + 1, window - j).astype(np.float64)
 
 
 def stitch_windows(
-    values: Float[Array, "n W *rest"], starts: np.ndarray, n_frames: int
+    values: Float[Array, "n W *rest"], starts: Int64[np.ndarray, " n"], n_frames: int
 ) -> Float[Array, " T *rest"]:
     """Blend per-window results into a take: frame t is the average of the windows holding it,
     weighted by ``window_taper`` (a convex combination, so weights stay in the box; frames
