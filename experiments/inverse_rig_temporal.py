@@ -66,12 +66,16 @@ from canrig_jax.data import load_livelinkface
 from canrig_jax.inverse import (
     holistic_lambdas,
     numpy_holistic_cd,
-    roughness,
     select_alpha,
     select_smoothness,
     smooth_training_takes,
+    smoothness_curve,
     summarize,
+    temporal_row,
+    temporal_targets,
+    validation_split,
 )
+from canrig_jax.inverse._temporal_protocols import _split_table, _temporal_table
 from canrig_jax.render import save_figure
 from canrig_jax.rig import (
     UNIT_IN_CM,
@@ -110,17 +114,6 @@ def noisy(rng, clean, sigma):
     return (clean + rng.normal(0, sigma, clean.shape)).astype(np.float32)
 
 
-def row(rig, weights, clean, seconds):
-    scores = summarize(rig, weights, clean)
-    return {
-        "rmse_mm": scores["rmse_mean_mm"],
-        "p95_mm": scores["rmse_p95_mm"],
-        "cardinality": scores["cardinality"],
-        "roughness": roughness(weights),
-        "ms_per_frame": None if seconds is None else seconds * 1e3,
-    }
-
-
 def choose_alpha(name, rig, problem, rng, args):
     """(alpha in cm^2, sweep): ``select_alpha``'s rule on the rig's random sparse training poses."""
     scale = UNIT_IN_CM[rig.units]  # cm per rig unit; alpha and smoothness are in cm^2
@@ -155,32 +148,21 @@ def evaluate_case(name, rig, take, fps, rng, args):
     grid = (0.0, 10.0, 100.0) if args.quick else SMOOTHNESS_CM2
     alpha, alpha_sweep = choose_alpha(name, rig, problem, rng, args)
     clean_takes, noisy_takes = training_takes(rig, len(take), fps, rng, args)
-    smooth_sweep = []
-    for smoothness in grid:
-        method = (
-            inverse.QuarticNewton(alpha=alpha / scale**2)
-            if smoothness == 0  # the per-frame solve is the baseline of the rule
-            else inverse.TemporalNewton(alpha=alpha / scale**2, smoothness=smoothness / scale**2)
-        )
-        runs = [weights_of(problem, b, method)[0] for b in noisy_takes]
-        rmse = [
-            summarize(rig, w, c)["rmse_mean_mm"] for w, c in zip(runs, clean_takes, strict=True)
-        ]
-        smooth_sweep.append(
-            {
-                "smoothness": smoothness,
-                "rmse_mean_mm": float(np.mean(rmse)),
-                "roughness": float(np.mean([roughness(w) for w in runs])),
-            }
-        )
-        print(f"[{name}] train smoothness={smoothness}: {smooth_sweep[-1]}", flush=True)
+    smooth_sweep = smoothness_curve(
+        problem,
+        noisy_takes,
+        clean_takes,
+        alpha,
+        grid,
+        on_row=lambda r: print(f"[{name}] train smoothness={r['smoothness']}: {r}", flush=True),
+    )
     smoothness = select_smoothness(smooth_sweep)["smoothness"]
     print(f"[{name}] smoothness = {smoothness} cm^2", flush=True)
 
     clean = np.asarray(evaluate_batch(rig, take))
     targets = noisy(rng, clean, sigma)
     a, s = alpha / scale**2, smoothness / scale**2
-    weights, modes = {"truth": take.astype(np.float64)}, {"truth": row(rig, take, clean, None)}
+    weights, modes = {"truth": take.astype(np.float64)}, {"truth": temporal_row(rig, take, clean)}
     for mode, method, warm in (
         ("per_frame", inverse.QuarticNewton(alpha=a), False),
         ("warm_start", inverse.QuarticNewton(alpha=a), True),
@@ -188,7 +170,7 @@ def evaluate_case(name, rig, take, fps, rng, args):
         ("temporal_window", inverse.TemporalNewton(alpha=a, smoothness=s, window=WINDOW), False),
     ):
         weights[mode], seconds = weights_of(problem, targets, method, warm)
-        modes[mode] = row(rig, weights[mode], clean, seconds)
+        modes[mode] = temporal_row(rig, weights[mode], clean, seconds)
         print(f"[{name}] {mode}: {modes[mode]}", flush=True)
 
     frames = min(args.reference_frames, len(take))
@@ -196,9 +178,11 @@ def evaluate_case(name, rig, take, fps, rng, args):
     start = time.perf_counter()
     weights["authors_temporal"] = numpy_holistic_cd(rig, targets[:frames], lambda1, lambda2)
     seconds = (time.perf_counter() - start) / frames
-    modes["authors_temporal"] = row(rig, weights["authors_temporal"], clean[:frames], seconds)
-    modes["temporal_subset"] = row(rig, weights["temporal"][:frames], clean[:frames], None)
-    modes["truth_subset"] = row(rig, take[:frames], clean[:frames], None)
+    modes["authors_temporal"] = temporal_row(
+        rig, weights["authors_temporal"], clean[:frames], seconds
+    )
+    modes["temporal_subset"] = temporal_row(rig, weights["temporal"][:frames], clean[:frames])
+    modes["truth_subset"] = temporal_row(rig, take[:frames], clean[:frames])
     print(f"[{name}] authors_temporal ({frames} frames): {modes['authors_temporal']}", flush=True)
 
     offsets = (targets[:frames] - np.asarray(problem.neutral)).reshape(frames, -1)
@@ -207,7 +191,7 @@ def evaluate_case(name, rig, take, fps, rng, args):
         for mode in ("temporal", "authors_temporal", "per_frame")
     }
     whole, stitched = weights["temporal"], weights["temporal_window"]
-    targets_met = targets_of(modes)
+    targets_met = temporal_targets(modes)
     protocol = {
         "alpha_cm2": alpha,
         "smoothness_cm2": smoothness,
@@ -225,23 +209,6 @@ def evaluate_case(name, rig, take, fps, rng, args):
     return {"rig": rig, "modes": modes, "weights": weights, "protocol": protocol}
 
 
-def targets_of(modes):
-    """The issue's targets for ``temporal`` against the other ``modes``: the ratios and whether
-    all hold (roughness <= 0.5x warm start's and <= 3x truth's, RMSE within 5 % of per-frame)."""
-    ratios = {
-        "roughness_vs_warm_start": modes["temporal"]["roughness"]
-        / modes["warm_start"]["roughness"],
-        "roughness_vs_truth": modes["temporal"]["roughness"] / modes["truth"]["roughness"],
-        "rmse_vs_per_frame": modes["temporal"]["rmse_mm"] / modes["per_frame"]["rmse_mm"],
-    }
-    ratios["met"] = bool(
-        ratios["roughness_vs_warm_start"] <= 0.5
-        and ratios["roughness_vs_truth"] <= 3.0
-        and ratios["rmse_vs_per_frame"] <= 1.05
-    )
-    return ratios
-
-
 def evaluate_split_case(name, rig, take, fps, rng, args, smoothness=None):
     """The validation-split variant on one rig: smoothness chosen on the first half of the take
     (when ``smoothness`` is None) or given (cm^2), all modes on the second half."""
@@ -252,42 +219,34 @@ def evaluate_split_case(name, rig, take, fps, rng, args, smoothness=None):
     training_takes(rig, len(take), fps, rng, args)  # drawn, unused: the take's noise as `temporal`
     clean = np.asarray(evaluate_batch(rig, take))
     targets = noisy(rng, clean, sigma)
-    half = len(take) // 2
-    validation, test = slice(0, half), slice(half, len(take))
+    validation, test = validation_split(len(take))
     a = alpha / scale**2
 
     curve = None
-    if smoothness is None:
-        curve = []
-        for value in (0.0, 10.0, 100.0) if args.quick else VALIDATION_GRID_CM2:
-            method = (
-                inverse.QuarticNewton(alpha=a)
-                if value == 0  # per-frame QuarticNewton: the rule's baseline
-                else inverse.TemporalNewton(alpha=a, smoothness=value / scale**2)
-            )
-            solution = inverse.solve_sequence(problem, targets[validation], method)
-            w = np.asarray(solution.weights, np.float64)
-            curve.append(
-                {
-                    "smoothness": value,
-                    "rmse_mean_mm": summarize(rig, w, clean[validation])["rmse_mean_mm"],
-                    "roughness": roughness(w),
-                }
-            )
-            print(f"[{name}] validation smoothness={value}: {curve[-1]}", flush=True)
+    if smoothness is None:  # per-frame QuarticNewton (smoothness 0) is the rule's baseline
+        curve = smoothness_curve(
+            problem,
+            [targets[validation]],
+            [clean[validation]],
+            alpha,
+            (0.0, 10.0, 100.0) if args.quick else VALIDATION_GRID_CM2,
+            on_row=lambda r: print(
+                f"[{name}] validation smoothness={r['smoothness']}: {r}", flush=True
+            ),
+        )
         smoothness = select_smoothness(curve)["smoothness"]
         print(f"[{name}] smoothness = {smoothness} cm^2 (validation half)", flush=True)
 
     s = smoothness / scale**2
     truth = take[test].astype(np.float64)
-    weights, modes = {"truth": truth}, {"truth": row(rig, truth, clean[test], None)}
+    weights, modes = {"truth": truth}, {"truth": temporal_row(rig, truth, clean[test])}
     for mode, method, warm in (
         ("per_frame", inverse.QuarticNewton(alpha=a), False),
         ("warm_start", inverse.QuarticNewton(alpha=a), True),
         ("temporal", inverse.TemporalNewton(alpha=a, smoothness=s), False),
     ):
         weights[mode], seconds = weights_of(problem, targets[test], method, warm)
-        modes[mode] = row(rig, weights[mode], clean[test], seconds)
+        modes[mode] = temporal_row(rig, weights[mode], clean[test], seconds)
         print(f"[{name}] test half {mode}: {modes[mode]}", flush=True)
     protocol = {
         "alpha_cm2": alpha,
@@ -297,7 +256,7 @@ def evaluate_split_case(name, rig, take, fps, rng, args, smoothness=None):
         "validation_frames": [validation.start, validation.stop - 1],
         "test_frames": [test.start, test.stop - 1],
         "alpha_sweep": alpha_sweep,
-        "targets": targets_of(modes),
+        "targets": temporal_targets(modes),
     }
     if curve is not None:
         protocol["validation_curve"] = curve
@@ -321,11 +280,13 @@ def run_validation_split(args, capture, rigs, command):
         "train_poses": 20 if args.quick else args.train_poses,
         "provenance": provenance(command),
     }
-    update_results(args.out, "temporal_validation_split", value, table=_split_table(cases))
+    update_results(
+        args.out, "temporal_validation_split", value, table=_split_table(cases, VALIDATION_RULE)
+    )
     if not args.quick:
         record_command(args.out, command)
     _validation_curve(cases["ict"], args.out / "temporal_validation_curve.png")
-    print(_split_table(cases))
+    print(_split_table(cases, VALIDATION_RULE))
     print(f"wrote {args.out}")
     return cases
 
@@ -369,7 +330,10 @@ def main(argv=None):
 
     args.out.mkdir(parents=True, exist_ok=True)
     update_results(
-        args.out, "temporal", {n: c["modes"] for n, c in cases.items()}, table=_table(cases)
+        args.out,
+        "temporal",
+        {n: c["modes"] for n, c in cases.items()},
+        table=_temporal_table(cases),
     )
     update_results(
         args.out,
@@ -390,37 +354,6 @@ def main(argv=None):
     return cases
 
 
-COLUMNS = ("rmse_mm", "p95_mm", "cardinality", "roughness", "ms_per_frame")
-
-
-def _table(cases):
-    head = "| mode | " + " | ".join(COLUMNS) + " |\n" + "|---" * (len(COLUMNS) + 1) + "|\n"
-    text = ""
-    for name, case in cases.items():
-        p, t = case["protocol"], case["protocol"]["targets"]
-        text += f"## {name}: temporal inverse rig on the noisy Live Link take\n\n" + head
-        for mode, values in case["modes"].items():
-            cells = ["–" if values[k] is None else f"{values[k]:.4g}" for k in COLUMNS]
-            text += f"| {mode} | " + " | ".join(cells) + " |\n"
-        text += (
-            f"\nalpha = {p['alpha_cm2']:g} cm^2, smoothness = {p['smoothness_cm2']:g} cm^2 "
-            f"(rules on training data); authors_temporal = our NumPy/SciPy re-implementation of "
-            f"the authors' holistic coordinate descent (CPU, 10-frame intervals, lambda1 = "
-            f"{p['lambda1']:.3g}, lambda2 = {p['lambda2']:.3g}) on the first "
-            f"{p['reference_frames']} frames, compared with temporal_subset and truth_subset "
-            f"(E(W) on those frames: temporal {p['subset_objective']['temporal']:.5g}, "
-            f"authors_temporal {p['subset_objective']['authors_temporal']:.5g}, per_frame "
-            f"{p['subset_objective']['per_frame']:.5g}, squared rig units). "
-            f"Windows of {p['window']} frames: max |w - w_whole| = "
-            f"{p['window_max_weight_difference']:.3g} (mean "
-            f"{p['window_mean_weight_difference']:.2g}). Targets (roughness <= 0.5x warm start, "
-            f"<= 3x truth, RMSE within 5 % of per-frame): "
-            f"{t['roughness_vs_warm_start']:.3g}x, {t['roughness_vs_truth']:.3g}x, "
-            f"{t['rmse_vs_per_frame']:.3g}x: {'met' if t['met'] else 'not met'}.\n\n"
-        )
-    return text
-
-
 def _weight_curves(cases, path):
     fig, axes = plt.subplots(len(cases), 3, figsize=(14, 3.2 * len(cases)), squeeze=False)
     for row_axes, (name, case) in zip(axes, cases.items(), strict=True):
@@ -434,63 +367,6 @@ def _weight_curves(cases, path):
         row_axes[0].set_ylabel("weight")
     axes[0, 0].legend(fontsize=7)
     save_figure(fig, path)
-
-
-def _split_table(cases):
-    head = "| mode | " + " | ".join(COLUMNS) + " |\n" + "|---" * (len(COLUMNS) + 1) + "|\n"
-    ict = cases["ict"]["protocol"]
-    text = (
-        "## Variant: temporal inverse rig with smoothness chosen on a validation split\n\n"
-        "This variant was added after the first rule (smoothness chosen on synthetic training "
-        "takes, the `temporal` section) missed its RMSE target; the first rule's results are "
-        "the primary ones. Here smoothness is chosen on real motion held apart from the test "
-        "frames: the split keeps the test frames out of the choice, and MakeHuman (evaluation "
-        "only) chooses nothing.\n\n"
-        f"Rule, fixed before measuring: {VALIDATION_RULE}\n\n"
-        f"Chosen smoothness: {ict['smoothness_cm2']:g} cm^2 (ICT validation half, frames "
-        f"{ict['validation_frames'][0]}-{ict['validation_frames'][1]}).\n\n"
-        "### ict: the validation curve (validation half)\n\n"
-        "| smoothness (cm^2) | validation rmse_mm | / per-frame | roughness |\n"
-        "|---|---|---|---|\n"
-    )
-    base = next(r for r in ict["validation_curve"] if r["smoothness"] == 0)["rmse_mean_mm"]
-    for r in ict["validation_curve"]:
-        text += (
-            f"| {r['smoothness']:g} | {r['rmse_mean_mm']:.4g} | {r['rmse_mean_mm'] / base:.3f} "
-            f"| {r['roughness']:.4g} |\n"
-        )
-    best = min(ict["validation_curve"], key=lambda r: r["rmse_mean_mm"])
-    chosen = next(r for r in ict["validation_curve"] if r["smoothness"] == ict["smoothness_cm2"])
-    text += (
-        f"\nOn the validation half the RMSE is lowest at {best['smoothness']:g} cm^2 "
-        f"({best['rmse_mean_mm'] / base:.3f}x per-frame); the rule takes the largest smoothness "
-        f"within 5 %, {chosen['smoothness']:g} cm^2 ({chosen['rmse_mean_mm'] / base:.3f}x).\n"
-    )
-    verdicts = []
-    for name, case in cases.items():
-        p, t = case["protocol"], case["protocol"]["targets"]
-        text += (
-            f"\n### {name}: test half (frames {p['test_frames'][0]}-{p['test_frames'][1]})\n\n"
-            + head
-        )
-        for mode, values in case["modes"].items():
-            cells = ["–" if values[k] is None else f"{values[k]:.4g}" for k in COLUMNS]
-            text += f"| {mode} | " + " | ".join(cells) + " |\n"
-        text += (
-            f"\nalpha = {p['alpha_cm2']:g} cm^2 (the script's rule), smoothness = "
-            f"{p['smoothness_cm2']:g} cm^2 ({p['smoothness_chosen_on']}; "
-            f"{p['smoothness_rig_units']:.4g} in squared rig units). Targets (roughness <= 0.5x "
-            f"warm start, <= 3x truth, RMSE within 5 % of per-frame): "
-            f"{t['roughness_vs_warm_start']:.3g}x, {t['roughness_vs_truth']:.3g}x, "
-            f"{t['rmse_vs_per_frame']:.4f}x: {'met' if t['met'] else 'not met'}.\n"
-        )
-        verdicts.append(f"{name} {'met' if t['met'] else 'not met'}")
-    text += (
-        "\nThe issue's targets on the test halves (both cases): " + ", ".join(verdicts) + ". "
-        "ms_per_frame: one timed run after compilation, the machine's two cores shared with "
-        "other jobs.\n"
-    )
-    return text
 
 
 def _validation_curve(case, path):
