@@ -5,10 +5,11 @@ as recomputing it every iteration."""
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 
 from canrig_jax import inverse
-from canrig_jax.rig import evaluate_batch
+from canrig_jax.rig import BlendshapeRig, Corrective, evaluate_batch
 
 ALPHA = 0.05
 
@@ -105,3 +106,27 @@ def test_per_weight_bounds_of_the_wrong_length_are_named_before_compiling(take):
     ):
         with pytest.raises(ValueError, match=r"upper: expected \(8,\) per-weight bounds"):
             call()
+
+
+def test_a_stalled_line_search_is_not_reported_as_converged(synthetic_rig):
+    """With one step length, an overshooting full step finds no decrease: those frames end
+    ``stagnation`` (the Gauss-Newton model still predicted a decrease above ``tol``), and every
+    frame reported ``successful`` is at the converged minimum (float64 energy). The
+    correctives are scaled up so that the rig is far from quadratic and full steps overshoot."""
+    scaled = tuple(
+        Corrective(c.indices, c.vertices, np.asarray(c.deltas) * 20.0)
+        for c in synthetic_rig.correctives
+    )
+    rig = BlendshapeRig(synthetic_rig.neutral, synthetic_rig.deltas, scaled, synthetic_rig.names)
+    weights = np.random.default_rng(1).uniform(0.0, 1.0, (12, 8)).astype(np.float32)
+    clean = np.asarray(evaluate_batch(rig, weights))
+    noisy = (clean + np.random.default_rng(2).normal(0.0, 0.02, clean.shape)).astype(np.float32)
+    problem = inverse.prepare(rig)
+    short = inverse.solve_sequence(problem, noisy, inverse.QuarticNewton(alpha=ALPHA, line_steps=1))
+    full = inverse.solve_sequence(problem, noisy, inverse.QuarticNewton(alpha=ALPHA))
+    ok = np.asarray(short.result == optx.RESULTS.successful)
+    assert not ok.all()  # some full steps overshoot on this rig
+    assert np.array_equal(ok, np.asarray(short.stats["converged"]))
+    excess = _energies(rig, short.weights, noisy) / _energies(rig, full.weights, noisy) - 1.0
+    assert np.all(excess[ok] < 1e-4)
+    assert np.all(np.asarray(short.result == optx.RESULTS.stagnation)[~ok])

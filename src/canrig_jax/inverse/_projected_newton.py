@@ -35,6 +35,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray
 
 from .._checks import is_concrete
@@ -125,7 +126,7 @@ class QuarticNewton(AbstractInverseMethod):
         lengths = 0.5 ** jnp.arange(self.line_steps, dtype=gram.dtype)
 
         def iteration(state):
-            n, weights, value, gain, history, hessian, at, age = state
+            n, weights, value, gain, history, hessian, at, age, _ = state
             a = problem.coefficients(weights)
             residual = gram @ a - projection  # Q a - p
             jacobian = problem.jacobian(weights)
@@ -157,11 +158,15 @@ class QuarticNewton(AbstractInverseMethod):
             better = decrease[best] < 0
             weights = jnp.where(better, trials[best], weights)
             gain = jnp.where(better, -decrease[best], 0.0)
+            # no length lowered E although the model predicts a decrease above the
+            # tolerance (1/2 g^T H^-1 g on the free weights): stalled, not converged
+            stalled = ~better & (-0.5 * (grad @ step) > self.tol * jnp.abs(value))
             value = value - gain
-            return n + 1, weights, value, gain, history.at[n].set(value), hessian, at, age
+            history = history.at[n].set(value)
+            return n + 1, weights, value, gain, history, hessian, at, age, stalled
 
         def keep_going(state):
-            n, _, value, gain, _, _, _, age = state
+            n, _, value, gain, _, _, _, age, _ = state
             small = gain <= self.tol * jnp.abs(value)
             return (n < self.iterations) & ((n == 0) | ~small | (age > 1))
 
@@ -170,10 +175,16 @@ class QuarticNewton(AbstractInverseMethod):
         at0, hessian0, carried = carry
         age0 = jnp.where(jnp.all(init == at0), 0, jnp.where(carried, 1, self.refresh))
         gain0 = jnp.asarray(jnp.inf, gram.dtype)
-        state = (jnp.asarray(0), init, value0, gain0, history0, hessian0, at0, age0)
-        n, weights, value, gain, history, hessian, at, age = jax.lax.while_loop(
+        state = (jnp.asarray(0), init, value0, gain0, history0, hessian0, at0, age0, False)
+        n, weights, value, gain, history, hessian, at, age, stalled = jax.lax.while_loop(
             keep_going, iteration, state
         )
         history = jnp.where(jnp.arange(self.iterations) < n, history, value)
-        converged = (gain <= self.tol * jnp.abs(value)) & (age == 1)
-        return Iterate(weights, history, n, converged), (at, hessian, jnp.asarray(True))
+        converged = (gain <= self.tol * jnp.abs(value)) & (age == 1) & ~stalled
+        result = optx.RESULTS.where(
+            converged,
+            optx.RESULTS.successful,
+            optx.RESULTS.where(stalled, optx.RESULTS.stagnation, optx.RESULTS.max_steps_reached),
+        )
+        iterate = Iterate(weights, history, n, converged, result)
+        return iterate, (at, hessian, jnp.asarray(True))

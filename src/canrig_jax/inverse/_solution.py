@@ -17,7 +17,9 @@ class Solution(eqx.Module):
         result: ``optimistix.RESULTS``: ``successful`` only when the method's stated
             convergence test held at the returned weights; ``max_steps_reached`` when an
             iterative method hit its cap first; ``stagnation`` when ``JaxoptLBFGSB``'s line
-            search failed first; ``nonlinear_divergence`` when the method produced a
+            search failed first, or no step length of ``QuarticNewton`` lowered the
+            objective while its Gauss-Newton model predicted a decrease above ``tol``;
+            ``nonlinear_divergence`` when the method produced a
             non-finite value (the weights are then the start, never NaN). The tests:
             ``QuarticCD``, ``LinearCD``, ``QuarticNewton`` and ``LMMM`` stop when one pass /
             iteration lowers their objective by less than ``tol`` relative to its value
