@@ -86,6 +86,7 @@ def test_refresh_must_be_a_positive_integer():
         inverse.QuarticNewton(refresh=0)
 
 
+@pytest.mark.slow
 def test_under_vmap_the_matrix_is_recomputed_every_iteration(take):
     """A take shares one branch: the batched solve with ``refresh`` equals the default's."""
     problem, noisy = take

@@ -84,6 +84,7 @@ def test_block_banded_solve_equals_a_dense_solve(frames):
     np.testing.assert_allclose(np.asarray(x), expected, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_zero_smoothness_is_the_per_frame_solution(take):
     problem, targets, _ = take
     joint = inverse.solve_sequence(problem, targets, inverse.TemporalNewton(alpha=ALPHA, tol=1e-7))
