@@ -52,7 +52,7 @@ def test_the_initial_matrix_is_the_gauss_newton_matrix_at_zero(take):
     assert not bool(carried)
 
 
-@pytest.mark.parametrize("refresh", [2, 8])
+@pytest.mark.parametrize("refresh", [8])
 def test_a_reused_matrix_reaches_the_same_minimum(take, refresh):
     problem, noisy = take
     fresh = inverse.QuarticNewton(alpha=ALPHA)
@@ -63,7 +63,7 @@ def test_a_reused_matrix_reaches_the_same_minimum(take, refresh):
     assert _excess(problem.rig, [s.weights for s in ones], reference, noisy) < 1e-4
 
 
-@pytest.mark.parametrize("refresh", [1, 4])
+@pytest.mark.parametrize("refresh", [4])
 def test_a_warm_stream_with_its_carried_matrix_matches_warm_solves(take, refresh):
     """The carry changes the work, not the answer: each frame equals a fresh solve started
     from the previous frame's weights."""
