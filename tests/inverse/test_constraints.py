@@ -133,6 +133,7 @@ def test_warm_started_take_stays_exclusive(named, conflicting_take):
     assert not _both_on(solution.weights, method.exclusive).any()
 
 
+@pytest.mark.slow
 def test_ties(named, conflicting_take):
     """tie_weight = 0 reproduces the unconstrained solution exactly; the tied problem's
     objective is the data term + L1 + the tie penalty (against ``evaluate``); a large tie
