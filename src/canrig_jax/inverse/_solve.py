@@ -214,9 +214,7 @@ def _solve_temporal(problem, targets, method, key):
     def frame(weights, value, history, steps, converged, smooth, speed):
         result = optx.RESULTS.where(
             finite,
-            optx.RESULTS.where(
-                converged, optx.RESULTS.successful, optx.RESULTS.max_steps_reached
-            ),
+            optx.RESULTS.where(converged, optx.RESULTS.successful, optx.RESULTS.max_steps_reached),
             optx.RESULTS.nonlinear_divergence,
         )
         stats = {"steps": steps, "converged": converged, "smoothness_term": smooth,
