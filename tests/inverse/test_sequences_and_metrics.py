@@ -18,6 +18,7 @@ def take(ict_quartic, ict_quartic_problem, livelink_weights):
     return ict_quartic, ict_quartic_problem, weights, targets
 
 
+@pytest.mark.slow
 def test_warm_started_take_equals_a_loop_of_single_frame_solves(take):
     _, problem, _, targets = take
     method = inverse.QuarticCD(alpha=0.5, passes=2)
