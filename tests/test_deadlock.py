@@ -52,12 +52,12 @@ def test_fits_complete_under_load(data_dir):
     with cpu_hog():
         out = run_workload(
             *("--calls", str(CALLS), "--data-dir", str(data_dir), "--watchdog", "300"),
-            # the fitted A-to-B calls that hung; the dump scan covers every other phase
-            *("--phases", "local,network"),
+            # the fitted A-to-B calls that hung (LocalFitRig's); the dump scan covers every
+            # other phase, nox -s stress the network's calls too
+            *("--phases", "local"),
             timeout=900,
         )
     assert f"LocalFitRig: {CALLS} fitted A-to-B calls" in out
-    assert f"CANRig: {CALLS} fitted A-to-B calls" in out
 
 
 def test_no_compiled_program_holds_a_batched_lapack_call(data_dir, tmp_path):
