@@ -45,9 +45,9 @@ def _check_rigs(source_rig, target_rig, neutral_tol_mm) -> None:
         )
     if not (is_concrete(source_rig.neutral) and is_concrete(target_rig.neutral)):
         return
-    source_mm = np.asarray(source_rig.neutral, np.float64) * UNIT_IN_CM[source_rig.units]
-    target_mm = np.asarray(target_rig.neutral, np.float64) * UNIT_IN_CM[target_rig.units]
-    distance = np.linalg.norm(source_mm - target_mm, axis=1) * CM_TO_MM
+    source_cm = np.asarray(source_rig.neutral, np.float64) * UNIT_IN_CM[source_rig.units]
+    target_cm = np.asarray(target_rig.neutral, np.float64) * UNIT_IN_CM[target_rig.units]
+    distance = np.linalg.norm(source_cm - target_cm, axis=1) * CM_TO_MM
     worst = int(np.argmax(distance))
     if distance[worst] > neutral_tol_mm:
         raise ValueError(
