@@ -13,6 +13,7 @@ loads neither JAX nor any of them):
 - ``canrig_jax.render``: figures and a differentiable rasteriser.
 - ``canrig_jax.viewer``: a local web viewer for rigs and takes.
 - ``canrig_jax.watchdog``: turns a run that stops progressing into a clear error.
+- ``canrig_jax.distributed``: runs over several processes (``jax.distributed``).
 
 Also here: ``CanrigWarning`` (every warning the library issues), ``CorruptFileError`` (a
 file that is not what its name says), ``run_command(argv)`` (the ``canrig`` console script)
@@ -30,7 +31,20 @@ from ._io import CorruptFileError
 from ._warnings import CanrigWarning
 
 if TYPE_CHECKING:
-    from . import autorig, canrig, data, inverse, mesh, pbs, render, rig, viewer, watchdog, wpse
+    from . import (
+        autorig,
+        canrig,
+        data,
+        distributed,
+        inverse,
+        mesh,
+        pbs,
+        render,
+        rig,
+        viewer,
+        watchdog,
+        wpse,
+    )
 
 _SUBPACKAGES = frozenset(
     (
@@ -45,6 +59,7 @@ _SUBPACKAGES = frozenset(
         "render",
         "viewer",
         "watchdog",
+        "distributed",
     )
 )
 """The public subpackages, imported on first attribute access."""
@@ -103,4 +118,5 @@ __all__ = [
     "render",
     "viewer",
     "watchdog",
+    "distributed",
 ]

@@ -33,6 +33,8 @@ from typing import Any, TypeVar
 
 import equinox as eqx
 import jax
+import numpy as np
+from jax.experimental import multihost_utils
 from jaxtyping import PyTree
 
 from . import watchdog
@@ -194,8 +196,9 @@ def run_training(
     steps, max_minutes = options.steps, options.max_minutes
     log_every, checkpoint_every = options.log_every, options.checkpoint_every
     budget = None if max_minutes is None else max_minutes * 60.0
+    several = jax.process_count() > 1
     bar = None
-    if progress:
+    if progress and jax.process_index() == 0:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=steps, initial=step, desc=desc, dynamic_ncols=True)
@@ -213,6 +216,8 @@ def run_training(
         else:
             jax.block_until_ready(metrics)
         seconds += time.perf_counter() - start
+        if several and budget is not None:  # process 0's clock decides when every one stops
+            seconds = float(multihost_utils.broadcast_one_to_all(np.float64(seconds)))
         step += 1
         done_here += 1
         watchdog.progress(f"{desc} step {step}")
@@ -261,7 +266,7 @@ def resume_training(
     ``may_change`` (the budget), or when ``check(header)`` raises. ``init(header)`` gives the
     pytree's structure (it may read the header, e.g. a stored output scale)."""
     if checkpoint is None or not os.path.exists(checkpoint):
-        return TrainingState(init({}))
+        return _same_step_everywhere(TrainingState(init({})), checkpoint)
     header, leaves = _read(checkpoint, format)
     if header.get("weights_only"):
         raise ValueError(
@@ -275,7 +280,22 @@ def resume_training(
     if check is not None:
         check(header)
     tree = _deserialise(checkpoint, leaves, init(header))
-    return TrainingState(tree, header["step"], header["seconds"], header["history"], header)
+    run = TrainingState(tree, header["step"], header["seconds"], header["history"], header)
+    return _same_step_everywhere(run, checkpoint)
+
+
+def _same_step_everywhere(run: "TrainingState", checkpoint) -> "TrainingState":
+    """Across processes: refuse a run whose processes resumed from different steps (one did
+    not see the checkpoint file)."""
+    if jax.process_count() > 1:
+        steps = np.asarray(multihost_utils.process_allgather(np.int32(run.step))).ravel()
+        if len(set(steps.tolist())) > 1:
+            raise ValueError(
+                f"checkpoint: {checkpoint}: the processes resumed from different steps "
+                f"({steps.tolist()}); every process must read the same file (a shared file "
+                "system)"
+            )
+    return run
 
 
 def train_resumably(
@@ -301,7 +321,7 @@ def train_resumably(
         return metrics
 
     def save(step, seconds, history):
-        if checkpoint is not None:
+        if checkpoint is not None and jax.process_index() == 0:  # one writer across processes
             state = {**header, "step": step, "seconds": seconds, "history": history}
             save_checkpoint(checkpoint, run.tree, state, format)
 

@@ -673,6 +673,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_retarget_parser(sub)
     _add_correct_parser(sub)
     _add_view_parser(sub)
+    _add_launch_parser(sub)
     return parser
 
 
@@ -946,17 +947,57 @@ def _add_view_parser(sub) -> None:
     p.set_defaults(run=_view)
 
 
+# ----------------------------------------------------------------------------------- launch
+def _launch(args) -> int:
+    from . import distributed
+
+    command = args.launched[1:] if args.launched[:1] == ["--"] else args.launched
+    if not command:
+        raise CommandError("COMMAND: give the command to run after --, e.g. -- canrig ...")
+    if args.processes < 1:
+        raise CommandError(f"--processes: expected at least 1, got {args.processes}")
+    result = distributed.launch(command, args.processes, port=args.port, grace_s=args.grace)
+    if not args.quiet or result.returncode:
+        print(f"canrig launch: {result.describe()}", file=sys.stderr)
+    return result.returncode
+
+
+def _add_launch_parser(sub) -> None:
+    about = (
+        "Run N copies of a command on this machine as one multi-process JAX run "
+        "(jax.distributed; on a cluster use srun or a Kubernetes indexed Job instead)."
+    )
+    p = sub.add_parser(
+        "launch",
+        help=about,
+        description=about,
+        usage="canrig launch [-h] [-n N] [--port PORT] [--grace S] [--quiet] -- COMMAND ...",
+    )
+    p.add_argument("-n", "--processes", type=int, default=2, help="processes (default: 2)")
+    p.add_argument("--port", type=int, default=None, help="coordinator port (default: a free one)")
+    p.add_argument(
+        "--grace",
+        type=float,
+        default=60.0,
+        help="seconds the others get to end by themselves after one fails, before they are "
+        "stopped (default: %(default)s)",
+    )
+    p.add_argument("--quiet", action="store_true", help="no summary line when all succeed")
+    p.add_argument("launched", nargs=argparse.REMAINDER, metavar="COMMAND")
+    p.set_defaults(run=_launch)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``canrig`` console script; returns the exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
     with print_warnings("canrig"):
         try:
-            watchdog.run_watched(args.run, f"canrig {args.command}", args)
+            status = watchdog.run_watched(args.run, f"canrig {args.command}", args)
         except (CommandError, ValueError, OSError, RuntimeError, ImportError) as error:
             print(f"canrig: error: {error}", file=sys.stderr)
             return 2
-    return 0
+    return status if isinstance(status, int) else 0
 
 
 if __name__ == "__main__":

@@ -6,11 +6,11 @@ step on such inputs is partitioned by XLA (GSPMD): each device computes its part
 batch, and the mean loss and its gradient are all-reduced, so N devices follow the same
 trajectory as one, to float tolerance (the reduction order differs).
 
-Multi-host: call ``jax.distributed.initialize()`` (coordinator address, process count and id,
-or a cluster's environment) in every process before anything else touches JAX; then
-``jax.devices()`` lists every host's devices, ``device_mesh()`` spans them all, and each
-process must feed the same global batch (or build it with
-``jax.make_array_from_process_local_data``).
+Several processes (``canrig_jax.distributed.initialize()`` first in each): ``device_mesh(N)``
+takes N / P devices of each of the P processes, process by process, so each process computes
+a contiguous part of the batch. Every process feeds the same global batch (the trainers draw it
+from the step number); ``shard_batch``/``replicate`` place each process's part from it, and
+``to_local`` turns a replicated result back into this process's ordinary arrays.
 
 On CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` (set before JAX is imported)
 gives N host devices for testing.
@@ -33,7 +33,9 @@ BATCH_AXIS = "batch"
 
 
 def device_mesh(devices: int | None = None) -> Mesh:
-    """A one-axis mesh (``BATCH_AXIS``) over the first ``devices`` devices (default: all)."""
+    """A one-axis mesh (``BATCH_AXIS``) over the first ``devices`` devices (default: all);
+    with P processes, the first ``devices / P`` of each process's (``devices`` must be a
+    multiple of P)."""
     available = jax.devices()
     if devices is None:
         devices = len(available)
@@ -45,7 +47,44 @@ def device_mesh(devices: int | None = None) -> Mesh:
             f"({available[0].platform}); on CPU set "
             f"XLA_FLAGS=--xla_force_host_platform_device_count={devices} before importing jax"
         )
-    return Mesh(np.asarray(available[:devices]), (BATCH_AXIS,))
+    processes = jax.process_count()
+    if processes == 1:
+        return Mesh(np.asarray(available[:devices]), (BATCH_AXIS,))
+    if devices % processes:
+        raise ValueError(
+            f"devices: {devices} devices cannot be split evenly over {processes} processes "
+            f"(choose a multiple of {processes})"
+        )
+    per = devices // processes
+    chosen = [
+        d for p in range(processes) for d in [d for d in available if d.process_index == p][:per]
+    ]
+    return Mesh(np.asarray(chosen), (BATCH_AXIS,))
+
+
+def _place(leaf, sharding: NamedSharding):
+    """``leaf`` placed with ``sharding``; across processes each process places its own part
+    of the (identical) global value."""
+    if jax.process_count() == 1:
+        return jax.device_put(leaf, sharding)
+    value = np.asarray(leaf)
+    return jax.make_array_from_callback(value.shape, sharding, lambda index: value[index])
+
+
+def to_local(tree: T) -> T:
+    """Every array leaf replicated across processes as an ordinary array of this process
+    (its first local copy); other leaves as they are. One process: ``tree`` unchanged."""
+    if jax.process_count() == 1:
+        return tree
+
+    def local(leaf):
+        if isinstance(leaf, jax.Array) and not leaf.is_fully_addressable:
+            if not leaf.is_fully_replicated:
+                raise ValueError("to_local: a leaf split across processes is not replicated")
+            return jax.device_put(leaf.addressable_data(0), jax.local_devices()[0])
+        return leaf
+
+    return jax.tree_util.tree_map(local, tree)
 
 
 def shard_batch(tree: T, mesh: Mesh) -> T:
@@ -64,7 +103,7 @@ def shard_batch(tree: T, mesh: Mesh) -> T:
                 f"batch: a leaf of shape {leaf.shape} cannot be split over {n} devices "
                 "(its leading axis must be a multiple of the device count)"
             )
-        return jax.device_put(leaf, sharding)
+        return _place(leaf, sharding)
 
     return jax.tree_util.tree_map(put, tree)
 
@@ -73,7 +112,7 @@ def replicate(tree: T, mesh: Mesh) -> T:
     """Every array leaf of ``tree`` copied to all of ``mesh``'s devices."""
     sharding = NamedSharding(mesh, PartitionSpec())
     return jax.tree_util.tree_map(
-        lambda leaf: jax.device_put(leaf, sharding) if eqx.is_array(leaf) else leaf, tree
+        lambda leaf: _place(leaf, sharding) if eqx.is_array(leaf) else leaf, tree
     )
 
 
@@ -90,6 +129,10 @@ class DataParallel:
 
     def shard(self, tree: T) -> T:
         return tree if self.mesh is None else shard_batch(tree, self.mesh)
+
+    def local(self, tree: T) -> T:
+        """A trained tree as this process's ordinary arrays (``to_local``)."""
+        return tree if self.mesh is None else to_local(tree)
 
     @property
     def n_devices(self) -> int:

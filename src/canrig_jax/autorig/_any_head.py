@@ -388,6 +388,50 @@ def auto_rig(
     return AutoRig(rig, method, style, orientation, landmarks, fit_record, taken, seconds)
 
 
+def auto_rig_heads(
+    heads: Sequence[tuple[Float[ArrayLike, "V 3"], Int[ArrayLike, "F 3"]]],
+    *,
+    across_processes: bool = False,
+    **options,
+) -> list[AutoRig]:
+    """``auto_rig(vertices, faces, **options)`` of every ``(vertices, faces)`` pair in
+    ``heads`` (centimetres), in order. Every head is checked first (ValueError naming
+    ``heads[i]``); the ICT source and the network are loaded once for all. ``options`` apply
+    to every head (state ``up``/``forward`` only when all heads share their axes).
+
+    ``across_processes``: after ``canrig_jax.distributed.initialize``, each process rigs its
+    share of the heads and every process returns the whole list (``distributed.map_items``);
+    each head's rig is the one a single process makes."""
+    from ..distributed import map_items
+
+    heads = list(heads)
+    if not heads:
+        raise ValueError("heads: expected at least one (vertices, faces) pair")
+    for i, head in enumerate(heads):
+        if not isinstance(head, tuple | list) or len(head) != 2:
+            raise ValueError(f"heads[{i}]: expected a (vertices, faces) pair")
+        try:
+            _check_head(*head)
+        except ValueError as error:
+            raise ValueError(f"heads[{i}]: {error}") from error
+    method = _check_method(
+        options.get("method"), options.get("names", "arkit"), options.get("template")
+    )
+    if options.get("dataset") is None and method != "raf":
+        from ._data import ict_pose_source
+
+        options["dataset"] = ict_pose_source(progress=False)
+    if options.get("model") is None and method in ("raf", "transfer-residual"):
+        from ._train import load_riganyface
+
+        options["model"] = load_riganyface(default_model(method))[:2]
+
+    def one(head):
+        return auto_rig(head[0], head[1], **options)
+
+    return map_items(one, heads) if across_processes else [one(head) for head in heads]
+
+
 def _check_method(method, names, template) -> str:
     """The method to run (``DEFAULT_METHOD``, or "transfer" with a template)."""
     if method is None:

@@ -434,7 +434,9 @@ def train_riganyface(
     resumes only with the same options except ``max_minutes``. ``stop_after`` ends this call
     after that many steps (a simulated interruption, for tests). ``devices`` (default: all):
     data-parallel over that many devices (``canrig_jax._sharding.data_parallel``), each step's heads
-    split over them, parameters and training set replicated."""
+    split over them, parameters and training set replicated; across processes
+    (``canrig_jax.distributed.initialize`` first) the devices of every process, process 0
+    writing the checkpoint."""
     _check_training_inputs(data, poses, options)
     placement = data_parallel(devices, options.heads_per_step, "heads_per_step")
     reference = mean_square_displacement(data)
@@ -468,7 +470,10 @@ def train_riganyface(
         stop_after=stop_after,
     )
     return RigAnyFaceTrainResult(
-        model=run.tree[0], step=run.step, seconds=run.seconds, history=run.history
+        model=placement.local(run.tree[0]),
+        step=run.step,
+        seconds=run.seconds,
+        history=run.history,
     )
 
 

@@ -303,7 +303,8 @@ def train(
     ``devices`` (default: all): data-parallel over that many devices (``canrig_jax.
     data_parallel``), each step's examples split over them, parameters replicated; the
     trajectory equals the single-device one to float tolerance, and a checkpoint resumes on
-    any device count."""
+    any device count. Across processes (``canrig_jax.distributed.initialize`` first), the
+    devices of every process; process 0 writes the checkpoint."""
     if not isinstance(options, TrainOptions):
         raise TypeError(f"options: expected TrainOptions, got {type(options).__name__}")
     placement = data_parallel(devices, options.examples.batch, "examples.batch")
@@ -342,7 +343,7 @@ def train(
         desc="canrig",
         stop_after=stop_after,
     )
-    model = run.tree[0]
+    model = placement.local(run.tree[0])
     return TrainResult(model=model, step=run.step, seconds=run.seconds, history=run.history)
 
 

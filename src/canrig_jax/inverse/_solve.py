@@ -232,6 +232,7 @@ def solve_sequence(
     *,
     warm_start: bool = False,
     key: PRNGKeyArray | None = None,
+    across_processes: bool = False,
 ) -> Solution:
     """Solve a whole take; returns a Solution whose leaves have a leading frame axis.
 
@@ -252,6 +253,13 @@ def solve_sequence(
     Compiled once per problem shape, take length and method type: later calls with other
     targets or another alpha reuse the compiled function. Every frame is checked first: a
     non-finite frame raises a ValueError listing the frames.
+
+    ``across_processes`` (independent frames only): after ``canrig_jax.distributed.
+    initialize``, the take is solved in chunks of ``FRAMES_PER_CALL`` frames, each process
+    solving its contiguous run of chunks, and every process returns the whole take's Solution
+    in frame order (``distributed.gather_frames``). The weights do not depend on the number
+    of processes (bit for bit); they differ from a solve of all frames in one batch by
+    float32 rounding only (a batched solve rounds differently with the batch's size).
     """
     _check_method(method)
     problem = _check_problem(problem)
@@ -266,9 +274,25 @@ def solve_sequence(
                 "warm_start: a temporal method solves the take jointly; pass warm_start=False"
             )
         return _solve_temporal(problem, targets, _traced_floats(method), _key(key))
+    if across_processes and (warm_start or isinstance(method, AbstractTemporalMethod)):
+        raise ValueError(
+            "across_processes: frames are shared over processes only when they are "
+            "independent (warm_start=False and a per-frame method)"
+        )
     keys = jax.random.split(_key(key), targets.shape[0])
     run = _solve_warm if warm_start else _solve_batch
+    if across_processes:
+        from ..distributed import gather_frames
+
+        method = _traced_floats(method)
+        return gather_frames(
+            lambda tk: run(problem, tk[0], method, tk[1]), (targets, keys), chunk=FRAMES_PER_CALL
+        )
     return run(problem, targets, _traced_floats(method), keys)
+
+
+FRAMES_PER_CALL = 32
+"""Frames per compiled call when ``solve_sequence`` shares a take across processes."""
 
 
 # one compiled call instead of the eager threefry primitives (0.13 ms per frame)

@@ -31,6 +31,7 @@ from .._checkpoint import load_checkpoint as _load_file
 from .._checkpoint import read_checkpoint_state as _read_state_file
 from .._checkpoint import resume_training, train_resumably
 from .._metrics import CM_TO_MM
+from .._sharding import data_parallel
 from ..canrig._train import adam
 from ..mesh import weighted_geodesic_distance
 from ._basis import PatchLayout, fit_pbs
@@ -374,11 +375,18 @@ def train_pbs(
     displacement_scale: float = 1.0,
     progress: bool = True,
     stop_after: int | None = None,
+    devices: int | None = None,
 ) -> tuple[AbstractCANRigPBS | ShapeTransformer, int, float, list[dict[str, Any]]]:
     """Train (or resume from ``checkpoint``) CANRig-PBS or the Shape Transformer until
-    ``options.steps`` or ``options.max_minutes``. Returns (model, step, seconds, history)."""
+    ``options.steps`` or ``options.max_minutes``. Returns (model, step, seconds, history).
+
+    ``devices`` (default: all): data-parallel over that many devices
+    (``canrig_jax._sharding.data_parallel``), each step's examples split over them, parameters
+    and training set replicated; across processes (``canrig_jax.distributed.initialize``
+    first) the devices of every process, process 0 writing the checkpoint."""
     if not isinstance(options, PBSTrainOptions):
         raise TypeError(f"options: expected PBSTrainOptions, got {type(options).__name__}")
+    placement = data_parallel(devices, options.batch, "batch")
     n_patches, n_weights = data.weights.shape[1:]
     optimiser = _optimiser(options)
 
@@ -395,12 +403,13 @@ def train_pbs(
         may_change=("steps", "max_minutes"),
     )
     sizes = (data.shapes.shape[0], data.pool.shape[0], data.moving.shape[0])
+    data, run.tree = placement.replicate((data, run.tree))
 
     def one_step(tree, step):
         model, opt_state = tree
         ex = sample_pbs_examples(np.random.default_rng([options.seed, step]), *sizes, options)
         model, opt_state, loss, aux = _pbs_train_step(
-            model, opt_state, data, ex, optimiser, options.weight_loss
+            model, opt_state, data, placement.shard(ex), optimiser, options.weight_loss
         )
         return (model, opt_state), {"loss": loss, **aux}
 
@@ -416,7 +425,7 @@ def train_pbs(
         desc=options.model,
         stop_after=stop_after,
     )
-    return run.tree[0], run.step, run.seconds, run.history
+    return placement.local(run.tree[0]), run.step, run.seconds, run.history
 
 
 @eqx.filter_jit
