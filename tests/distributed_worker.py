@@ -55,6 +55,7 @@ def run(out: Path, steps: int) -> None:
     data = canrig.build_training_set(rig, train_capture, n_random=6, n_pool=40, seed=0)
     examples = canrig.ExampleOptions(batch=4, n_vertices=48, n_handles=(3, 12), handle_bucket=12)
     options = canrig.TrainOptions(steps=steps, log_every=1, examples=examples)
+    result["canrig_start"] = _flat(canrig.train(data, options, progress=False, stop_after=0).model)
     t = time.perf_counter()
     trained = canrig.train(data, options, progress=False)
     seconds["canrig"] = time.perf_counter() - t
@@ -75,6 +76,9 @@ def run(out: Path, steps: int) -> None:
         width=32, patch_width=16, fourier=2, steps=steps, batch=2, n_handles=(20, 40),
         handle_bucket=20, n_vertices=64, log_every=1,
     )  # fmt: skip
+    result["pbs_start"] = _flat(
+        pbs.train_pbs(pbs_data, pbs_options, progress=False, stop_after=0)[0]
+    )
     t = time.perf_counter()
     model, _, _, history = pbs.train_pbs(pbs_data, pbs_options, progress=False)
     seconds["pbs"] = time.perf_counter() - t
@@ -94,6 +98,8 @@ def run(out: Path, steps: int) -> None:
         width=8, global_size=4, global_width=8, k=32, steps=steps, warmup_steps=1,
         poses_per_step=4, heads_per_step=2, log_every=1,
     )  # fmt: skip
+    start = autorig.train_riganyface(head_data, pose_set, raf, progress=False, stop_after=0)
+    result["riganyface_start"] = _flat(start.model)
     t = time.perf_counter()
     trained = autorig.train_riganyface(head_data, pose_set, raf, progress=False)
     seconds["riganyface"] = time.perf_counter() - t
@@ -110,6 +116,12 @@ def run(out: Path, steps: int) -> None:
     seconds["inverse"] = time.perf_counter() - t
     result["inverse_weights"] = np.asarray(solution.weights)
     result["inverse_objective"] = np.asarray(solution.objective)
+    result["inverse_converged"] = np.asarray(solution.stats["converged"])
+    result["inverse_truth"] = np.asarray(capture[:45])
+    # the same take as one batch (one process, no sharing): float32 rounds with batch size
+    result["inverse_one_batch"] = np.asarray(
+        inverse.solve_sequence(problem, targets, method).weights
+    )
 
     # the auto-rig of two heads (two ICT identities' neutrals, cm)
     identities = np.random.default_rng(11).standard_normal((2, 100))
@@ -137,6 +149,7 @@ def wait() -> None:
     from canrig_jax import distributed
 
     group = distributed.initialize()
+    print(group.describe(), flush=True)
     for i in range(600):
         total = multihost_utils.process_allgather(jnp.float32(i))
         print(f"alive {i} {float(np.sum(total))}", flush=True)

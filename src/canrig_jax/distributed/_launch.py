@@ -9,6 +9,7 @@ Kubernetes indexed Job): ``initialize`` reads what they set.
 """
 
 import contextlib
+import io
 import dataclasses
 import os
 import signal
@@ -18,7 +19,6 @@ import sys
 import threading
 import time
 from collections.abc import Mapping, Sequence
-from typing import IO
 
 from .. import watchdog
 from ._process_group import ENV_COORDINATOR, ENV_PROCESS_ID, ENV_PROCESSES
@@ -80,7 +80,7 @@ def _status(code: int) -> str:
     return f"exit {code}"
 
 
-def _relay(stream: IO[bytes], out: IO[str], prefix: str) -> None:
+def _relay(stream, out: io.TextIOBase, prefix: str) -> None:
     for line in iter(stream.readline, b""):
         out.write(prefix + line.decode(errors="replace"))
         out.flush()
@@ -94,8 +94,8 @@ def launch(
     port: int | None = None,
     grace_s: float = 60.0,
     env: Mapping[str, str] | None = None,
-    stdout: IO[str] | None = None,
-    stderr: IO[str] | None = None,
+    stdout: io.TextIOBase | None = None,
+    stderr: io.TextIOBase | None = None,
 ) -> LaunchResult:
     """Run ``processes`` copies of ``command`` (argv) on this machine as one multi-process run
     (module docstring) and wait for them. ``port``: the coordinator's (default: a free one);
@@ -130,7 +130,7 @@ def launch(
             relays.append(relay)
     first_failure, failed_at, stopped = None, None, []
     try:
-        while any(c.poll() is None for c in children):
+        while any([c.poll() is None for c in children]):  # a list: poll every child
             if first_failure is None:
                 for i, c in enumerate(children):
                     if c.returncode not in (None, 0):

@@ -91,7 +91,11 @@ def process_group(
     env = os.environ if environ is None else environ
     given = (coordinator, processes, process_id)
     values = [g if g is not None else env.get(k) for g, k in zip(given, _ENV_NAMES, strict=True)]
-    label = [n if g is not None else k for g, n, k in zip(given, _NAMES, _ENV_NAMES, strict=True)]
+    # a value is named as it was given: the argument, else the variable it came from
+    label = [
+        k if g is None and k in env else n
+        for g, n, k in zip(given, _NAMES, _ENV_NAMES, strict=True)
+    ]
     if all(v is None for v in values) and all(k in env for k in _SLURM):
         n = _integer(env["SLURM_NTASKS"], "SLURM_NTASKS")
         i = _integer(env["SLURM_PROCID"], "SLURM_PROCID")
