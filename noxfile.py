@@ -40,6 +40,19 @@ def stress(session):
 
 
 @nox.session
+def distributed(session):
+    """Two real local processes (jax.distributed): the slow tests that compare them with one
+    process and kill one, then the throughput with one and two processes (under 5 minutes
+    each on 2 cores)."""
+    session.install("-e", ".[dev]")
+    session.run("python", "-m", "pytest", "-m", "slow", "-p", "no:xdist", "tests/distributed")
+    if "--no-experiment" not in session.posargs:
+        session.run(
+            "python", "experiments/distributed.py", "--out", "experiments/results/distributed"
+        )
+
+
+@nox.session
 def lint(session):
     """ruff (lint and format) on the code, then pyright (basic mode, ``[tool.pyright]`` in
     pyproject.toml) on the package; the annotations pyright reads statically are the ones the
@@ -94,6 +107,7 @@ STANDARD_EXPERIMENTS = (
     ("inverse_rig_temporal.py", "--out", "experiments/results/inverse_rig"),  # its section
     ("inverse_rig_temporal.py", "--out", "experiments/results/inverse_rig", "--validation-split"),
     ("inverse_rig_streaming.py", "--out", "experiments/results/inverse_rig"),  # its section
+    ("distributed.py", "--out", "experiments/results/distributed"),
     ("wpse.py", "--out", "experiments/results/wpse"),
     ("wpse_timing.py", "--out", "experiments/results/wpse"),  # Table 1's rows, into wpse's
     ("mesh_foundations.py", "--out", "experiments/results/mesh_foundations"),

@@ -26,6 +26,7 @@ from canrig_jax.autorig import (
     recipe_training_set,
     train_checkpoint,
 )
+from canrig_jax.distributed import add_process_options, initialize_from_args
 from canrig_jax.watchdog import run_watched
 
 
@@ -34,7 +35,9 @@ def main(argv=None):
     parser.add_argument("model", choices=RECIPE_MODELS, help="the model to train")
     parser.add_argument("--out", type=Path, required=True, help="folder of the checkpoint")
     add_recipe_arguments(parser)
+    add_process_options(parser)
     args = parser.parse_args(argv)
+    group = initialize_from_args(args)  # several processes: first, before any JAX work
     args.out.mkdir(parents=True, exist_ok=True)
     progress = not args.no_progress
     dataset = ict_autorig_dataset(  # one held-out identity: none is used here
@@ -51,7 +54,8 @@ def main(argv=None):
     print(f"{len(dataset.train)} training heads ({data.vertices.shape[1]} padded vertices)")
     path = args.out / f"checkpoint_{args.model}.eqx"
     train_checkpoint(path, data, dataset.poses, options, progress=progress, devices=args.devices)
-    print(f"wrote {path}")
+    if group.is_main:  # process 0 writes the checkpoint
+        print(f"wrote {path}")
 
 
 if __name__ == "__main__":

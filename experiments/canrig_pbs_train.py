@@ -18,6 +18,7 @@ import numpy as np
 
 from canrig_jax._io import save_json
 from canrig_jax._provenance import experiment_command, provenance
+from canrig_jax.distributed import add_process_options, initialize_from_args
 from canrig_jax.pbs import PBS_MODELS, PBSTrainOptions, train_pbs
 from canrig_jax.pbs._whole_head_protocols import (
     MODELS_DIR,
@@ -50,11 +51,19 @@ def _parser() -> argparse.ArgumentParser:
         "basis to the handles it sees (CANRigPBS local_prior; beyond the paper)",
     )
     parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument(
+        "--devices",
+        type=int,
+        default=None,
+        help="data-parallel training over N devices of every process (default: all)",
+    )
+    add_process_options(parser)
     return add_whole_head_options(parser)
 
 
 def main(argv=None):
     args = _parser().parse_args(argv)
+    group = initialize_from_args(args)  # several processes: first, before any JAX work
     head_options = whole_head_options_from_args(args)
     options = PBSTrainOptions(
         model=args.model,
@@ -77,7 +86,10 @@ def main(argv=None):
         checkpoint=folder / "checkpoint.eqx",
         displacement_scale=scale,
         progress=not args.no_progress,
+        devices=args.devices,
     )
+    if not group.is_main:  # process 0 writes the outputs
+        return
     graph = head_options.graph
     attached = {"attach": list(head_options.attach), "attach_onto": list(head_options.attach_onto)}
     save_json(

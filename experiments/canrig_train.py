@@ -32,6 +32,7 @@ from canrig_jax.canrig import (
     training_options_from_args,
 )
 from canrig_jax.data import load_livelinkface
+from canrig_jax.distributed import add_process_options, initialize_from_args
 from canrig_jax.render import save_figure
 from canrig_jax.rig import ict_quartic_rig
 from canrig_jax.watchdog import run_watched
@@ -50,8 +51,9 @@ def parser() -> argparse.ArgumentParser:
         "--devices",
         type=int,
         default=None,
-        help="data-parallel training over N devices (default: all; see canrig_jax._sharding)",
+        help="data-parallel training over N devices of every process (default: all)",
     )
+    add_process_options(p)
     return add_training_options(p)
 
 
@@ -61,6 +63,7 @@ def options_from_args(args: argparse.Namespace) -> tuple[TrainOptions, DataOptio
 
 def main(argv=None):
     args = parser().parse_args(argv)
+    group = initialize_from_args(args)  # several processes: first, before any JAX work
     options, data_options = options_from_args(args)
     command = experiment_command(__file__, argv)
 
@@ -83,6 +86,8 @@ def main(argv=None):
         data_options={**data_options.to_dict(), "seed": options.seed},
         devices=args.devices,
     )
+    if not group.is_main:  # process 0 writes the outputs
+        return None
     summary = {
         "variant": options.variant,
         "steps": result.step,

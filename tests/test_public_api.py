@@ -28,6 +28,7 @@ SUBPACKAGES = (
     "autorig",
     "canrig",
     "data",
+    "distributed",
     "inverse",
     "mesh",
     "render",

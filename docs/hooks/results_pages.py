@@ -92,6 +92,15 @@ SEEDS = (
         "present, compares the methods of `auto_rig` on heads from other sources.",
         "guides/autorig.md",
     ),
+    Seed(
+        "distributed",
+        "Several processes (jax.distributed)",
+        ("distributed",),
+        "The inverse rig over the Live Link take, CANRig training steps and the auto-rig of two "
+        "heads, run as one process and as two local processes on this project's 2-core "
+        "machine, each result compared with one process's.",
+        "guides/distributed.md",
+    ),
 )
 
 _ISSUE = re.compile(r"\s*\((?:issues?|Issues?) \d+(?:\s*(?:,|and)\s*\d+)*\)|\b[Ii]ssues? \d+:\s*")

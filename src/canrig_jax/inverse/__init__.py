@@ -61,7 +61,7 @@ from ._reference import (
 )
 from ._retarget import NEUTRAL_TOL_MM, retarget
 from ._solution import Solution
-from ._solve import Stream, solve, solve_sequence
+from ._solve import FRAMES_PER_CALL, Stream, solve, solve_sequence
 from ._sparsity import (
     SPARSITY_TARGET,
     alpha_sweep,
@@ -136,6 +136,7 @@ __all__ = [
     "Seol",
     "Solution",
     "Stream",
+    "FRAMES_PER_CALL",
     "objective",
     "prepare",
     "solve",
