@@ -126,3 +126,13 @@ def test_launch_sets_the_environment_and_reports_the_first_failure():
     assert "process 1 failed first (exit 5); process 0: stopped by launch" in result.describe()
     with pytest.raises(ValueError, match="processes: expected a positive"):
         distributed.launch(_python("pass"), 0)
+
+
+def test_launch_command_line(capsys):
+    from canrig_jax import run_command
+
+    assert run_command(["launch", "-n", "2"]) == 2
+    assert "COMMAND: give the command to run after --" in capsys.readouterr().err
+    code = "import os, sys; sys.exit(3 * int(os.environ['CANRIG_PROCESS_ID']))"
+    assert run_command(["launch", "-n", "2", "--quiet", "--", sys.executable, "-c", code]) == 3
+    assert "process 1 failed first (exit 3)" in capsys.readouterr().err
