@@ -9,8 +9,8 @@ Kubernetes indexed Job): ``initialize`` reads what they set.
 """
 
 import contextlib
-import io
 import dataclasses
+import io
 import os
 import signal
 import socket
@@ -128,7 +128,7 @@ def launch(
             relay = threading.Thread(target=_relay, args=(stream, sink, f"[{i}] "), daemon=True)
             relay.start()
             relays.append(relay)
-    first_failure, failed_at, stopped = None, None, []
+    first_failure, failed_at, stopped = None, 0.0, []
     try:
         while any([c.poll() is None for c in children]):  # a list: poll every child
             if first_failure is None:

@@ -71,10 +71,10 @@ def _integer(value, name: str) -> int:
 
 
 def _check_address(address: str, name: str) -> str:
-    host, sep, port = str(address).rpartition(":")
+    host, sep, port = address.rpartition(":")
     if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
         raise ValueError(f"{name}: expected HOST:PORT (e.g. node001:12321), got {address!r}")
-    return str(address)
+    return address
 
 
 def process_group(
@@ -118,7 +118,7 @@ def process_group(
             f"(set {ENV_PROCESS_ID} or pass --process-id; `canrig launch` sets it)"
         )
     i = 0 if values[2] is None else _integer(values[2], label[2])
-    address = None if values[0] is None else _check_address(values[0], label[0])
+    address = None if values[0] is None else _check_address(str(values[0]), label[0])
     return _checked(n, i, address, source, (label[1], label[2]))
 
 
