@@ -111,6 +111,12 @@ def check_upper(upper: Any, per_weight: bool = False) -> None:
         raise ValueError(f"upper: expected a positive upper bound, got {upper}")
 
 
+def check_tol(tol: Any) -> None:
+    """A relative tolerance in [0, 1) (unchecked when traced)."""
+    if is_concrete(tol) and not 0 <= tol < 1:
+        raise ValueError(f"tol: expected a relative tolerance in [0, 1), got {tol}")
+
+
 def check_count(name: str, value: Any) -> None:
     if isinstance(value, bool) or not (isinstance(value, int) and value >= 1):
         raise ValueError(f"{name}: expected an integer >= 1, got {value!r}")

@@ -49,9 +49,15 @@ from equinox import AbstractVar
 from jax.custom_batching import custom_vmap
 from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
-from .._checks import is_concrete
 from .._linalg import spd_solve
-from ._base import AbstractInverseMethod, Iterate, check_alpha, check_count, check_upper
+from ._base import (
+    AbstractInverseMethod,
+    Iterate,
+    check_alpha,
+    check_count,
+    check_tol,
+    check_upper,
+)
 from ._problem import InverseProblem
 
 STATIC_ORDERS = ("decreasing", "increasing", "random", "frame_correlation")
@@ -136,8 +142,7 @@ class AbstractCoordinateDescent(AbstractInverseMethod):
         check_count("passes", self.passes)
         check_upper(self.upper)
         check_order(self.order)
-        if is_concrete(self.tol) and not 0 <= self.tol < 1:
-            raise ValueError(f"tol: expected a relative tolerance in [0, 1), got {self.tol}")
+        check_tol(self.tol)
 
     @abc.abstractmethod
     def rig_part(self, problem: InverseProblem) -> InverseProblem:

@@ -26,9 +26,15 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from .._checks import is_concrete
 from .._linalg import eigvalsh
-from ._base import AbstractInverseMethod, Iterate, check_alpha, check_count, check_upper
+from ._base import (
+    AbstractInverseMethod,
+    Iterate,
+    check_alpha,
+    check_count,
+    check_tol,
+    check_upper,
+)
 from ._least_squares import ridge_weights
 from ._problem import InverseProblem
 
@@ -77,8 +83,7 @@ class LMMM(AbstractInverseMethod):
         check_alpha(self.alpha)
         check_count("iterations", self.iterations)
         check_upper(self.upper)
-        if is_concrete(self.tol) and not 0 <= self.tol < 1:
-            raise ValueError(f"tol: expected a relative tolerance in [0, 1), got {self.tol}")
+        check_tol(self.tol)
 
     def __call__(
         self,

@@ -38,9 +38,15 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray
 
-from .._checks import is_concrete
 from .._linalg import spd_solve
-from ._base import AbstractInverseMethod, Iterate, check_alpha, check_count, check_upper
+from ._base import (
+    AbstractInverseMethod,
+    Iterate,
+    check_alpha,
+    check_count,
+    check_tol,
+    check_upper,
+)
 from ._coordinate_descent import _one_frame_or_batch
 from ._problem import InverseProblem
 
@@ -88,8 +94,7 @@ class QuarticNewton(AbstractInverseMethod):
         check_count("line_steps", self.line_steps)
         check_count("refresh", self.refresh)
         check_upper(self.upper, per_weight=True)
-        if is_concrete(self.tol) and not 0 <= self.tol < 1:
-            raise ValueError(f"tol: expected a relative tolerance in [0, 1), got {self.tol}")
+        check_tol(self.tol)
 
     def __call__(
         self,

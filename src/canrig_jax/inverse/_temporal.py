@@ -41,7 +41,14 @@ from jaxtyping import Array, ArrayLike, Float, Float64, Int, Int64, PRNGKeyArray
 
 from .._checks import is_concrete
 from .._linalg import cholesky, solve_triangular
-from ._base import AbstractInverseMethod, Iterate, check_alpha, check_count, check_upper
+from ._base import (
+    AbstractInverseMethod,
+    Iterate,
+    check_alpha,
+    check_count,
+    check_tol,
+    check_upper,
+)
 from ._problem import InverseProblem
 
 # ---------------------------------------------------------------------------------------------
@@ -306,8 +313,7 @@ class TemporalNewton(AbstractTemporalMethod):
         check_count("iterations", self.iterations)
         check_count("line_steps", self.line_steps)
         check_upper(self.upper)
-        if is_concrete(self.tol) and not 0 <= self.tol < 1:
-            raise ValueError(f"tol: expected a relative tolerance in [0, 1), got {self.tol}")
+        check_tol(self.tol)
 
     def __call__(
         self,
