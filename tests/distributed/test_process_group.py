@@ -136,3 +136,22 @@ def test_launch_command_line(capsys):
     code = "import os, sys; sys.exit(3 * int(os.environ['CANRIG_PROCESS_ID']))"
     assert run_command(["launch", "-n", "2", "--quiet", "--", sys.executable, "-c", code]) == 3
     assert "process 1 failed first (exit 3)" in capsys.readouterr().err
+
+
+def test_only_independent_frames_are_shared_across_processes():
+    from canrig_jax import inverse
+    from canrig_jax.rig import BlendshapeRig
+
+    rng = np.random.default_rng(1)  # a toy rig: the check comes before any solve
+    rig = BlendshapeRig(
+        rng.normal(size=(6, 3)).astype(np.float32),
+        rng.normal(size=(4, 6, 3)).astype(np.float32),
+        (),
+        ("a", "b", "c", "d"),
+        np.array([[0, 1, 2], [3, 4, 5]]),
+    )
+    targets = np.repeat(np.asarray(rig.neutral)[None], 3, axis=0)
+    for method, warm in ((inverse.TemporalNewton(alpha=0.1, smoothness=1.0), False),
+                         (inverse.QuarticNewton(alpha=0.1), True)):  # fmt: skip
+        with pytest.raises(ValueError, match="across_processes: frames are shared"):
+            inverse.solve_sequence(rig, targets, method, warm_start=warm, across_processes=True)

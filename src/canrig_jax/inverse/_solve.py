@@ -267,28 +267,28 @@ def solve_sequence(
     _check_target(problem, "targets", targets, batched=True)
     if not isinstance(warm_start, bool):
         raise TypeError(f"warm_start: expected a bool, got {warm_start!r}")
-    targets = jnp.asarray(targets, problem.columns.dtype)
-    if isinstance(method, AbstractTemporalMethod):
-        if warm_start:
-            raise ValueError(
-                "warm_start: a temporal method solves the take jointly; pass warm_start=False"
-            )
-        return _solve_temporal(problem, targets, _traced_floats(method), _key(key))
     if across_processes and (warm_start or isinstance(method, AbstractTemporalMethod)):
         raise ValueError(
             "across_processes: frames are shared over processes only when they are "
             "independent (warm_start=False and a per-frame method)"
         )
+    targets = jnp.asarray(targets, problem.columns.dtype)
+    method = _traced_floats(method)
+    if isinstance(method, AbstractTemporalMethod):
+        if warm_start:
+            raise ValueError(
+                "warm_start: a temporal method solves the take jointly; pass warm_start=False"
+            )
+        return _solve_temporal(problem, targets, method, _key(key))
     keys = jax.random.split(_key(key), targets.shape[0])
     run = _solve_warm if warm_start else _solve_batch
     if across_processes:
         from ..distributed import gather_frames
 
-        method = _traced_floats(method)
         return gather_frames(
             lambda tk: run(problem, tk[0], method, tk[1]), (targets, keys), chunk=FRAMES_PER_CALL
         )
-    return run(problem, targets, _traced_floats(method), keys)
+    return run(problem, targets, method, keys)
 
 
 FRAMES_PER_CALL = 32
