@@ -246,7 +246,7 @@ def _animate(args) -> None:
     progress = _Progress(args.quiet)
     rig = _load_rig(args.rig)
     progress(f"read {args.rig}: {rig.n_blendshapes} blendshapes, {rig.n_vertices} vertices")
-    take = read_livelink_csv(_input(args.take, "TAKE"), fps=args.fps)
+    take = read_livelink_csv(_input(args.take, "TAKE"), fps=args.fps, clip=args.clip)
     progress(
         f"read {args.take}: {take.n_frames} frames at {take.fps:g} fps "
         f"({'given' if args.fps else 'from the timecodes'}), {len(take.names)} channels, "
@@ -486,7 +486,7 @@ def _retarget(args) -> None:
             f"--from-set {args.from_set}: the take drives ARKit controls, and {len(not_arkit)} "
             f"of the source's have no ARKit name ({not_arkit[:5]}...); choose --from-set arkit"
         )
-    take = read_livelink_csv(_input(args.take, "TAKE"), fps=args.fps)
+    take = read_livelink_csv(_input(args.take, "TAKE"), fps=args.fps, clip=args.clip)
     progress(f"read {args.take}: {take.n_frames} frames at {take.fps:g} fps")
     weights = take.weights_for(source.names, missing=args.missing)
     cls = getattr(inverse, RETARGET_METHODS[args.method])
@@ -740,6 +740,16 @@ def _add_autorig_parser(sub) -> None:
     p.set_defaults(run=_autorig)
 
 
+def _add_clip_option(p) -> None:
+    p.add_argument(
+        "--clip",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="clip the take's weights to [0, 1] (a warning counts the cells outside either "
+        "way; --no-clip keeps them as they are) (default: on)",
+    )
+
+
 def _add_animate_parser(sub) -> None:
     p = _add_command(
         sub,
@@ -768,8 +778,10 @@ def _add_animate_parser(sub) -> None:
         "--missing",
         choices=("zero", "raise"),
         default="zero",
-        help="a rig channel the take lacks: weight 0 (reported) or an error (default: zero)",
+        help="a rig channel the take lacks: weight 0 (named in a warning) or an error "
+        "(default: zero)",
     )
+    _add_clip_option(p)
     p.add_argument("--meshes", help="also write the rig's mesh at every frame to this .npz")
     p.add_argument(
         "--validate",
@@ -893,8 +905,10 @@ def _add_retarget_parser(sub) -> None:
         "--missing",
         choices=("zero", "raise"),
         default="zero",
-        help="a source control the take lacks: weight 0 or an error (default: zero)",
+        help="a source control the take lacks: weight 0 (named in a warning) or an error "
+        "(default: zero)",
     )
+    _add_clip_option(p)
     p.add_argument(
         "--head-rotation",
         action=argparse.BooleanOptionalAction,

@@ -135,7 +135,9 @@ def _check_sequence(frame_number: np.ndarray, fps: int, path) -> None:
         )
 
 
-def read_livelink_csv(path: str | os.PathLike, fps: int | None = None) -> LiveLinkCapture:
+def read_livelink_csv(
+    path: str | os.PathLike, fps: int | None = None, *, clip: bool = True
+) -> LiveLinkCapture:
     """Read a Live Link Face CSV take.
 
     Args:
@@ -143,6 +145,9 @@ def read_livelink_csv(path: str | os.PathLike, fps: int | None = None) -> LiveLi
         fps: the take's frame rate; ``None`` infers it from the timecodes (the smallest of
             ``FRAME_RATES`` above every frame field; a take that never crosses a second is
             ambiguous: 60, the app's default, with a warning).
+        clip: blendshape weights are 0..1; a cell outside that range is warned about (how
+            many cells, and the first one's line and channel) and clipped to [0, 1], or, with
+            ``clip=False``, warned about and kept. Rotation columns are never clipped.
 
     Returns:
         A ``LiveLinkCapture``: ``weights`` (T, K) float32 and ``names`` the K blendshape
@@ -167,8 +172,9 @@ def read_livelink_csv(path: str | os.PathLike, fps: int | None = None) -> LiveLi
     blendshape_count = _blendshape_count(counts, rows, count_column, shapes, rotations, path)
     fps, frame_number = _frame_numbers(stamps, fps, rows, path)
     _check_sequence(frame_number, fps, path)
+    weights = _check_range(values[:, shapes], [header[c] for c in shapes], rows, clip, path)
     return LiveLinkCapture(
-        weights=np.ascontiguousarray(values[:, shapes]),
+        weights=np.ascontiguousarray(weights),
         names=tuple(header[c] for c in shapes),
         head_eye_rotations=np.ascontiguousarray(values[:, rotations]),
         rotation_names=tuple(header[c] for c in rotations),
@@ -177,6 +183,21 @@ def read_livelink_csv(path: str | os.PathLike, fps: int | None = None) -> LiveLi
         sub_frame=np.round(sub_frame, 3),
         blendshape_count=blendshape_count,
     )
+
+
+def _check_range(weights, names, rows, clip: bool, path) -> np.ndarray:
+    """``weights`` clipped to [0, 1] (``clip``) or kept, with a warning naming how many cells
+    lie outside and the first of them (in file order)."""
+    outside = (weights < 0) | (weights > 1)
+    if not outside.any():
+        return weights
+    r, c = (int(i[0]) for i in np.nonzero(outside))
+    what = "clipped to [0, 1]" if clip else "kept as they are (clip=False)"
+    warn(
+        f"{path}: {int(outside.sum())} blendshape values outside [0, 1] (the first: "
+        f"{names[c]} = {weights[r, c]:g} on line {rows[r][0]}); {what}",
+    )
+    return np.clip(weights, 0.0, 1.0) if clip else weights
 
 
 def _read_lines(path, fps) -> tuple[Path, list[str]]:

@@ -8,6 +8,7 @@ from collections.abc import Sequence
 import numpy as np
 from jaxtyping import Float, Float32, Int
 
+from .._warnings import warn
 from ._names import retarget_weights
 from ._paths import data_file, read_arrays
 
@@ -46,8 +47,16 @@ class LiveLinkCapture:
         self, target_names: Sequence[str], missing: str = "raise"
     ) -> Float32[np.ndarray, "T K"]:
         """(T, K) float32 weights for a rig with channels ``target_names``, matched by ARKit
-        name through ``retarget_weights`` (which warns about channels the rig lacks)."""
-        out, _ = retarget_weights(self.weights, self.names, target_names, missing=missing)
+        name through ``retarget_weights`` (which warns about the take's channels the rig does
+        not read). With ``missing="zero"``, the rig's channels the take lacks get weight 0 and
+        are named in a warning; ``missing="raise"`` makes them an error."""
+        out, report = retarget_weights(self.weights, self.names, target_names, missing=missing)
+        if report.missing_target:
+            absent = list(report.missing_target)
+            warn(
+                f"the take has no channel for {len(absent)} of the rig's "
+                f"{len(target_names)} shapes, which stay at weight 0: {absent}",
+            )
         return out
 
 
