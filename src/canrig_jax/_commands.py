@@ -2,7 +2,8 @@
 
 Subcommands (``canrig SUBCOMMAND --help`` for each):
 
-- ``canrig autorig HEAD -o rig.glb``: RigAnyFace on a head file (OBJ, PLY, glTF, GLB).
+- ``canrig autorig HEAD -o rig.glb``: RigAnyFace on a head file (OBJ, PLY, glTF, GLB), or on
+  a whole avatar (a skinned GLB or FBX, a VRM 1.0): the same avatar with a face rig.
 - ``canrig animate RIG TAKE.csv -o anim.glb``: drive a rig from a Live Link Face CSV.
 - ``canrig invert RIG MESHES -o take.csv``: the inverse rig of a mesh sequence (a folder of
   OBJ files or an ``.npz``) written as a Live Link Face CSV.
@@ -161,6 +162,11 @@ def _autorig(args) -> None:
     if (args.up is None) != (args.forward is None):
         raise CommandError("--up, --forward: state both of the head's axes or neither")
     progress = _Progress(args.quiet)
+    if _is_avatar(_input(args.head, "HEAD")):
+        _autorig_avatar(args, out, progress)
+        return
+    if args.replace:
+        raise CommandError("--replace: only an avatar's meshes hold morph targets to replace")
     head = load_head(_input(args.head, "HEAD"), units=args.units)
     progress(
         f"read {head.path}: {len(head.vertices)} vertices, {len(head.faces)} triangles, "
@@ -223,6 +229,53 @@ def _autorig(args) -> None:
     )
     export_gltf(rig, out)
     progress(f"wrote {out} (centimetres)")
+
+
+def _is_avatar(path: Path) -> bool:
+    """Whether ``path`` is a whole avatar for ``auto_rig_avatar``: a .vrm, or a .glb or .fbx
+    with a skeleton (a skin)."""
+    from .data import load_fbx_scene
+    from .rig import read_gltf_avatar
+
+    suffix = path.suffix.lower()
+    if suffix == ".vrm":
+        return True
+    if suffix == ".glb":
+        return bool(read_gltf_avatar(path).document.get("skins"))
+    if suffix == ".fbx":
+        return any(m.skin is not None for m in load_fbx_scene(path).meshes)
+    return False
+
+
+def _autorig_avatar(args, out: Path, progress) -> None:
+    """``canrig autorig`` of a whole avatar: the same avatar with morph targets."""
+    from . import autorig
+
+    for option, given in (("--template", args.template), ("--examples", args.examples)):
+        if given:
+            raise CommandError(f"{option}: not with a whole avatar ({args.head}); pass the head")
+    if args.units not in (None, "m"):
+        raise CommandError(f"--units {args.units}: a glTF or converted FBX avatar is in metres")
+    options = {"names": "source" if args.names == "ict" else "arkit"}
+    if args.up is not None:
+        options.update(up=args.up, forward=args.forward)
+    if args.model:
+        options["model"] = autorig.load_riganyface(Path(args.model))[:2]
+    progress(f"reading the avatar {args.head}")
+    try:
+        result = autorig.auto_rig_avatar(
+            args.head, out, method=args.method, replace=args.replace, progress=progress, **options
+        )
+    except autorig.OrientationError as error:
+        raise CommandError(f"HEAD {args.head}: {str(error).replace('vertices: ', '', 1)}") from None
+    except ValueError as error:
+        if str(error).startswith("avatar: "):
+            raise CommandError(f"HEAD {str(error)[len('avatar: ') :]}") from None
+        raise
+    progress(
+        f"rigged {result.vertices_rigged} vertices of {list(result.head_meshes)} with "
+        f"{len(result.names)} morph targets in {result.seconds['total']:.1f} s"
+    )
 
 
 # ---------------------------------------------------------------------------------- animate
@@ -692,8 +745,15 @@ def _add_autorig_parser(sub) -> None:
         sub,
         "autorig",
         "Generate an ARKit blendshape rig (with correctives) for any neutral head.",
-        [("head", "head mesh: .obj, .ply, .gltf, .glb or .fbx")],
-        "the rig, a .glb with named morph targets (centimetres)",
+        [
+            (
+                "head",
+                "head mesh (.obj, .ply, .gltf, .glb or .fbx), or a whole avatar (.glb or .fbx "
+                "with a skeleton, .vrm 1.0): the avatar comes back with its face rigged",
+            )
+        ],
+        "the rig, a .glb with named morph targets (centimetres); for an avatar, the same "
+        "avatar with morph targets on its face meshes",
     )
     p.add_argument(
         "--method",
@@ -736,6 +796,12 @@ def _add_autorig_parser(sub) -> None:
         "--model",
         help="network checkpoint for --method raf or transfer-residual (default: the packaged "
         "model of that method)",
+    )
+    p.add_argument(
+        "--replace",
+        action="store_true",
+        help="an avatar's face mesh that already has targets of these names gets them "
+        "replaced (default: refused)",
     )
     p.set_defaults(run=_autorig)
 

@@ -31,6 +31,14 @@ from ._any_head_protocols import (
     sculpted_head_errors,
     template_row,
 )
+from ._avatar import (
+    AVATAR_FORMATS,
+    HEAD_WEIGHT,
+    MAX_FACE_VERTICES,
+    AvatarRig,
+    auto_rig_avatar,
+    find_head_node,
+)
 from ._data import (
     ANCHOR_MODES,
     AutorigDataset,
@@ -153,6 +161,12 @@ from ._train import (
 )
 
 __all__ = [
+    "AVATAR_FORMATS",
+    "HEAD_WEIGHT",
+    "MAX_FACE_VERTICES",
+    "AvatarRig",
+    "auto_rig_avatar",
+    "find_head_node",
     "ANCHOR_CM",
     "CHIN_LANDMARK",
     "FACE_PLACED",

@@ -1,6 +1,6 @@
 """Loaders for the real assets in the shared data folder (ICT, Live Link Face, MediaPipe)."""
 
-from ._fbx import FbxMesh, load_fbx, load_fbx_meshes
+from ._fbx import FbxMesh, FbxScene, FbxSkin, load_fbx, load_fbx_meshes, load_fbx_scene
 from ._head_file import (
     HEAD_FORMATS,
     HEAD_PLAUSIBLE_CM,
@@ -38,6 +38,9 @@ from ._paths import ENV_VAR, data_file, read_arrays, resolve_data_dir
 
 __all__ = [
     "FbxMesh",
+    "FbxScene",
+    "FbxSkin",
+    "load_fbx_scene",
     "load_fbx",
     "load_fbx_meshes",
     "arkit_name_of",

@@ -45,6 +45,27 @@ _AXIS_NAMES = {0: "+x", 1: "-x", 2: "+y", 3: "-y", 4: "+z", 5: "-z"}
 
 
 @dataclasses.dataclass(frozen=True)
+class FbxSkin:
+    """A mesh's skin (its first skin deformer), in the package's frame (cm, y up).
+
+    Attributes:
+        bones: (J,) int the bone of each joint, an index into ``FbxScene.node_names``.
+        bind_to_world: (J, 4, 4) float64 each bone's world matrix at bind time, in the
+            package's frame (``C B C^-1`` for the file's matrix ``B`` and the conversion ``C``
+            of the module docstring), so that ``bind_to_world[j]^-1 @ vertex`` is the vertex in
+            the bone's frame.
+        joints: (V, M) int32 the joints (indices into ``bones``) of each vertex, M the most any
+            vertex has; unused slots hold 0 with weight 0.
+        weights: (V, M) float32 the joints' weights, as stored (not renormalised).
+    """
+
+    bones: np.ndarray
+    bind_to_world: np.ndarray
+    joints: np.ndarray
+    weights: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
 class FbxMesh:
     """One mesh of an FBX file with its blend shapes, in centimetres, y up, facing +z.
 
@@ -73,10 +94,33 @@ class FbxMesh:
     unit_cm: float
     axes: tuple[str, str, str]
     meshes: tuple[str, ...]
+    node: int = -1
+    skin: FbxSkin | None = None
 
     @property
     def n_blendshapes(self) -> int:
         return len(self.names)
+
+
+@dataclasses.dataclass(frozen=True)
+class FbxScene:
+    """Every mesh of an FBX file with its skin, and the file's node tree (its skeleton), all
+    in the package's frame (cm, y up, facing +z).
+
+    Attributes:
+        meshes: the meshes, in file order (``FbxMesh.node`` indexes ``node_names``).
+        node_names: N node names (the scene's root node first, usually named ``""``).
+        node_parents: (N,) int the parent of each node, -1 for the root.
+        node_to_world: (N, 4, 4) float64 each node's world matrix in the scene's own pose,
+            converted like ``FbxSkin.bind_to_world``.
+        path: the file.
+    """
+
+    meshes: tuple[FbxMesh, ...]
+    node_names: tuple[str, ...]
+    node_parents: np.ndarray
+    node_to_world: np.ndarray
+    path: Path
 
 
 def _check_fbx_path(path) -> Path:
@@ -188,6 +232,8 @@ def _read_mesh(path: Path, raw: dict, i: int, name: str, axes_map, unit_cm, cont
     if not np.all(np.isfinite(deltas)):
         raise ValueError(f"path: {path} mesh {name!r} has non-finite blend-shape offsets")
     return FbxMesh(
+        node=int(raw.get(f"mesh{i}_node", -1)),
+        skin=_read_skin(path, raw, i, name, n, axes_map, unit_cm),
         name=name,
         vertices=vertices.astype(np.float32),
         triangles=triangles,
@@ -198,11 +244,61 @@ def _read_mesh(path: Path, raw: dict, i: int, name: str, axes_map, unit_cm, cont
     )
 
 
+def _conjugate(matrices: np.ndarray, axes_map: np.ndarray, unit_cm: float) -> np.ndarray:
+    """(N, 4, 4) ``C M C^-1`` of (N, 3, 4) file matrices ``M``, ``C = unit_cm * R_axes``."""
+    full = np.zeros((len(matrices), 4, 4))
+    full[:, :3, :] = matrices
+    full[:, 3, 3] = 1.0
+    c = np.eye(4)
+    c[:3, :3] = unit_cm * axes_map
+    return c @ full @ np.linalg.inv(c)
+
+
+def _read_skin(path, raw: dict, i: int, name: str, n: int, axes_map, unit_cm) -> FbxSkin | None:
+    bones = raw.get(f"mesh{i}_skin_bones")
+    if bones is None or bones.size == 0:
+        return None
+    counts, index = raw[f"mesh{i}_skin_counts"], raw[f"mesh{i}_skin_index"]
+    weight = raw[f"mesh{i}_skin_weights"]
+    if index.size and (index.min() < 0 or index.max() >= n) or weight.size != index.size:
+        raise CorruptFileError(f"path: corrupt FBX file {path} (mesh {name!r} skin weights)")
+    joint_of = np.repeat(np.arange(len(bones)), counts)
+    slots = np.zeros(n, np.int64)
+    width = int(np.bincount(index, minlength=n).max()) if index.size else 1
+    joints = np.zeros((n, max(width, 1)), np.int32)
+    weights = np.zeros((n, max(width, 1)), np.float32)
+    for vertex, joint, w in zip(index, joint_of, weight, strict=True):
+        joints[vertex, slots[vertex]] = joint
+        weights[vertex, slots[vertex]] = w
+        slots[vertex] += 1
+    binds = _conjugate(raw[f"mesh{i}_skin_binds"], axes_map, unit_cm)
+    return FbxSkin(bones.astype(np.int64), binds, joints, weights)
+
+
+def load_fbx_scene(path: str | os.PathLike) -> FbxScene:
+    """Every mesh of an FBX file with its skin weights, and the file's node tree, in cm, y
+    up, facing +z (``FbxScene``; the conversion and errors of ``load_fbx``)."""
+    path = _check_fbx_path(path)
+    raw = _read_raw(path)
+    meshes, axes_map, unit_cm = _convert_meshes(path, raw)
+    return FbxScene(
+        meshes=meshes,
+        node_names=tuple(str(n) for n in raw["node_names"]),
+        node_parents=raw["node_parents"].astype(np.int64),
+        node_to_world=_conjugate(raw["node_to_world"], axes_map, unit_cm),
+        path=path,
+    )
+
+
 def load_fbx_meshes(path: str | os.PathLike) -> tuple[FbxMesh, ...]:
     """Every mesh of an FBX file (binary or ASCII), in file order, each in cm, y up, facing
     +z, with its blend shapes (see ``load_fbx`` for the conversion and the errors)."""
     path = _check_fbx_path(path)
-    raw = _read_raw(path)
+    return _convert_meshes(path, _read_raw(path))[0]
+
+
+def _convert_meshes(path: Path, raw: dict):
+    """(the meshes, the axes map, the unit in cm) of the raw arrays."""
     unit_m = float(raw["unit_meters"])
     if not (np.isfinite(unit_m) and unit_m > 0):
         raise CorruptFileError(f"path: {path} states a unit scale of {unit_m} m")
@@ -217,9 +313,10 @@ def load_fbx_meshes(path: str | os.PathLike) -> tuple[FbxMesh, ...]:
         "axes": tuple(_AXIS_NAMES[a] for a in stored),
         "meshes": names,
     }
-    return tuple(
+    meshes = tuple(
         _read_mesh(path, raw, i, names[i], axes_map, unit_m * 100.0, context) for i in range(count)
     )
+    return meshes, axes_map, unit_m * 100.0
 
 
 def _listing(meshes: tuple[FbxMesh, ...]) -> str:

@@ -49,7 +49,9 @@ def _mesh_arrays(i: int, mesh) -> dict:
         f"mesh{i}_vertices": np.array(mesh.vertices, np.float64).reshape(-1, 3),
         f"mesh{i}_corners": np.array(mesh.vertex_indices, np.int64).reshape(-1),
         f"mesh{i}_faces": np.array(mesh.faces, np.int64).reshape(-1, 2),
+        f"mesh{i}_node": np.array(int(nodes[0].typed_id) if nodes else -1),
     }
+    out.update(_skin_arrays(i, mesh))
     names, deformers, counts, index, offsets, weights = [], [], [], [], [], []
     for deformer in _elements(mesh.blend_deformers):
         for channel in _elements(deformer.channels):
@@ -75,6 +77,40 @@ def _mesh_arrays(i: int, mesh) -> dict:
     return out
 
 
+def _skin_arrays(i: int, mesh) -> dict:
+    """The mesh's first skin deformer: per cluster its bone (an index into the scene's
+    nodes), bind matrix (the bone's world matrix at bind time) and sparse vertex weights."""
+    bones, binds, counts, index, weights = [], [], [], [], []
+    for skin in _elements(mesh.skin_deformers)[:1]:
+        for cluster in _elements(skin.clusters):
+            if cluster.bone_node is None:
+                continue
+            bones.append(int(cluster.bone_node.typed_id))
+            binds.append(_matrix(cluster.bind_to_world))
+            k = np.array(cluster.vertices, np.int64).reshape(-1)
+            counts.append(len(k))
+            index.append(k)
+            weights.append(np.array(cluster.weights, np.float64).reshape(-1))
+    return {
+        f"mesh{i}_skin_bones": np.array(bones, np.int64),
+        f"mesh{i}_skin_binds": np.array(binds, np.float64).reshape(-1, 3, 4),
+        f"mesh{i}_skin_counts": np.array(counts, np.int64),
+        f"mesh{i}_skin_index": np.concatenate(index) if index else np.zeros(0, np.int64),
+        f"mesh{i}_skin_weights": np.concatenate(weights) if weights else np.zeros(0),
+    }
+
+
+def _node_arrays(scene) -> dict:
+    """Every node's name, parent (an index into the nodes, -1 for none) and world matrix."""
+    nodes = _elements(scene.nodes)
+    parents = [int(n.parent.typed_id) if n.parent is not None else -1 for n in nodes]
+    return {
+        "node_names": np.array([n.name for n in nodes], dtype=str).reshape(-1),
+        "node_parents": np.array(parents, np.int64),
+        "node_to_world": np.array([_matrix(n.node_to_world) for n in nodes]).reshape(-1, 3, 4),
+    }
+
+
 def main(source: str, target: str) -> None:
     gc.disable()
     try:
@@ -95,6 +131,7 @@ def main(source: str, target: str) -> None:
         "unit_meters": np.array(float(settings.unit_meters)),
         "axes": np.array([int(axes.right), int(axes.up), int(axes.front)], np.int64),
     }
+    arrays.update(_node_arrays(scene))
     meshes = _elements(scene.meshes)
     arrays["n_meshes"] = np.array(len(meshes))
     for i, mesh in enumerate(meshes):

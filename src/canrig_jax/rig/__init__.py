@@ -20,6 +20,17 @@ from ._gltf_animation import (
     head_rotation_quaternions,
     morph_target_weights,
 )
+from ._gltf_avatar import (
+    GltfAvatar,
+    MeshVertices,
+    add_morph_targets,
+    avatar_from_fbx,
+    mesh_vertices,
+    node_descendants,
+    read_gltf_avatar,
+    target_names,
+    write_gltf_avatar,
+)
 from ._gltf_validate import find_gltf_validator, validate_gltf
 from ._ict_quartic import ict_linear_rig, ict_quartic_rig
 from ._io import load_rig, save_rig
@@ -37,6 +48,15 @@ from ._synthesis import (
 from ._transfer import deformation_transfer, remesh_rig
 
 __all__ = [
+    "GltfAvatar",
+    "MeshVertices",
+    "add_morph_targets",
+    "avatar_from_fbx",
+    "mesh_vertices",
+    "node_descendants",
+    "read_gltf_avatar",
+    "target_names",
+    "write_gltf_avatar",
     "CONTROL_SETS",
     "control_set_of",
     "select_blendshapes",
