@@ -23,6 +23,7 @@ from ._gltf_animation import (
 from ._gltf_avatar import (
     GltfAvatar,
     MeshVertices,
+    accessor_array,
     add_morph_targets,
     avatar_from_fbx,
     mesh_vertices,
@@ -50,6 +51,7 @@ from ._transfer import deformation_transfer, remesh_rig
 __all__ = [
     "GltfAvatar",
     "MeshVertices",
+    "accessor_array",
     "add_morph_targets",
     "avatar_from_fbx",
     "mesh_vertices",
