@@ -26,7 +26,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from jaxtyping import Float32, Int32
+from jaxtyping import Float32, Float64, Int, Int32
 
 from .._io import CorruptFileError
 
@@ -59,10 +59,10 @@ class FbxSkin:
         weights: (V, M) float32 the joints' weights, as stored (not renormalised).
     """
 
-    bones: np.ndarray
-    bind_to_world: np.ndarray
-    joints: np.ndarray
-    weights: np.ndarray
+    bones: Int[np.ndarray, " J"]
+    bind_to_world: Float64[np.ndarray, "J 4 4"]
+    joints: Int32[np.ndarray, "V M"]
+    weights: Float32[np.ndarray, "V M"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,8 +118,8 @@ class FbxScene:
 
     meshes: tuple[FbxMesh, ...]
     node_names: tuple[str, ...]
-    node_parents: np.ndarray
-    node_to_world: np.ndarray
+    node_parents: Int[np.ndarray, " N"]
+    node_to_world: Float64[np.ndarray, "N 4 4"]
     path: Path
 
 

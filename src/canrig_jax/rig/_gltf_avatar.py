@@ -23,8 +23,10 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
+from jaxtyping import Float, Float64, Int
 
 from .._io import CorruptFileError, atomic_path, check_output_path
+from ..data import FbxScene
 from ._gltf import _read_glb
 
 _COMPONENTS = {
@@ -72,7 +74,7 @@ def read_gltf_avatar(path: str | os.PathLike) -> GltfAvatar:
     return GltfAvatar(document, bytes(blob), path)
 
 
-def accessor_array(avatar: GltfAvatar, index: int) -> np.ndarray:
+def accessor_array(avatar: GltfAvatar, index: int) -> Float64[np.ndarray, "N W"]:
     """(count, width) float64 values of accessor ``index`` (strides, sparse substitution and
     normalised integers applied)."""
     document = avatar.document
@@ -125,7 +127,7 @@ def _trs_matrix(node: dict) -> np.ndarray:
     return matrix
 
 
-def node_parents(document: dict) -> np.ndarray:
+def node_parents(document: dict) -> Int[np.ndarray, " N"]:
     """(N,) the parent of each node, -1 for a root."""
     parents = np.full(len(document.get("nodes", [])), -1, np.int64)
     for i, node in enumerate(document.get("nodes", [])):
@@ -134,7 +136,7 @@ def node_parents(document: dict) -> np.ndarray:
     return parents
 
 
-def node_world_matrices(document: dict) -> np.ndarray:
+def node_world_matrices(document: dict) -> Float64[np.ndarray, "N 4 4"]:
     """(N, 4, 4) each node's world matrix in the file's rest pose (its TRS / matrix)."""
     nodes = document.get("nodes", [])
     parents = node_parents(document)
@@ -183,11 +185,11 @@ class MeshVertices:
     node: int
     accessors: tuple[int, ...]
     offsets: tuple[int, ...]
-    world: np.ndarray
-    to_world: np.ndarray
-    faces: np.ndarray
-    joints: np.ndarray | None
-    weights: np.ndarray | None
+    world: Float64[np.ndarray, "V 3"]
+    to_world: Float64[np.ndarray, "V 3 3"]
+    faces: Int[np.ndarray, "F 3"]
+    joints: Int[np.ndarray, "V M"] | None
+    weights: Float64[np.ndarray, "V M"] | None
 
 
 def _skin_of(avatar: GltfAvatar, node: dict, primitive: dict, world_nodes: np.ndarray):
@@ -328,7 +330,7 @@ class _Appender:
 
 def add_morph_targets(
     avatar: GltfAvatar,
-    deltas: Mapping[int, np.ndarray],
+    deltas: Mapping[int, Float[np.ndarray, "K V 3"]],
     names: Sequence[str],
     *,
     replace: bool = False,
@@ -447,7 +449,7 @@ def _to_metres(matrices: np.ndarray) -> np.ndarray:
     return out
 
 
-def avatar_from_fbx(scene) -> GltfAvatar:
+def avatar_from_fbx(scene: FbxScene) -> GltfAvatar:
     """A ``GltfAvatar`` (metres, y up) of a ``data.FbxScene``: its nodes, meshes and skins
     (module docstring). Vertex order is the FBX's control points'."""
     out = _Appender(GltfAvatar({"asset": {"version": "2.0"}}, b""))
