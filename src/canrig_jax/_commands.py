@@ -146,7 +146,7 @@ def _arkit_columns(rig) -> tuple[np.ndarray, list[str]]:
 def _autorig(args) -> None:
     from . import autorig
     from .data import load_head
-    from .rig import export_gltf
+    from .rig import check_extra_sets, export_gltf, with_extra_shapes
 
     out = _output(args.output, (".glb",))
     if args.method is None:
@@ -162,6 +162,10 @@ def _autorig(args) -> None:
     if (args.up is None) != (args.forward is None):
         raise CommandError("--up, --forward: state both of the head's axes or neither")
     progress = _Progress(args.quiet)
+    try:
+        args.extras = check_extra_sets(args.extras or ())
+    except ValueError as error:
+        raise CommandError(f"--extras {','.join(args.extras)}: {error}") from None
     if _is_avatar(_input(args.head, "HEAD")):
         _autorig_avatar(args, out, progress)
         return
@@ -219,7 +223,7 @@ def _autorig(args) -> None:
         if "examples" in str(error).split(":")[0]:
             raise CommandError(f"--examples {args.examples}: {error}") from error
         raise
-    rig = result.rig
+    rig = with_extra_shapes(result.rig, args.extras) if args.extras else result.rig
     turned = "" if result.orientation.conventional else " (the rig stays in the head's frame)"
     progress(f"orientation: {result.orientation.describe()}{turned}")
     progress(
@@ -240,10 +244,13 @@ def _is_avatar(path: Path) -> bool:
     suffix = path.suffix.lower()
     if suffix == ".vrm":
         return True
-    if suffix == ".glb":
-        return bool(read_gltf_avatar(path).document.get("skins"))
-    if suffix == ".fbx":
-        return any(m.skin is not None for m in load_fbx_scene(path).meshes)
+    try:  # a file neither reader takes is left to load_head, which says why
+        if suffix == ".glb":
+            return bool(read_gltf_avatar(path).document.get("skins"))
+        if suffix == ".fbx":
+            return any(m.skin is not None for m in load_fbx_scene(path).meshes)
+    except (ValueError, OSError):
+        return False
     return False
 
 
@@ -264,7 +271,13 @@ def _autorig_avatar(args, out: Path, progress) -> None:
     progress(f"reading the avatar {args.head}")
     try:
         result = autorig.auto_rig_avatar(
-            args.head, out, method=args.method, replace=args.replace, progress=progress, **options
+            args.head,
+            out,
+            method=args.method,
+            replace=args.replace,
+            extras=args.extras,
+            progress=progress,
+            **options,
         )
     except autorig.OrientationError as error:
         raise CommandError(f"HEAD {args.head}: {str(error).replace('vertices: ', '', 1)}") from None
@@ -796,6 +809,14 @@ def _add_autorig_parser(sub) -> None:
         "--model",
         help="network checkpoint for --method raf or transfer-residual (default: the packaged "
         "model of that method)",
+    )
+    p.add_argument(
+        "--extras",
+        type=lambda text: [t.strip() for t in text.split(",") if t.strip()],
+        metavar="SETS",
+        help="add the targets apps expect, as documented sums of the ARKit shapes: visemes "
+        "(the 15 Oculus visemes), rpm (Ready Player Me's mouthOpen, mouthSmile, eyesClosed, "
+        "eyesLookUp, eyesLookDown), e.g. --extras visemes,rpm",
     )
     p.add_argument(
         "--replace",

@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 from canrig_jax import autorig, run_command
 from canrig_jax.data import data_file, load_fbx, load_fbx_scene, read_arrays
 from canrig_jax.rig import (
+    EXTRA_SHAPES,
     BlendshapeRig,
     accessor_array,
     add_morph_targets,
@@ -409,7 +410,9 @@ def test_rocketbox_body_through_the_command(name, data_dir, tmp_path, capsys):
     rig's jawOpen opens the jaw as the artist's does (downwards in the lower face)."""
     path = data_file(f"rocketbox/{name}_facial.fbx", data_dir)
     out = tmp_path / "rigged.glb"
-    status = run_command(["autorig", str(path), "-o", str(out), "--quiet"])
+    status = run_command(
+        ["autorig", str(path), "-o", str(out), "--quiet", "--extras", "visemes,rpm"]
+    )
     err = capsys.readouterr().err
     assert status == 0, err
     scene = load_fbx_scene(path)
@@ -420,6 +423,16 @@ def test_rocketbox_body_through_the_command(name, data_dir, tmp_path, capsys):
     assert len(document["meshes"]) == len(scene.meshes)
     names = document["meshes"][0]["extras"]["targetNames"]
     assert len(names) >= 51 and "jawOpen" in names and not any("AK_" in n for n in names)
+    # the extras, after the ARKit targets, exactly their documented sums of the written ones
+    targets = _targets(avatar, 0)
+    extras = {n: t for table in EXTRA_SHAPES.values() for n, t in table.items()}
+    assert names[-len(extras) :] == list(extras)
+    for name, terms in extras.items():
+        expected = sum(
+            (w * targets[names.index(k)] for k, w in terms.items() if k in names),
+            np.zeros(targets.shape[1:]),
+        )
+        np.testing.assert_allclose(targets[names.index(name)], expected, atol=1e-7, err_msg=name)
     [vertices] = mesh_vertices(avatar)
     np.testing.assert_allclose(vertices.world * 100, scene.meshes[0].vertices, atol=2e-3)
     jaw = _targets(avatar, 0)[names.index("jawOpen")] * 100  # cm, the FBX's frame (y up)

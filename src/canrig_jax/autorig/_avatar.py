@@ -20,20 +20,23 @@ import dataclasses
 import os
 import re
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from ..data import HEAD_PLAUSIBLE_CM, load_fbx_scene
 from ..rig import (
+    EXTRA_SHAPES,
     GltfAvatar,
     add_morph_targets,
     avatar_from_fbx,
+    check_extra_sets,
     mesh_vertices,
     node_descendants,
     read_gltf_avatar,
     target_names,
+    with_extra_shapes,
     write_gltf_avatar,
 )
 from ._any_head import auto_rig
@@ -172,6 +175,7 @@ def auto_rig_avatar(
     *,
     method: str | None = None,
     replace: bool = False,
+    extras: Sequence[str] = (),
     progress: Callable[[str], None] | None = None,
     **options,
 ) -> AvatarRig:
@@ -182,6 +186,8 @@ def auto_rig_avatar(
         out: the ``.glb`` to write (atomically; an existing file is replaced only on success).
         method: ``auto_rig``'s method (default: its default).
         replace: a target name a face mesh already has is replaced (else a ValueError).
+        extras: sets of ``rig.EXTRA_SHAPES`` to add after the rig's shapes (``"visemes"``,
+            ``"rpm"``), each target the documented sum of ARKit targets.
         progress: called with a message before each step.
         options: passed on to ``auto_rig`` (``dataset``, ``model``, ``up``, ``forward``...).
 
@@ -199,6 +205,7 @@ def auto_rig_avatar(
     if not path.is_file():
         raise FileNotFoundError(f"avatar: {path} not found")
     check_output_path(out, "out")
+    extras = check_extra_sets(extras)
     say = progress or (lambda message: None)
     source = _read_avatar(path)
     head = find_head_node(source)
@@ -221,7 +228,8 @@ def auto_rig_avatar(
     neutral, triangles = np.concatenate(parts), np.concatenate(faces).astype(np.int32)
     if not replace:  # a name clash is found before any compiled work
         for vertices, _ in chosen:
-            clash = set(target_names(document, vertices.mesh)) & _expected_names(options)
+            expected = _expected_names(options) | {n for s in extras for n in EXTRA_SHAPES[s]}
+            clash = set(target_names(document, vertices.mesh)) & expected
             if clash:
                 raise ValueError(
                     f"avatar: {path}: mesh {document['meshes'][vertices.mesh].get('name')!r} "
@@ -230,7 +238,7 @@ def auto_rig_avatar(
                 )
     result = auto_rig(neutral.astype(np.float32), triangles, method=method, progress=say, **options)
     seconds["rig"] = time.perf_counter() - start - seconds["read"]
-    rig = result.rig
+    rig = with_extra_shapes(result.rig, extras) if extras else result.rig
     deltas_cm = np.asarray(rig.deltas, np.float64)
     per_mesh, offset = {}, 0
     for vertices, mask in chosen:

@@ -13,6 +13,7 @@ from ._blendshape import (
     evaluate_batch,
 )
 from ._control_sets import CONTROL_SETS, control_set_of, select_blendshapes, select_control_set
+from ._extras import EXTRA_SHAPES, RPM_EXTRAS, VISEMES, check_extra_sets, with_extra_shapes
 from ._fbx import load_fbx_rig
 from ._gltf import export_gltf, load_gltf_rig
 from ._gltf_animation import (
@@ -49,6 +50,11 @@ from ._synthesis import (
 from ._transfer import deformation_transfer, remesh_rig
 
 __all__ = [
+    "EXTRA_SHAPES",
+    "RPM_EXTRAS",
+    "VISEMES",
+    "check_extra_sets",
+    "with_extra_shapes",
     "GltfAvatar",
     "MeshVertices",
     "accessor_array",
