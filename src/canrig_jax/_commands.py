@@ -148,7 +148,7 @@ def _autorig(args) -> None:
     from .data import load_head
     from .rig import check_extra_sets, export_gltf, with_extra_shapes
 
-    out = _output(args.output, (".glb",))
+    out = _output(args.output, (".glb", ".vrm"))
     if args.method is None:
         args.method = "transfer" if args.template else autorig.DEFAULT_METHOD
     if args.method == "raf" or args.method == "transfer-residual":
@@ -171,6 +171,8 @@ def _autorig(args) -> None:
         return
     if args.replace:
         raise CommandError("--replace: only an avatar's meshes hold morph targets to replace")
+    if out.suffix.lower() == ".vrm":
+        raise CommandError(f"-o {out}: a .vrm is written from a whole avatar (a skeleton)")
     head = load_head(_input(args.head, "HEAD"), units=args.units)
     progress(
         f"read {head.path}: {len(head.vertices)} vertices, {len(head.faces)} triangles, "
@@ -766,7 +768,8 @@ def _add_autorig_parser(sub) -> None:
             )
         ],
         "the rig, a .glb with named morph targets (centimetres); for an avatar, the same "
-        "avatar with morph targets on its face meshes",
+        "avatar with morph targets on its face meshes (.glb), or with VRM 1.0 expressions too "
+        "(.vrm)",
     )
     p.add_argument(
         "--method",

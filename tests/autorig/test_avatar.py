@@ -445,3 +445,41 @@ def test_rocketbox_body_through_the_command(name, data_dir, tmp_path, capsys):
     assert cosine > 0.5, cosine
     assert jaw[strong, 1].mean() < 0  # down
     _validate(out)
+
+
+def test_vrm_output_binds_presets_and_arkit_customs(avatar_file, stand_in, tmp_path, data_dir):
+    """``-o OUT.vrm``: VRMC_vrm 1.0 with every preset bound to its ARKit combination and each
+    ARKit target a custom expression of its own name, binds pointing at the right targets."""
+    from canrig_jax.rig import REQUIRED_BONES, VRM_PRESETS, humanoid_bones
+
+    path, _, _ = avatar_file
+    with pytest.raises(ValueError, match="humanoid skeleton"):  # hips, spine... but no arms
+        autorig.auto_rig_avatar(path, tmp_path / "no.vrm")
+    assert not stand_in  # refused before rigging
+    fbx = data_file("rocketbox/Male_Adult_08_facial.fbx", data_dir)
+    bones = humanoid_bones(avatar_from_fbx(load_fbx_scene(fbx)).document)
+    assert set(REQUIRED_BONES) <= set(bones)
+    result = autorig.auto_rig_avatar(fbx, tmp_path / "male.vrm", extras=())
+    avatar = read_gltf_avatar(result.out)
+    document = avatar.document
+    vrm = document["extensions"]["VRMC_vrm"]
+    assert vrm["specVersion"] == "1.0" and "VRMC_vrm" in document["extensionsUsed"]
+    assert document["nodes"][vrm["humanoid"]["humanBones"]["head"]["node"]]["name"] == (
+        "Bip01 Head"
+    )
+    preset, custom = vrm["expressions"]["preset"], vrm["expressions"]["custom"]
+    assert set(preset) == set(VRM_PRESETS) and not set(custom) & set(preset)
+    names = document["meshes"][0]["extras"]["targetNames"]
+    for expression, terms in [*VRM_PRESETS.items(), *((n, {n: 1.0}) for n in custom)]:
+        binds = (preset.get(expression) or custom[expression])["morphTargetBinds"]
+        got = {names[b["index"]]: b["weight"] for b in binds}
+        assert got == {k: w for k, w in terms.items() if k in names}, expression
+        assert all(document["nodes"][b["node"]]["mesh"] == 0 for b in binds)
+    assert set(custom) == {n for n in names if n in NAMES}
+    _validate_as_glb(result.out, tmp_path)
+
+
+def _validate_as_glb(path, tmp_path):
+    copy = tmp_path / (path.stem + "_copy.glb")
+    copy.write_bytes(path.read_bytes())
+    _validate(copy)

@@ -30,8 +30,10 @@ from ..rig import (
     EXTRA_SHAPES,
     GltfAvatar,
     add_morph_targets,
+    add_vrm_expressions,
     avatar_from_fbx,
     check_extra_sets,
+    check_humanoid,
     mesh_vertices,
     node_descendants,
     read_gltf_avatar,
@@ -183,7 +185,9 @@ def auto_rig_avatar(
 
     Args:
         avatar: a ``.glb``, ``.vrm`` (1.0) or ``.fbx`` avatar (glTF in metres).
-        out: the ``.glb`` to write (atomically; an existing file is replaced only on success).
+        out: the ``.glb`` to write (atomically; an existing file is replaced only on success),
+            or a ``.vrm``: the same with VRM 1.0 expressions (``rig.add_vrm_expressions``;
+            the avatar needs a humanoid skeleton).
         method: ``auto_rig``'s method (default: its default).
         replace: a target name a face mesh already has is replaced (else a ValueError).
         extras: sets of ``rig.EXTRA_SHAPES`` to add after the rig's shapes (``"visemes"``,
@@ -208,6 +212,9 @@ def auto_rig_avatar(
     extras = check_extra_sets(extras)
     say = progress or (lambda message: None)
     source = _read_avatar(path)
+    as_vrm = Path(out).suffix.lower() == ".vrm"
+    if as_vrm:
+        check_humanoid(source.document)
     head = find_head_node(source)
     chosen = _face_selection(source, head)
     _check_face(path, chosen, head)
@@ -251,6 +258,8 @@ def auto_rig_avatar(
         offset += n
     extras = {"canrig": {"method": result.method, "correctives_not_written": _n_correctives(rig)}}
     rigged = add_morph_targets(source, per_mesh, rig.names, replace=replace, extras=extras)
+    if as_vrm:
+        rigged = add_vrm_expressions(rigged, sorted(per_mesh), name=path.stem)
     write_gltf_avatar(rigged, out)
     seconds["total"] = time.perf_counter() - start
     say(f"wrote {out}: {rig.n_blendshapes} morph targets on {len(chosen)} meshes")

@@ -48,8 +48,20 @@ from ._synthesis import (
     synthesize_correctives,
 )
 from ._transfer import deformation_transfer, remesh_rig
+from ._vrm import (
+    REQUIRED_BONES,
+    VRM_PRESETS,
+    add_vrm_expressions,
+    check_humanoid,
+    humanoid_bones,
+)
 
 __all__ = [
+    "REQUIRED_BONES",
+    "VRM_PRESETS",
+    "add_vrm_expressions",
+    "check_humanoid",
+    "humanoid_bones",
     "EXTRA_SHAPES",
     "RPM_EXTRAS",
     "VISEMES",
