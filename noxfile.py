@@ -326,16 +326,26 @@ def experiments(session):
 
 @nox.session
 def gltf(session):
-    """The Khronos glTF validator (npm gltf-validator into ./node_modules, git-ignored) and
-    the glTF and command-line tests that use it (add -m slow for the end-to-end run)."""
+    """The Khronos glTF validator and the three.js / three-vrm loaders (npm, into
+    ./node_modules, git-ignored) and the glTF, avatar and command-line tests that use them
+    (add -m slow for the end-to-end run)."""
     session.install("-e", ".[dev]")
-    session.run("npm", "install", "--no-save", "gltf-validator@2.0.0-dev.3.10", external=True)
+    session.run(
+        "npm",
+        "install",
+        "--no-save",
+        "gltf-validator@2.0.0-dev.3.10",
+        "three@0.187.0",
+        "@pixiv/three-vrm@3.5.5",
+        external=True,
+    )
     session.run(
         "python",
         "-m",
         "pytest",
         "tests/rig/test_gltf_animation.py",
         "tests/test_commands.py",
+        "tests/autorig/test_avatar.py",
         *session.posargs,
     )
 

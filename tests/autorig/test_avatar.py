@@ -13,7 +13,10 @@ second; the real rig runs on both Rocketbox FBX bodies.
 from __future__ import annotations
 
 import json
+import shutil
 import struct
+import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -277,6 +280,24 @@ def _targets(avatar, mesh):
     return np.stack([accessor_array(avatar, t["POSITION"]) for t in primitive["targets"]])
 
 
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _three(path) -> dict:
+    """What a three.js app sees in ``path`` (``tests/clients/load_avatar.mjs``: GLTFLoader with
+    @pixiv/three-vrm's plugin, in Node)."""
+    modules = REPO / "node_modules"
+    if shutil.which("node") is None or not (modules / "@pixiv" / "three-vrm").is_dir():
+        pytest.skip("Node.js or npm three / @pixiv/three-vrm missing: npm install three "
+                    "@pixiv/three-vrm")  # fmt: skip
+    done = subprocess.run(
+        ["node", str(REPO / "tests" / "clients" / "load_avatar.mjs"), str(path)],
+        capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout)
+
+
 def _validate(path):
     if find_gltf_validator() is None:
         pytest.skip("Node.js or the npm package gltf-validator is missing")
@@ -445,6 +466,9 @@ def test_rocketbox_body_through_the_command(name, data_dir, tmp_path, capsys):
     assert cosine > 0.5, cosine
     assert jaw[strong, 1].mean() < 0  # down
     _validate(out)
+    [seen] = _three(out)["meshes"]  # three.js: the face mesh, skinned, its targets by name
+    assert seen["skinned"] and seen["targets"] == names
+    assert seen["vertices"] == len(scene.meshes[0].vertices)
 
 
 def test_vrm_output_binds_presets_and_arkit_customs(avatar_file, stand_in, tmp_path, data_dir):
@@ -477,6 +501,11 @@ def test_vrm_output_binds_presets_and_arkit_customs(avatar_file, stand_in, tmp_p
         assert all(document["nodes"][b["node"]]["mesh"] == 0 for b in binds)
     assert set(custom) == {n for n in names if n in NAMES}
     _validate_as_glb(result.out, tmp_path)
+    seen = _three(result.out)["vrm"]  # three-vrm: the expressions an app can set
+    assert seen["metaVersion"] == "1" and seen["head"].replace("_", " ") == "Bip01 Head"
+    assert set(seen["expressions"]) == set(preset) | set(custom)
+    assert seen["expressions"]["aa"] == 1 and seen["expressions"]["neutral"] == 0
+    assert seen["jawOpenAfterAa"] == pytest.approx(VRM_PRESETS["aa"]["jawOpen"])
 
 
 def _validate_as_glb(path, tmp_path):
