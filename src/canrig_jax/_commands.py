@@ -148,7 +148,7 @@ def _autorig(args) -> None:
     from .data import load_head
     from .rig import check_extra_sets, export_gltf, with_extra_shapes
 
-    out = _output(args.output, (".glb", ".vrm"))
+    out = _output(args.output, (".glb", ".vrm", ".usda", ".usdc", ".usd"))
     if args.method is None:
         args.method = "transfer" if args.template else autorig.DEFAULT_METHOD
     if args.method == "raf" or args.method == "transfer-residual":
@@ -173,6 +173,7 @@ def _autorig(args) -> None:
         raise CommandError("--replace: only an avatar's meshes hold morph targets to replace")
     if out.suffix.lower() == ".vrm":
         raise CommandError(f"-o {out}: a .vrm is written from a whole avatar (a skeleton)")
+    usd = out.suffix.lower() in (".usda", ".usdc", ".usd")
     head = load_head(_input(args.head, "HEAD"), units=args.units)
     progress(
         f"read {head.path}: {len(head.vertices)} vertices, {len(head.faces)} triangles, "
@@ -233,6 +234,12 @@ def _autorig(args) -> None:
         f"{sum(int(c.indices.shape[0]) for c in rig.correctives)} correctives with "
         f"{args.method} in {result.seconds['total']:.1f} s"
     )
+    if usd:
+        from .rig import export_usd
+
+        export_usd(rig, out)
+        progress(f"wrote {out}: UsdSkel blend shapes, centimetres (correctives not written)")
+        return
     export_gltf(rig, out)
     progress(f"wrote {out} (centimetres)")
 
@@ -259,6 +266,9 @@ def _is_avatar(path: Path) -> bool:
 def _autorig_avatar(args, out: Path, progress) -> None:
     """``canrig autorig`` of a whole avatar: the same avatar with morph targets."""
     from . import autorig
+
+    if out.suffix.lower() not in (".glb", ".vrm"):
+        raise CommandError(f"-o {out}: an avatar is written as a .glb or .vrm")
 
     for option, given in (("--template", args.template), ("--examples", args.examples)):
         if given:
@@ -309,7 +319,7 @@ def _animate(args) -> None:
     from .data import read_livelink_csv
     from .rig import evaluate_batch, export_animated_gltf, validate_gltf
 
-    out = _output(args.output, (".glb",))
+    out = _output(args.output, (".glb", ".usda", ".usdc", ".usd"))
     meshes_out = _output(args.meshes, (".npz",)) if args.meshes else None
     progress = _Progress(args.quiet)
     rig = _load_rig(args.rig)
@@ -331,8 +341,15 @@ def _animate(args) -> None:
         else:
             _warn(f"{args.take}: no HeadYaw/HeadPitch/HeadRoll columns; no head rotation")
     progress(f"writing {out}: {take.n_frames} keys x {rig.n_blendshapes} morph targets")
-    export_animated_gltf(rig, weights, out, fps=take.fps, times=times, head_rotation=head)
-    progress(f"wrote {out}")
+    if out.suffix.lower() in (".usda", ".usdc", ".usd"):
+        from .rig import export_usd
+
+        export_usd(rig, out, weights=weights, fps=take.fps, times=times)
+        progress(f"wrote {out}: UsdSkel blend shapes and a SkelAnimation (no head rotation)")
+        args.validate = False  # the glTF validator reads glTF only
+    else:
+        export_animated_gltf(rig, weights, out, fps=take.fps, times=times, head_rotation=head)
+        progress(f"wrote {out}")
     if meshes_out is not None:
         progress(f"evaluating the rig at {take.n_frames} frames")
         meshes = np.asarray(evaluate_batch(rig, weights, chunk=64), np.float32)
@@ -769,7 +786,7 @@ def _add_autorig_parser(sub) -> None:
         ],
         "the rig, a .glb with named morph targets (centimetres); for an avatar, the same "
         "avatar with morph targets on its face meshes (.glb), or with VRM 1.0 expressions too "
-        "(.vrm)",
+        "(.vrm); a head's rig can also be written as UsdSkel blend shapes (.usda, .usdc, .usd)",
     )
     p.add_argument(
         "--method",
@@ -849,7 +866,8 @@ def _add_animate_parser(sub) -> None:
             ("rig", "the rig: .glb from canrig autorig, a .npz or an .fbx rig"),
             ("take", "the .csv take"),
         ],
-        "the animated .glb",
+        "the animated .glb, or a .usda, .usdc or .usd (UsdSkel blend shapes and a "
+        "SkelAnimation; needs usd-core)",
     )
     p.add_argument("--fps", type=int, help="the take's frame rate (default: from the timecodes)")
     p.add_argument(

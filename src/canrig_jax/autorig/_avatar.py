@@ -234,30 +234,14 @@ def auto_rig_avatar(
         offset += int(mask.sum())
     neutral, triangles = np.concatenate(parts), np.concatenate(faces).astype(np.int32)
     if not replace:  # a name clash is found before any compiled work
-        for vertices, _ in chosen:
-            expected = _expected_names(options) | {n for s in extras for n in EXTRA_SHAPES[s]}
-            clash = set(target_names(document, vertices.mesh)) & expected
-            if clash:
-                raise ValueError(
-                    f"avatar: {path}: mesh {document['meshes'][vertices.mesh].get('name')!r} "
-                    f"already has targets named {sorted(clash)[:5]}: pass replace=True "
-                    "(canrig autorig --replace) to replace them"
-                )
+        _check_clashes(path, document, chosen, options, extras)
     result = auto_rig(neutral.astype(np.float32), triangles, method=method, progress=say, **options)
     seconds["rig"] = time.perf_counter() - start - seconds["read"]
     rig = with_extra_shapes(result.rig, extras) if extras else result.rig
     deltas_cm = np.asarray(rig.deltas, np.float64)
-    per_mesh, offset = {}, 0
-    for vertices, mask in chosen:
-        n = int(mask.sum())
-        world = np.zeros((rig.n_blendshapes, len(mask), 3))
-        world[:, mask] = deltas_cm[:, offset : offset + n] / METRES_TO_CM
-        inverse = np.linalg.inv(vertices.to_world[mask])  # world -> the mesh's frame
-        world[:, mask] = np.einsum("vij,kvj->kvi", inverse, world[:, mask])
-        per_mesh[vertices.mesh] = world
-        offset += n
-    extras = {"canrig": {"method": result.method, "correctives_not_written": _n_correctives(rig)}}
-    rigged = add_morph_targets(source, per_mesh, rig.names, replace=replace, extras=extras)
+    per_mesh = _per_mesh_offsets(chosen, deltas_cm)
+    written = {"canrig": {"method": result.method, "correctives_not_written": _n_correctives(rig)}}
+    rigged = add_morph_targets(source, per_mesh, rig.names, replace=replace, extras=written)
     if as_vrm:
         rigged = add_vrm_expressions(rigged, sorted(per_mesh), name=path.stem)
     write_gltf_avatar(rigged, out)
@@ -273,6 +257,33 @@ def auto_rig_avatar(
         seconds=seconds,
         out=Path(out),
     )
+
+
+def _check_clashes(path, document, chosen, options, extras) -> None:
+    expected = _expected_names(options) | {n for s in extras for n in EXTRA_SHAPES[s]}
+    for vertices, _ in chosen:
+        clash = set(target_names(document, vertices.mesh)) & expected
+        if clash:
+            raise ValueError(
+                f"avatar: {path}: mesh {document['meshes'][vertices.mesh].get('name')!r} "
+                f"already has targets named {sorted(clash)[:5]}: pass replace=True "
+                "(canrig autorig --replace) to replace them"
+            )
+
+
+def _per_mesh_offsets(chosen, deltas_cm: np.ndarray) -> dict[int, np.ndarray]:
+    """{mesh: (K, V, 3) offsets in the mesh's frame and units} of the rig's (K, N, 3) world
+    offsets in cm over the chosen vertices (zero elsewhere)."""
+    per_mesh, offset = {}, 0
+    for vertices, mask in chosen:
+        n = int(mask.sum())
+        world = np.zeros((len(deltas_cm), len(mask), 3))
+        world[:, mask] = deltas_cm[:, offset : offset + n] / METRES_TO_CM
+        inverse = np.linalg.inv(vertices.to_world[mask])  # world -> the mesh's frame
+        world[:, mask] = np.einsum("vij,kvj->kvi", inverse, world[:, mask])
+        per_mesh[vertices.mesh] = world
+        offset += n
+    return per_mesh
 
 
 def _n_correctives(rig) -> int:

@@ -48,6 +48,7 @@ from ._synthesis import (
     synthesize_correctives,
 )
 from ._transfer import deformation_transfer, remesh_rig
+from ._usd import USD_SUFFIXES, export_usd, load_usd_rig
 from ._vrm import (
     REQUIRED_BONES,
     VRM_PRESETS,
@@ -57,6 +58,9 @@ from ._vrm import (
 )
 
 __all__ = [
+    "USD_SUFFIXES",
+    "export_usd",
+    "load_usd_rig",
     "REQUIRED_BONES",
     "VRM_PRESETS",
     "add_vrm_expressions",
