@@ -119,6 +119,14 @@ def _table(avatars: dict) -> str:
             f"{all(kept.values()) if kept else ''} | {a.get('validator_errors', 'n/a')} | "
             f"{a.get('three_js_loaded', 'n/a')} | {a.get('vrm_loaded', 'n/a')} |"
         )
+    lines += [
+        "",
+        "`seconds`: `canrig autorig` run in this one process, one avatar after another (the "
+        "first run compiles; a fresh `canrig autorig` process on a Rocketbox body took about "
+        "11 s on this 2-core machine). `motion` is not measured here. The artist's blend "
+        "shapes are ignored; targets: 51 RigAnyFace ARKit shapes + 20 extras (`--extras "
+        "visemes,rpm`).",
+    ]
     return "\n".join(lines) + "\n"
 
 
