@@ -108,6 +108,7 @@ STANDARD_EXPERIMENTS = (
     ("inverse_rig_temporal.py", "--out", "experiments/results/inverse_rig", "--validation-split"),
     ("inverse_rig_streaming.py", "--out", "experiments/results/inverse_rig"),  # its section
     ("distributed.py", "--out", "experiments/results/distributed"),
+    ("avatar.py", "--out", "experiments/results/avatar"),
     ("wpse.py", "--out", "experiments/results/wpse"),
     ("wpse_timing.py", "--out", "experiments/results/wpse"),  # Table 1's rows, into wpse's
     ("mesh_foundations.py", "--out", "experiments/results/mesh_foundations"),

@@ -512,3 +512,19 @@ def _validate_as_glb(path, tmp_path):
     copy = tmp_path / (path.stem + "_copy.glb")
     copy.write_bytes(path.read_bytes())
     _validate(copy)
+
+
+@pytest.mark.slow
+def test_whole_avatar_with_the_real_rig(avatar_file, tmp_path):
+    """The built avatar through the real ``auto_rig`` (the default method): the head skin and
+    both eyes get the same named targets, the rest byte for byte, valid, loaded in three.js."""
+    path, _, _ = avatar_file
+    result = autorig.auto_rig_avatar(path, tmp_path / "real.glb", extras=("visemes", "rpm"))
+    assert result.head_meshes == ("HeadSkin", "EyeLeft", "EyeRight")
+    before, after = read_gltf_avatar(path), read_gltf_avatar(result.out)
+    assert after.blob[: len(before.blob)] == before.blob
+    names = [m["extras"]["targetNames"] for m in after.document["meshes"] if "extras" in m]
+    assert len(names) == 3 and names[0] == names[1] == names[2] and len(names[0]) >= 51 + 20
+    _validate(result.out)
+    seen = {m["name"]: m["targets"] for m in _three(result.out)["meshes"]}
+    assert seen["HeadSkinMesh"] == seen["EyeLeftNode"] == names[0]  # three.js: node names

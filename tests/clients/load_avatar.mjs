@@ -1,8 +1,11 @@
 // Load a .glb / .vrm the way a three.js app does (GLTFLoader, with @pixiv/three-vrm's plugin
 // for a .vrm) and print what the app sees as JSON: each mesh's morph targets by name, and the
 // VRM's expressions with the morph targets each one drives.
+// Node has no image decoder: each texture is an empty three.js Texture (the images are not
+// decoded; everything else is loaded as in a browser).
 // Usage: node load_avatar.mjs FILE
 import { readFileSync } from 'node:fs';
+import { Texture } from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { VRMLoaderPlugin } from '@pixiv/three-vrm';
 
@@ -11,6 +14,7 @@ const bytes = readFileSync(path);
 const buffer = bytes.buffer.slice(bytes.byteOffset, bytes.byteOffset + bytes.byteLength);
 const loader = new GLTFLoader();
 loader.register((parser) => new VRMLoaderPlugin(parser));
+loader.register(() => ({ name: 'no_image_decoding', loadTexture: () => Promise.resolve(new Texture()) }));
 loader.parse(buffer, '', (gltf) => {
   const meshes = [];
   gltf.scene.traverse((object) => {
