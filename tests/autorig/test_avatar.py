@@ -40,10 +40,17 @@ from canrig_jax.rig import (
 ROCKETBOX = ("Male_Adult_08", "Female_Adult_01")
 HEAD_NODE, EYE_NODES = 4, (5, 6)
 MESHES = ("Body", "HeadSkin", "EyeLeft", "EyeRight", "Hair")
-PNG_1X1 = bytes.fromhex(
-    "89504e470d0a1a0a0000000d4948445200000001000000010806000000"
-    "1f15c4890000000d49444154789c63f8cfc0f01f0005000201d8e1b1f60000000049454e44ae426082"
-)
+
+
+def _png() -> bytes:
+    """A valid 2 x 2 PNG (the avatar's texture)."""
+    import io
+
+    import matplotlib.image
+
+    out = io.BytesIO()
+    matplotlib.image.imsave(out, np.full((2, 2, 3), 0.8), format="png")
+    return out.getvalue()
 
 
 # ------------------------------------------------------------------ an independent GLB writer
@@ -192,7 +199,7 @@ def build_avatar(path, data_dir, *, head_name="Head", extra_head=False, grid=0):
             np.uint32), joint=3), "skin": 0})  # fmt: skip
     times = glb.add(np.array([[0.0], [1.0]], np.float32), 5126, "SCALAR", True)
     turn = glb.add(np.array([[0, 0, 0, 1], [0, 0.2588, 0, 0.9659]], np.float32), 5126, "VEC4")
-    image_view = glb.raw(PNG_1X1)
+    image_view = glb.raw(_png())
     roots = [0] + [i for i, n in enumerate(nodes) if n["name"].endswith("Mesh")]
     document = {
         "asset": {"version": "2.0", "generator": "canrig_jax tests"},
@@ -528,3 +535,32 @@ def test_whole_avatar_with_the_real_rig(avatar_file, tmp_path):
     _validate(result.out)
     seen = {m["name"]: m["targets"] for m in _three(result.out)["meshes"]}
     assert seen["HeadSkinMesh"] == seen["EyeLeftNode"] == names[0]  # three.js: node names
+
+
+def test_viewer_renders_the_whole_avatar_and_its_face_moves(avatar_file, stand_in, tmp_path):
+    """``canrig view --screenshot`` (headless Chromium, the viewer's three.js) draws the rigged
+    avatar; holding jawOpen at 1 changes pixels only in the head's part of the frame."""
+    import matplotlib.image
+
+    from canrig_jax.viewer import find_chromium
+
+    if find_chromium() is None:
+        pytest.skip("no headless Chromium: apt-get install chromium-headless-shell")
+    path, _, _ = avatar_file
+    out = autorig.auto_rig_avatar(path, tmp_path / "out.glb").out
+    shots = []
+    for morph in ([], ["--morph", "jawOpen=1"]):
+        png = tmp_path / f"shot{len(shots)}.png"
+        argv = ["view", str(out), "--screenshot", str(png), "--size", "480x640", *morph]
+        assert run_command(argv) == 0
+        shots.append(matplotlib.image.imread(png)[..., :3])
+    rest, jaw = shots
+    canvas = rest[:, : int(rest.shape[1] * 0.7)]  # the 3-D view (the panel is on the right)
+    drawn = np.abs(canvas - canvas[0, 0]).sum(axis=-1) > 0.05
+    assert drawn.mean() > 0.01  # the avatar is drawn
+    changed = np.abs(jaw - rest).sum(axis=-1)[:, : canvas.shape[1]] > 0.05
+    assert changed.any()
+    rows = np.flatnonzero(changed.any(axis=1))
+    body_rows = np.flatnonzero(drawn.any(axis=1))
+    top, bottom = body_rows.min(), body_rows.max()
+    assert rows.max() < top + 0.35 * (bottom - top)  # the head, not the body, moved

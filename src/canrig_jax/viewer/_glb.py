@@ -19,7 +19,8 @@ class GlbSummary:
     n_vertices: int
     """POSITION counts summed over every primitive."""
     morph_names: tuple[str, ...]
-    """Morph target names of the first mesh (``extras.targetNames``), or ``target_i``."""
+    """Morph target names of every mesh (``extras.targetNames``, or ``target_i``), each once,
+    in mesh order."""
     animations: tuple[str, ...]
     has_colors: bool
     """Whether any primitive has a ``COLOR_0`` attribute."""
@@ -75,10 +76,12 @@ def inspect_glb(path: str | os.PathLike) -> GlbSummary:
         raise ValueError(f"FILE {path}: a mesh refers to a missing accessor ({error})") from None
     if n_vertices == 0:
         raise ValueError(f"FILE {path}: the .glb's meshes have no vertex positions")
-    first = meshes[0]
-    n_targets = len(first["primitives"][0].get("targets", []))
-    names = first.get("extras", {}).get("targetNames") or [f"target_{i}" for i in range(n_targets)]
+    names: dict[str, None] = {}  # every mesh's, in order (an avatar's face meshes share them)
+    for mesh in meshes:
+        n_targets = len(mesh["primitives"][0].get("targets", []))
+        own = mesh.get("extras", {}).get("targetNames") or [f"target_{i}" for i in range(n_targets)]
+        names.update(dict.fromkeys(map(str, own[:n_targets] if n_targets else [])))
     animations = tuple(
         str(a.get("name", f"animation_{i}")) for i, a in enumerate(document.get("animations", []))
     )
-    return GlbSummary(path, len(meshes), n_vertices, tuple(map(str, names)), animations, colors)
+    return GlbSummary(path, len(meshes), n_vertices, tuple(names), animations, colors)
