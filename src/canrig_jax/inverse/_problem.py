@@ -46,6 +46,11 @@ class InverseProblem(eqx.Module):
             descent updates the gradient Q a - p with one of these blocks per coordinate.
         support_block: (K, m, m) float32 Q[support_i, support_i], zero on padding.
         rig: the rig itself, for solvers that call ``evaluate`` directly.
+        linear_term: optional (P,) vector added to every projection, and
+        constant_term: optional scalar added to every objective: how a quadratic penalty
+            on the weights with a linear part (``Constrained``'s temporal term
+            lambda / 2 ||w - w_prev||^2) enters the problem a method solves; None (the
+            default, as ``prepare`` leaves them) adds nothing.
     """
 
     neutral: Float[Array, "V 3"]
@@ -61,6 +66,8 @@ class InverseProblem(eqx.Module):
     support_gram: Float[Array, "K m P"]
     support_block: Float[Array, "K m m"]
     rig: BlendshapeRig
+    linear_term: Float[Array, " P"] | None = None
+    constant_term: Float[Array, ""] | None = None
 
     @property
     def n_blendshapes(self) -> int:
@@ -100,11 +107,14 @@ class InverseProblem(eqx.Module):
         """1/2 ||f(w) - b||^2 + alpha 1^T w from p = M^T (b - b0) and ||b - b0||^2:
         1/2 (a^T Q a - 2 a^T p + ||b - b0||^2) + alpha 1^T w, P x P work."""
         a = self.coefficients(weights)
-        return 0.5 * (a @ self.gram @ a - 2.0 * a @ projection + offset_sq) + alpha * weights.sum()
+        value = 0.5 * (a @ self.gram @ a - 2.0 * a @ projection + offset_sq) + alpha * weights.sum()
+        return value if self.constant_term is None else value + self.constant_term
 
     def projection(self, offset: Float[Array, " N"]) -> Float[Array, " P"]:
-        """p = M^T (b - b0) for ``offset`` = (b - b0).ravel(): the one 3V-sized product."""
-        return self.columns @ offset
+        """p = M^T (b - b0) for ``offset`` = (b - b0).ravel(): the one 3V-sized product
+        (plus ``linear_term`` when a penalty set one)."""
+        projection = self.columns @ offset
+        return projection if self.linear_term is None else projection + self.linear_term
 
     def mesh(self, weights: Float[Array, " K"]) -> Float[Array, "V 3"]:
         return self.neutral + (self.coefficients(weights) @ self.columns).reshape(-1, 3)
