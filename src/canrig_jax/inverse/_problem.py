@@ -11,6 +11,8 @@ and every coordinate update need only P-vectors, never a 3V-vector: f is affine 
 weight, a(w) = a(w with w_i = 0) + w_i g_i(w), and phi_i = M g_i.
 """
 
+from typing import Any
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
@@ -18,6 +20,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._warnings import warn
 from ..rig import BlendshapeRig, Corrective, combination_coefficients
+from ._points import points_rig
 
 
 class InverseProblem(eqx.Module):
@@ -120,8 +123,19 @@ class InverseProblem(eqx.Module):
         return self.neutral + (self.coefficients(weights) @ self.columns).reshape(-1, 3)
 
 
-def prepare(rig: BlendshapeRig, *, drop_zero_shapes: bool = False) -> InverseProblem:
+def prepare(
+    rig: BlendshapeRig, *, drop_zero_shapes: bool = False, points: Any = None
+) -> InverseProblem:
     """Precompute M and Q for ``rig`` (float64 accumulation; a few seconds for ict-quartic).
+
+    ``points``: solve from a few points of the surface instead of the whole mesh (markers,
+    tracked landmarks): (N,) vertex indices, (triangles (N,), barycentric (N, 3)) on
+    ``rig.faces``, or a ``mesh.SurfaceMap`` onto the rig's mesh (``mesh.bind_points`` binds a
+    landmark layout to a head). The problem is then that of the rig at the points
+    (``problem.rig``: N vertices, no faces) and targets are (N, 3) point positions; a
+    blendshape that moves none of the points is kept with a warning (its weight is then
+    fixed by the L1 term and the start alone). Points outside the mesh raise a ValueError
+    naming ``points``.
 
     A blendshape with all-zero deltas cannot be solved for (its weight is undetermined):
     ``prepare`` raises a ValueError naming it, or, with ``drop_zero_shapes=True``, warns and
@@ -133,23 +147,28 @@ def prepare(rig: BlendshapeRig, *, drop_zero_shapes: bool = False) -> InversePro
     k = rig.n_blendshapes
     if k == 0:
         raise ValueError("rig: has no blendshapes (K = 0); there are no weights to solve for")
+    if points is not None:
+        rig = points_rig(rig, points)
     norms = np.linalg.norm(np.asarray(rig.deltas, np.float64).reshape(k, -1), axis=1)
     if np.any(norms == 0):
         zero = np.flatnonzero(norms == 0).tolist()
         names = [rig.names[i] for i in zero] if rig.names else zero
-        if not drop_zero_shapes:
+        if points is not None and not drop_zero_shapes:
+            warn(f"prepare: blendshapes {names} move none of the points")
+        elif not drop_zero_shapes:
             raise ValueError(
                 f"rig: blendshapes {names} have all-zero deltas (zero norm), so their weights "
                 "are undetermined; pass drop_zero_shapes=True to prepare the rig without them"
             )
         if len(zero) == k:
             raise ValueError("rig: every blendshape has all-zero deltas; nothing to solve for")
-        warn(
-            f"prepare: dropping blendshapes {names} (all-zero deltas); solved weights follow "
-            "problem.rig.names",
-        )
-        rig = _without_shapes(rig, zero)
-        k = rig.n_blendshapes
+        if drop_zero_shapes:
+            warn(
+                f"prepare: dropping blendshapes {names} (all-zero deltas); solved weights "
+                "follow problem.rig.names",
+            )
+            rig = _without_shapes(rig, zero)
+            k = rig.n_blendshapes
     v = rig.n_vertices
     columns = [np.asarray(rig.deltas, np.float64).reshape(k, -1)]
     tables = sorted((c for c in rig.correctives if c.indices.shape[0]), key=lambda c: c.order)
