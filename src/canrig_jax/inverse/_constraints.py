@@ -436,7 +436,9 @@ class Constrained(AbstractInverseMethod):
             model = self.penalised(problem, previous, temporal)
         run = self._resolve(model, offset, start, bounds, key)
         output = run._replace(weights=self.adjusted(run.weights, bounds))
-        return output, (run.weights, jnp.asarray(True))
+        # a failed frame hands on its start, never NaN (as ``Stream`` does with the output)
+        solved = jnp.where(jnp.all(jnp.isfinite(run.weights)), run.weights, start)
+        return output, (solved, jnp.asarray(True))
 
     def _resolve(
         self,
