@@ -398,6 +398,38 @@ def _read_meshes(path: Path, n_vertices: int, units: str) -> np.ndarray:
     return meshes
 
 
+def _read_points(path: Path) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """``--points FILE``: an .npz or .json with ``vertices`` (N,) vertex indices, or
+    ``triangles`` (N,) and ``barycentric`` (N, 3) on the rig's faces."""
+    import json
+
+    if path.suffix.lower() == ".npz":
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    elif path.suffix.lower() == ".json":
+        try:
+            data = json.loads(path.read_text())
+        except json.JSONDecodeError as error:
+            raise CommandError(f"--points {path}: not JSON ({error.msg})") from None
+        if not isinstance(data, dict):
+            raise CommandError(f"--points {path}: expected a JSON object")
+    else:
+        raise CommandError(f"--points {path}: expected an .npz or a .json file")
+    if "vertices" in data:
+        vertices = np.asarray(data["vertices"])
+        if not np.issubdtype(vertices.dtype, np.integer):
+            raise CommandError(f"--points {path}: 'vertices' must be integer vertex indices")
+        return vertices
+    if "triangles" in data and "barycentric" in data:
+        triangles = np.asarray(data["triangles"])
+        if not np.issubdtype(triangles.dtype, np.integer):
+            raise CommandError(f"--points {path}: 'triangles' must be integer triangle indices")
+        return triangles, np.asarray(data["barycentric"], np.float64)
+    raise CommandError(
+        f"--points {path}: expected 'vertices' (N,), or 'triangles' (N,) and 'barycentric' (N, 3)"
+    )
+
+
 def _invert(args) -> None:
     import jax
     from tqdm import tqdm
@@ -411,9 +443,21 @@ def _invert(args) -> None:
     progress = _Progress(args.quiet)
     rig = _load_rig(args.rig)
     progress(f"read {args.rig}: {rig.n_blendshapes} blendshapes, {rig.n_vertices} vertices")
-    meshes = _read_meshes(_input(args.meshes, "MESHES"), rig.n_vertices, rig.units)
+    points = _read_points(_input(args.points, "--points")) if args.points else None
+    problem = None
+    if points is not None:
+        try:
+            problem = inverse.prepare(rig, points=points)
+        except ValueError as error:
+            raise CommandError(f"--points {args.points}: {error}") from None
+        if args.meshes.lower().endswith(".obj") or Path(args.meshes).is_dir():
+            raise CommandError(f"MESHES {args.meshes}: with --points, an .npz of point positions")
+        progress(f"read {args.points}: {problem.n_vertices} points on the rig's surface")
+    n_targets = rig.n_vertices if problem is None else problem.n_vertices
+    meshes = _read_meshes(_input(args.meshes, "MESHES"), n_targets, rig.units)
     n_frames = meshes.shape[0]
-    progress(f"read {n_frames} meshes of {meshes.shape[1]} vertices")
+    what = "points" if points is not None else "vertices"
+    progress(f"read {n_frames} meshes of {meshes.shape[1]} {what}")
     timecodes = None
     if args.timecodes:
         with warnings.catch_warnings():
@@ -450,8 +494,9 @@ def _invert(args) -> None:
     fields = {f.name for f in dataclasses.fields(cls)}
     options = from_args(inverse.QuarticCD, args)
     method = cls(**{k: getattr(options, k) for k in fields if hasattr(options, k)})
-    progress(f"preparing the inverse problem ({rig.n_blendshapes} blendshapes)")
-    problem = inverse.prepare(rig)
+    if problem is None:
+        progress(f"preparing the inverse problem ({rig.n_blendshapes} blendshapes)")
+        problem = inverse.prepare(rig)
     progress(f"solving {n_frames} frames with {method}")
     chunk = min(args.chunk, meshes.shape[0])
     solved = []
@@ -470,11 +515,11 @@ def _invert(args) -> None:
     progress(f"wrote {out}: {weights.shape[0]} frames, {len(channels)} Live Link Face channels")
     # how well the solved weights reproduce the meshes: well posed even where the weights are
     # not (two nearly parallel blendshapes trade weight without changing the mesh)
-    fitted = np.asarray(evaluate_batch(rig, weights))
+    fitted = np.asarray(evaluate_batch(problem.rig, weights))  # at the points with --points
     mesh_mm = np.linalg.norm(fitted - meshes, axis=-1) * UNIT_IN_CM[rig.units] * CM_TO_MM
     print(
         f"mesh error of the solved weights over {meshes.shape[0]} frames x "
-        f"{meshes.shape[1]} vertices: mean {mesh_mm.mean():.4f} mm, max {mesh_mm.max():.4f} mm"
+        f"{meshes.shape[1]} {what}: mean {mesh_mm.mean():.4f} mm, max {mesh_mm.max():.4f} mm"
     )
     if expected is not None:
         error = np.abs(weights - expected)
@@ -943,6 +988,13 @@ def _add_invert_parser(sub) -> None:
         "default: consecutive frames from 00:00:00:00)",
     )
     p.add_argument("--reference", help="a .csv take to report the weight error against")
+    p.add_argument(
+        "--points",
+        metavar="FILE",
+        help="solve from points of the surface (markers, landmarks): an .npz or .json with "
+        "'vertices' (N,) vertex indices, or 'triangles' (N,) and 'barycentric' (N, 3) on the "
+        "rig's faces; MESHES is then an .npz of (T, N, 3) point positions",
+    )
     p.set_defaults(run=_invert)
 
 

@@ -36,11 +36,21 @@ METHOD_CASES = (
         ties=((4, 5),),
         tie_weight=0.5,
     ),
+    # the production terms: L2, temporal (off outside a warm Stream), one gain and offset
+    inverse.Constrained(
+        inverse.QuarticNewton(alpha=0.5, iterations=4),
+        exclusive=((0, 1),),
+        l2_weight=0.1,
+        temporal_weight=1.0,
+        multipliers=1.2,
+        offsets=0.02,
+    ),
 )
 
 
 def _id(method) -> str:
-    return type(method).__name__ + ("-random" if getattr(method, "order", "") == "random" else "")
+    name = type(method).__name__ + ("-random" if getattr(method, "order", "") == "random" else "")
+    return name + ("-production" if getattr(method, "multipliers", None) is not None else "")
 
 
 CASES = [

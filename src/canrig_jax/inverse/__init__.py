@@ -8,8 +8,10 @@ Every method is an ``AbstractInverseMethod`` (``METHODS`` lists the classes):
 ``QuarticCD``, ``LinearCD`` (coordinate descent, ``AbstractCoordinateDescent``),
 ``QuarticNewton`` (projected Gauss-Newton on the same objective), ``Seol``,
 ``Joshi``, ``Cetinaslan``, ``LMMM``, ``JaxoptLBFGSB``. Coordinate orders in ``ORDERS``;
-mutually exclusive pairs and left/right ties with ``Constrained`` (``rig.exclusive_pairs``,
-``left_right_pairs``);
+mutually exclusive pairs, left/right ties and the production solver's terms (L2, a
+previous-frame term in a ``Stream``, an active-shape mask, per-shape multipliers and offsets)
+with ``Constrained`` (``rig.exclusive_pairs``, ``left_right_pairs``, ``pair_indices``), read
+from an Audio2Face-3D solver configuration with ``from_audio2face_config``;
 whole takes with ``solve_sequence``
 (jointly and smooth in time with ``TemporalNewton``; its smoothness rule and scores:
 ``select_smoothness``, ``smoothness_curve``, ``validation_split``, ``temporal_row``,
@@ -21,11 +23,13 @@ live capture with ``Stream``; metrics
 (``numpy_quartic_cd``, ``minimum``) for checks and speed ratios.
 """
 
+from ._audio2face import from_audio2face_config
 from ._base import AbstractInverseMethod, Iterate
 from ._constraints import (
     Constrained,
     both_active,
     left_right_pairs,
+    pair_indices,
 )
 from ._coordinate_descent import (
     ORDERS,
@@ -104,6 +108,8 @@ __all__ = [
     "Constrained",
     "both_active",
     "left_right_pairs",
+    "pair_indices",
+    "from_audio2face_config",
     "NEUTRAL_TOL_MM",
     "retarget",
     "NumpyDenseRig",

@@ -66,6 +66,12 @@ class AbstractInverseMethod(eqx.Module):
     ) -> Iterate:
         """Solve for one frame; ``offset`` = (b - b0).ravel() in rig units. jit/vmap-safe."""
 
+    def check(self, problem: InverseProblem) -> None:
+        """Validate the method against ``problem`` in plain Python, before anything is
+        compiled (``solve``, ``solve_sequence`` and ``Stream`` call it): per-weight settings
+        of the wrong length, pairs past the rig's weights. Raises a ValueError naming the
+        field; the default checks nothing."""
+
     def initial_carry(self, problem: InverseProblem) -> Any:
         """What ``Stream`` hands from one frame's solve to the next besides the weights
         (``step``), before the first frame; None for methods that reuse nothing else."""

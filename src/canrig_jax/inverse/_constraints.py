@@ -133,6 +133,60 @@ def _index_pairs(pairs: Any, argument: str) -> tuple[tuple[int, int], ...]:
     return tuple(out)
 
 
+StreamCarry = tuple[Float[Array, " K"], Bool[Array, ""]]
+"""What ``Constrained`` hands from one frame of a ``Stream`` to the next: (the frame's solved
+weights, before multipliers and offsets; whether there is a previous frame)."""
+
+
+def pair_indices(
+    names: tuple[str, ...] | list[str],
+    pairs: Any,
+    *,
+    argument: str = "pairs",
+) -> tuple[tuple[int, int], ...]:
+    """Index pairs of ``pairs`` given by name (``(("eyeBlink_L", "eyeBlink_R"), ...)``) in the
+    rig's ``names``, for ``Constrained(exclusive=, ties=)``. Raises a ValueError naming
+    ``argument`` and every name the rig lacks, before anything is compiled."""
+    names = _check_names(names)
+    index = {n: i for i, n in enumerate(names)}
+    if isinstance(pairs, str):
+        raise ValueError(f"{argument}: expected pairs of names, got the string {pairs!r}")
+    pairs = [tuple(p) if not isinstance(p, str) else (p,) for p in pairs]
+    malformed = [p for p in pairs if len(p) != 2 or not all(isinstance(n, str) for n in p)]
+    if malformed:
+        raise ValueError(f"{argument}: expected pairs of two names, got {malformed}")
+    unknown = sorted({n for p in pairs for n in p if n not in index})
+    if unknown:
+        raise ValueError(f"{argument}: names not in the rig: {unknown}")
+    return _index_pairs([(index[a], index[b]) for a, b in pairs], argument)
+
+
+def _mask(active: Any) -> Bool[Array, " K"] | None:
+    """``active`` as a (K,) bool array (an array: traced, so another mask reuses the compiled
+    solve); None stays None."""
+    if active is None or isinstance(active, jax.core.Tracer):
+        return active
+    values = np.asarray(active)
+    if values.ndim != 1 or values.size == 0:
+        raise ValueError(f"active: expected a (K,) mask of shapes, got shape {values.shape}")
+    if values.dtype != bool and not np.isin(values, (0, 1)).all():
+        raise ValueError("active: expected booleans or 0/1 per shape")
+    return jnp.asarray(values.astype(bool))
+
+
+def _per_shape(value: Any, argument: str) -> Float[Array, "*K"] | None:
+    """A number or a (K,) array of finite floats, as an array; None stays None."""
+    if value is None or isinstance(value, jax.core.Tracer):
+        return value
+    values = np.asarray(value, np.float32)
+    if values.ndim > 1 or values.size == 0:
+        raise ValueError(f"{argument}: expected a number or (K,) per-shape values, got shape "
+                         f"{values.shape}")  # fmt: skip
+    if not np.isfinite(values).all():
+        raise ValueError(f"{argument}: expected finite values")
+    return jnp.asarray(values)
+
+
 SUPPORTED_METHODS = (QuarticNewton,)
 """Methods ``Constrained`` can wrap: those that take per-weight upper bounds (a bound of 0
 holds a weight at exactly 0) and minimise the L1-penalised objective of the problem's Gram
@@ -141,7 +195,9 @@ matrix."""
 
 class Constrained(AbstractInverseMethod):
     """A method whose solutions never have both members of an exclusive pair non-zero, with
-    optional left/right ties (see the module docstring for the algorithm).
+    the production solver's terms: left/right ties (symmetry), an L2 and a temporal term, an
+    active-shape mask and per-shape multipliers and offsets on the output (see the module
+    docstring for the algorithm).
 
         pairs = canrig_jax.rig.exclusive_pairs(rig.names)
         method = inverse.Constrained(inverse.QuarticNewton(alpha=1.0), exclusive=pairs)
@@ -153,13 +209,27 @@ class Constrained(AbstractInverseMethod):
         exclusive: (i, j) index pairs that are never both non-zero in the output (exactly 0,
             not only below ``CARDINALITY_TOL``), e.g. ``rig.exclusive_pairs(rig.names)``.
         ties: (left, right) index pairs for the tie penalty, e.g.
-            ``left_right_pairs(rig.names)``; must not contain an exclusive pair.
+            ``left_right_pairs(rig.names)`` or ``pair_indices(rig.names, name_pairs)``; must
+            not contain an exclusive pair.
         tie_weight: weight of the penalty tie_weight / 2 * sum (w_left - w_right)^2, in the
             squared rig units of the data term (cm^2 for ICT); 0 (default) turns ties off.
+        l2_weight: weight of l2_weight / 2 * ||w||^2 (same units); 0 (default) turns it off.
+        temporal_weight: weight of temporal_weight / 2 * ||w - w_prev||^2 against the previous
+            frame's solved weights (before multipliers and offsets), same units. Only a
+            warm-started ``Stream`` has a previous frame (it carries it, and starts the frame
+            from it); a single ``solve``, a batch and a stream's first frame have none, and
+            the term is off there.
+        active: optional (K,) mask; an inactive shape is held at exactly 0 (its bound set to
+            0, also after offsets). An array, traced: another mask reuses the compiled solve.
+        multipliers, offsets: optional per-shape gain and bias applied to the solved weights,
+            w_out = clip(multipliers * w + offsets, 0, upper) (a number applies to every
+            shape, a (K,) array shape by shape); an exclusive pair is still never both
+            non-zero in w_out (the smaller goes to 0).
 
-    ``Solution.objective`` is 1/2 ||f(w) - b||^2 + alpha 1^T w without the tie penalty;
-    ``Solution.history`` includes it. Cost: one solve per frame without conflicts, two more
-    per resolved pair.
+    ``Solution.objective`` is 1/2 ||f(w) - b||^2 + alpha 1^T w of the returned weights,
+    without the penalties; ``Solution.history`` is the objective the wrapped method minimised,
+    penalties included. Cost: one solve per frame without conflicts, two more per resolved
+    pair.
     """
 
     method: AbstractInverseMethod
@@ -170,6 +240,15 @@ class Constrained(AbstractInverseMethod):
         static=True, default=(), converter=lambda pairs: _index_pairs(pairs, "ties")
     )
     tie_weight: float = 0.0
+    l2_weight: float = 0.0
+    temporal_weight: float = 0.0
+    active: Bool[Array, " K"] | None = eqx.field(default=None, converter=_mask)
+    multipliers: Float[Array, "*K"] | None = eqx.field(
+        default=None, converter=lambda x: _per_shape(x, "multipliers")
+    )
+    offsets: Float[Array, "*K"] | None = eqx.field(
+        default=None, converter=lambda x: _per_shape(x, "offsets")
+    )
     penalises_l1: ClassVar[bool] = True
 
     def __check_init__(self):
@@ -185,12 +264,10 @@ class Constrained(AbstractInverseMethod):
                 f"ties: {sorted(tuple(sorted(p)) for p in opposed)} are also exclusive pairs "
                 "(a tie pulls both on, exclusivity keeps one off)"
             )
-        if is_concrete(self.tie_weight) and not (
-            np.ndim(self.tie_weight) == 0 and 0 <= self.tie_weight < np.inf
-        ):
-            raise ValueError(
-                f"tie_weight: expected a non-negative, finite weight, got {self.tie_weight}"
-            )
+        for name in ("tie_weight", "l2_weight", "temporal_weight"):
+            value = getattr(self, name)
+            if is_concrete(value) and not (np.ndim(value) == 0 and 0 <= value < np.inf):
+                raise ValueError(f"{name}: expected a non-negative, finite weight, got {value}")
 
     @property
     def alpha(self) -> float | Float[ArrayLike, ""]:
@@ -210,35 +287,105 @@ class Constrained(AbstractInverseMethod):
         return 0.5 * self.tie_weight * jnp.sum(difference**2, axis=-1)
 
     def tied(self, problem: InverseProblem) -> InverseProblem:
-        """The problem the wrapped method solves: ``problem`` with the tie penalty in its Gram
-        matrix (and in the per-coordinate blocks derived from it); ``problem`` itself without
-        ties. Its ``objective`` is the data term + L1 + tie penalty."""
-        if not self.ties:
-            return problem
+        """The problem the wrapped method solves without a previous frame: ``problem`` with
+        the tie penalty and the L2 term in its Gram matrix (and in the per-coordinate blocks
+        derived from it). Its ``objective`` is the data term + L1 + tie penalty + L2 term."""
+        return self.penalised(problem)
+
+    def penalised(
+        self,
+        problem: InverseProblem,
+        previous: Float[Array, " K"] | None = None,
+        temporal_weight: float | Float[Array, ""] = 0.0,
+    ) -> InverseProblem:
+        """``problem`` with every quadratic term on the weights: the tie penalty,
+        l2_weight / 2 ||w||^2 and temporal_weight / 2 ||w - previous||^2. Each is ||T w - c||^2
+        / 2 for some matrix T: the rig with extra mesh coordinates whose target is c, so T^T T
+        enters the Gram matrix (blendshape block), T^T c the projection and ||c||^2 / 2 the
+        objective's constant (``InverseProblem.linear_term`` and ``constant_term``). Without
+        ``previous`` there is no temporal term (and no linear term or constant is added)."""
         k = problem.n_blendshapes
         self._check_range(k)
-        difference = np.zeros((len(self.ties), k))
-        rows = np.arange(len(self.ties))
-        difference[rows, [i for i, _ in self.ties]] = 1.0
-        difference[rows, [j for _, j in self.ties]] = -1.0
-        extra = self.tie_weight * jnp.asarray(difference.T @ difference, problem.gram.dtype)
+        dtype = problem.gram.dtype
+        diagonal = jnp.asarray(self.l2_weight, dtype)
+        if previous is not None:
+            diagonal = diagonal + jnp.asarray(temporal_weight, dtype)
+        extra = diagonal * jnp.eye(k, dtype=dtype)
+        if self.ties:
+            difference = np.zeros((len(self.ties), k))
+            rows = np.arange(len(self.ties))
+            difference[rows, [i for i, _ in self.ties]] = 1.0
+            difference[rows, [j for _, j in self.ties]] = -1.0
+            extra = extra + self.tie_weight * jnp.asarray(difference.T @ difference, dtype)
+        linear, constant = problem.linear_term, problem.constant_term
+        if previous is not None:
+            previous = jnp.asarray(previous, dtype)
+            pull = jnp.asarray(temporal_weight, dtype) * previous
+            term = jnp.zeros(problem.gram.shape[0], dtype).at[:k].set(pull)
+            linear = term if linear is None else linear + term
+            constant = 0.5 * pull @ previous + (0.0 if constant is None else constant)
         # only the blendshape columns (the first K) carry the penalty; support slot 0 of
         # coordinate i is column i itself (``_coordinate_supports``), the others are correctives
         return eqx.tree_at(
-            lambda p: (p.gram, p.support_gram, p.support_block),
+            lambda p: (p.gram, p.support_gram, p.support_block, p.linear_term, p.constant_term),
             problem,
             (
                 problem.gram.at[:k, :k].add(extra),
                 problem.support_gram.at[:, 0, :k].add(extra),
                 problem.support_block.at[:, 0, 0].add(jnp.diag(extra)),
+                linear,
+                constant,
             ),
+            is_leaf=lambda x: x is None,
         )
+
+    def check(self, problem: InverseProblem) -> None:
+        k = problem.n_blendshapes
+        self._check_range(k)
+        for name in ("active", "multipliers", "offsets"):
+            value = getattr(self, name)
+            scalar_ok = name != "active"
+            if value is not None and not (
+                np.shape(value) == (k,) or (scalar_ok and np.ndim(value) == 0)
+            ):
+                want = f"({k},) per-shape values" + (" or one number" if scalar_ok else "")
+                raise ValueError(
+                    f"{name}: expected {want} for the rig's {k} blendshapes, "
+                    f"got shape {np.shape(value)}"
+                )
 
     def _check_range(self, k: int) -> None:
         for argument, pairs in (("exclusive", self.exclusive), ("ties", self.ties)):
             outside = [p for p in pairs if max(p) >= k]
             if outside:
                 raise ValueError(f"{argument}: pairs {outside} index past the rig's {k} weights")
+
+    def bounds(self, problem: InverseProblem) -> Float[Array, " K"]:
+        """(K,) the per-weight upper bounds of the solve: ``upper``, 0 for inactive shapes."""
+        k = problem.n_blendshapes
+        bounds = jnp.broadcast_to(jnp.asarray(self.method.upper, problem.gram.dtype), (k,))
+        return bounds if self.active is None else jnp.where(self.active, bounds, 0.0)
+
+    def adjusted(
+        self, weights: Float[Array, " K"], bounds: Float[Array, " K"]
+    ) -> Float[Array, " K"]:
+        """The output weights of solved ``weights``: clip(multipliers * w + offsets, 0,
+        ``bounds``), then the smaller member of an exclusive pair both non-zero set to 0;
+        ``weights`` themselves without multipliers and offsets."""
+        if self.multipliers is None and self.offsets is None:
+            return weights
+        if self.multipliers is not None:
+            weights = weights * self.multipliers
+        if self.offsets is not None:
+            weights = weights + self.offsets
+        return self._hard_rule(jnp.clip(weights, 0.0, bounds))
+
+    def _hard_rule(self, weights: Float[Array, " K"]) -> Float[Array, " K"]:
+        for i, j in self.exclusive:
+            on = (weights[i] > 0) & (weights[j] > 0)
+            smaller = jnp.where(weights[i] <= weights[j], i, j)
+            weights = jnp.where(on, weights.at[smaller].set(0.0), weights)
+        return weights
 
     def _bounded(self, upper: Float[Array, " K"]) -> AbstractInverseMethod:
         return eqx.tree_at(lambda m: m.upper, self.method, upper)
@@ -250,13 +397,61 @@ class Constrained(AbstractInverseMethod):
         init: Float[Array, " K"],
         key: PRNGKeyArray,
     ) -> Iterate:
-        k = problem.n_blendshapes
-        self._check_range(k)
-        model = self.tied(problem)
-        dtype = problem.gram.dtype
-        bounds = jnp.broadcast_to(jnp.asarray(self.method.upper, dtype), (k,))
+        return self._frame(problem, offset, init, key, None)[0]
+
+    def initial_carry(self, problem: InverseProblem) -> StreamCarry:
+        """(previous frame's solved weights, whether there is one): none yet."""
+        return jnp.zeros(problem.n_blendshapes, problem.gram.dtype), jnp.asarray(False)
+
+    def step(
+        self,
+        problem: InverseProblem,
+        offset: Float[Array, " N"],
+        init: Float[Array, " K"],
+        key: PRNGKeyArray,
+        carry: StreamCarry,
+    ) -> tuple[Iterate, StreamCarry]:
+        """One frame: with a previous frame in ``carry``, the solve starts from its solved
+        weights (``init``, the previous output, has multipliers and offsets applied) and the
+        temporal term pulls towards them; returns this frame's solved weights as the carry."""
+        return self._frame(problem, offset, init, key, carry)
+
+    def _frame(
+        self,
+        problem: InverseProblem,
+        offset: Float[Array, " N"],
+        init: Float[Array, " K"],
+        key: PRNGKeyArray,
+        carry: StreamCarry | None,
+    ) -> tuple[Iterate, StreamCarry]:
+        """One frame, without a previous frame when ``carry`` is None (the problem then has
+        no temporal term at all, so ``solve`` keeps the rounding of the plain method)."""
+        bounds = self.bounds(problem)
+        if carry is None:
+            start, model = jnp.clip(init, 0.0, bounds), self.tied(problem)
+        else:
+            previous, has_previous = carry
+            start = jnp.clip(jnp.where(has_previous, previous, init), 0.0, bounds)
+            temporal = jnp.where(has_previous, self.temporal_weight, 0.0)
+            model = self.penalised(problem, previous, temporal)
+        run = self._resolve(model, offset, start, bounds, key)
+        output = run._replace(weights=self.adjusted(run.weights, bounds))
+        # a failed frame hands on its start, never NaN (as ``Stream`` does with the output)
+        solved = jnp.where(jnp.all(jnp.isfinite(run.weights)), run.weights, start)
+        return output, (solved, jnp.asarray(True))
+
+    def _resolve(
+        self,
+        model: InverseProblem,
+        offset: Float[Array, " N"],
+        init: Float[Array, " K"],
+        bounds: Float[Array, " K"],
+        key: PRNGKeyArray,
+    ) -> Iterate:
+        """The wrapped method on ``model`` within ``bounds``, exclusive pairs resolved."""
         if not self.exclusive:
             return self._bounded(bounds)(model, offset, init, key)
+        dtype = model.gram.dtype
         left = jnp.asarray([i for i, _ in self.exclusive])
         right = jnp.asarray([j for _, j in self.exclusive])
         projection, offset_sq = model.projection(offset), offset @ offset
@@ -307,7 +502,6 @@ class Constrained(AbstractInverseMethod):
         history_shape = jax.eval_shape(
             lambda: self._bounded(bounds)(model, offset, init, key).history
         )
-        zero = jnp.asarray(0.0, dtype)
         saved = (init, bounds, jnp.asarray(jnp.inf, dtype), jnp.asarray(0), jnp.asarray(True))
         state = (
             jnp.asarray(0),
@@ -324,10 +518,7 @@ class Constrained(AbstractInverseMethod):
         _, weights, _, _, first_history, history, resolved, steps, converged = state
         # the hard rule (a safeguard): the smaller member of a pair still both on goes to 0
         still = jnp.any(both_on(weights))
-        for i, j in self.exclusive:
-            on = (weights[i] > 0) & (weights[j] > 0)
-            smaller = jnp.where(weights[i] <= weights[j], i, j)
-            weights = jnp.where(on, weights.at[smaller].set(zero), weights)
+        weights = self._hard_rule(weights)
         history = jnp.where(jnp.arange(rounds) < resolved, history, value(weights))
         return Iterate(
             weights=weights,

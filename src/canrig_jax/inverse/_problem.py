@@ -11,6 +11,8 @@ and every coordinate update need only P-vectors, never a 3V-vector: f is affine 
 weight, a(w) = a(w with w_i = 0) + w_i g_i(w), and phi_i = M g_i.
 """
 
+from typing import Any
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
@@ -18,6 +20,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._warnings import warn
 from ..rig import BlendshapeRig, Corrective, combination_coefficients
+from ._points import points_rig
 
 
 class InverseProblem(eqx.Module):
@@ -46,6 +49,11 @@ class InverseProblem(eqx.Module):
             descent updates the gradient Q a - p with one of these blocks per coordinate.
         support_block: (K, m, m) float32 Q[support_i, support_i], zero on padding.
         rig: the rig itself, for solvers that call ``evaluate`` directly.
+        linear_term: optional (P,) vector added to every projection, and
+        constant_term: optional scalar added to every objective: how a quadratic penalty
+            on the weights with a linear part (``Constrained``'s temporal term
+            lambda / 2 ||w - w_prev||^2) enters the problem a method solves; None (the
+            default, as ``prepare`` leaves them) adds nothing.
     """
 
     neutral: Float[Array, "V 3"]
@@ -61,6 +69,8 @@ class InverseProblem(eqx.Module):
     support_gram: Float[Array, "K m P"]
     support_block: Float[Array, "K m m"]
     rig: BlendshapeRig
+    linear_term: Float[Array, " P"] | None = None
+    constant_term: Float[Array, ""] | None = None
 
     @property
     def n_blendshapes(self) -> int:
@@ -100,18 +110,32 @@ class InverseProblem(eqx.Module):
         """1/2 ||f(w) - b||^2 + alpha 1^T w from p = M^T (b - b0) and ||b - b0||^2:
         1/2 (a^T Q a - 2 a^T p + ||b - b0||^2) + alpha 1^T w, P x P work."""
         a = self.coefficients(weights)
-        return 0.5 * (a @ self.gram @ a - 2.0 * a @ projection + offset_sq) + alpha * weights.sum()
+        value = 0.5 * (a @ self.gram @ a - 2.0 * a @ projection + offset_sq) + alpha * weights.sum()
+        return value if self.constant_term is None else value + self.constant_term
 
     def projection(self, offset: Float[Array, " N"]) -> Float[Array, " P"]:
-        """p = M^T (b - b0) for ``offset`` = (b - b0).ravel(): the one 3V-sized product."""
-        return self.columns @ offset
+        """p = M^T (b - b0) for ``offset`` = (b - b0).ravel(): the one 3V-sized product
+        (plus ``linear_term`` when a penalty set one)."""
+        projection = self.columns @ offset
+        return projection if self.linear_term is None else projection + self.linear_term
 
     def mesh(self, weights: Float[Array, " K"]) -> Float[Array, "V 3"]:
         return self.neutral + (self.coefficients(weights) @ self.columns).reshape(-1, 3)
 
 
-def prepare(rig: BlendshapeRig, *, drop_zero_shapes: bool = False) -> InverseProblem:
+def prepare(
+    rig: BlendshapeRig, *, drop_zero_shapes: bool = False, points: Any = None
+) -> InverseProblem:
     """Precompute M and Q for ``rig`` (float64 accumulation; a few seconds for ict-quartic).
+
+    ``points``: solve from a few points of the surface instead of the whole mesh (markers,
+    tracked landmarks): (N,) vertex indices, (triangles (N,), barycentric (N, 3)) on
+    ``rig.faces``, or a ``mesh.SurfaceMap`` onto the rig's mesh (``mesh.bind_points`` binds a
+    landmark layout to a head). The problem is then that of the rig at the points
+    (``problem.rig``: N vertices, no faces) and targets are (N, 3) point positions; a
+    blendshape that moves none of the points is kept with a warning (its weight is then
+    fixed by the L1 term and the start alone). Points outside the mesh raise a ValueError
+    naming ``points``.
 
     A blendshape with all-zero deltas cannot be solved for (its weight is undetermined):
     ``prepare`` raises a ValueError naming it, or, with ``drop_zero_shapes=True``, warns and
@@ -123,23 +147,28 @@ def prepare(rig: BlendshapeRig, *, drop_zero_shapes: bool = False) -> InversePro
     k = rig.n_blendshapes
     if k == 0:
         raise ValueError("rig: has no blendshapes (K = 0); there are no weights to solve for")
+    if points is not None:
+        rig = points_rig(rig, points)
     norms = np.linalg.norm(np.asarray(rig.deltas, np.float64).reshape(k, -1), axis=1)
     if np.any(norms == 0):
         zero = np.flatnonzero(norms == 0).tolist()
         names = [rig.names[i] for i in zero] if rig.names else zero
-        if not drop_zero_shapes:
+        if points is not None and not drop_zero_shapes:
+            warn(f"prepare: blendshapes {names} move none of the points")
+        elif not drop_zero_shapes:
             raise ValueError(
                 f"rig: blendshapes {names} have all-zero deltas (zero norm), so their weights "
                 "are undetermined; pass drop_zero_shapes=True to prepare the rig without them"
             )
         if len(zero) == k:
             raise ValueError("rig: every blendshape has all-zero deltas; nothing to solve for")
-        warn(
-            f"prepare: dropping blendshapes {names} (all-zero deltas); solved weights follow "
-            "problem.rig.names",
-        )
-        rig = _without_shapes(rig, zero)
-        k = rig.n_blendshapes
+        if drop_zero_shapes:
+            warn(
+                f"prepare: dropping blendshapes {names} (all-zero deltas); solved weights "
+                "follow problem.rig.names",
+            )
+            rig = _without_shapes(rig, zero)
+            k = rig.n_blendshapes
     v = rig.n_vertices
     columns = [np.asarray(rig.deltas, np.float64).reshape(k, -1)]
     tables = sorted((c for c in rig.correctives if c.indices.shape[0]), key=lambda c: c.order)

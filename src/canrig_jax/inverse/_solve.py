@@ -52,6 +52,7 @@ def _check_bounds(problem: InverseProblem, method) -> None:
             f"upper: expected ({k},) per-weight bounds to match the rig's {k} blendshapes, "
             f"got shape {np.shape(method.upper)}"
         )
+    method.check(problem)
 
 
 def _check_target(problem: InverseProblem, name: str, target, batched: bool) -> None:

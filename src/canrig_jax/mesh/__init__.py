@@ -4,7 +4,7 @@ The layer above ``data``: it knows arrays (vertices, faces, per-vertex data) and
 rigs; ``canrig_jax.rig`` builds rigs from it."""
 
 from .._cache import mesh_fingerprint
-from ._align import SimilarityFit, fit_landmarks, similarity_icp
+from ._align import SimilarityFit, bind_points, fit_landmarks, similarity_icp
 from ._checks import check_mesh, check_vertices
 from ._deformation_gradient import (
     DeformationGradientBlend,
@@ -67,7 +67,7 @@ __all__ = [
     "vertex_adjacency",
 ]
 
-__all__ += ["SimilarityFit", "fit_landmarks", "similarity_icp"]
+__all__ += ["SimilarityFit", "bind_points", "fit_landmarks", "similarity_icp"]
 
 __all__ += [
     "MeshGeometry",

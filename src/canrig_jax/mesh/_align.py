@@ -21,7 +21,7 @@ from jaxtyping import ArrayLike, Bool, Float, Float64, Int
 from scipy.spatial import KDTree
 
 from ._checks import check_mesh
-from ._remesh import closest_surface_points
+from ._remesh import SurfaceMap, closest_surface_points
 from ._transfer import similarity_transform
 
 
@@ -158,3 +158,57 @@ def fit_landmarks(
         candidates = np.flatnonzero(mask)
     nearest = KDTree(tv[candidates]).query(fit.apply(sv[landmarks]))[1]
     return candidates[nearest].astype(np.int64), fit
+
+
+def bind_points(
+    points: Float[ArrayLike, "N 3"],
+    target_vertices: Float[ArrayLike, "V 3"],
+    target_faces: Int[ArrayLike, "F 3"],
+    *,
+    target_triangles: Bool[ArrayLike, " F"] | None = None,
+    trim: float = 0.9,
+    max_rms: float | None = None,
+) -> tuple[SurfaceMap, SimilarityFit]:
+    """Points of another surface (a landmark layout such as MediaPipe's canonical face) bound
+    to a head: the trimmed-ICP similarity of ``points`` onto the head's surface
+    (``similarity_icp``), then each moved point's closest point on the head, as a triangle and
+    barycentric coordinates (a ``SurfaceMap`` on ``target_faces``). No correspondence is given
+    or hand-picked: the binding is this registration's.
+
+    Args:
+        points: (N, 3) in the head's units and orientation (y up, facing +z).
+        target_vertices, target_faces: the head.
+        target_triangles: (F,) bool, the triangles points may bind to (e.g. the skin: not the
+            eyeballs or teeth); default all.
+        max_rms: refuse (ValueError naming ``points``) a fit whose trimmed RMS distance
+            exceeds this (head units); default 2 % of the points' bounding-box diagonal.
+
+    Returns:
+        (the binding, the ``SimilarityFit``); ``binding.distance`` is each moved point's
+        distance to the surface.
+    """
+    tv, tf = check_mesh(target_vertices, target_faces)
+    keep = np.ones(tf.shape[0], bool) if target_triangles is None else np.asarray(target_triangles)
+    if keep.shape != (tf.shape[0],) or keep.dtype != bool or not keep.any():
+        raise ValueError(
+            f"target_triangles: expected a non-empty ({tf.shape[0]},) bool mask of triangles"
+        )
+    chosen = np.flatnonzero(keep)
+    fit = similarity_icp(points, tv, tf[chosen], trim=trim)
+    source = np.asarray(points, np.float64)
+    size = float(np.linalg.norm(source.max(0) - source.min(0)))
+    limit = 0.02 * size if max_rms is None else float(max_rms)
+    if not np.isfinite(fit.rms) or fit.rms > limit:
+        raise ValueError(
+            f"points: they did not fit the head (trimmed RMS {fit.rms:.3g} > {limit:.3g}); "
+            "check their units (the head's) and orientation (y up, facing +z)"
+        )
+    found = closest_surface_points(fit.apply(source), tv, tf[chosen])
+    binding = SurfaceMap(
+        triangle=chosen[found.triangle].astype(np.int64),
+        barycentric=found.barycentric,
+        source_faces=tf,
+        n_source=int(tv.shape[0]),
+        distance=found.distance,
+    )
+    return binding, fit
