@@ -20,6 +20,13 @@ from ._geodesic import (
     mesh_edges,
     weighted_geodesic_distance,
 )
+from ._motion import (
+    edge_stretch,
+    flipped_triangles,
+    rigid_residual,
+    self_intersections,
+    unique_edges,
+)
 from ._operators import (
     MeshGeometry,
     MeshOperators,
@@ -92,4 +99,12 @@ __all__ += [
     "similarity_transform",
     "stack_operators",
     "subdivide",
+]
+
+__all__ += [
+    "edge_stretch",
+    "flipped_triangles",
+    "rigid_residual",
+    "self_intersections",
+    "unique_edges",
 ]
