@@ -25,7 +25,6 @@ from ._motion import (
     flipped_triangles,
     rigid_residual,
     self_intersections,
-    unique_edges,
 )
 from ._operators import (
     MeshGeometry,
@@ -106,5 +105,4 @@ __all__ += [
     "flipped_triangles",
     "rigid_residual",
     "self_intersections",
-    "unique_edges",
 ]

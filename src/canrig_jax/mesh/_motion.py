@@ -12,6 +12,8 @@ import numpy as np
 from jaxtyping import ArrayLike, Bool, Float, Float64, Int
 from scipy.spatial import cKDTree
 
+from ._geodesic import mesh_edges
+
 
 def _frames(frames, n_vertices: int | None = None) -> np.ndarray:
     x = np.asarray(frames, np.float64)
@@ -60,19 +62,12 @@ def edge_stretch(
     < 1 compressed), edges in ``np.unique`` order of their sorted vertex pairs. Zero-length
     neutral edges (seams) are left out."""
     neutral = np.asarray(neutral, np.float64)
-    edges = unique_edges(faces)
+    edges = mesh_edges(faces)
     x = _frames(frames, neutral.shape[0])
     rest = np.linalg.norm(neutral[edges[:, 1]] - neutral[edges[:, 0]], axis=-1)
     keep = rest > 1e-9 * max(float(rest.max()), 1e-30)
     now = np.linalg.norm(x[:, edges[keep, 1]] - x[:, edges[keep, 0]], axis=-1)
     return now / rest[keep]
-
-
-def unique_edges(faces: Int[ArrayLike, "F 3"]) -> Int[np.ndarray, "E 2"]:
-    """(E, 2) the triangles' edges once each, as sorted vertex pairs."""
-    faces = np.asarray(faces, np.int64)
-    pairs = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    return np.unique(np.sort(pairs, axis=1), axis=0)
 
 
 def self_intersections(
@@ -99,7 +94,7 @@ def self_intersections(
     x = _frames(frames, neutral.shape[0])
     if len(faces) == 0:
         return np.zeros(x.shape[0], np.int64)
-    edges = unique_edges(faces)
+    edges = mesh_edges(faces)
     tri = neutral[faces]
     tri_centre = tri.mean(axis=1)
     tri_size = np.linalg.norm(tri - tri_centre[:, None], axis=-1).max(axis=1)
