@@ -136,6 +136,8 @@ from ._recipes import (
     train_checkpoint,
 )
 from ._report import autorig_table, plot_pose_examples, plot_shape_ratios, plot_training_history
+from ._rig_checks import LIMITS as CHECK_LIMITS
+from ._rig_checks import Check, RigCheck, check_rig, plot_check_frames
 from ._rig import (
     DEFAULT_POSE_CHUNK,
     GeneratedRig,
@@ -161,6 +163,11 @@ from ._train import (
 )
 
 __all__ = [
+    "CHECK_LIMITS",
+    "Check",
+    "RigCheck",
+    "check_rig",
+    "plot_check_frames",
     "AVATAR_FORMATS",
     "HEAD_WEIGHT",
     "MAX_FACE_VERTICES",

@@ -189,4 +189,4 @@ def rigid_residual(
     u[..., :, -1] *= d[..., None]
     rotation = u @ vt  # a @ rotation ~ b
     fitted = np.einsum("ni,...ij->...nj", a, rotation)
-    return np.sqrt(((fitted - b) ** 2).sum(axis=-1).mean(axis=-1))
+    return np.asarray(np.sqrt(((fitted - b) ** 2).sum(axis=-1).mean(axis=-1)))
