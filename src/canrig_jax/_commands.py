@@ -234,6 +234,7 @@ def _autorig(args) -> None:
         f"{sum(int(c.indices.shape[0]) for c in rig.correctives)} correctives with "
         f"{args.method} in {result.seconds['total']:.1f} s"
     )
+    _check_generated(result, args, progress)
     if usd:
         from .rig import export_usd
 
@@ -242,6 +243,97 @@ def _autorig(args) -> None:
         return
     export_gltf(rig, out)
     progress(f"wrote {out} (centimetres)")
+
+
+def _check_generated(result, args, progress) -> None:
+    """``canrig autorig``'s rigger's checks of a generated rig, on random sparse poses of its
+    own shapes: the summary printed; a failed hard check is a warning naming it, or with
+    ``--strict`` an error (nothing written)."""
+    from . import autorig
+
+    if args.no_check:
+        return
+    progress("checking the rig (canrig check: blink, jaw, eyes, teeth, flips, crossings)")
+    up, forward = result.orientation.up, result.orientation.forward
+    if result.orientation.conventional:
+        up, forward = "+y", "+z"
+    report = autorig.check_rig(result.rig, n_random=48, up=up, forward=forward)
+    progress(report.summary())
+    if report.ok:
+        return
+    failed = ", ".join(f"{c.name} ({c.value:.3g}, limit {c.limit:g})" for c in report.checks
+                       if c.hard and not c.ok)  # fmt: skip
+    if args.strict:
+        raise CommandError(f"HEAD {args.head}: the rig fails hard checks: {failed}; not written")
+    _warn(f"the rig fails hard checks: {failed} (canrig check RIG prints the table)")
+
+
+def _check(args) -> int:
+    from . import autorig
+
+    progress = _Progress(args.quiet)
+    rig = _load_rig(args.rig, crop="head")
+    if args.head:
+        from .data import load_head
+
+        head = load_head(_input(args.head, "--head"))
+        if len(head.vertices) != rig.n_vertices:
+            raise CommandError(
+                f"--head {args.head}: {len(head.vertices)} vertices, the rig has {rig.n_vertices}"
+            )
+        rig = type(rig)(rig.neutral, rig.deltas, rig.correctives, rig.names, head.faces, rig.units)
+    progress(f"read {args.rig}: {rig.n_blendshapes} blendshapes, {rig.n_vertices} vertices")
+    poses = None
+    if args.take:
+        from .data import read_livelink_csv
+
+        take = read_livelink_csv(_input(args.take, "--take"), clip=args.clip)
+        poses = take.weights_for(rig.names, missing="zero")
+        progress(f"read {args.take}: {take.n_frames} frames")
+    try:
+        report = autorig.check_rig(
+            rig, poses, n_random=args.n_random, up=args.up, forward=args.forward,
+            progress=progress,
+        )  # fmt: skip
+    except ValueError as error:
+        raise CommandError(f"RIG {args.rig}: {error}") from None
+    print(report.table())
+    print(report.summary())
+    if args.sheet:
+        sheet = _output(args.sheet, (".png",))
+        autorig.plot_check_frames(rig, report, sheet, title=f"{Path(args.rig).name}: "
+                                  f"{report.summary()}")  # fmt: skip
+        progress(f"wrote {sheet}: the worst frames")
+    if args.json:
+        from ._io import save_json
+
+        save_json(_output(args.json, (".json",)), {"ok": report.ok, "checks": report.as_dict()})
+    return 0 if report.ok else 1
+
+
+def _add_check_parser(sub) -> None:
+    about = (
+        "A rigger's checks of an ARKit face rig: the blink covers the eye, the jaw opens the "
+        "lips and moves the chin down, eyes and teeth move rigidly, shapes stay in their "
+        "region, no flipped triangles or self-intersections under a take. Prints a table; "
+        "exit status 1 when a hard check fails."
+    )
+    p = sub.add_parser("check", help=about, description=about)
+    p.add_argument("rig", help="the rig: a .glb of canrig autorig, a .npz or an .fbx")
+    p.add_argument("--take", metavar="CSV", help="a Live Link Face take to drive it with "
+                   "(default: random sparse combinations of its own shapes)")  # fmt: skip
+    p.add_argument("--head", metavar="HEAD", help="a mesh of the rig's neutral with its "
+                   "triangles, for a rig file that has none")  # fmt: skip
+    p.add_argument("--n-random", type=int, default=120, help="random poses without --take "
+                   "(default: %(default)s)")  # fmt: skip
+    p.add_argument("--up", default="+y", help="the rig's up axis (default: %(default)s)")
+    p.add_argument("--forward", default="+z", help="the axis its face looks along "
+                   "(default: %(default)s)")  # fmt: skip
+    p.add_argument("--sheet", metavar="PNG", help="write a contact sheet of the worst frames")
+    p.add_argument("--json", metavar="FILE", help="write the checks as JSON")
+    p.add_argument("--quiet", action="store_true", help="no progress messages")
+    _add_clip_option(p)
+    p.set_defaults(run=_check)
 
 
 def _is_avatar(path: Path) -> bool:
@@ -802,6 +894,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_invert_parser(sub)
     _add_retarget_parser(sub)
     _add_correct_parser(sub)
+    _add_check_parser(sub)
     _add_view_parser(sub)
     _add_launch_parser(sub)
     return parser
@@ -883,6 +976,12 @@ def _add_autorig_parser(sub) -> None:
         "(the 15 Oculus visemes), rpm (Ready Player Me's mouthOpen, mouthSmile, eyesClosed, "
         "eyesLookUp, eyesLookDown), e.g. --extras visemes,rpm",
     )
+    p.add_argument(
+        "--strict",
+        action="store_true",
+        help="do not write a rig that fails a hard rig check (default: written, with a warning)",
+    )
+    p.add_argument("--no-check", action="store_true", help="skip the rig checks at the end")
     p.add_argument(
         "--replace",
         action="store_true",

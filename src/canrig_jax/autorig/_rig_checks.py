@@ -12,6 +12,7 @@ Everything is measured on the rig's neutral and its own shapes, in millimetres w
 has a unit; the parts (skin, eyeballs, lower teeth) are found from the mesh itself."""
 
 import dataclasses
+import textwrap
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -117,9 +118,16 @@ class RigCheck:
     def __getitem__(self, name: str) -> Check:
         return next(c for c in self.checks if c.name == name)
 
-    def worst_frames(self, n: int = 6) -> np.ndarray:
-        """Indices of the ``n`` frames with the most flips and crossings, worst first."""
-        return np.argsort(-(self.flips + self.intersections), kind="stable")[:n]
+    def worst_frames(self, n: int = 6, apart: int = 10) -> np.ndarray:
+        """Indices of up to ``n`` frames with the most flips and crossings, worst first, each
+        at least ``apart`` frames from those before it (one per bad moment of a take)."""
+        picked: list[int] = []
+        for t in np.argsort(-(self.flips + self.intersections), kind="stable"):
+            if all(abs(int(t) - p) >= apart for p in picked):
+                picked.append(int(t))
+            if len(picked) == n:
+                break
+        return np.asarray(picked, np.int64)
 
     def as_dict(self) -> dict[str, dict]:
         """{name: {"ok", "value"}} (JSON-ready)."""
@@ -551,13 +559,19 @@ def plot_check_frames(
     neutral = np.asarray(rig.neutral, np.float64)
     faces = np.asarray(rig.faces)
     flipped = flipped_triangles(meshes, neutral, faces)
+    moving = np.linalg.norm(meshes - neutral, axis=-1) > 0.02 * np.ptp(neutral, axis=0).max()
+    face = neutral[moving.any(axis=0)] if moving.any() else neutral
+    pad = 0.15 * np.ptp(face, axis=0)
+    box = np.stack([face.min(axis=0) - pad, face.max(axis=0) + pad])  # the moving face, framed
     fig, axes = plt.subplots(1, len(frames), figsize=(2.4 * len(frames), 3.0), squeeze=False)
     for ax, t, mesh, bad in zip(axes[0], frames, meshes, flipped, strict=True):
         count = np.zeros(len(neutral))
         np.add.at(count, faces[bad].ravel(), 1.0)
         plot_vertex_scalar(
             ax, mesh, faces, count, vmin=0.0, vmax=3.0, cmap="Reds",
-            title=f"frame {t}: {result.flips[t]} flips, {result.intersections[t]} crossings",
+            title=f"frame {t}\n{result.flips[t]} flips, {result.intersections[t]} crossings",
         )  # fmt: skip
-    fig.suptitle(title or result.summary(), fontsize=8)
+        ax.set_xlim(*box[:, 0])
+        ax.set_ylim(*box[:, 1])
+    fig.suptitle(textwrap.fill(title or result.summary(), 150), fontsize=8)
     save_figure(fig, path)
