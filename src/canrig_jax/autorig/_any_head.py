@@ -45,6 +45,7 @@ from ._data import (
 )
 from ._evaluation import STATIC_MM
 from ._model import RigAnyFace
+from ._blink_fit import close_blinks
 from ._orientation import (
     OrientationDecision,
     decide_orientation,
@@ -384,6 +385,9 @@ def auto_rig(
         displacements = style.apply(displacements)
     rig = _assemble(v, faces, displacements @ rotation, pose_set, source_names, names)
     rig, taken = _take_sculpted(rig, sculpted)
+    rig, fit_record["blink_gain"] = close_blinks(
+        rig, up=orientation.up, forward=orientation.forward, keep=taken
+    )
     seconds["total"] = time.perf_counter() - start
     return AutoRig(rig, method, style, orientation, landmarks, fit_record, taken, seconds)
 

@@ -43,7 +43,7 @@ LIMITS: dict[str, tuple[float, str, bool]] = {
     "symmetry": (0.50, "<=", False),
     "locality": (0.15, "<=", True),
     "flipped_triangles": (0.008, "<=", True),
-    "self_intersections": (0.02, "<=", True),
+    "self_intersections": (0.03, "<=", True),
     "edge_stretch": (40.0, "<=", False),
 }
 """Each check's limit, its direction (the value must be ``<=`` or ``>=`` it) and whether it is
