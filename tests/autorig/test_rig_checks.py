@@ -106,3 +106,23 @@ def test_weights_of_another_rig_or_nan_are_named(artist):
         autorig.check_rig(artist, np.zeros((5, 51)))
     with pytest.raises(ValueError, match="poses: contains NaN"):
         autorig.check_rig(artist, np.full((5, 52), np.nan))
+
+
+def test_close_blinks_restores_a_blink_that_stops_short(artist, artist_checks):
+    """The artist's blink at half its amplitude leaves the eye open; ``close_blinks`` scales
+    it back until the lid covers the eyeball (and leaves the artist's own at gain 1)."""
+    from canrig_jax.autorig._blink_fit import close_blinks
+
+    half = _edited(artist, "eyeBlinkLeft", lambda d, v: 0.5 * d)
+    assert autorig.check_rig(half, n_random=4)["blink_closes"].value > 0.25
+    fixed, gains = close_blinks(half)
+    assert gains["eyeBlinkRight"] == 1.0  # the artist's own: not pushed through the other lid
+    assert 1.5 <= gains["eyeBlinkLeft"] <= 2.5
+    k = artist.names.index("eyeBlinkLeft")
+    np.testing.assert_allclose(
+        np.asarray(fixed.deltas[k]), gains["eyeBlinkLeft"] * np.asarray(half.deltas[k]), rtol=1e-6
+    )
+    closed = autorig.check_rig(fixed, n_random=4)["blink_closes"].value
+    assert closed <= artist_checks["blink_closes"].value + 1e-9  # as closed as the artist's
+    _, kept = close_blinks(half, keep=("eyeBlinkLeft",))
+    assert "eyeBlinkLeft" not in kept
