@@ -63,3 +63,18 @@ def test_faces_from_the_head_file(files, capsys):
     assert status == 0, out + err
     status, _, err = _run(capsys, "check", files / "nofaces.npz", "--head", files / "other.obj")
     assert status == 2 and err.splitlines()[-1].startswith("canrig: error: --head"), err
+
+
+def test_autorig_warns_about_a_failed_hard_check_and_strict_refuses(files, capsys, data_dir):
+    """The RigAnyFace network's rig of the Rocketbox female folds her lids and lips (it fails
+    hard checks): written with a warning naming them, not written with --strict."""
+    h = autorig.load_rocketbox_head("Female_Adult_01", data_dir)
+    save_obj(files / "female.obj", h.vertices, h.faces)
+    argv = ("autorig", files / "female.obj", "--units", "cm", "--method", "raf")
+    status, _, err = _run(capsys, *argv, "-o", files / "raf.glb")
+    assert status == 0 and (files / "raf.glb").is_file()
+    warning = [line for line in err.splitlines() if line.startswith("canrig: warning: the rig")]
+    assert warning and "flipped_triangles" in warning[0], err
+    status, _, err = _run(capsys, *argv, "--strict", "-o", files / "strict.glb")
+    assert status == 2 and not (files / "strict.glb").exists()
+    assert "fails hard checks" in err.splitlines()[-1] and "not written" in err, err
