@@ -136,8 +136,6 @@ from ._recipes import (
     train_checkpoint,
 )
 from ._report import autorig_table, plot_pose_examples, plot_shape_ratios, plot_training_history
-from ._rig_checks import LIMITS as CHECK_LIMITS
-from ._rig_checks import Check, RigCheck, check_rig, plot_check_frames
 from ._rig import (
     DEFAULT_POSE_CHUNK,
     GeneratedRig,
@@ -146,6 +144,8 @@ from ._rig import (
     predict_displacements,
     rig_from_poses,
 )
+from ._rig_checks import LIMITS as CHECK_LIMITS
+from ._rig_checks import Check, RigCheck, check_rig, plot_check_frames
 from ._train import (
     DEFAULT_CHECKPOINT,
     DEFAULT_CHECKPOINT_SHA256,

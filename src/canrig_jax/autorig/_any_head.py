@@ -36,6 +36,7 @@ from ..rig import (
     deformation_transfer,
     rename_to_arkit,
 )
+from ._blink_fit import close_blinks
 from ._data import (
     AutorigDataset,
     PoseSet,
@@ -45,7 +46,6 @@ from ._data import (
 )
 from ._evaluation import STATIC_MM
 from ._model import RigAnyFace
-from ._blink_fit import close_blinks
 from ._orientation import (
     OrientationDecision,
     decide_orientation,
@@ -382,8 +382,11 @@ def auto_rig(
             f"fitted the style of {len(sculpted)} example shapes: gain {style.gain:g}, "
             f"falloff {style.falloff:g}, floor {style.floor:g}",
         )
+        unstyled = _assemble(v, faces, displacements @ rotation, pose_set, source_names, names)
         displacements = style.apply(displacements)
     rig = _assemble(v, faces, displacements @ rotation, pose_set, source_names, names)
+    if sculpted:  # the blink's amplitude is the lid's own (close_blinks), not the style's
+        rig = _with_blinks_of(rig, unstyled)
     rig, taken = _take_sculpted(rig, sculpted)
     rig, fit_record["blink_gain"] = close_blinks(
         rig, up=orientation.up, forward=orientation.forward, keep=taken
@@ -586,6 +589,15 @@ def _shapes_by_arkit(displacements, source_names, wanted: Mapping, rotation):
             f"({', '.join(sorted(channels)[:6])}, ...)"
         )
     return kept, np.stack([merged[channels.index(n)] @ rotation for n in kept])
+
+
+def _with_blinks_of(rig: BlendshapeRig, other: BlendshapeRig) -> BlendshapeRig:
+    """``rig`` with ``other``'s eyeBlink shapes (same names and mesh)."""
+    deltas = np.array(rig.deltas)
+    for i, name in enumerate(rig.names):
+        if arkit_name_of(str(name)) in ("eyeBlinkLeft", "eyeBlinkRight"):
+            deltas[i] = np.asarray(other.deltas[i])
+    return BlendshapeRig(rig.neutral, deltas, rig.correctives, rig.names, rig.faces, rig.units)
 
 
 def _take_sculpted(rig: BlendshapeRig, sculpted: Mapping):

@@ -31,9 +31,10 @@ def close_blinks(
     """Scale each eyeBlink shape by the smallest of ``GAINS`` that closes its eye (at most
     ``CLOSED`` of the open front left visible) without pushing more than a tenth more of the
     lid's moving vertices into the eyeball or passing the lid through the other one (at most
-    half a new skin crossing per moving lid vertex more than at gain 1); where none closes it, the allowed gain that covers the
-    most. Shapes named in ``keep`` (an artist's examples) and rigs without separate eyeballs
-    are left as they are.
+    half a new skin crossing per moving lid vertex more than at gain 1); where none closes
+    it, the allowed gain that covers the most. Shapes named in ``keep`` (an artist's
+    examples, ARKit or rig names) and rigs without separate eyeballs are left as they are.
+    ``auto_rig`` calls it on the unstyled blink (the lid's own amplitude, not a style's).
 
     Returns the rig and {shape name: gain} of the shapes looked at (1.0: unchanged)."""
     if rig.faces is None:
@@ -46,7 +47,8 @@ def close_blinks(
     gains = {}
     visible_open = [_visible(head, head.neutral, e) for e in range(len(head.eyes))]
     for k, name in enumerate(rig.names):
-        if arkit_name_of(str(name)) not in ("eyeBlinkLeft", "eyeBlinkRight") or name in keep:
+        arkit = arkit_name_of(str(name))
+        if arkit not in ("eyeBlinkLeft", "eyeBlinkRight") or arkit in keep or name in keep:
             continue
         delta = deltas[k].astype(np.float64) * scale
         lid = _movers(delta, head.skin, 0.25)
