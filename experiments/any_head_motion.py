@@ -50,6 +50,7 @@ from canrig_jax.mesh import flipped_triangles, self_intersections  # noqa: E402
 from canrig_jax.rig import (  # noqa: E402
     UNIT_IN_CM,
     BlendshapeRig,
+    Corrective,
     evaluate_batch,
     load_fbx_rig,
     random_sparse_poses,
@@ -122,6 +123,47 @@ def score(rig, head, artist, drives, skin_faces) -> dict:
     return out
 
 
+PRIOR_GAINS = (1.0, 0.8, 0.6, 0.5, 0.4)
+"""The amplitude prior's gains (``RULE.md``, second part)."""
+
+
+def scaled(rig: BlendshapeRig, gain: float) -> BlendshapeRig:
+    """Every shape and corrective times ``gain``, the blinks as they are."""
+    deltas = np.array(rig.deltas)
+    blink = np.array([n.startswith("eyeBlink") for n in rig.names])
+    deltas[~blink] *= gain
+    correctives = tuple(
+        Corrective(c.indices, c.vertices, np.asarray(c.deltas) * gain) for c in rig.correctives
+    )
+    return BlendshapeRig(rig.neutral, deltas, correctives, rig.names, rig.faces, rig.units)
+
+
+def prior_rows(rig, head, artist, drives, skin_faces) -> dict[str, dict]:
+    """str(gain) -> mean mm and flips per frame under the take, of the rig scaled."""
+    rows = {}
+    for gain in PRIOR_GAINS:
+        take = score(scaled(rig, gain), head, {"take": artist["take"]},
+                     {"take": drives["take"]}, skin_faces)["take"]  # fmt: skip
+        rows[str(gain)] = {"mean_mm": take["mean_mm"], "flips_per_frame": take["flips_per_frame"]}
+    return rows
+
+
+def choose_prior(results: dict) -> float:
+    """``RULE.md``'s amplitude prior: the largest gain with transfer (k = 0) below no motion
+    and within the artist's flips + 2 on every validation head; else 1.0."""
+    heads = [h for h in VALIDATION if h in results["heads"]]
+    for gain in PRIOR_GAINS:
+        ok = True
+        for h in heads:
+            row = results["heads"][h]["transfer"]["0"]
+            prior = row["amplitude_prior"][str(gain)]
+            ok &= prior["mean_mm"] < row["no_motion_mean_mm"]
+            ok &= prior["flips_per_frame"] <= row["artist_flips_per_frame"] + 2
+        if ok:
+            return gain
+    return 1.0
+
+
 def run_head(name, head, dataset, capture, quick, log, sheets: Path) -> tuple[dict, dict]:
     """(method -> str(k) -> row, the artist rig's checks) for one head."""
     art = artist_rig(head)
@@ -163,6 +205,8 @@ def run_head(name, head, dataset, capture, quick, log, sheets: Path) -> tuple[di
             log(f"{name} {method} k={k}: {row['mean_mm']:.2f} mm (no motion "
                 f"{no_motion['take']:.2f}), flips {row['flips_per_frame']:.1f} (artist "
                 f"{art_flips['take']:.1f}), {checks.summary()}")  # fmt: skip
+            if k == 0 and method == "transfer":
+                row["amplitude_prior"] = prior_rows(result.rig, head, artist, drives, skin_faces)
             if k == 0:
                 plot_check_frames(result.rig, checks, sheets / f"{name}_{method}.png", n=4,
                                   title=f"{name}, {method}: {checks.summary()}")  # fmt: skip
@@ -221,6 +265,19 @@ def table(results: dict) -> str:
     for m, r in results["rule_report"].items():
         lines.append(f"| {m} | {r['eligible']} | {r['failed_hard']} | "
                      f"{r['mean_ratio_to_no_motion']:.2f} |")  # fmt: skip
+    gains = [str(g) for g in PRIOR_GAINS]
+    lines += ["", "Amplitude prior (transfer, k = 0, every shape but the blinks times g): "
+              "mean mm / flips per frame under the capture; chosen g: "
+              f"**{results['amplitude_prior_gain']}**.", "",
+              "| head | no motion mm | artist flips | " + " | ".join(f"g = {g}" for g in gains)
+              + " |", "|---|---|---|" + "---|" * len(gains)]  # fmt: skip
+    for head, methods in results["heads"].items():
+        row = methods["transfer"]["0"]
+        cells = [f"{row['amplitude_prior'][g]['mean_mm']:.2f} / "
+                 f"{row['amplitude_prior'][g]['flips_per_frame']:.1f}" for g in gains]  # fmt: skip
+        head_cells = f"| {head} | {row['no_motion_mean_mm']:.2f} | "
+        head_cells += f"{row['artist_flips_per_frame']:.1f} | "
+        lines.append(head_cells + " | ".join(cells) + " |")
     lines += ["", "Artists' rigs through the checks (hard checks failed):", ""]
     for head, checks in results["artist_checks"].items():
         failed = [n for n, c in checks.items() if n in HARD and not c["ok"]]
@@ -269,6 +326,7 @@ def main(argv=None) -> None:
         results["heads"][name], results["artist_checks"][name] = rows, art
         results["roles"][name] = role
     results["default_method"], results["rule_report"] = apply_rule(results)
+    results["amplitude_prior_gain"] = choose_prior(results)
     results["rule"] = (out / "RULE.md").read_text() if (out / "RULE.md").exists() else ""
     results["library_default"] = DEFAULT_METHOD
     results["provenance"] = provenance(command)
