@@ -933,7 +933,7 @@ def _add_autorig_parser(sub) -> None:
         help="raf: the RigAnyFace network; transfer: the template's expressions carried onto "
         "the head (anchored deformation transfer; closer without --examples on heads sculpted "
         "in another style); transfer-residual: transfer plus a learned residual "
-        "(default: raf; transfer with --template)",
+        "(default: transfer)",
     )
     p.add_argument(
         "--template",

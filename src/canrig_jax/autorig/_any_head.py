@@ -55,13 +55,15 @@ from ._orientation import (
 from ._rig import rig_from_poses
 
 AUTO_RIG_METHODS = ("transfer", "raf", "transfer-residual")
-DEFAULT_METHOD = "raf"
-"""What ``auto_rig`` and ``canrig autorig`` use unless told: chosen on validation heads only
-(held-out ICT identities at k = 0, the two Rocketbox heads at k = 3 examples) by the rule
-committed in ``experiments/results/any_head/COMMAND`` before the comparison ran — the method
-whose worst ratio to no motion (skin or active MAE) is lowest: raf 0.89, transfer-residual
-0.93, transfer 0.95. Without examples, on heads sculpted in another style than ICT's,
-``"transfer"`` is the closer one (``experiments/results/any_head/table.md``)."""
+DEFAULT_METHOD = "transfer"
+"""What ``auto_rig`` and ``canrig autorig`` use unless told: chosen in motion, on validation
+heads only (held-out ICT identities and both Rocketbox heads, k = 0, driven by the data
+folder's Live Link capture), by the rule committed in
+``experiments/results/any_head_motion/RULE.md`` before it ran: transfer fails no hard rig
+check (``check_rig``) on any of them; the RigAnyFace network ("raf") fails blink, eyeball,
+locality, flipped-triangle and crossing checks on both Rocketbox heads (its lids and lips
+fold off ICT's geometry). No method met the rule's flips bound on every head (transfer on
+the Rocketbox male: 8.3 flips per frame, the artist's rig 2.8)."""
 ANCHOR_CM = STATIC_MM / CM_TO_MM
 """Anchored transfer: per pose, target vertices whose carried displacement is shorter than
 this (0.01 mm, the evaluation's static threshold) stay exactly still."""
