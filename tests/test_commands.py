@@ -439,8 +439,8 @@ def test_autorig_unit_mistake_is_one_error_line(capsys, tmp_path, data_dir):
     (tmp_path / "bad.eqx").write_bytes(b"not a checkpoint")
     status, _, err = _run(
         capsys,
-        *("autorig", tmp_path / "head.obj", "--units", "cm", "--model", tmp_path / "bad.eqx"),
-        *("-o", tmp_path / "r.glb"),
+        *("autorig", tmp_path / "head.obj", "--units", "cm", "--method", "raf"),
+        *("--model", tmp_path / "bad.eqx", "-o", tmp_path / "r.glb"),
     )
     assert status == 2 and not (tmp_path / "r.glb").exists()
     assert not _assert_one_voice(err)  # no warning: the unit mistake is an error

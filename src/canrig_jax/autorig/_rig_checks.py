@@ -12,11 +12,12 @@ Everything is measured on the rig's neutral and its own shapes, in millimetres w
 has a unit; the parts (skin, eyeballs, lower teeth) are found from the mesh itself."""
 
 import dataclasses
+import os
 import textwrap
 from collections.abc import Callable, Sequence
 
 import numpy as np
-from jaxtyping import ArrayLike, Float
+from jaxtyping import ArrayLike, Float, Int
 from scipy.spatial import cKDTree
 
 from ..data import arkit_name_of
@@ -100,10 +101,10 @@ class RigCheck:
     """
 
     checks: tuple[Check, ...]
-    poses: np.ndarray
+    poses: Float[np.ndarray, "T K"]
     source: str
-    flips: np.ndarray
-    intersections: np.ndarray
+    flips: Int[np.ndarray, " T"]
+    intersections: Int[np.ndarray, " T"]
 
     @property
     def ok(self) -> bool:
@@ -118,7 +119,7 @@ class RigCheck:
     def __getitem__(self, name: str) -> Check:
         return next(c for c in self.checks if c.name == name)
 
-    def worst_frames(self, n: int = 6, apart: int = 10) -> np.ndarray:
+    def worst_frames(self, n: int = 6, apart: int = 10) -> Int[np.ndarray, " n"]:
         """Indices of up to ``n`` frames with the most flips and crossings, worst first, each
         at least ``apart`` frames from those before it (one per bad moment of a take)."""
         picked: list[int] = []
@@ -542,7 +543,7 @@ def check_rig(
 def plot_check_frames(
     rig: BlendshapeRig,
     result: RigCheck,
-    path,
+    path: str | os.PathLike,
     *,
     n: int = 6,
     title: str | None = None,
