@@ -107,6 +107,7 @@ def test_console_script_runs_in_a_fresh_process():
     assert result.returncode == 0 and all(c in result.stdout for c in SUBCOMMANDS)
 
 
+@pytest.mark.slow
 def test_animate_then_invert_recovers_the_take(workspace, capsys):
     """animate writes a glTF whose keys are the take's weights; invert of the animated meshes
     gives back those weights (linear rig, exact solver up to convergence)."""

@@ -48,6 +48,7 @@ def run_workload(*args: str, timeout: float, env: dict | None = None) -> str:
     return run.stdout
 
 
+@pytest.mark.slow
 def test_fits_complete_under_load(data_dir):
     with cpu_hog():
         out = run_workload(
@@ -60,6 +61,7 @@ def test_fits_complete_under_load(data_dir):
     assert f"LocalFitRig: {CALLS} fitted A-to-B calls" in out
 
 
+@pytest.mark.slow
 def test_no_compiled_program_holds_a_batched_lapack_call(data_dir, tmp_path):
     env = dict(os.environ, XLA_FLAGS=f"--xla_dump_to={tmp_path} --xla_dump_hlo_as_text")
     run_workload(

@@ -53,6 +53,7 @@ def test_not_positive_definite_gives_nan():
     assert not np.isfinite(np.asarray(la.spd_solve(a, np.ones((2, 5), np.float32)))[1]).all()
 
 
+@pytest.mark.slow
 def test_derivatives_match_jax_linalg():
     rng = np.random.default_rng(1)
     a, b = _spd(rng, 6, 6), rng.standard_normal(6).astype(np.float32)

@@ -70,6 +70,7 @@ def _on_two_host_devices(script: str, timeout: int) -> dict:
     return json.loads(result.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow
 def test_two_devices_match_one():
     out = _on_two_host_devices(SCRIPT, 600)
     assert out["device_count"] == 2

@@ -28,6 +28,7 @@ def test_a_stuck_step_ends_with_a_message_and_the_stacks():
     assert "stuck_solve" in run.stderr  # the stack of the blocked thread
 
 
+@pytest.mark.slow
 def test_progress_keeps_it_alive_and_leaving_disarms_it():
     run, _ = _run(
         "with watchdog(1.0, 'the take'):\n"

@@ -4,8 +4,10 @@ A layer of its own below everything that caches: ``mesh`` caches operators, ``ri
 synthesised rigs, and neither needs the other for it.
 """
 
+import contextlib
 import hashlib
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -35,3 +37,24 @@ def fingerprint(*arrays: Shaped[ArrayLike, "..."]) -> str:
 
 mesh_fingerprint = fingerprint
 """The fingerprint of a mesh's arrays (vertices, faces, ...): the same function by its old name."""
+
+
+@contextlib.contextmanager
+def build_lock(path: str | os.PathLike) -> Iterator[None]:
+    """Hold an exclusive lock on ``path`` + ".lock" while building a cache entry: processes
+    that want the same entry at once (test workers, ``canrig launch``) wait for the first to
+    write it and then read it, instead of each building it again. Advisory (``fcntl.flock``);
+    where it is missing (Windows) every process builds as before."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield
+        return
+    lock = Path(str(path) + ".lock")
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    with open(lock, "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)

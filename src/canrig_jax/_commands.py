@@ -249,20 +249,16 @@ def _check_generated(result, args, progress) -> None:
     """``canrig autorig``'s rigger's checks of a generated rig, on random sparse poses of its
     own shapes: the summary printed; a failed hard check is a warning naming it, or with
     ``--strict`` an error (nothing written)."""
-    from . import autorig
+    from .autorig._rig_checks import check_auto_rig, failed_hard_checks
 
     if args.no_check:
         return
     progress("checking the rig (canrig check: blink, jaw, eyes, teeth, flips, crossings)")
-    up, forward = result.orientation.up, result.orientation.forward
-    if result.orientation.conventional:
-        up, forward = "+y", "+z"
-    report = autorig.check_rig(result.rig, n_random=48, up=up, forward=forward)
+    report = check_auto_rig(result)
     progress(report.summary())
     if report.ok:
         return
-    failed = ", ".join(f"{c.name} ({c.value:.3g}, limit {c.limit:g})" for c in report.checks
-                       if c.hard and not c.ok)  # fmt: skip
+    failed = failed_hard_checks(report)
     if args.strict:
         raise CommandError(f"HEAD {args.head}: the rig fails hard checks: {failed}; not written")
     _warn(f"the rig fails hard checks: {failed} (canrig check RIG prints the table)")
@@ -380,6 +376,8 @@ def _autorig_avatar(args, out: Path, progress) -> None:
             method=args.method,
             replace=args.replace,
             extras=args.extras,
+            check=not args.no_check,
+            strict=args.strict,
             progress=progress,
             **options,
         )
@@ -393,6 +391,10 @@ def _autorig_avatar(args, out: Path, progress) -> None:
         f"rigged {result.vertices_rigged} vertices of {list(result.head_meshes)} with "
         f"{len(result.names)} morph targets in {result.seconds['total']:.1f} s"
     )
+    if result.checks is not None and not result.checks.ok:
+        from .autorig._rig_checks import failed_hard_checks
+
+        _warn(f"the face rig fails hard checks: {failed_hard_checks(result.checks)}")
 
 
 # ---------------------------------------------------------------------------------- animate

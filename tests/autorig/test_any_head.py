@@ -451,6 +451,7 @@ def test_the_packaged_orientation_template_is_the_ict_inner_face(source):
     np.testing.assert_array_equal(orientation_points(), orientation_points(source))
 
 
+@pytest.mark.slow
 def test_raf_runs_without_the_data_folder(z_up_head, monkeypatch):
     """The network method needs neither the ICT source rig nor the landmark fit: with both
     made to fail, it still decides the orientation (packaged template) and builds the rig

@@ -23,6 +23,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from canrig_jax import autorig, run_command
+from canrig_jax.autorig import Check, RigCheck
 from canrig_jax.data import data_file, load_fbx, load_fbx_scene, read_arrays
 from canrig_jax.rig import (
     EXTRA_SHAPES,
@@ -264,7 +265,15 @@ def stand_in(monkeypatch):
         return result
 
     monkeypatch.setattr("canrig_jax.autorig._avatar.auto_rig", fake)
+    monkeypatch.setattr("canrig_jax.autorig._avatar.check_auto_rig", lambda result: _report(True))
     return calls
+
+
+def _report(ok: bool) -> RigCheck:
+    """A ``RigCheck`` whose one hard check (``blink_closes``) passes or fails."""
+    check = Check("blink_closes", 0.05 if ok else 0.4, 0.1, ok, True)
+    empty = np.zeros(0, np.int64)
+    return RigCheck((check,), np.zeros((0, 3), np.float32), "random sparse poses", empty, empty)
 
 
 @pytest.fixture
@@ -357,6 +366,31 @@ def test_whole_avatar_rigged_in_place_everything_else_kept(avatar_file, stand_in
         np.testing.assert_allclose(got, want, atol=1e-4)
         np.testing.assert_array_equal(world_cm[:, ~moving], 0.0)
     _validate(tmp_path / "out.glb")
+
+
+def test_a_face_rig_failing_a_hard_check_is_flagged_or_with_strict_not_written(
+    avatar_file, stand_in, tmp_path, monkeypatch
+):
+    """The rigger's checks run on the face rig before anything is written: a failed hard check
+    is in ``AvatarRig.checks``; with ``strict`` it is a ValueError naming the check, and an
+    existing output is left as it was."""
+    path, _, _ = avatar_file
+    seen = []
+
+    def failing(result):
+        seen.append(result.rig)
+        return _report(False)
+
+    monkeypatch.setattr("canrig_jax.autorig._avatar.check_auto_rig", failing)
+    written = autorig.auto_rig_avatar(path, tmp_path / "out.glb")
+    assert written.checks is not None and written.checks.failed == ("blink_closes",)
+    assert seen[0].names == NAMES  # the face rig itself was checked
+    out = tmp_path / "strict.glb"
+    out.write_bytes(b"before")
+    with pytest.raises(ValueError, match=r"avatar: .*blink_closes \(0.4, limit 0.1\).*not written"):
+        autorig.auto_rig_avatar(path, out, strict=True)
+    assert out.read_bytes() == b"before"
+    assert autorig.auto_rig_avatar(path, tmp_path / "unchecked.glb", check=False).checks is None
 
 
 def test_targets_of_a_name_are_refused_then_replaced(avatar_file, stand_in, tmp_path):

@@ -120,6 +120,7 @@ def test_residual_model_refuses_a_missing_or_misshaped_base(small_head, tiny_pos
         )
 
 
+@pytest.mark.slow
 def test_gated_residual_keeps_what_the_base_leaves_still_exactly_still(small_head, tiny_poses):
     """With residual_gate tau the correction vanishes where the base is zero and is (almost)
     the ungated one where the base moves by many tau; tau without residual is refused."""
@@ -348,6 +349,7 @@ def _one_head_and_small_model(mesh, truth, poses):
     return data, model
 
 
+@pytest.mark.slow
 def test_static_term_adds_to_either_loss(small_head, tiny_poses):
     """static_weight adds the static-vertex error over the loss's scale to the squared loss as
     to the Euclidean one (it used to be dropped silently with loss="squared")."""

@@ -187,6 +187,7 @@ def test_all_poses_in_one_call_equal_one_pose_at_a_time(small_model, head_operat
     )
 
 
+@pytest.mark.slow
 def test_only_the_global_encoder_carries_information_across_components(
     poses, heads, head_operators, ict_head
 ):

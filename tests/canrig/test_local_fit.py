@@ -75,6 +75,7 @@ def test_shape_is_gated_per_patch_ridge_solves_and_keeps_the_exact_zeros(setup):
     assert np.abs(ours[~outside] - base[~outside]).max() > 1e-2  # and the edit does move
 
 
+@pytest.mark.slow
 def test_fitted_a_to_b_is_the_least_squares_solution_and_never_worse(setup):
     """Enough LSMR steps reach the dense minimiser of the region-weighted ||S(d) - B||^2
     (its Jacobian built column by column from the rig, solved by NumPy); the default three
@@ -109,6 +110,7 @@ def test_fitted_a_to_b_is_the_least_squares_solution_and_never_worse(setup):
     assert float(few.error) < float(direct.error)  # the fit does improve on this pair
 
 
+@pytest.mark.slow
 def test_workflows_keep_their_exact_guarantees(setup):
     """Layers: the fitted error never increases; clip edit: frames outside the window are
     bit-identical, vertices outside every mask do not move; dialogue: frame by frame the

@@ -101,6 +101,7 @@ def test_radius_falloff_beta_change_without_recompiling(neural_rig, placed):
     assert not np.allclose(outs[0], outs[1])
 
 
+@pytest.mark.slow
 def test_positional_encoding_and_query_modulation(face):
     """fourier = L gives 3 + 6L query/key inputs (sin, cos of pi 2^k x); the query modulation
     makes the output depend on the vertex's query, and the model stays zero-preserving."""

@@ -185,6 +185,7 @@ def test_global_blendshape_dialogue_names_bad_arguments(face, basis, shapes):
         global_blendshape_dialogue(basis, neutral, source, target[:2], index, moved)
 
 
+@pytest.mark.slow
 def test_local_fit_is_a_masked_ridge_solve_per_patch(face, basis, shapes):
     """local_pbs_fit against an independent NumPy solve per patch on real expressions; a
     patch no mask reaches gets exactly zero weights, zero displacements give exactly zero,

@@ -96,6 +96,7 @@ def test_nothing_moves_beyond_every_clamped_mask(data, local_prior):
     assert np.array_equal(out[~touched], np.asarray(base)[~touched])
 
 
+@pytest.mark.slow
 def test_an_untrained_local_prior_model_is_the_local_fit_and_its_ridge_trains(data):
     """With ``local_prior`` the output MLP's last layer starts at zero, so the untrained
     model's weights are exactly local_pbs_fit with the clamped masks and the initial ridge;

@@ -64,6 +64,7 @@ def _local_fit(whole, graph):
     return weights, shapes
 
 
+@pytest.mark.slow
 def test_attached_graph_moves_the_mouth_interior_from_skin_handles(whole):
     """Skin handles reach the teeth, gums and socket through the attached graph, so the local
     fit predicts the mouth interior of jaw and mouth poses better than through the bridged

@@ -144,6 +144,7 @@ def test_layout_width_rules(rig):
         np.testing.assert_allclose(np.asarray(rig.deform(edit, layout)), dense, atol=5e-6)
 
 
+@pytest.mark.slow
 def test_model_steps_take_any_leading_shape(rig, few_handles, poses):
     """encode -> attention -> decode on a (2, 3) batch equals the unbatched steps; deform
     vmapped over edits equals a loop of single calls."""
@@ -223,6 +224,7 @@ def test_fit_in_a_region_only_lowers_the_region_error(rig, poses, ict_face):
     np.testing.assert_allclose(np.asarray(fitted.shape), np.asarray(rig.deform(edit)), atol=2e-5)
 
 
+@pytest.mark.slow
 def test_parts_layout_is_exact_and_tight(rig, poses):
     """A ``PartsLayout`` covers every vertex exactly once, each part's width holds the most
     handles reaching its blocks, and the forward pass equals the dense one (its J^T W J is

@@ -36,6 +36,7 @@ def _run(capsys, *argv):
     return status, captured.out, captured.err
 
 
+@pytest.mark.slow
 def test_an_artists_rig_passes_under_the_take(files, capsys):
     status, out, err = _run(
         capsys, "check", files / "artist.npz", "--take", files / "take.csv",
@@ -65,6 +66,7 @@ def test_faces_from_the_head_file(files, capsys):
     assert status == 2 and err.splitlines()[-1].startswith("canrig: error: --head"), err
 
 
+@pytest.mark.slow
 def test_autorig_warns_about_a_failed_hard_check_and_strict_refuses(files, capsys, data_dir):
     """The RigAnyFace network's rig of the Rocketbox female folds her lids and lips (it fails
     hard checks): written with a warning naming them, not written with --strict."""

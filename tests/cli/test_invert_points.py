@@ -50,6 +50,7 @@ def _run(capsys, *argv):
     return status, captured.out, captured.err
 
 
+@pytest.mark.slow
 def test_invert_from_points_recovers_the_weights(files, capsys):
     root, weights = files
     out = root / "take.csv"

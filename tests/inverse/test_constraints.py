@@ -80,6 +80,7 @@ def _constrained(rig, tie_weight=0.0, exclusive=True):
     return inverse.Constrained(base, exclusive=pairs, ties=ties, tie_weight=tie_weight)
 
 
+@pytest.mark.slow
 def test_no_exclusive_pair_is_both_on_and_the_cost_is_the_best_held_choice(named, conflicting_take):
     """On a take built to turn both members on: unconstrained, pairs are both on; constrained,
     none is (one member exactly 0) on any frame, batched or one frame at a time; the objective

@@ -50,6 +50,7 @@ def _count_compiles(caplog, name):
     return sum(f"Compiling jit({name})" in r.getMessage() for r in caplog.records)
 
 
+@pytest.mark.slow
 def test_solve_sequence_and_stream_compile_once(ict_quartic_problem, noisy, caplog):
     problem = ict_quartic_problem
     caplog.set_level(logging.WARNING, logger="jax")
@@ -84,6 +85,7 @@ def test_random_order_draws_a_permutation_per_frame(ict_quartic_problem, noisy):
     np.testing.assert_array_equal(first, again)  # reproducible from the key
 
 
+@pytest.mark.slow
 def test_lmmm_on_a_rig_without_correctives_reaches_the_convex_minimum(ict_face, livelink_weights):
     """With no pair correctives LMMM's majoriser is quadratic; on the linear rig the objective
     is convex, so LMMM and converged coordinate descent approach the same minimum (LMMM used
@@ -100,6 +102,7 @@ def test_lmmm_on_a_rig_without_correctives_reaches_the_convex_minimum(ict_face, 
     assert np.all(lmmm_value >= minimum * (1 - 1e-5)) and np.all(lmmm_value <= minimum * (1 + 1e-3))
 
 
+@pytest.mark.slow
 def test_converged_quartic_cd_reaches_an_independent_float64_lbfgsb_minimum(
     ict_quartic_problem, noisy
 ):
@@ -116,6 +119,7 @@ def test_converged_quartic_cd_reaches_an_independent_float64_lbfgsb_minimum(
         assert float(cd.objective) <= value * (1 + 2e-5), (float(cd.objective), value)
 
 
+@pytest.mark.slow
 def test_projected_newton_reaches_converged_cd_with_its_zeros(ict_quartic_problem, noisy):
     """QuarticNewton minimises the same objective: no higher than converged QuarticCD (which
     reaches the independent float64 L-BFGS-B minimum, tested above) in a handful of
@@ -139,6 +143,7 @@ def test_projected_newton_reaches_converged_cd_with_its_zeros(ict_quartic_proble
     np.testing.assert_allclose(np.asarray(warm.objective), objective, rtol=5e-5)
 
 
+@pytest.mark.slow
 def test_one_frame_branches_and_batched_branches_reach_the_same_minimum(ict_quartic_problem, noisy):
     """One frame skips the updates that change nothing, the Newton rows of fixed weights and
     the second Newton trial when no weight reaches a bound; under vmap every frame takes the

@@ -57,6 +57,7 @@ def test_every_vertex_as_a_point_is_the_dense_solve(synthetic_rig, poses):
     np.testing.assert_allclose(np.asarray(sparse.weights), np.asarray(dense.weights), atol=1e-5)
 
 
+@pytest.mark.slow
 def test_a_few_points_recover_a_clean_pose(synthetic_rig, poses):
     """60 barycentric points of the sheet determine the 8 weights of a noise-free pose (and
     the solve, batched or not, is the same method on the smaller problem)."""

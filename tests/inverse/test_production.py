@@ -125,6 +125,7 @@ def test_a_large_tie_is_the_solve_of_the_symmetrised_rig(synthetic_rig, rig_and_
     np.testing.assert_allclose(ours, expected, atol=3e-3)
 
 
+@pytest.mark.slow
 def test_multipliers_and_offsets_are_exact_and_clipped(rig_and_take):
     rig, problem, targets = rig_and_take
     k = rig.n_blendshapes
@@ -179,6 +180,7 @@ def test_inactive_shapes_are_exactly_zero_without_recompiling(rig_and_take):
     assert len(traces) == 1  # the second mask reused the compiled solve
 
 
+@pytest.mark.slow
 def test_the_terms_compose_under_vmap(rig_and_take):
     rig, problem, targets = rig_and_take
     method = inverse.Constrained(

@@ -32,6 +32,7 @@ def _rmse_mm(rig, weights, targets):
     return float(np.sqrt(((np.asarray(meshes) - np.asarray(targets)) ** 2).sum(-1).mean()) * 10)
 
 
+@pytest.mark.slow
 def test_every_coordinate_update_does_not_increase_the_objective(setup):
     rig, problem, _, targets = setup
     solution = _solve_all(problem, targets[:4], _paper(0.5, 3, trace=True))
@@ -55,6 +56,7 @@ def test_linear_cd_one_pass_no_bound_no_l1_equals_seol(setup):
     np.testing.assert_allclose(np.asarray(cd.weights), np.asarray(seol.weights), atol=2e-4)
 
 
+@pytest.mark.slow
 def test_noise_free_targets_are_recovered_well_under_a_tenth_of_a_mm(setup):
     rig, problem, _, targets = setup
     solution = _solve_all(problem, targets[:5], inverse.QuarticCD(alpha=0.0, passes=60))
@@ -62,6 +64,7 @@ def test_noise_free_targets_are_recovered_well_under_a_tenth_of_a_mm(setup):
     assert _rmse_mm(rig, solution.weights, targets[:5]) < 0.05
 
 
+@pytest.mark.slow
 def test_quartic_cd_beats_linear_cd_and_seol_on_the_take(setup):
     rig, problem, _, targets = setup
     rmse = {

@@ -109,6 +109,7 @@ def test_per_weight_bounds_of_the_wrong_length_are_named_before_compiling(take):
             call()
 
 
+@pytest.mark.slow
 def test_a_stalled_line_search_is_not_reported_as_converged(synthetic_rig):
     """With one step length, an overshooting full step finds no decrease: those frames end
     ``stagnation`` (the Gauss-Newton model still predicted a decrease above ``tol``), and every

@@ -98,6 +98,7 @@ def test_zero_smoothness_is_the_per_frame_solution(take):
     assert int(one.stats["steps"]) == int(newton.stats["steps"])
 
 
+@pytest.mark.slow
 def test_temporal_solution_is_a_box_kkt_point_with_lower_energy(synthetic_rig, take):
     problem, targets, _ = take
     smoothness, velocity = 20.0, 2.0
@@ -153,6 +154,7 @@ def test_windows_stitch_close_to_the_whole_take(synthetic_rig, take):
     assert e_whole <= e_windows < 1.01 * e_whole
 
 
+@pytest.mark.slow
 def test_the_authors_holistic_cd_reaches_the_same_objective(synthetic_rig, take):
     """One interval holding the whole take: the NumPy/SciPy coordinate descent minimises
     (2/n) E, so both reach the same E; the lambda mapping is checked on the formula."""
@@ -259,6 +261,7 @@ def _rmse_mm(rig, weights, clean):
     return np.sqrt(((meshes - clean) ** 2).sum(-1).mean(-1)).mean() * 10.0
 
 
+@pytest.mark.slow
 def test_temporal_row_and_smoothness_curve_match_direct_computations(synthetic_rig, take):
     problem, targets, weights = take
     clean = np.asarray(jax.vmap(evaluate, (None, 0))(synthetic_rig, weights.astype(np.float32)))

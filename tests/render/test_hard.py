@@ -86,6 +86,7 @@ def test_interpolation_matches_the_soft_hard_limit(head):
     assert np.max(np.abs(-local[..., 2] - d_fast)[covered]) < 1e-3
 
 
+@pytest.mark.slow
 def test_antialiased_area_follows_the_silhouette(head):
     """Scaling the head by (1 + s) about the viewing axis (orthographic) scales its screen
     area by (1 + s)^2: the antialiased mask's sum (~ the covered area) must have the

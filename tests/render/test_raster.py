@@ -93,6 +93,7 @@ print(worst)
 """
 
 
+@pytest.mark.slow
 def test_gradient_matches_finite_differences(head):
     """Directional derivatives of a loss on the silhouette and depth against central
     differences in float32 (step 2e-3 cm ~ 2e-3 px here), dense schedule (the tiled one

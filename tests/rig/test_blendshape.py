@@ -104,6 +104,7 @@ def test_toy_rig_matches_numpy_reference(data):
     np.testing.assert_allclose(jax.jit(evaluate)(rig, w), numpy_evaluate(rig, w), rtol=0, atol=1e-4)
 
 
+@pytest.mark.slow
 @given(data=st.data())
 @HYPOTHESIS
 def test_rig_is_affine_in_each_weight(data):

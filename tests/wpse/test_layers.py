@@ -34,6 +34,7 @@ def test_distinct_edits_stay_in_one_layer(tiny_rig, tiny_edits):
     np.testing.assert_allclose(apply_layered(layered, w, posed), apply(single, w, posed), atol=2e-5)
 
 
+@pytest.mark.slow
 def test_duplicated_pose_goes_to_a_new_layer_and_the_later_edit_wins(tiny_rig, tiny_edits):
     poses, edits = tiny_edits
     poses = np.concatenate([poses, poses[:1]])

@@ -33,6 +33,7 @@ def test_unmoved_vertex_gets_uniform_metric():
     np.testing.assert_allclose(alpha[1], 1 / 3, rtol=1e-6)
 
 
+@pytest.mark.slow
 @settings(max_examples=20, deadline=None)
 @given(st.integers(1, 6), st.sampled_from([1, 5, 16, 17, 33, 50, 64, 70]), st.integers(0, 10_000))
 def test_distances_match_a_loop(s, p, seed):

@@ -184,6 +184,7 @@ def test_channel_region_of_disjoint_channel_sets_are_disjoint(take):
     np.testing.assert_array_equal(everything, np.arange(rig.n_vertices))
 
 
+@pytest.mark.slow
 def test_reuse_by_search_larger_tau_finds_more(take):
     rig, (_, desired, linear) = take["rig"], take["frames"]
     out = wpse.reuse_by_search(

@@ -39,6 +39,7 @@ def mean_error_mm(meshes, desired):
     return float(np.linalg.norm(meshes - desired, axis=-1).mean() * CM_TO_MM)
 
 
+@pytest.mark.slow
 def test_frames_are_orthonormal_on_the_whole_face(ict_face):
     frames = local_frames(ict_face.faces, np.arange(ict_face.n_vertices), ict_face.n_vertices)
     rotation = np.asarray(frame_matrices(frames, evaluate(ict_face, jnp.full(53, 0.3))))

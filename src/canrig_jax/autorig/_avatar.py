@@ -42,6 +42,7 @@ from ..rig import (
     write_gltf_avatar,
 )
 from ._any_head import auto_rig
+from ._rig_checks import RigCheck, check_auto_rig, failed_hard_checks
 
 AVATAR_FORMATS = (".glb", ".vrm", ".fbx")
 """Avatar files ``auto_rig_avatar`` reads."""
@@ -70,6 +71,8 @@ class AvatarRig:
         names: the morph targets written.
         seconds: wall time per step and in total.
         out: the file written.
+        checks: the rigger's checks of the face rig (``check_rig`` under random sparse poses
+            of its shapes), None when not asked for.
     """
 
     avatar: GltfAvatar
@@ -79,6 +82,7 @@ class AvatarRig:
     names: tuple[str, ...]
     seconds: dict
     out: Path
+    checks: RigCheck | None = None
 
 
 def _read_avatar(path: Path) -> GltfAvatar:
@@ -178,6 +182,8 @@ def auto_rig_avatar(
     method: str | None = None,
     replace: bool = False,
     extras: Sequence[str] = (),
+    check: bool = True,
+    strict: bool = False,
     progress: Callable[[str], None] | None = None,
     **options,
 ) -> AvatarRig:
@@ -192,6 +198,9 @@ def auto_rig_avatar(
         replace: a target name a face mesh already has is replaced (else a ValueError).
         extras: sets of ``rig.EXTRA_SHAPES`` to add after the rig's shapes (``"visemes"``,
             ``"rpm"``), each target the documented sum of ARKit targets.
+        check: run the rigger's checks (``check_rig``) on the face rig before writing.
+        strict: a face rig that fails a hard check is not written (a ValueError naming the
+            checks); else it is written and the failures are in ``AvatarRig.checks``.
         progress: called with a message before each step.
         options: passed on to ``auto_rig`` (``dataset``, ``model``, ``up``, ``forward``...).
 
@@ -237,6 +246,16 @@ def auto_rig_avatar(
         _check_clashes(path, document, chosen, options, extras)
     result = auto_rig(neutral.astype(np.float32), triangles, method=method, progress=say, **options)
     seconds["rig"] = time.perf_counter() - start - seconds["read"]
+    report = None
+    if check or strict:
+        say("checking the face rig (blink, jaw, eyes, teeth, flips, crossings)")
+        report = check_auto_rig(result)
+        say(report.summary())
+        if strict and not report.ok:
+            raise ValueError(
+                f"avatar: {path}: the face rig fails hard checks: {failed_hard_checks(report)}; "
+                "not written"
+            )
     rig = with_extra_shapes(result.rig, extras) if extras else result.rig
     deltas_cm = np.asarray(rig.deltas, np.float64)
     per_mesh = _per_mesh_offsets(chosen, deltas_cm)
@@ -256,6 +275,7 @@ def auto_rig_avatar(
         names=tuple(rig.names),
         seconds=seconds,
         out=Path(out),
+        checks=report,
     )
 
 

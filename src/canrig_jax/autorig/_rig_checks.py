@@ -576,3 +576,20 @@ def plot_check_frames(
         ax.set_ylim(*box[:, 1])
     fig.suptitle(textwrap.fill(title or result.summary(), 150), fontsize=8)
     save_figure(fig, path)
+
+
+def check_auto_rig(result, n_random: int = 48) -> RigCheck:
+    """``check_rig`` of what ``auto_rig`` returned (an ``AutoRig``), under ``n_random`` random
+    sparse poses of its own shapes, in the frame the rig was left in (turned into the
+    convention, or the head's own)."""
+    up, forward = result.orientation.up, result.orientation.forward
+    if result.orientation.conventional:
+        up, forward = "+y", "+z"
+    return check_rig(result.rig, n_random=n_random, up=up, forward=forward)
+
+
+def failed_hard_checks(report: RigCheck) -> str:
+    """The failed hard checks of ``report`` as one line: "name (value, limit L), ..."."""
+    return ", ".join(
+        f"{c.name} ({c.value:.3g}, limit {c.limit:g})" for c in report.checks if c.hard and not c.ok
+    )

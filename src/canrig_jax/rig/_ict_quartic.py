@@ -11,7 +11,7 @@ import json
 import os
 from collections.abc import Sequence
 
-from .._cache import CACHE_ENV_VAR, cache_dir, mesh_fingerprint
+from .._cache import CACHE_ENV_VAR, build_lock, cache_dir, mesh_fingerprint
 from .._io import save_json
 from ..data import FACE, load_ict
 from ._blendshape import BlendshapeRig
@@ -53,12 +53,13 @@ def ict_quartic_rig(
     key = hashlib.sha256(recipe.encode()).hexdigest()[:16]
     folder = cache_dir(cache)
     rig_path, report_path = folder / f"ict-quartic-{key}.npz", folder / f"ict-quartic-{key}.json"
-    if not rebuild and rig_path.exists() and report_path.exists():
-        report = SynthesisReport(**_int_keys(json.loads(report_path.read_text())))
-        return load_rig(rig_path), report
-    rig, report = synthesize_correctives(linear, options, progress=progress)
-    save_rig(rig_path, rig)
-    save_json(report_path, dataclasses.asdict(report))
+    with build_lock(rig_path):  # another process building it: wait, then read its file
+        if not rebuild and rig_path.exists() and report_path.exists():
+            report = SynthesisReport(**_int_keys(json.loads(report_path.read_text())))
+            return load_rig(rig_path), report
+        rig, report = synthesize_correctives(linear, options, progress=progress)
+        save_rig(rig_path, rig)
+        save_json(report_path, dataclasses.asdict(report))
     return rig, report
 
 
