@@ -81,7 +81,7 @@ def test_derivatives_match_jax_linalg():
     np.testing.assert_allclose(transposed, np.linalg.solve(lower.T, tangent), rtol=1e-4, atol=1e-6)
 
 
-@pytest.mark.parametrize("n", [9, la.SMALL + 8])
+@pytest.mark.parametrize("n", [pytest.param(9, marks=pytest.mark.slow), la.SMALL + 8])
 def test_every_lapack_call_holds_one_matrix_however_batched(n):
     rng = np.random.default_rng(2)
     a, b = _spd(rng, 4, 3, n, n), rng.standard_normal((4, 3, n)).astype(np.float32)

@@ -30,6 +30,8 @@ SLOW_PAGES = {
     "guides/wpse.md": "the nonlinear blend, a width fit, the fix-shape rig",
     "guides/canrig.md": "trains a CANRig network; fitted workflows",
     "guides/pbs.md": "whole-head patch layout and graphs",
+    "guides/avatars.md": "rigs a whole-body Rocketbox avatar",
+    "guides/rig-checks.md": "checks two rigs under the take",
     "guides/autorig.md": "remeshed ICT identities, RigAnyFace, landmark fitting",
     "guides/rendering.md": "compiles the soft and fast rasterisers and a gradient",
     "guides/mesh.md": "whole-head operators and a DiffusionNet",

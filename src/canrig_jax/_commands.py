@@ -249,7 +249,8 @@ def _check_generated(result, args, progress) -> None:
     """``canrig autorig``'s rigger's checks of a generated rig, on random sparse poses of its
     own shapes: the summary printed; a failed hard check is a warning naming it, or with
     ``--strict`` an error (nothing written)."""
-    from .autorig._rig_checks import check_auto_rig, failed_hard_checks
+    from .autorig._any_head import check_auto_rig
+    from .autorig._rig_checks import failed_hard_checks
 
     if args.no_check:
         return

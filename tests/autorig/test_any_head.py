@@ -395,6 +395,7 @@ def test_examples_are_taken_and_their_style_improves_the_other_shapes(
     )
 
 
+@pytest.mark.slow
 def test_examples_are_taken_under_the_sources_names_too(source, z_up_head, plain_rig):
     result = auto_rig(
         z_up_head["vertices"],

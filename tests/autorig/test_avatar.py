@@ -465,7 +465,8 @@ def test_fbx_scene_becomes_a_valid_gltf_avatar(data_dir, tmp_path):
     _validate(written)
 
 
-@pytest.mark.parametrize("name", [ROCKETBOX[0], pytest.param(ROCKETBOX[1], marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ROCKETBOX)
 def test_rocketbox_body_through_the_command(name, data_dir, tmp_path, capsys):
     """The issue's target: a whole-body FBX in, a valid GLB with the skeleton, skin and every
     mesh out, 51+ ARKit targets on the face mesh (the artist's shapes ignored); and the

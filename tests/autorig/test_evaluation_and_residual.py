@@ -524,6 +524,7 @@ def test_transfer_poses_needs_only_the_head(data_dir):
         transfer_poses(source, SimpleNamespace(vertices=truth.vertices))
 
 
+@pytest.mark.slow
 def test_balanced_loss_weighs_each_pose_against_its_own_no_motion_error(small_head, tiny_poses):
     """balance_poses divides each pose's error by what predicting no motion scores on it (0.5:
     by the geometric mean of that and the training set's scale): checked against numpy, and a

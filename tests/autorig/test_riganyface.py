@@ -126,6 +126,7 @@ def test_remeshed_heads_carry_the_ground_truth_and_the_parts(heads, ict_head):
     assert heads[1].n_vertices > 3 * 300
 
 
+@pytest.mark.slow
 def test_deformation_transfer_baseline_follows_the_ground_truth(
     ict_quartic, ict_head, head_displacements, poses, heads
 ):
@@ -211,6 +212,7 @@ def test_only_the_global_encoder_carries_information_across_components(
             assert change == 0.0, change
 
 
+@pytest.mark.slow
 def test_hybrid_model_diffuses_implicitly_once_per_head_and_spectrally_per_pose(
     poses, head_operators
 ):
@@ -252,6 +254,7 @@ def test_spectral_gradient_shortcut_equals_the_sparse_gradient_of_the_diffusion(
 # -- rig generation and export --------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_generated_rig_reproduces_every_predicted_pose(small_model, poses, heads):
     head = heads[0]
     generated = generate_rig(small_model, poses, head.vertices * 3.0, head.faces, k=64)

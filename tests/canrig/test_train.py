@@ -125,6 +125,7 @@ def test_evaluation_matched_sampling():
         sample_examples(np.random.default_rng(0), 50, 100, 500, options)
 
 
+@pytest.mark.slow
 def test_resume_with_schedule_and_options(tiny_data, tmp_path):
     """The learning-rate schedule and the model options survive a checkpoint round trip."""
     options = TrainOptions(

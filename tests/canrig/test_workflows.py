@@ -279,6 +279,7 @@ def test_smoothstep_fade():
     assert fade[10] < 0.3 / 11
 
 
+@pytest.mark.slow
 def test_clip_edit_is_local_in_time_and_space(rig, poses):
     clip = np.concatenate([poses, poses[::-1], poses])  # 12 real frames
     handles = rig.handles(farthest_point_vertices(np.asarray(rig.canonical), 6, graph=rig.graph))

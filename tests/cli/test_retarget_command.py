@@ -71,6 +71,7 @@ def _timecodes(path):
     return [line.split(",", 1)[0] for line in path.read_text().splitlines()[1:]]
 
 
+@pytest.mark.slow
 def test_arkit_to_arkit_gives_the_take_back_as_a_live_link_csv(files, capsys):
     root, weights, rotations = files
     out = root / "back.csv"

@@ -65,6 +65,7 @@ def _tie_rows(k, ties, weight):
     return rows
 
 
+@pytest.mark.slow
 def test_ties_and_l2_are_the_solve_of_the_augmented_rig(rig_and_take):
     rig, problem, targets = rig_and_take
     k, tie, l2 = rig.n_blendshapes, 40.0, 3.0
@@ -83,6 +84,7 @@ def test_ties_and_l2_are_the_solve_of_the_augmented_rig(rig_and_take):
     assert sum(gap[2:]) < 0.5 * sum(gap[:2])
 
 
+@pytest.mark.slow
 def test_the_temporal_term_of_a_stream_is_the_solve_of_the_augmented_rig(rig_and_take):
     """Frame 1 of a warm stream minimises data + L1 + temporal_weight / 2 ||w - w_0||^2 with
     w_0 frame 0's solved weights; frame 0 (no previous frame) is the plain solve."""

@@ -132,6 +132,7 @@ def test_every_order_gives_a_monotone_descent_to_a_good_fit(setup, default_order
     assert np.all(removed >= 0.9 * (start - default)), removed
 
 
+@pytest.mark.slow
 def test_lmmm_majoriser_decreases_the_pairwise_objective_and_beats_its_start(setup):
     rig, problem, _, targets = setup
     lmmm = _solve_all(problem, targets[:4], inverse.LMMM(alpha=0.5, iterations=15))

@@ -218,6 +218,7 @@ def test_mutually_exclusive_pairs_never_combine(sub_synthesis, ict_quartic):
                 assert not any(pair <= set(combo) for pair in exclusive), combo
 
 
+@pytest.mark.slow
 def test_custom_exclusion_removes_the_pair_and_everything_above_it(sub_linear, sub_blend):
     options = dataclasses.replace(SUB_OPTIONS, max_order=3, exclude=(("jawOpen", "mouthClose"),))
     rig, report = synthesize_correctives(sub_linear, options, blend=sub_blend, progress=False)

@@ -262,6 +262,7 @@ def test_rest_pose_correction_is_zero_for_the_pinned_model(take, models):
     assert rest_pose_correction_mm(models["wpse"], rig) == pytest.approx(expected)
 
 
+@pytest.mark.slow
 def test_locality_probe_keeps_everything_when_nothing_changes(take, models):
     """With no channel redrawn every probe is the edited pose: all is retained."""
     poses, _, linear = take["frames"]
@@ -298,6 +299,7 @@ def test_locality_probe_keeps_everything_when_nothing_changes(take, models):
     assert changed["eye_channels"] == 3
 
 
+@pytest.mark.slow
 def test_overshoot_sweep_fix_shape_and_corner_edit_are_exact_at_the_corner(take, models):
     summary, curves = wpse.overshoot_sweep(
         take["rig"],

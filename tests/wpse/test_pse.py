@@ -175,6 +175,7 @@ def test_local_frame_edit_turns_with_the_mesh(tiny_rig, tiny_edits):
     np.testing.assert_allclose(turned_model.coefficients, model.coefficients, rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_support_restriction_and_numpy_evaluator(tiny_rig, tiny_edits):
     poses, edits = tiny_edits
     edits = edits.copy()

@@ -91,6 +91,7 @@ def test_edits_reproduced_and_held_out_frames_improved(method, real_models, real
     assert after < 0.9 * before, (before, after)
 
 
+@pytest.mark.slow
 def test_locality_wpse_keeps_the_mouth_correction_pse_loses_it(ict_face, real_edits, real_models):
     """Seol et al. Fig. 7: the edited pose with different eye weights keeps its mouth fix."""
     names = ict_face.names

@@ -53,6 +53,7 @@ from ._orientation import (
     stated_orientation,
 )
 from ._rig import rig_from_poses
+from ._rig_checks import RigCheck, check_rig
 
 AUTO_RIG_METHODS = ("transfer", "raf", "transfer-residual")
 DEFAULT_METHOD = "transfer"
@@ -624,3 +625,13 @@ def _take_sculpted(rig: BlendshapeRig, sculpted: Mapping):
         )
     rig = BlendshapeRig(rig.neutral, deltas, rig.correctives, rig.names, rig.faces, rig.units)
     return rig, tuple(n for n in sculpted if n in taken)
+
+
+def check_auto_rig(result: "AutoRig", n_random: int = 48) -> RigCheck:
+    """``check_rig`` of what ``auto_rig`` returned (an ``AutoRig``), under ``n_random`` random
+    sparse poses of its own shapes, in the frame the rig was left in (turned into the
+    convention, or the head's own)."""
+    up, forward = result.orientation.up, result.orientation.forward
+    if result.orientation.conventional:
+        up, forward = "+y", "+z"
+    return check_rig(result.rig, n_random=n_random, up=up, forward=forward)

@@ -41,8 +41,8 @@ from ..rig import (
     with_extra_shapes,
     write_gltf_avatar,
 )
-from ._any_head import auto_rig
-from ._rig_checks import RigCheck, check_auto_rig, failed_hard_checks
+from ._any_head import auto_rig, check_auto_rig
+from ._rig_checks import RigCheck, failed_hard_checks
 
 AVATAR_FORMATS = (".glb", ".vrm", ".fbx")
 """Avatar files ``auto_rig_avatar`` reads."""
@@ -246,16 +246,7 @@ def auto_rig_avatar(
         _check_clashes(path, document, chosen, options, extras)
     result = auto_rig(neutral.astype(np.float32), triangles, method=method, progress=say, **options)
     seconds["rig"] = time.perf_counter() - start - seconds["read"]
-    report = None
-    if check or strict:
-        say("checking the face rig (blink, jaw, eyes, teeth, flips, crossings)")
-        report = check_auto_rig(result)
-        say(report.summary())
-        if strict and not report.ok:
-            raise ValueError(
-                f"avatar: {path}: the face rig fails hard checks: {failed_hard_checks(report)}; "
-                "not written"
-            )
+    report = _checked(result, path, strict, say) if check or strict else None
     rig = with_extra_shapes(result.rig, extras) if extras else result.rig
     deltas_cm = np.asarray(rig.deltas, np.float64)
     per_mesh = _per_mesh_offsets(chosen, deltas_cm)
@@ -277,6 +268,20 @@ def auto_rig_avatar(
         out=Path(out),
         checks=report,
     )
+
+
+def _checked(result, path: Path, strict: bool, say) -> RigCheck:
+    """The rigger's checks of the face rig; with ``strict`` a failed hard check is a
+    ValueError (nothing written)."""
+    say("checking the face rig (blink, jaw, eyes, teeth, flips, crossings)")
+    report = check_auto_rig(result)
+    say(report.summary())
+    if strict and not report.ok:
+        raise ValueError(
+            f"avatar: {path}: the face rig fails hard checks: {failed_hard_checks(report)}; "
+            "not written"
+        )
+    return report
 
 
 def _check_clashes(path, document, chosen, options, extras) -> None:

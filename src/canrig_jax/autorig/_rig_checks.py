@@ -578,16 +578,6 @@ def plot_check_frames(
     save_figure(fig, path)
 
 
-def check_auto_rig(result, n_random: int = 48) -> RigCheck:
-    """``check_rig`` of what ``auto_rig`` returned (an ``AutoRig``), under ``n_random`` random
-    sparse poses of its own shapes, in the frame the rig was left in (turned into the
-    convention, or the head's own)."""
-    up, forward = result.orientation.up, result.orientation.forward
-    if result.orientation.conventional:
-        up, forward = "+y", "+z"
-    return check_rig(result.rig, n_random=n_random, up=up, forward=forward)
-
-
 def failed_hard_checks(report: RigCheck) -> str:
     """The failed hard checks of ``report`` as one line: "name (value, limit L), ..."."""
     return ", ".join(
