@@ -21,7 +21,8 @@ from canrig_jax.autorig import (
     sculpted_target_errors,
     stated_orientation,
 )
-from canrig_jax.data import ARKIT_NAMES
+from canrig_jax.autorig._orientation import CUE_MARGIN_CM, face_cues
+from canrig_jax.data import ARKIT_NAMES, FACE, load_ict
 from canrig_jax.rig import BlendshapeRig
 
 HEADS = ("Male_Adult_08", "Female_Adult_01")
@@ -219,6 +220,54 @@ def test_orientation_is_recovered_never_wrong(source, heads, head, index, mirror
     decided = _decided_or_refused(source, *heads[head], index, mirrored)
     if head != "crop":
         assert decided, "a plain Rocketbox head was refused"
+
+
+@pytest.fixture(scope="module")
+def ict_face_mask(data_dir):
+    """The ICT face part alone (no back of the head, no neck): a face-only mask, cm."""
+    face = load_ict(data_dir, parts=FACE)
+    return face.neutral.astype(np.float64), face.faces.astype(np.int64)
+
+
+TIES = [("ict", 0, False), ("ict", 9, True), ("crop", 2, False), ("crop", 20, True)]
+
+
+@pytest.mark.parametrize("head, index, mirrored", TIES)
+def test_a_tie_on_a_face_mask_is_settled_by_the_faces_own_cues(
+    source, heads, ict_face_mask, monkeypatch, head, index, mirrored
+):
+    """With every refined rotation counted as fitting "almost equally" (``AGREE_RATIO``
+    raised), the face's cues alone pick the one upright orientation of a face-only mask."""
+    monkeypatch.setattr("canrig_jax.autorig._orientation.AGREE_RATIO", 1e9)
+    vertices, faces = ict_face_mask if head == "ict" else heads[head]
+    moved, moved_faces, turn, mirror = _turned(vertices, faces, index, mirrored)
+    decision = decide_orientation(source, moved, moved_faces)
+    np.testing.assert_allclose(decision.rotation @ mirror @ turn, mirror, atol=1e-9)
+    assert decision.fit["settled_by"] == "face cues"
+    forward, up = face_cues(vertices, np.eye(3))  # upright: both cues clear the margin
+    assert min(forward, up) > CUE_MARGIN_CM
+    upside_down = np.diag([-1.0, -1.0, 1.0])
+    assert face_cues(vertices, upside_down)[1] < -CUE_MARGIN_CM
+    assert face_cues(vertices, np.diag([-1.0, 1.0, -1.0]))[0] < -CUE_MARGIN_CM  # from behind
+
+
+def test_a_tie_the_cues_cannot_settle_is_refused(source, ict_face_mask, monkeypatch):
+    """Where no tied orientation shows both cues (an up cue of 0, as of a mask cut at the
+    nose), the tie stays a refusal naming up= and forward=; a planed-down nose is refused too
+    (the ICT face no longer fits it)."""
+    monkeypatch.setattr("canrig_jax.autorig._orientation.AGREE_RATIO", 1e9)
+    vertices, faces = ict_face_mask
+    monkeypatch.setattr(
+        "canrig_jax.autorig._orientation.face_cues",
+        lambda vertices, to_convention: (face_cues(vertices, to_convention)[0], 0.0),
+    )
+    with pytest.raises(OrientationError, match="do not settle it.*up= and forward="):
+        decide_orientation(source, vertices, faces)
+    flat = vertices.copy()
+    outer = np.abs(flat[:, 0] - np.median(flat[:, 0])) > 0.3 * np.ptp(flat[:, 0])
+    flat[:, 2] = np.minimum(flat[:, 2], flat[outer, 2].max())
+    with pytest.raises(OrientationError, match="up= and forward="):
+        decide_orientation(source, flat, faces)
 
 
 @pytest.mark.slow  # 48 orientations x 3 heads, ~1 s each

@@ -432,6 +432,48 @@ def orientation_points(dataset: AutorigDataset | None = None) -> Float[np.ndarra
     return template[:: max(1, int(np.ceil(template.shape[0] / SEARCH_POINTS)))]
 
 
+NOSE_BAND_CM = (1.0, 2.5)
+"""``face_cues``: the bands above and below the nose tip (cm along the up axis) whose most
+forward points the nose tip is compared with."""
+
+
+CUE_MARGIN_CM = 0.2
+"""Both face cues must exceed this (cm) to settle a tie: a face turned on its side shows a
+nose forward but an up cue of about 0 (its bands cross the cheeks); upright ICT and Rocketbox
+faces (validation) show 0.5-1.0 cm up and 2.3-4.5 cm forward."""
+
+
+def face_cues(
+    vertices: Float[ArrayLike, "V 3"], to_convention: Float[ArrayLike, "3 3"]
+) -> tuple[float, float]:
+    """A face's own cues of which way it is turned, for a head in centimetres turned into the
+    convention by ``vertices @ to_convention.T`` (+y up, +z forward).
+
+    Returns (forward, up), both > ``CUE_MARGIN_CM`` for a face the right way: ``forward``,
+    how far (cm) the nose tip (the most forward point of the middle fifth, across) stands
+    ahead of the outer cheeks' most forward point (|x| beyond 0.3 of the width); ``up``, how
+    much further (cm) the face falls back below the nose tip (the upper lip) than above it
+    (the bridge), in ``NOSE_BAND_CM`` along the middle. A face upside down or seen from
+    behind gives a negative cue."""
+    h = np.asarray(vertices, np.float64) @ np.asarray(to_convention, np.float64).T
+    h = h - np.median(h, axis=0)
+    width = float(np.ptp(h[:, 0]))
+    middle = np.abs(h[:, 0]) < 0.1 * width
+    outer = np.abs(h[:, 0]) > 0.3 * width
+    if not middle.any() or not outer.any():
+        return -1.0, -1.0
+    tip = h[middle][np.argmax(h[middle, 2])]
+    forward = float(tip[2] - h[outer, 2].max())
+    strip = np.abs(h[:, 0] - tip[0]) < 0.05 * width
+    low, high = NOSE_BAND_CM
+
+    def recession(sign: float) -> float:
+        band = strip & (sign * (h[:, 1] - tip[1]) > low) & (sign * (h[:, 1] - tip[1]) < high)
+        return float(tip[2] - h[band, 2].max()) if band.any() else 0.0
+
+    return forward, recession(-1.0) - recession(1.0)
+
+
 def decide_orientation(
     dataset: AutorigDataset | None,
     vertices: Float[ArrayLike, "V 3"],
@@ -446,8 +488,10 @@ def decide_orientation(
     The ICT inner face (``inner_face``) is fitted to the head by trimmed ICP from each of the
     24 axis-aligned starts. The head's orientation is the best fit's when (1) it fits
     (``FIT_LIMIT``), (2) every start that fits nearly as well (``AGREE_RATIO``) found the same
-    rotation, and (3) that rotation is a multiple of 90 degrees about the axes
-    (``SNAP_DEGREES``). A mirrored head is a head: it is turned, not refused.
+    rotation — or, where two fit almost equally (a face-only mask), exactly one of them shows
+    the face's own cues (``face_cues``: the nose forward, the nose's underside below) — and
+    (3) that rotation is a multiple of 90 degrees about the axes (``SNAP_DEGREES``). A
+    mirrored head is a head: it is turned, not refused.
 
     Args:
         dataset: the ICT source (``ict_pose_source()``), or None for the packaged template
@@ -503,10 +547,31 @@ def decide_orientation(
             f"human(-like) face in centimetres? {state}"
         )
     if runner_up <= AGREE_RATIO * best_ratio:
-        raise OrientationError(
-            f"vertices: cannot tell which way the head faces: two orientations fit the face "
-            f"almost equally (RMS ratios {best_ratio:.4f} and {runner_up:.4f}); {state}"
-        )
+        # the face's cues on each tied rotation's axis-aligned orientation (as files store
+        # heads); rotations that snap to the same orientation are one
+        tied: dict[tuple, tuple[float, np.ndarray]] = {}
+        for ratio, rotation in candidates:
+            if ratio <= AGREE_RATIO * best_ratio:
+                axes = min(starts, key=lambda r, t=rotation.T: _angle_degrees(r, t))
+                tied.setdefault(tuple(np.rint(axes).astype(int).ravel()), (ratio, rotation))
+        settled = [
+            c
+            for k, c in tied.items()
+            if min(face_cues(v, np.reshape(k, (3, 3)).astype(np.float64))) > CUE_MARGIN_CM
+        ]
+        if len(settled) != 1:
+            raise OrientationError(
+                f"vertices: cannot tell which way the head faces: two orientations fit the "
+                f"face almost equally (RMS ratios {best_ratio:.4f} and {runner_up:.4f}) and "
+                f"the face's own cues (nose forward, nose's underside below) do not settle "
+                f"it; {state}"
+            )
+        best_ratio, best_rotation = settled[0]
+        fit["settled_by"] = "face cues"
+        to_convention = best_rotation.T
+        snapped = min(starts, key=lambda r: _angle_degrees(r, to_convention))
+        off = _angle_degrees(snapped, to_convention)
+        fit["off_axis_degrees"] = off
     if off > SNAP_DEGREES:
         raise OrientationError(
             f"vertices: the head is turned {off:.0f} degrees away from every axis-aligned "
