@@ -125,8 +125,10 @@ def _motion(out: Path, fbx: Path, capture) -> dict:
     theirs = np.asarray(artist.deltas, np.float64)  # cm, the GLB world's frame
     arkit = [arkit_name_of(n) for n in artist.names]
     keep = [i for i, n in enumerate(arkit) if n is not None]
-    ours = capture.weights_for(names, missing="zero")
+    driven = [i for i, n in enumerate(names) if arkit_name_of(n) is not None]  # not extras
+    ours = capture.weights_for([names[i] for i in driven], missing="zero")
     their_weights = capture.weights_for([arkit[i] for i in keep], missing="zero")
+    targets = targets[driven]
     made = neutral + np.einsum("tk,kvc->tvc", ours, targets)
     truth = neutral + np.einsum("tk,kvc->tvc", their_weights, theirs[keep])
     moved = (np.linalg.norm(targets, axis=-1).max(0) > 1e-4) | (
@@ -147,9 +149,9 @@ def _motion(out: Path, fbx: Path, capture) -> dict:
 
 
 def _screenshot(out: Path, png: Path, frame: dict[str, float]) -> bool:
-    """``canrig view OUT --screenshot PNG`` holding the capture frame's weights."""
+    """``canrig view OUT --screenshot PNG --face`` holding the capture frame's weights."""
     morph = [a for n, w in frame.items() if w > 0.02 for a in ("--morph", f"{n}={w:.3f}")]
-    argv = ["view", str(out), "--screenshot", str(png), "--size", "480x640", "--quiet", *morph]
+    argv = ["view", str(out), "--screenshot", str(png), "--size", "480x640", "--face", *morph]
     return run_command(argv) == 0
 
 
@@ -244,7 +246,8 @@ def main(argv=None):
             avatars[name] = _one(name, glb, reference.document, work / f"{name}.glb", log)
     capture = load_livelinkface(args.data_dir)
     active = int(np.argmax(capture.weights.sum(axis=1)))
-    frame = {n: float(w) for n, w in zip(capture.names, capture.weights[active], strict=True)}
+    frame = {arkit_name_of(n): float(w) for n, w in zip(capture.names, capture.weights[active],
+             strict=True) if arkit_name_of(n) is not None}  # fmt: skip
     for name, entry in avatars.items():
         if not entry["ok"]:
             continue

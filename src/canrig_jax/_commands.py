@@ -856,6 +856,7 @@ def _view(args) -> None:
             time=args.time,
             morphs=dict(args.morph),
             wireframe=args.wireframe,
+            face=args.face,
             size=args.size,
         )
         for level, text in shot.console:
@@ -1216,6 +1217,8 @@ def _add_view_parser(sub) -> None:
         help="hold a morph target at a weight (repeatable)",
     )
     shot.add_argument("--wireframe", action="store_true", help="draw the wireframe")
+    shot.add_argument("--face", action="store_true", help="frame what the morph targets move "
+                      "(a whole avatar's face) instead of the whole model")  # fmt: skip
     shot.add_argument(
         "--size", type=_size_option, default=(960, 720), help="WIDTHxHEIGHT (default 960x720)"
     )

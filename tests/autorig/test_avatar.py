@@ -599,3 +599,12 @@ def test_viewer_renders_the_whole_avatar_and_its_face_moves(avatar_file, stand_i
     body_rows = np.flatnonzero(drawn.any(axis=1))
     top, bottom = body_rows.min(), body_rows.max()
     assert rows.max() < top + 0.35 * (bottom - top)  # the head, not the body, moved
+    # --face frames what the targets move: the head fills the view, jawOpen changes far more
+    framed = []
+    for morph in ([], ["--morph", "jawOpen=1"]):
+        png = tmp_path / f"face{len(framed)}.png"
+        argv = ["view", str(out), "--screenshot", str(png), "--size", "480x640", "--face", *morph]
+        assert run_command(argv) == 0
+        framed.append(matplotlib.image.imread(png)[..., :3])
+    moved = np.abs(framed[1] - framed[0]).sum(axis=-1)[:, : canvas.shape[1]] > 0.05
+    assert moved.mean() > 3 * changed.mean(), (moved.mean(), changed.mean())

@@ -39,6 +39,11 @@ class ViewerPage:
     def set_colors(self, on: bool) -> None:
         self.browser.evaluate(f"window.canrig.setColors({json.dumps(bool(on))})")
 
+    def frame_morphs(self) -> bool:
+        """Point the camera at what the morph targets move (a whole avatar's face); False
+        when nothing moves (the view is left as it was)."""
+        return bool(self.browser.evaluate("window.canrig.frameMorphs()"))
+
     def screenshot(self) -> bytes:
         """The page as PNG bytes, after the pose set has been drawn."""
         self.browser.evaluate(_TWO_FRAMES)
@@ -68,6 +73,7 @@ def screenshot_glb(
     morphs: Mapping[str, float] | None = None,
     wireframe: bool = False,
     colors: bool = True,
+    face: bool = False,
     size: tuple[int, int] = (960, 720),
     executable: str | None = None,
 ) -> Screenshot:
@@ -75,8 +81,10 @@ def screenshot_glb(
     the picture to ``out`` (PNG, atomically).
 
     ``morphs`` holds targets at fixed weights over the animation; ``colors`` shows COLOR_0
-    when the file has it. Raises ValueError naming the file (``inspect_glb``) or ``morphs``
-    (an unknown target name) and BrowserError when Chromium is missing or fails."""
+    when the file has it; ``face`` frames the camera on the vertices the morph targets move
+    (a whole avatar's face) instead of the whole model. Raises ValueError naming the file
+    (``inspect_glb``) or ``morphs`` (an unknown target name) and BrowserError when Chromium
+    is missing or fails."""
     out = Path(out)
     if out.suffix.lower() != ".png":
         raise ValueError(f"--screenshot {out}: expected a .png file name")
@@ -90,6 +98,8 @@ def screenshot_glb(
             page = ViewerPage(browser, server.url)
             page.set_wireframe(wireframe)
             page.set_colors(colors)
+            if face:
+                page.frame_morphs()
             for name, value in (morphs or {}).items():
                 page.set_morph(name, value)
             shown = page.set_time(time)

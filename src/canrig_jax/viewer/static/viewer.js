@@ -122,6 +122,42 @@ function frame(object) {  // the camera in front of the head (+Z), the box filli
   controls.update();
 }
 
+function frameMorphs() {  // the camera on what the morph targets move (a whole avatar's face)
+  const box = new Box3(), p = new Vector3();
+  for (const mesh of state.meshes) {
+    const targets = mesh.geometry.morphAttributes.position || [];
+    if (!targets.length) continue;
+    mesh.updateWorldMatrix(true, false);
+    const saved = mesh.morphTargetInfluences.slice();
+    mesh.morphTargetInfluences.fill(0);  // the rest shape, posed by the skeleton at rest
+    const relative = mesh.geometry.morphTargetsRelative;
+    const base = mesh.geometry.attributes.position;
+    for (let i = 0; i < base.count; i++) {
+      let moved = false;
+      for (const t of targets) {
+        const dx = t.getX(i) - (relative ? 0 : base.getX(i));
+        const dy = t.getY(i) - (relative ? 0 : base.getY(i));
+        const dz = t.getZ(i) - (relative ? 0 : base.getZ(i));
+        if (dx * dx + dy * dy + dz * dz > 1e-12) { moved = true; break; }
+      }
+      if (moved) box.expandByPoint(mesh.localToWorld(mesh.getVertexPosition(i, p)));
+    }
+    mesh.morphTargetInfluences.splice(0, saved.length, ...saved);
+  }
+  if (box.isEmpty()) return false;
+  const center = box.getCenter(new Vector3()), size = box.getSize(new Vector3());
+  const radius = 0.5 * size.length();
+  const distance = radius / Math.sin((camera.fov * Math.PI) / 360);
+  camera.near = distance / 100;
+  camera.far = distance * 100;
+  camera.position.copy(center).add(new Vector3(0, 0, distance * 0.9));
+  camera.updateProjectionMatrix();
+  controls.target.copy(center);
+  controls.update();
+  render();
+  return true;
+}
+
 function buildSliders() {
   const list = $('morphs');
   for (const name of state.names) {
@@ -220,7 +256,7 @@ function toPixels(world) {  // a world point -> [x, y] pixels in the canvas (top
   return [((p.x + 1) / 2) * c.clientWidth, ((1 - p.y) / 2) * c.clientHeight];
 }
 
-window.canrig = { ready, setTime, setMorph, setWireframe, setColors,
+window.canrig = { ready, setTime, setMorph, setWireframe, setColors, frameMorphs,
   pause() { play(false); },
   time() { return state.time; },
   // [[x, y], ...] pixels of points given in the first mesh's own coordinates, as now posed
