@@ -117,6 +117,12 @@ def self_intersections(
     e, f = e[keep], f[keep]
     before = _segment_crosses_triangle(neutral[edges[e]], neutral[faces[f]])
     e, f = e[~before], f[~before]
+    # a pair can cross only if its points move towards each other by their neutral gap: a
+    # segment's (a triangle's) points move no further than its farthest-moving corner
+    reach = np.linalg.norm(x - neutral, axis=-1).max(axis=0)  # (V,)
+    gap = np.linalg.norm(seg_centre[e] - tri_centre[f], axis=-1) - 0.5 * seg_length[e]
+    movable = gap - tri_size[f] <= reach[edges[e]].max(axis=1) + reach[faces[f]].max(axis=1)
+    e, f = e[movable], f[movable]
     if e.size == 0:
         return np.zeros(x.shape[0], np.int64)
     # one compiled shape per size class of the pair list (padded with a pair that cannot cross)
