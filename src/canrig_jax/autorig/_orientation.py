@@ -474,6 +474,30 @@ def face_cues(
     return forward, recession(-1.0) - recession(1.0)
 
 
+def _settled_by_cues(v, candidates, starts, best_ratio: float, state: str):
+    """The one candidate (ratio, rotation) among those that fit almost equally whose
+    axis-aligned orientation (as files store heads) shows both face cues; rotations that snap
+    to the same orientation are one. Else an ``OrientationError``."""
+    tied: dict[tuple, tuple[float, np.ndarray]] = {}
+    for ratio, rotation in candidates:
+        if ratio <= AGREE_RATIO * best_ratio:
+            axes = min(starts, key=lambda r, t=rotation.T: _angle_degrees(r, t))
+            tied.setdefault(tuple(np.rint(axes).astype(int).ravel()), (ratio, rotation))
+    settled = [
+        c
+        for k, c in tied.items()
+        if min(face_cues(v, np.reshape(k, (3, 3)).astype(np.float64))) > CUE_MARGIN_CM
+    ]
+    if len(settled) != 1:
+        ratios = sorted(c[0] for c in candidates)[:2]
+        raise OrientationError(
+            f"vertices: cannot tell which way the head faces: two orientations fit the face "
+            f"almost equally (RMS ratios {ratios[0]:.4f} and {ratios[1]:.4f}) and the face's "
+            f"own cues (nose forward, nose's underside below) do not settle it; {state}"
+        )
+    return settled[0]
+
+
 def decide_orientation(
     dataset: AutorigDataset | None,
     vertices: Float[ArrayLike, "V 3"],
@@ -547,26 +571,7 @@ def decide_orientation(
             f"human(-like) face in centimetres? {state}"
         )
     if runner_up <= AGREE_RATIO * best_ratio:
-        # the face's cues on each tied rotation's axis-aligned orientation (as files store
-        # heads); rotations that snap to the same orientation are one
-        tied: dict[tuple, tuple[float, np.ndarray]] = {}
-        for ratio, rotation in candidates:
-            if ratio <= AGREE_RATIO * best_ratio:
-                axes = min(starts, key=lambda r, t=rotation.T: _angle_degrees(r, t))
-                tied.setdefault(tuple(np.rint(axes).astype(int).ravel()), (ratio, rotation))
-        settled = [
-            c
-            for k, c in tied.items()
-            if min(face_cues(v, np.reshape(k, (3, 3)).astype(np.float64))) > CUE_MARGIN_CM
-        ]
-        if len(settled) != 1:
-            raise OrientationError(
-                f"vertices: cannot tell which way the head faces: two orientations fit the "
-                f"face almost equally (RMS ratios {best_ratio:.4f} and {runner_up:.4f}) and "
-                f"the face's own cues (nose forward, nose's underside below) do not settle "
-                f"it; {state}"
-            )
-        best_ratio, best_rotation = settled[0]
+        best_ratio, best_rotation = _settled_by_cues(v, candidates, starts, best_ratio, state)
         fit["settled_by"] = "face cues"
         to_convention = best_rotation.T
         snapped = min(starts, key=lambda r: _angle_degrees(r, to_convention))

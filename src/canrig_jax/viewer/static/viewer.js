@@ -110,7 +110,10 @@ function setColors(on) {
 }
 
 function frame(object) {  // the camera in front of the head (+Z), the box filling the view
-  const box = new Box3().setFromObject(object);
+  frameBox(new Box3().setFromObject(object));
+}
+
+function frameBox(box) {
   const center = box.getCenter(new Vector3()), size = box.getSize(new Vector3());
   const radius = 0.5 * size.length();
   const distance = radius / Math.sin((camera.fov * Math.PI) / 360);
@@ -145,15 +148,7 @@ function frameMorphs() {  // the camera on what the morph targets move (a whole 
     mesh.morphTargetInfluences.splice(0, saved.length, ...saved);
   }
   if (box.isEmpty()) return false;
-  const center = box.getCenter(new Vector3()), size = box.getSize(new Vector3());
-  const radius = 0.5 * size.length();
-  const distance = radius / Math.sin((camera.fov * Math.PI) / 360);
-  camera.near = distance / 100;
-  camera.far = distance * 100;
-  camera.position.copy(center).add(new Vector3(0, 0, distance * 0.9));
-  camera.updateProjectionMatrix();
-  controls.target.copy(center);
-  controls.update();
+  frameBox(box);
   render();
   return true;
 }
