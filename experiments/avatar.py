@@ -1,6 +1,7 @@
 """Whole avatars in, the same avatars with a face rig out: ``canrig autorig`` on the two
-Rocketbox whole-body FBX files (GLB and VRM out) and on a GLB avatar (the male FBX written as
-GLB first, then rigged in place).
+Rocketbox whole-body FBX files (GLB and VRM out), on a GLB avatar (the male FBX written as
+GLB first, then rigged in place) and on each body as a plain GLB without a skeleton (its head
+found by geometry).
 
     python experiments/avatar.py --out experiments/results/avatar
 
@@ -30,6 +31,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from canrig_jax import run_command
 from canrig_jax._io import save_results
@@ -244,6 +246,13 @@ def main(argv=None):
             glb = write_gltf_avatar(reference, work / "rocketbox_male_input.glb")
             name = "rocketbox_male_glb_in_place"
             avatars[name] = _one(name, glb, reference.document, work / f"{name}.glb", log)
+        # the same body as a plain GLB (bind pose, no skeleton): the head found by geometry
+        [layout] = mesh_vertices(reference)
+        static = work / f"rocketbox_{key}_static_input.glb"
+        trimesh.Trimesh(layout.world, layout.faces, process=False).export(static)
+        name = f"rocketbox_{key}_static_glb"
+        document = read_gltf_avatar(static).document
+        avatars[name] = _one(name, static, document, work / f"{name}.glb", log)
     capture = load_livelinkface(args.data_dir)
     active = int(np.argmax(capture.weights.sum(axis=1)))
     frame = {arkit_name_of(n): float(w) for n, w in zip(capture.names, capture.weights[active],

@@ -334,8 +334,9 @@ def _add_check_parser(sub) -> None:
 
 
 def _is_avatar(path: Path) -> bool:
-    """Whether ``path`` is a whole avatar for ``auto_rig_avatar``: a .vrm, or a .glb or .fbx
-    with a skeleton (a skin)."""
+    """Whether ``path`` is a whole avatar for ``auto_rig_avatar``: a .vrm, a .glb or .fbx
+    with a skeleton (a skin), or a .glb of a standing body."""
+    from .autorig._avatar import standing_body
     from .data import load_fbx_scene
     from .rig import read_gltf_avatar
 
@@ -344,7 +345,8 @@ def _is_avatar(path: Path) -> bool:
         return True
     try:  # a file neither reader takes is left to load_head, which says why
         if suffix == ".glb":
-            return bool(read_gltf_avatar(path).document.get("skins"))
+            avatar = read_gltf_avatar(path)
+            return bool(avatar.document.get("skins")) or standing_body(avatar)
         if suffix == ".fbx":
             return any(m.skin is not None for m in load_fbx_scene(path).meshes)
     except (ValueError, OSError):

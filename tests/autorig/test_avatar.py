@@ -608,3 +608,33 @@ def test_viewer_renders_the_whole_avatar_and_its_face_moves(avatar_file, stand_i
         framed.append(matplotlib.image.imread(png)[..., :3])
     moved = np.abs(framed[1] - framed[0]).sum(axis=-1)[:, : canvas.shape[1]] > 0.05
     assert moved.mean() > 3 * changed.mean(), (moved.mean(), changed.mean())
+
+
+@pytest.mark.parametrize("name", ROCKETBOX)
+def test_a_standing_body_without_a_skeleton_gives_its_head_by_geometry(
+    name, data_dir, tmp_path, stand_in
+):
+    """A Rocketbox body written as a plain GLB (its bind pose, no skin, no bones): the head
+    found by geometry is the head bone's (most of its vertices, almost nothing else), and
+    ``auto_rig_avatar`` rigs just those vertices."""
+    import trimesh
+
+    from canrig_jax.autorig._avatar import _face_selection, standing_body
+
+    skinned = avatar_from_fbx(load_fbx_scene(data_file(f"rocketbox/{name}_facial.fbx", data_dir)))
+    [layout] = mesh_vertices(skinned)
+    path = tmp_path / "static.glb"
+    trimesh.Trimesh(layout.world, layout.faces, process=False).export(path)
+    bare = read_gltf_avatar(path)
+    assert not bare.document.get("skins") and standing_body(bare)
+    [(_, bone)] = _face_selection(skinned, autorig.find_head_node(skinned))
+    [(found, geometric)] = _face_selection(bare, None)
+    np.testing.assert_allclose(found.world, layout.world, atol=1e-6)  # same vertices, order
+    assert (bone & geometric).sum() >= 0.7 * bone.sum()
+    assert (geometric & ~bone).sum() <= 0.1 * geometric.sum()
+    result = autorig.auto_rig_avatar(path, tmp_path / "out.glb")
+    [(given, _, _)] = stand_in
+    assert len(given) == geometric.sum() and result.head_node is None
+    # canrig autorig takes the plain body as an avatar (not "182 cm tall: crop it")
+    assert run_command(["autorig", str(path), "-o", str(tmp_path / "cli.glb"), "--quiet"]) == 0
+    assert len(stand_in) == 2 and len(stand_in[1][0]) == geometric.sum()

@@ -12,8 +12,9 @@ The head: the skeleton's head bone (a node whose name ends in ``head`` after a p
 node below it (jaw, eyes, tongue). Face vertices: those whose skin weights on the head's bones
 sum above ``HEAD_WEIGHT``, and every vertex of an unskinned mesh hung under the head. Meshes
 named like hair, hats or glasses are not rigged. An avatar without a head bone is rigged whole
-only when it is head-sized (``data.HEAD_PLAUSIBLE_CM``); anything else is refused with what to
-do, before any compiled work.
+when it is head-sized (``data.HEAD_PLAUSIBLE_CM``); a standing body (``BODY_HEIGHT_CM`` tall,
++y up, as glTF stores it) gives its head by geometry (``HEAD_OF_BODY``); anything else is
+refused with what to do, before any compiled work.
 """
 
 import dataclasses
@@ -54,6 +55,15 @@ METRES_TO_CM = 100.0
 
 HEAD_WEIGHT = 0.5
 """A skinned vertex is the face's when its weights on the head's bones sum above this."""
+
+BODY_HEIGHT_CM = (100.0, 250.0)
+"""An avatar without a head bone this tall (+y, cm) is a standing body: its head is found by
+geometry (``HEAD_OF_BODY``)."""
+
+HEAD_OF_BODY = (0.15, 0.12)
+"""A standing body's head without a head bone: the vertices in the top 15 % of its height and
+within 12 % of its height (horizontally) of the crown's column (an adult's head is about an
+eighth of their height; the rest is neck, which the rig leaves still)."""
 
 _NOT_FACE = re.compile(r"hair|hat\b|hat_|helmet|glasses|cap\b", re.IGNORECASE)
 _HEAD_NAME = re.compile(r"(?:^|[^a-z0-9])head$", re.IGNORECASE)
@@ -132,14 +142,18 @@ def _face_selection(avatar: GltfAvatar, head: int | None):
     """[(MeshVertices, (V,) bool: the face's vertices)] of the meshes that take targets."""
     document = avatar.document
     below = node_descendants(document, head) if head is not None else None
+    layouts = mesh_vertices(avatar)
+    top = _head_of_body(layouts) if head is None else None
     chosen = []
-    for vertices in mesh_vertices(avatar):
+    for vertices in layouts:
         name = document["meshes"][vertices.mesh].get("name", "") or document["nodes"][
             vertices.node
         ].get("name", "")
         if _NOT_FACE.search(name) or len(vertices.faces) == 0:
             continue
-        if below is None:
+        if top is not None:
+            mask = _without_cut_slivers(top(vertices.world * METRES_TO_CM), vertices.faces)
+        elif below is None:
             mask = np.ones(len(vertices.world), bool)
         elif vertices.joints is not None:
             on_head = np.isin(vertices.joints, sorted(below))
@@ -152,6 +166,51 @@ def _face_selection(avatar: GltfAvatar, head: int | None):
         if in_faces.any():
             chosen.append((vertices, in_faces))
     return chosen
+
+
+def _head_of_body(layouts) -> Callable[[np.ndarray], np.ndarray] | None:
+    """For a standing body (``BODY_HEIGHT_CM`` tall along +y): (N, 3) cm -> (N,) bool, the
+    points of its head (``HEAD_OF_BODY``); None for anything else."""
+    if not layouts:
+        return None
+    world = np.concatenate([v.world for v in layouts]) * METRES_TO_CM
+    extent = np.ptp(world, axis=0)
+    height = float(extent[1])
+    if not (BODY_HEIGHT_CM[0] <= height <= BODY_HEIGHT_CM[1] and height >= extent.max()):
+        return None
+    top = float(world[:, 1].max())
+    crown = world[world[:, 1] > top - 0.03 * height][:, [0, 2]].mean(axis=0)
+    depth, radius = HEAD_OF_BODY
+
+    def inside(points: np.ndarray) -> np.ndarray:
+        across = np.linalg.norm(points[:, [0, 2]] - crown, axis=1)
+        return (points[:, 1] > top - depth * height) & (across < radius * height)
+
+    return inside
+
+
+def _without_cut_slivers(mask: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``mask`` less the small pieces the geometric crop cut off something else (a strand
+    of hair, a collar's edge): connected pieces under 2 % of the crop that the crop cut
+    (a triangle of theirs lies partly outside). Whole parts (eyes, teeth) are kept."""
+    from ..mesh import connected_components
+
+    inside = faces[mask[faces].all(axis=1)]
+    labels = connected_components(inside, len(mask))
+    cut = np.zeros(len(mask), bool)
+    cut[faces[mask[faces].any(axis=1) & ~mask[faces].all(axis=1)].ravel()] = True
+    out = mask.copy()
+    for label in np.unique(labels[inside[:, 0]]) if len(inside) else ():
+        piece = (labels == label) & mask
+        if piece.sum() < 0.02 * mask.sum() and (piece & cut).any():
+            out[piece] = False
+    return out
+
+
+def standing_body(avatar: GltfAvatar) -> bool:
+    """Whether the avatar is a standing body whose head ``auto_rig_avatar`` finds by
+    geometry when it has no head bone (``BODY_HEIGHT_CM``)."""
+    return _head_of_body(mesh_vertices(avatar)) is not None
 
 
 def _check_face(path: Path, chosen, head: int | None) -> None:
@@ -231,6 +290,8 @@ def auto_rig_avatar(
     mesh_names = tuple(document["meshes"][v.mesh].get("name", f"mesh{v.mesh}") for v, _ in chosen)
     head_name = document["nodes"][head].get("name") if head is not None else None
     found = f"the head bone {head_name!r}" if head is not None else "no head bone: rigged whole"
+    if head is None and standing_body(source):
+        found = "no head bone: the head of a standing body, by geometry"
     say(f"{found}; face meshes {list(mesh_names)}: {sum(int(m.sum()) for _, m in chosen)} vertices")
     seconds = {"read": time.perf_counter() - start}
     parts, faces, offset = [], [], 0
