@@ -50,7 +50,13 @@ def flipped_triangles(
     keep = area0 > 1e-12 * max(float(area0.max()), 1e-30)
     if mask is not None:
         keep &= np.asarray(mask, bool)
-    return (np.einsum("tfc,fc->tf", _face_normals(x, faces), n0) < 0) & keep
+    index = np.flatnonzero(keep)
+    kept, normals = faces[index], n0[index]
+    out = np.zeros((x.shape[0], len(faces)), bool)
+    for start in range(0, x.shape[0], 32):  # 32 frames at a time: the temporaries stay small
+        now = _face_normals(x[start : start + 32], kept)
+        out[start : start + 32, index] = np.einsum("tfc,fc->tf", now, normals) < 0
+    return out
 
 
 def edge_stretch(
@@ -66,7 +72,11 @@ def edge_stretch(
     x = _frames(frames, neutral.shape[0])
     rest = np.linalg.norm(neutral[edges[:, 1]] - neutral[edges[:, 0]], axis=-1)
     keep = rest > 1e-9 * max(float(rest.max()), 1e-30)
-    now = np.linalg.norm(x[:, edges[keep, 1]] - x[:, edges[keep, 0]], axis=-1)
+    head, tail = edges[keep, 1], edges[keep, 0]
+    now = np.concatenate(  # 32 frames at a time: the temporaries stay small
+        [np.linalg.norm(x[s : s + 32, head] - x[s : s + 32, tail], axis=-1)
+         for s in range(0, x.shape[0], 32)]
+    )  # fmt: skip
     return now / rest[keep]
 
 
