@@ -519,3 +519,21 @@ def test_raf_runs_without_the_data_folder(z_up_head, monkeypatch):
     np.testing.assert_array_equal(result.rig.neutral, np.float32(z_up_head["vertices"]))
     jaw = _shape(result.rig, "jawOpen")
     assert jaw[:, 2].sum() < 0  # the jaw drops along the head's own down (-z)
+
+
+def test_repeated_and_degenerate_triangles_are_left_out_and_stated(heads):
+    """A head with garbage triangles (each of 20 repeated, 40 with a corner twice, 10 fins on
+    an existing edge): the rig's mesh is the head's own triangles and the fins (kept, named as
+    non-manifold edges), and the warning says how many of each."""
+    from canrig_jax.autorig._any_head import _without_defects
+
+    vertices, faces = heads[HEADS[1]]
+    rng = np.random.default_rng(0)
+    pick = rng.choice(len(faces), 40, replace=False)
+    fins = np.c_[faces[pick[:10], :2], rng.choice(len(vertices), 10)]
+    garbage = np.vstack([faces, faces[pick[:20]][:, ::-1], faces[pick][:, [0, 0, 1]], fins])
+    with pytest.warns(UserWarning, match=r"20 repeated and 40 degenerate.*non-manifold"):
+        kept = _without_defects(vertices, garbage)
+    expected = np.vstack([faces, fins])
+    assert {tuple(f) for f in kept} == {tuple(f) for f in expected}
+    assert len(kept) == len(expected)

@@ -467,7 +467,33 @@ def _check_head(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
             f"vertices: the head is {height:.3g} cm along its longest axis; a head is 10-60 "
             "cm: give it in centimetres"
         )
-    return v, faces
+    return v, _without_defects(v, faces)
+
+
+def _without_defects(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``faces`` less its repeated and degenerate triangles (a corner twice, or no area),
+    stated in a warning with the edges that more than two triangles share (non-manifold:
+    kept as given, and what they do under motion is for ``check_rig`` to show)."""
+    ordered = np.sort(faces, axis=1)
+    _, first = np.unique(ordered, axis=0, return_index=True)
+    repeated = np.ones(len(faces), bool)
+    repeated[first] = False
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    degenerate = (ordered[:, 0] == ordered[:, 1]) | (ordered[:, 1] == ordered[:, 2])
+    degenerate |= area <= 1e-12 * max(float(area.max()), 1e-30)
+    drop = repeated | degenerate
+    kept = faces[~drop]
+    edges = np.sort(np.concatenate([kept[:, [0, 1]], kept[:, [1, 2]], kept[:, [2, 0]]]), axis=1)
+    _, uses = np.unique(edges, axis=0, return_counts=True)
+    shared = int((uses > 2).sum())
+    if drop.any() or shared:
+        warn(
+            f"faces: {int(repeated.sum())} repeated and {int((degenerate & ~repeated).sum())} "
+            f"degenerate triangles left out of the rig's mesh; {shared} edges shared by more "
+            "than two triangles (non-manifold) kept as given"
+        )
+    return kept
 
 
 def _check_placement(orientation, up, forward, landmarks, n_vertices: int):

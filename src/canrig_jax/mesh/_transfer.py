@@ -140,12 +140,14 @@ def _match_components(source, source_faces, source_labels, target, target_faces,
     target component's vertices), unless a source component of similar area (ratio within
     1/2..2) is at most twice as far, which is then taken (area keeps teeth off the lips they
     sit behind; distance picks left or right). A match farther than ``IMPLAUSIBLE_DISTANCE``
-    of the target component's size is refused (ValueError naming ``target_vertices``)."""
+    of the target component's size is refused (ValueError naming ``target_vertices``), but for
+    a vertex no triangle uses (it takes the nearest part)."""
     source_area = _component_areas(source, source_faces, source_labels)
     target_area = _component_areas(target, target_faces, target_labels)
     trees = {c: KDTree(source[source_labels == c]) for c in np.unique(source_labels)}
     labels = np.array(sorted(trees))
     match = np.zeros(target_labels.max() + 1, np.int64)
+    in_faces = np.bincount(target_labels[target_faces].ravel(), minlength=len(match)) > 0
     for label in np.unique(target_labels):
         points = target[target_labels == label]
         cost = np.array([trees[c].query(points)[0].mean() for c in labels])
@@ -154,7 +156,7 @@ def _match_components(source, source_faces, source_labels, target, target_faces,
         chosen = np.flatnonzero(similar)[np.argmin(cost[similar])] if similar.any() else None
         chosen = int(np.argmin(cost)) if chosen is None else int(chosen)
         size = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
-        if cost[chosen] > IMPLAUSIBLE_DISTANCE * max(size, 1e-12):
+        if in_faces[label] and cost[chosen] > IMPLAUSIBLE_DISTANCE * max(size, 1e-12):
             raise ValueError(
                 f"target_vertices: component {int(label)} ({points.shape[0]} vertices, size "
                 f"{size:.3g}) is {cost[chosen]:.3g} from the nearest source part on average; "
@@ -260,6 +262,8 @@ def closest_point_correspondence(
         barycentric[members] = sub.barycentric
         distance[members] = sub.distance
         faces_here = np.flatnonzero(target_face_label == label)
+        if faces_here.size == 0:  # vertices no triangle uses
+            continue
         points = samples[faces_here].reshape(-1, 3)
         source_triangle[faces_here] = chosen[
             closest_surface_points(points, aligned, sf[chosen]).triangle
