@@ -267,3 +267,52 @@ def test_per_part_anchoring_bad_labels(face, face_rig, labels, threshold):
         deformation_transfer(
             rig, face.neutral, correspondence, static_below=threshold, static_parts=labels
         )
+
+
+def _two_sheets(gap: float, drop: float):
+    """Two parallel 6 x 6 grids facing each other (an upper and a lower "lip", y = +-gap/2),
+    as one mesh; the upper sheet lowered by ``drop``. (vertices, faces, (V,) side 0/1)."""
+    x, z = np.meshgrid(np.linspace(0, 1, 6), np.linspace(0, 1, 6))
+    grid = np.c_[x.ravel(), np.zeros(36), z.ravel()]
+    quads = [(i * 6 + j, i * 6 + j + 1, (i + 1) * 6 + j) for i in range(5) for j in range(5)]
+    quads += [
+        (i * 6 + j + 1, (i + 1) * 6 + j + 1, (i + 1) * 6 + j) for i in range(5) for j in range(5)
+    ]
+    tri = np.array(quads)
+    upper = grid + [0, gap / 2 - drop, 0]
+    lower = grid - [0, gap / 2, 0]
+    return np.r_[upper, lower], np.r_[tri, tri + 36], np.repeat([0, 1], 36)
+
+
+def test_sides_keep_closest_points_from_crossing_a_slit():
+    source, faces, side = _two_sheets(0.2, 0.0)
+    target, _, _ = _two_sheets(0.2, 0.15)  # its upper sheet nearer the source's lower one
+    landmarks = np.array([36, 41, 66, 71])  # on the lower sheet: the similarity is the identity
+    kwargs = dict(nonrigid=False, match_components=False)
+    plain = closest_point_correspondence(
+        source, faces, target, faces, landmarks, landmarks, **kwargs
+    )
+    sided = closest_point_correspondence(
+        source, faces, target, faces, landmarks, landmarks, source_sides=side, target_sides=side,
+        **kwargs,
+    )  # fmt: skip
+    landed = lambda c: side[faces[c.vertex_map.triangle]].max(axis=1)  # noqa: E731
+    assert (landed(plain)[:36] == 1).all()  # the premise: unsided, the upper sheet crosses
+    np.testing.assert_array_equal(landed(sided), side)
+    samples_landed = side[faces[sided.source_triangle]].max(axis=2)  # (T, 4) each sample's
+    assert (samples_landed == side[faces][:, :1]).all()
+    # a point of side -1 may land anywhere: all -1 is the plain correspondence
+    free = closest_point_correspondence(
+        source, faces, target, faces, landmarks, landmarks,
+        source_sides=np.full(72, -1), target_sides=np.full(72, -1), **kwargs,
+    )  # fmt: skip
+    np.testing.assert_array_equal(free.vertex_map.triangle, plain.vertex_map.triangle)
+    with pytest.raises(ValueError, match="source_sides, target_sides"):
+        closest_point_correspondence(
+            source, faces, target, faces, landmarks, landmarks, source_sides=side
+        )
+    with pytest.raises((TypeError, ValueError), match="target_sides"):
+        closest_point_correspondence(
+            source, faces, target, faces, landmarks, landmarks, source_sides=side,
+            target_sides=side[:10],
+        )  # fmt: skip

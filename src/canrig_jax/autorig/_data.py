@@ -422,11 +422,16 @@ def head_correspondence(
     """The correspondence of the generic ICT head (``dataset.head``) with a new head
     (``closest_point_correspondence``: landmark similarity, thin-plate warp, component
     matching, closest points). ``landmarks``: (68,) vertices of the ICT Multi-PIE landmarks
-    on the new head (``canrig_jax.mesh.fit_landmarks`` finds them)."""
+    on the new head (``canrig_jax.mesh.fit_landmarks`` finds them). Closest points never
+    cross the mouth or a lid slit (``slit_sides`` of each head, from its landmarks)."""
+    from ._slits import slit_sides
+
     source = dataset.head
     return closest_point_correspondence(
-        source.neutral, source.faces, vertices, faces, source.landmarks, landmarks
-    )
+        source.neutral, source.faces, vertices, faces, source.landmarks, landmarks,
+        source_sides=slit_sides(source.neutral, source.faces, source.landmarks),
+        target_sides=slit_sides(vertices, faces, landmarks),
+    )  # fmt: skip
 
 
 def _correspondence_of(dataset: AutorigDataset, head):

@@ -167,18 +167,57 @@ def _match_components(source, source_faces, source_labels, target, target_faces,
     return match
 
 
+def _face_sides(sides: Int[np.ndarray, " V"], faces: Int[np.ndarray, "F 3"]) -> np.ndarray:
+    """(F,) the side of each triangle: its corners' when all three share one, else -1."""
+    corner = sides[faces]
+    return np.where((corner == corner[:, :1]).all(axis=1), corner[:, 0], -1)
+
+
+def _closest_on_side(points, point_side, vertices, faces, face_side) -> SurfaceMap:
+    """``closest_surface_points``, except that a point of side s >= 0 never lands on a
+    triangle of another side >= 0: such points are found again among the triangles of side s
+    or -1 (``point_side`` None: no sides)."""
+    found = closest_surface_points(points, vertices, faces)
+    if point_side is None:
+        return found
+    landed = face_side[found.triangle]
+    crossed = (point_side >= 0) & (landed >= 0) & (landed != point_side)
+    if not crossed.any():
+        return found
+    triangle, barycentric = found.triangle.copy(), found.barycentric.copy()
+    distance = found.distance.copy()
+    for side in np.unique(point_side[crossed]):
+        who = np.flatnonzero(crossed & (point_side == side))
+        allowed = np.flatnonzero((face_side == side) | (face_side < 0))
+        if allowed.size == 0:
+            continue
+        sub = closest_surface_points(points[who], vertices, faces[allowed])
+        triangle[who] = allowed[sub.triangle]
+        barycentric[who], distance[who] = sub.barycentric, sub.distance
+    return dataclasses.replace(found, triangle=triangle, barycentric=barycentric, distance=distance)
+
+
 def _smoothed_pull(
-    source, source_faces, source_labels, target, target_faces, target_face_label, match
-):
+    source, source_faces, source_labels, target, target_faces, target_face_label, match,
+    sides=None,
+):  # fmt: skip
     """(V_s, 3) smooth displacement of the source towards its closest points on the target
-    components matched to each source component (zero where none is matched)."""
+    components matched to each source component (zero where none is matched); with
+    ``sides`` = (source vertex sides, target face sides), never across a slit."""
     displacement = np.zeros_like(source)
     for component in np.unique(match):
         members = np.flatnonzero(source_labels == component)
-        faces = target_faces[np.isin(target_face_label, np.flatnonzero(match == component))]
-        if faces.size == 0:
+        chosen = np.flatnonzero(np.isin(target_face_label, np.flatnonzero(match == component)))
+        if chosen.size == 0:
             continue
-        found = closest_surface_points(source[members], target, faces)
+        faces = target_faces[chosen]
+        found = _closest_on_side(
+            source[members],
+            None if sides is None else sides[0][members],
+            target,
+            faces,
+            None if sides is None else sides[1][chosen],
+        )
         closest = np.einsum("nk,nkd->nd", found.barycentric, target[faces[found.triangle]])
         displacement[members] = closest - source[members]
     adjacency = vertex_adjacency(source_faces, len(source))
@@ -200,6 +239,8 @@ def closest_point_correspondence(
     nonrigid: bool = True,
     match_components: bool = True,
     refine_iterations: int = 3,
+    source_sides: Int[ArrayLike, " Vs"] | None = None,
+    target_sides: Int[ArrayLike, " V"] | None = None,
 ) -> TriangleCorrespondence:
     """Correspondence of two heads of different topology from landmarks and closest points.
 
@@ -217,6 +258,12 @@ def closest_point_correspondence(
         refine_iterations: after the spline warp, times each source vertex is moved towards
             its closest point on the matched target components, the displacement smoothed
             over the source mesh (20 steps of neighbour averaging); a simple non-rigid ICP.
+        source_sides, target_sides: (Vs,) and (V,) integer side of every vertex around the
+            slits closest points must not cross (the lips of a closed mouth, the lids of an
+            eye: e.g. 0 the upper lip, 1 the lower), -1 where any side may be reached. A
+            point of side s >= 0 never lands on a triangle whose corners all lie on another
+            side >= 0, in the alignment's refinement nor in the map (a triangle's side: its
+            corners' when they share one, else -1). Both or neither.
     """
     sv, sf = check_mesh(source_vertices, source_faces)
     tv, tf = check_mesh(target_vertices, target_faces)
@@ -230,6 +277,7 @@ def closest_point_correspondence(
     for name, ids, n in (("source_landmarks", sl, len(sv)), ("target_landmarks", tl, len(tv))):
         if ids.min() < 0 or ids.max() >= n:
             raise ValueError(f"{name}: vertex indices must lie in [0, {n})")
+    sides = _check_sides(source_sides, target_sides, len(sv), len(tv))
     scale, rotation, shift = similarity_transform(sv[sl], tv[tl])
     aligned = scale * sv @ rotation.T + shift
     if nonrigid:
@@ -243,10 +291,14 @@ def closest_point_correspondence(
         target_labels = np.zeros_like(target_labels)
     match = _match_components(aligned, sf, source_labels, tv, tf, target_labels)
     target_face_component = target_labels[tf[:, 0]]
+    source_face_side = target_face_side = None
+    if sides is not None:
+        source_face_side, target_face_side = _face_sides(sides[0], sf), _face_sides(sides[1], tf)
     for _ in range(refine_iterations if nonrigid else 0):
         aligned = aligned + _smoothed_pull(
-            aligned, sf, source_labels, tv, tf, target_face_component, match
-        )
+            aligned, sf, source_labels, tv, tf, target_face_component, match,
+            None if sides is None else (sides[0], target_face_side),
+        )  # fmt: skip
     source_face_label = source_labels[sf[:, 0]]
     target_face_label = target_labels[tf[:, 0]]
     triangle = np.zeros(len(tv), np.int64)
@@ -257,7 +309,11 @@ def closest_point_correspondence(
     for label in np.unique(target_labels):
         members = np.flatnonzero(target_labels == label)
         chosen = np.flatnonzero(source_face_label == match[label])
-        sub = closest_surface_points(tv[members], aligned, sf[chosen])
+        chosen_side = None if sides is None else source_face_side[chosen]
+        sub = _closest_on_side(
+            tv[members], None if sides is None else sides[1][members], aligned, sf[chosen],
+            chosen_side,
+        )  # fmt: skip
         triangle[members] = chosen[sub.triangle]
         barycentric[members] = sub.barycentric
         distance[members] = sub.distance
@@ -265,8 +321,11 @@ def closest_point_correspondence(
         if faces_here.size == 0:  # vertices no triangle uses
             continue
         points = samples[faces_here].reshape(-1, 3)
+        point_side = None
+        if sides is not None:
+            point_side = np.repeat(target_face_side[faces_here], len(_SAMPLES))
         source_triangle[faces_here] = chosen[
-            closest_surface_points(points, aligned, sf[chosen]).triangle
+            _closest_on_side(points, point_side, aligned, sf[chosen], chosen_side).triangle
         ].reshape(-1, len(_SAMPLES))
     vertex_map = SurfaceMap(triangle, barycentric, sf, len(sv), distance)
     return TriangleCorrespondence(
@@ -276,6 +335,24 @@ def closest_point_correspondence(
         "closest_point",
         match if match_components else None,
     )
+
+
+def _check_sides(source_sides, target_sides, n_source: int, n_target: int):
+    """(source sides, target sides) as int64 arrays, or None when neither is given."""
+    if source_sides is None and target_sides is None:
+        return None
+    if source_sides is None or target_sides is None:
+        raise ValueError("source_sides, target_sides: give both or neither")
+    out = []
+    for name, sides, n in (("source_sides", source_sides, n_source),
+                           ("target_sides", target_sides, n_target)):  # fmt: skip
+        sides = np.asarray(sides)
+        if sides.shape != (n,) or (sides.size and not np.issubdtype(sides.dtype, np.integer)):
+            raise ValueError(
+                f"{name}: expected ({n},) integer sides (-1: any), got {sides.shape} {sides.dtype}"
+            )
+        out.append(sides.astype(np.int64))
+    return tuple(out)
 
 
 def _difference_operator(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
