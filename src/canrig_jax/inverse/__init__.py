@@ -80,6 +80,7 @@ from ._temporal import (
     take_objective,
 )
 from ._temporal_protocols import (
+    lowest_error_smoothness,
     select_smoothness,
     smooth_training_takes,
     smoothness_curve,
@@ -159,6 +160,7 @@ __all__ = [
     "TemporalNewton",
     "holistic_lambdas",
     "numpy_holistic_cd",
+    "lowest_error_smoothness",
     "select_smoothness",
     "smooth_training_takes",
     "smoothness_curve",

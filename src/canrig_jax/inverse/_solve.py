@@ -309,22 +309,25 @@ def _lagged_one(problem, target, method, state, present_new, key) -> tuple[Solut
     """One call of a lagged ``Stream``: the window (history, then lag + 1 frames) moves on by
     a frame, is solved jointly with the history held, and the Solution of its oldest solved
     frame comes back with the moved state. ``present_new`` False: no new frame (``flush``)."""
-    offsets, weights, present = state
+    offsets, projections, weights, present = state
     dtype = problem.columns.dtype
     offset = jnp.where(present_new, (jnp.asarray(target, dtype) - problem.neutral).reshape(-1), 0)
     offsets = jnp.concatenate([offsets[1:], offset[None]])
+    projections = jnp.concatenate([projections[1:], (problem.columns @ offset)[None]])
     newest = jnp.where(present_new, weights[-1], 0.0)  # warm start from the last estimate
     weights = jnp.concatenate([weights[1:], newest[None]])
     present = jnp.concatenate([present[1:], jnp.asarray(present_new)[None]])
     held = (jnp.arange(weights.shape[0]) < HISTORY_FRAMES) | ~present
-    run = method.solve_window(problem, offsets, weights, held, present)
+    run = method.solve_window(
+        problem, offsets, weights, held, present, projections, history=HISTORY_FRAMES
+    )
     finite = jnp.all(jnp.isfinite(run.weights))
     solved = jnp.where(finite, run.weights, weights)
     out = HISTORY_FRAMES  # the oldest solved frame: final after this call
     frame = Iterate(run.weights[out], run.history, run.steps, run.converged & finite)
     solution = _solution(problem, offsets[out], method, weights[out], frame)
     solved = solved.at[out].set(solution.weights)
-    return solution, (offsets, solved, present)
+    return solution, (offsets, projections, solved, present)
 
 
 _lagged_jit = eqx.filter_jit(_lagged_one)
@@ -413,6 +416,7 @@ class Stream:
         dtype = self.problem.columns.dtype
         self.window = (
             jnp.zeros((n, self.problem.columns.shape[1]), dtype),
+            jnp.zeros((n, self.problem.columns.shape[0]), dtype),
             jnp.zeros((n, self.problem.n_blendshapes), dtype),
             jnp.zeros(n, bool),
         )

@@ -41,6 +41,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Float64, Int, Int64, PRNGKe
 
 from .._checks import is_concrete
 from .._linalg import cholesky, solve_triangular
+from ..rig import UNIT_IN_CM
 from ._base import (
     AbstractInverseMethod,
     Iterate,
@@ -49,7 +50,6 @@ from ._base import (
     check_tol,
     check_upper,
 )
-from ..rig import UNIT_IN_CM
 from ._problem import InverseProblem
 
 DEFAULT_SMOOTHNESS_CM2 = 100.0
@@ -320,11 +320,15 @@ class AbstractTemporalMethod(AbstractInverseMethod):
         init: Float[Array, "W K"],
         held: Bool[Array, " W"],
         present: Bool[Array, " W"],
+        projections: Float[Array, "W P"] | None = None,
+        history: int = 0,
     ) -> Iterate:
         """Solve a window of frames jointly with some of them held: frames with ``held``
         keep their ``init`` weights (they enter the time terms as constants, their data terms
         are left out), frames not ``present`` drop out of the time terms too (every
-        difference row touching one is left out). Returns the window's (W, K) weights."""
+        difference row touching one is left out). ``projections``: the frames' M^T o_t when
+        the caller carries them; ``history`` (static): the first frames, held, whose data
+        terms are not computed at all. Returns the window's (W, K) weights."""
 
 
 def _check_nonnegative(name: str, value: Any) -> None:
@@ -423,14 +427,21 @@ class TemporalNewton(AbstractTemporalMethod):
         init: Float[Array, "W K"],
         held: Bool[Array, " W"],
         present: Bool[Array, " W"],
+        projections: Float[Array, "W P"] | None = None,
+        history: int = 0,
     ) -> Iterate:
         """The window's E (held frames' data terms left out, difference rows touching an
         absent frame left out) minimised over the frames not ``held``, the same iteration as
         ``sequence`` (which is this with nothing held and every frame present)."""
         init = jnp.clip(init, 0.0, self.upper)
-        return self._take(problem, offsets, init, held, present)
+        return self._take(problem, offsets, init, held, present, projections, history)
 
-    def _take(self, problem, offsets, init, held_frames=None, present=None) -> Iterate:
+    def _take(
+        self, problem, offsets, init, held_frames=None, present=None, projections=None, history=0
+    ) -> Iterate:
+        """The iteration. ``history`` (static): that many first frames are held and only enter
+        the time terms (their data terms are not computed at all); ``projections`` (T, P):
+        M^T o_t when the caller has them already."""
         gram, alpha, upper = problem.gram, self.alpha, self.upper
         smoothness, velocity = self.smoothness_for(problem), self.velocity
         n = offsets.shape[0]
@@ -445,7 +456,10 @@ class TemporalNewton(AbstractTemporalMethod):
         )
         rows1 = (present[:-1] & present[1:]) & (solved[:-1] | solved[1:])
         rows2, rows1 = rows2.astype(gram.dtype), rows1.astype(gram.dtype)
-        projections = offsets @ problem.columns.T  # (T, P) rows p_t = M^T o_t
+        if projections is None:
+            projections = offsets @ problem.columns.T  # (T, P) rows p_t = M^T o_t
+        h = history
+        k = init.shape[1]
         lengths = 0.5 ** jnp.arange(self.line_steps, dtype=gram.dtype)
         second = weighted_difference_bands(rows2, n, 2)
         first = weighted_difference_bands(rows1, n, 1)
@@ -460,15 +474,18 @@ class TemporalNewton(AbstractTemporalMethod):
 
         def iteration(state):
             i, weights, value, _, history = state
-            a = coefficients(weights)  # (T, P)
-            residual = a @ gram - projections  # rows Q a_t - p_t
-            jacobian = jax.vmap(problem.jacobian)(weights)  # (T, K, P) G_t
-            grad = jnp.einsum("tkp,tp->tk", jacobian, residual) + alpha + time_gradient(weights)
+            a = coefficients(weights[h:])  # (T - h, P): no data terms in the history
+            residual = a @ gram - projections[h:]  # rows Q a_t - p_t
+            jacobian = jax.vmap(problem.jacobian)(weights[h:])  # (T - h, K, P) G_t
+            data_grad = jnp.einsum("tkp,tp->tk", jacobian, residual)
+            data_grad = jnp.concatenate([jnp.zeros((h, k), gram.dtype), data_grad])
+            grad = data_grad + alpha + time_gradient(weights)
             grad = jnp.where(held_frames[:, None], 0.0, grad)
             # G_t Q from the rows of Q on each weight's support (m of P columns: 2x faster)
-            slopes = jax.vmap(problem.slopes)(weights)
+            slopes = jax.vmap(problem.slopes)(weights[h:])
             jacobian_gram = jnp.einsum("tkm,kmp->tkp", slopes, problem.support_gram)
             data = jnp.matmul(jacobian_gram, jnp.swapaxes(jacobian, 1, 2))  # G_t Q G_t^T
+            data = jnp.concatenate([jnp.zeros((h, k, k), gram.dtype), data])
             data = jnp.where(held_frames[:, None, None], 0.0, data)
             eps = jnp.minimum(
                 1e-3 * upper, jnp.linalg.norm(weights - jnp.clip(weights - grad, 0.0, upper))
@@ -486,7 +503,7 @@ class TemporalNewton(AbstractTemporalMethod):
             step = jnp.where(free & jnp.isfinite(step), step, 0.0)
             trials = jnp.clip(weights + lengths[:, None, None] * step, 0.0, upper)  # (L, T, K)
             # E(trial) - E(W): data terms in coefficient space, time terms exactly
-            change = jax.vmap(coefficients)(trials) - a
+            change = jax.vmap(coefficients)(trials[:, h:]) - a
             data_change = jnp.sum(change * residual, axis=(1, 2)) + 0.5 * jnp.sum(
                 (change @ gram) * change, axis=(1, 2)
             )
@@ -508,9 +525,9 @@ class TemporalNewton(AbstractTemporalMethod):
             return (i < self.iterations) & ((i == 0) | (gain > self.tol * jnp.abs(value)))
 
         data0 = jax.vmap(lambda w, p, o: problem.objective(w, p, o @ o, alpha))(
-            init, projections, offsets
+            init[h:], projections[h:], offsets[h:]
         )
-        value0 = jnp.sum(jnp.where(held_frames, 0.0, data0)) + _weighted_time_penalty(
+        value0 = jnp.sum(jnp.where(held_frames[h:], 0.0, data0)) + _weighted_time_penalty(
             init, smoothness, velocity, rows2, rows1
         )
         history0 = jnp.zeros(self.iterations, gram.dtype)
