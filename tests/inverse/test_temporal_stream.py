@@ -77,6 +77,7 @@ def _window_minimum(problem, targets, fixed, smoothness, velocity):
     return x.reshape(n, k)
 
 
+@pytest.mark.slow
 def test_a_lagged_frame_is_the_window_solve_with_the_earlier_frames_fixed(take):
     problem, targets = take
     lag = 2
@@ -89,6 +90,7 @@ def test_a_lagged_frame_is_the_window_solve_with_the_earlier_frames_fixed(take):
         np.testing.assert_allclose(streamed[frame], reference[0], atol=2e-4)
 
 
+@pytest.mark.slow
 def test_a_lag_covering_the_take_is_the_batch_temporal_solve(take):
     problem, targets = take
     method = inverse.TemporalNewton(alpha=ALPHA, smoothness=SMOOTHNESS, tol=1e-9)
@@ -100,6 +102,7 @@ def test_a_lag_covering_the_take_is_the_batch_temporal_solve(take):
     np.testing.assert_allclose(_streamed(problem, targets[:2], method, 4), short, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_lag_zero_without_time_terms_is_the_warm_started_stream(take):
     problem, targets = take
     method = inverse.TemporalNewton(alpha=ALPHA, smoothness=0.0)
