@@ -5,10 +5,9 @@ validation heads (ICT held-out identities, both Rocketbox crops), MakeHuman afte
 
     python experiments/any_head_motion_steps.py --out experiments/results/any_head_motion
 
-Steps: "slits" (closest points that never cross the mouth or a lid: ``autorig._slits``) and
-"unfold" (generated shapes smoothed where they turn triangles over: ``autorig._unfold``).
-Rows: "plain" (neither), "slits", "slits+unfold" (the shipped default). Writes
-``steps.json`` and ``steps.md`` beside the main results.
+Step: "slits" (closest points that never cross the mouth or a lid: ``autorig._slits``).
+Rows: "plain" (without it) and "slits" (the shipped default). Writes ``steps.json`` and
+``steps.md`` beside the main results.
 """
 
 from __future__ import annotations
@@ -19,8 +18,8 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+from any_head_motion import HARD, artist_rig, distances, frames_of, load_heads
 
-import canrig_jax.autorig._any_head as any_head
 import canrig_jax.autorig._slits as slits
 from canrig_jax._io import save_text
 from canrig_jax.autorig import (
@@ -34,15 +33,11 @@ from canrig_jax.autorig import (
 from canrig_jax.data import load_livelinkface, resolve_data_dir
 from canrig_jax.mesh import flipped_triangles
 
-from any_head_motion import HARD, artist_rig, distances, frames_of, load_heads  # noqa: I001
-
-VARIANTS = ("plain", "slits", "slits+unfold")
+VARIANTS = ("plain", "slits")
 
 
-def _set_variant(variant: str, originals) -> None:
-    sides, unfold = originals
-    slits.slit_sides = sides if "slits" in variant else (lambda v, f, lm: np.full(len(v), -1))
-    any_head.unfold_shapes = unfold if "unfold" in variant else (lambda rig, keep=(): (rig, {}))
+def _set_variant(variant: str, original) -> None:
+    slits.slit_sides = original if variant == "slits" else (lambda v, f, lm: np.full(len(v), -1))
 
 
 def main(argv=None) -> None:
@@ -57,7 +52,7 @@ def main(argv=None) -> None:
     heads["rocketbox_male"] = load_rocketbox_head("Male_Adult_08", data)
     mh = load_makehuman(data)
     heads["makehuman"] = SculptedHead("makehuman", mh.neutral, mh.faces, mh.deltas, mh.names)
-    originals = (slits.slit_sides, any_head.unfold_shapes)
+    originals = slits.slit_sides
     out: dict = {}
     for name, head in heads.items():
         art = artist_rig(head)
@@ -82,15 +77,16 @@ def main(argv=None) -> None:
                                          if not c["ok"] and n in HARD)}  # fmt: skip
             out.setdefault(name, {})[variant] = row
             print(name, variant, row, flush=True)
-    _set_variant("slits+unfold", originals)
+    _set_variant("slits", originals)
     lines = ["Each step of the default (transfer, k = 0) against the rig without it, under the "
              "data folder's capture; skin; mm. MakeHuman: evaluation only.", "",
              "| head | variant | mean mm | flips / frame | artist flips | hard checks failed |",
              "|---|---|---|---|---|---|"]  # fmt: skip
     for name, rows in out.items():
         for variant, r in rows.items():
+            failed = ", ".join(r["hard_failed"]) or "none"
             lines.append(f"| {name} | {variant} | {r['mean_mm']:.3f} | {r['flips_per_frame']:.2f} "
-                         f"| {r['artist_flips_per_frame']:.2f} | {', '.join(r['hard_failed']) or 'none'} |")  # fmt: skip
+                         f"| {r['artist_flips_per_frame']:.2f} | {failed} |")  # fmt: skip
     target = Path(args.out)
     save_text(target / "steps.json", json.dumps(out, indent=1) + "\n")
     save_text(target / "steps.md", "\n".join(lines) + "\n")

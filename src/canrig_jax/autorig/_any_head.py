@@ -54,7 +54,6 @@ from ._orientation import (
 )
 from ._rig import rig_from_poses
 from ._rig_checks import RigCheck, check_rig
-from ._unfold import unfold_shapes
 
 AUTO_RIG_METHODS = ("transfer", "raf", "transfer-residual")
 DEFAULT_METHOD = "transfer"
@@ -395,7 +394,6 @@ def auto_rig(
     rig, fit_record["blink_gain"] = close_blinks(
         rig, up=orientation.up, forward=orientation.forward, keep=taken
     )
-    rig, fit_record["folded"] = unfold_shapes(rig, keep=taken)
     seconds["total"] = time.perf_counter() - start
     return AutoRig(rig, method, style, orientation, landmarks, fit_record, taken, seconds)
 

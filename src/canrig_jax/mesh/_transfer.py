@@ -291,14 +291,30 @@ def closest_point_correspondence(
         target_labels = np.zeros_like(target_labels)
     match = _match_components(aligned, sf, source_labels, tv, tf, target_labels)
     target_face_component = target_labels[tf[:, 0]]
-    source_face_side = target_face_side = None
-    if sides is not None:
-        source_face_side, target_face_side = _face_sides(sides[0], sf), _face_sides(sides[1], tf)
+    pull_sides = None if sides is None else (sides[0], _face_sides(sides[1], tf))
     for _ in range(refine_iterations if nonrigid else 0):
         aligned = aligned + _smoothed_pull(
-            aligned, sf, source_labels, tv, tf, target_face_component, match,
-            None if sides is None else (sides[0], target_face_side),
+            aligned, sf, source_labels, tv, tf, target_face_component, match, pull_sides,
         )  # fmt: skip
+    triangle, barycentric, distance, source_triangle = _closest_by_component(
+        tv, tf, target_labels, aligned, sf, source_labels, match, sides
+    )
+    vertex_map = SurfaceMap(triangle, barycentric, sf, len(sv), distance)
+    return TriangleCorrespondence(
+        source_triangle,
+        vertex_map,
+        tf,
+        "closest_point",
+        match if match_components else None,
+    )
+
+
+def _closest_by_component(tv, tf, target_labels, aligned, sf, source_labels, match, sides):
+    """The vertex map and the sampled source triangles, each target component on its matched
+    source component (and on its own side of every slit when ``sides`` is given): (triangle
+    (V,), barycentric (V, 3), distance (V,), source_triangle (T, S))."""
+    if sides is not None:
+        face_side = (_face_sides(sides[0], sf), _face_sides(sides[1], tf))
     source_face_label = source_labels[sf[:, 0]]
     target_face_label = target_labels[tf[:, 0]]
     triangle = np.zeros(len(tv), np.int64)
@@ -309,7 +325,7 @@ def closest_point_correspondence(
     for label in np.unique(target_labels):
         members = np.flatnonzero(target_labels == label)
         chosen = np.flatnonzero(source_face_label == match[label])
-        chosen_side = None if sides is None else source_face_side[chosen]
+        chosen_side = None if sides is None else face_side[0][chosen]
         sub = _closest_on_side(
             tv[members], None if sides is None else sides[1][members], aligned, sf[chosen],
             chosen_side,
@@ -323,18 +339,11 @@ def closest_point_correspondence(
         points = samples[faces_here].reshape(-1, 3)
         point_side = None
         if sides is not None:
-            point_side = np.repeat(target_face_side[faces_here], len(_SAMPLES))
+            point_side = np.repeat(face_side[1][faces_here], len(_SAMPLES))
         source_triangle[faces_here] = chosen[
             _closest_on_side(points, point_side, aligned, sf[chosen], chosen_side).triangle
         ].reshape(-1, len(_SAMPLES))
-    vertex_map = SurfaceMap(triangle, barycentric, sf, len(sv), distance)
-    return TriangleCorrespondence(
-        source_triangle,
-        vertex_map,
-        tf,
-        "closest_point",
-        match if match_components else None,
-    )
+    return triangle, barycentric, distance, source_triangle
 
 
 def _check_sides(source_sides, target_sides, n_source: int, n_target: int):

@@ -1,5 +1,4 @@
-"""The sides of a face's slits (``autorig._slits``) and the unfolding of generated shapes
-(``autorig._unfold``)."""
+"""The sides of a face's slits (``autorig._slits``)."""
 
 from __future__ import annotations
 
@@ -8,8 +7,6 @@ import pytest
 
 from canrig_jax.autorig import ict_pose_source
 from canrig_jax.autorig._slits import SLITS, slit_sides
-from canrig_jax.autorig._unfold import UNFOLD_WEIGHTS, unfold_deltas
-from canrig_jax.mesh import flipped_triangles
 
 
 @pytest.fixture(scope="module")
@@ -46,30 +43,3 @@ def test_a_slit_the_mesh_does_not_part_is_left_unlabelled(ict_head):
     assert np.isin(sides, (2, 3, 4, 5)).any()  # the eyes are labelled still
     with pytest.raises(ValueError, match="landmarks"):
         slit_sides(h.neutral, h.faces, lm[:60])
-
-
-def _grid(n=7):
-    x, y = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float))
-    vertices = np.c_[x.ravel(), y.ravel(), np.zeros(n * n)]
-    tri = [(i * n + j, i * n + j + 1, (i + 1) * n + j) for i in range(n - 1) for j in range(n - 1)]
-    tri += [(i * n + j + 1, (i + 1) * n + j + 1, (i + 1) * n + j)
-            for i in range(n - 1) for j in range(n - 1)]  # fmt: skip
-    return vertices, np.array(tri)
-
-
-def test_unfolding_removes_turned_triangles_and_leaves_the_rest_exactly():
-    vertices, faces = _grid()
-    centre = 3 * 7 + 3
-    folded = np.zeros((3, len(vertices), 3))
-    folded[0, centre] = [2.5, 0.0, 0.0]  # pushed through its neighbour: triangles turn over
-    folded[1, :, 2] = np.sin(vertices[:, 0])  # a smooth out-of-plane bulge: nothing turns
-    folded[2] = 0.3 * vertices  # a uniform stretch: nothing turns
-    assert flipped_triangles((vertices + folded[0])[None], vertices, faces).any()  # the premise
-    out, left = unfold_deltas(vertices, faces, folded)
-    np.testing.assert_array_equal(left, 0)
-    for w in UNFOLD_WEIGHTS:
-        assert not flipped_triangles(vertices + w * out, vertices, faces).any()
-    np.testing.assert_array_equal(out[1:], folded[1:])  # shapes with no fold are untouched
-    near = np.unique(faces[np.isin(faces, centre).any(1)])
-    far = np.setdiff1d(np.arange(len(vertices)), np.unique(faces[np.isin(faces, near).any(1)]))
-    np.testing.assert_array_equal(out[0, far], folded[0, far])  # only around the fold
