@@ -27,9 +27,11 @@ The protocol, fixed before measuring:
   (``temporal``'s weights on those frames, for comparison);
 - test half: truth, per_frame, warm_start and temporal solved on frames 90-179 alone; the
   targets are judged there (primary) and on the whole take;
-- streaming: ``Stream(problem, TemporalNewton(alpha, smoothness), lag=LAG)`` (and lag 0) one
-  frame per call, timed against the projection floor in the same loop
-  (``time_against_projection``), scored on the whole take and the test half;
+- streaming: ``Stream(problem, TemporalNewton(alpha, smoothness), lag=LAG)`` (and lag 0; and
+  lag LAG with ``stream_blocks="exact"``, every Gauss-Newton block recomputed every
+  iteration, the reference for the default's carried blocks) one frame per call, timed
+  against the projection floor in the same loop (``time_against_projection``), scored on the
+  whole take and the test half (``--stream-only`` re-runs just these, merging their rows);
 - metrics against the clean meshes: mean per-frame RMSE and p95 error (mm), cardinality,
   ``roughness`` (sum of squared second differences of the weights), and ms per frame (one
   timed run after compilation; the machine's two cores were shared with other jobs).
@@ -55,6 +57,7 @@ smoothness on real motion held apart from the test frames. Its rule, fixed befor
 from __future__ import annotations
 
 import argparse
+import json
 import time
 import warnings
 from pathlib import Path
@@ -99,7 +102,11 @@ TRAIN_TAKES = 2
 VALIDATION_GRID_CM2 = SMOOTHNESS_CM2  # the validation split's grid, fixed with its rule
 VALIDATION_RULE = " ".join(__doc__.split("Its rule, fixed before measuring:")[1].split())
 LAG = 2  # frames of the primary lagged stream (RULE_temporal.md)
-LAGS = (LAG, 0)
+STREAMS = (  # (mode, lag, TemporalNewton.stream_blocks): the default, lag 0, the exact blocks
+    ("stream_lag", LAG, "on_entry"),
+    ("stream_lag_0", 0, "on_entry"),
+    ("stream_lag_exact", LAG, "exact"),
+)
 STREAM_TARGET_RATIO = 3.0  # lagged stream: <= 3x the projection floor per frame
 RULE_TEMPORAL = "experiments/results/inverse_rig/RULE_temporal.md"
 
@@ -196,20 +203,8 @@ def evaluate_case(name, rig, take, fps, rng, args, smoothness=None):
             test_modes[mode] = temporal_row(rig, w, clean[test], seconds)
             print(f"[{name}] test half {mode}: {test_modes[mode]}", flush=True)
 
-    streams = {}
-    for lag in LAGS:
-        row = inverse.time_against_projection(
-            problem, targets, inverse.TemporalNewton(alpha=a, smoothness=s), lag=lag,
-            repeats=1 if args.quick else 3,
-        )  # fmt: skip
-        w = np.asarray(row.pop("weights"), np.float64)
-        mode = f"stream_lag_{lag}" if lag != LAG else "stream_lag"
-        modes[mode] = {**temporal_row(rig, w, clean), "ms_per_frame": row["ms"]}
-        test_modes[mode] = temporal_row(rig, w[test], clean[test])
-        streams[mode] = {"lag": lag, **row,
-                         "meets_target": bool(row["ratio"] <= STREAM_TARGET_RATIO)}  # fmt: skip
-        weights[mode] = w
-        print(f"[{name}] {mode}: {modes[mode]} {streams[mode]}", flush=True)
+    streams = stream_modes(name, rig, problem, targets, clean, a, s, args, modes, test_modes)
+    weights.update(streams.pop("weights"))
 
     frames = min(args.reference_frames, len(take))
     lambda1, lambda2 = holistic_lambdas(a, s, 3 * rig.n_vertices, rig.n_blendshapes)
@@ -254,6 +249,74 @@ def evaluate_case(name, rig, take, fps, rng, args, smoothness=None):
     if curve is not None:
         protocol["validation_curve"] = curve
     return {"rig": rig, "modes": modes, "weights": weights, "protocol": protocol}
+
+
+def stream_modes(name, rig, problem, targets, clean, a, s, args, modes, test_modes):
+    """The lagged streams (``STREAMS``), each timed against the projection floor in the same
+    loop: their rows are added to ``modes`` (whole take) and ``test_modes`` (test half);
+    returns the ``streams`` protocol rows, and their weights under ``"weights"``."""
+    test = validation_split(len(targets))[1]
+    streams, weights = {}, {}
+    for mode, lag, blocks in STREAMS:
+        method = inverse.TemporalNewton(alpha=a, smoothness=s, stream_blocks=blocks)
+        row = inverse.time_against_projection(
+            problem, targets, method, lag=lag, repeats=1 if args.quick else 3
+        )
+        w = np.asarray(row.pop("weights"), np.float64)
+        modes[mode] = {**temporal_row(rig, w, clean), "ms_per_frame": row["ms"]}
+        test_modes[mode] = temporal_row(rig, w[test], clean[test])
+        streams[mode] = {"lag": lag, "stream_blocks": blocks, **row,
+                         "meets_target": bool(row["ratio"] <= STREAM_TARGET_RATIO)}  # fmt: skip
+        weights[mode] = w
+        print(f"[{name}] {mode}: {modes[mode]} {streams[mode]}", flush=True)
+    return {**streams, "weights": weights}
+
+
+def run_stream_only(args, capture, rigs, command):
+    """``--stream-only``: the noisy takes drawn as the full run draws them (the same rng
+    draws, without the alpha sweep's and the smoothness curve's solves), alpha and smoothness
+    read from ``temporal_protocol``, and only the streams re-run; their rows are merged into
+    ``temporal`` and ``temporal_protocol`` (every other row and key kept) and the table is
+    rewritten from the merged results."""
+    path = args.out / "results.json"
+    results = json.loads(path.read_text())
+    temporal, protocol = results["temporal"], results["temporal_protocol"]
+    rng = np.random.default_rng(args.seed)
+    cases = {}
+    for name, rig in rigs:
+        take = _take(capture, rig, args)
+        p = protocol[name]
+        scale = UNIT_IN_CM[rig.units]
+        sigma = np.sqrt(NOISE_VARIANCE_CM2) / scale
+        poses = random_sparse_poses(rng, 20 if args.quick else args.train_poses, rig.names)
+        noisy(rng, np.asarray(evaluate_batch(rig, poses)), sigma)  # the alpha sweep's draws
+        training_takes(rig, len(take), capture.fps, rng, args)  # drawn, unused, as in the run
+        clean = np.asarray(evaluate_batch(rig, take))
+        targets = noisy(rng, clean, sigma)
+        modes = {k: v for k, v in temporal[name].items() if not k.startswith("stream_")}
+        test_modes = {k: v for k, v in p["test_half"].items() if not k.startswith("stream_")}
+        a, s = p["alpha_cm2"] / scale**2, p["smoothness_cm2"] / scale**2
+        streams = stream_modes(name, rig, inverse.prepare(rig), targets, clean, a, s, args,
+                               modes, test_modes)  # fmt: skip
+        streams.pop("weights")
+        p = {**p, "test_half": test_modes, "streams": streams,
+             "stream_provenance": provenance(command)}  # fmt: skip
+        cases[name] = {"rig": rig, "modes": modes, "protocol": p,
+                       "weights": {"truth": take}}  # fmt: skip
+    if args.quick:
+        print(_temporal_table(cases))
+        return cases
+    update_results(
+        args.out,
+        "temporal",
+        {n: c["modes"] for n, c in cases.items()},
+        table=_temporal_table(cases),
+    )
+    update_results(args.out, "temporal_protocol", {n: c["protocol"] for n, c in cases.items()},
+                   merge=True)  # fmt: skip
+    record_command(args.out, command, note="the lagged streams re-run alone (issue 61)")
+    print(f"wrote {args.out}")
+    return cases
 
 
 def evaluate_split_case(name, rig, take, fps, rng, args, smoothness=None):
@@ -359,6 +422,12 @@ def main(argv=None):
         help="the variant: smoothness chosen on the take's first half (ICT), all modes on the "
         "second; writes only the temporal_validation_split key",
     )
+    parser.add_argument(
+        "--stream-only",
+        action="store_true",
+        help="re-run only the lagged streams (alpha and smoothness from results.json) and "
+        "merge their rows into the temporal keys",
+    )
     args = parser.parse_args(argv)
     if args.quick:
         args.reference_frames = min(args.reference_frames, 10)
@@ -372,6 +441,8 @@ def main(argv=None):
     rigs = (("ict", ict), ("makehuman", makehuman))
     if args.validation_split:
         return run_validation_split(args, capture, rigs, command)
+    if args.stream_only:
+        return run_stream_only(args, capture, rigs, command)
     smoothness = None  # ICT chooses, MakeHuman receives (the rng consumed as before)
     for name, rig in rigs:
         take = _take(capture, rig, args)

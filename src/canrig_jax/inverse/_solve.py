@@ -95,13 +95,19 @@ def _stream_one(problem, target, method, init, key, carry) -> tuple[Solution, An
     return _solution(problem, offset, method, init, run), carry
 
 
-def _solution(problem, offset, method, init, run) -> Solution:
-    """The Solution of a method's Iterate: objective under the full rig, finite or the start."""
+def _solution(problem, offset, method, init, run, projection=None) -> Solution:
+    """The Solution of a method's Iterate: objective under the full rig, finite or the start.
+    ``projection``: the frame's M^T (b - b0) when the caller has it (else computed)."""
     l1 = method.alpha if method.penalises_l1 else 0.0
-    value = objective(problem, run.weights, offset, l1)
+    if projection is None:
+        projection = problem.projection(offset)
+    elif problem.linear_term is not None:
+        projection = projection + problem.linear_term
+    offset_sq = offset @ offset
+    value = problem.objective(run.weights, projection, offset_sq, l1)
     finite = jnp.all(jnp.isfinite(run.weights)) & jnp.isfinite(value)
     weights = jnp.where(finite, run.weights, init)
-    value = jnp.where(finite, value, objective(problem, init, offset, l1))
+    value = jnp.where(finite, value, problem.objective(init, projection, offset_sq, l1))
     stopped = run.result
     if stopped is None:
         stopped = optx.RESULTS.where(
@@ -309,7 +315,7 @@ def _lagged_one(problem, target, method, state, present_new, key) -> tuple[Solut
     """One call of a lagged ``Stream``: the window (history, then lag + 1 frames) moves on by
     a frame, is solved jointly with the history held, and the Solution of its oldest solved
     frame comes back with the moved state. ``present_new`` False: no new frame (``flush``)."""
-    offsets, projections, weights, present = state
+    offsets, projections, weights, present, carry = state
     dtype = problem.columns.dtype
     offset = jnp.where(present_new, (jnp.asarray(target, dtype) - problem.neutral).reshape(-1), 0)
     offsets = jnp.concatenate([offsets[1:], offset[None]])
@@ -318,16 +324,23 @@ def _lagged_one(problem, target, method, state, present_new, key) -> tuple[Solut
     weights = jnp.concatenate([weights[1:], newest[None]])
     present = jnp.concatenate([present[1:], jnp.asarray(present_new)[None]])
     held = (jnp.arange(weights.shape[0]) < HISTORY_FRAMES) | ~present
-    run = method.solve_window(
-        problem, offsets, weights, held, present, projections, history=HISTORY_FRAMES
+    run, carry = method.solve_window(
+        problem,
+        offsets,
+        weights,
+        held,
+        present,
+        projections,
+        history=HISTORY_FRAMES,
+        carry=method.shift_window_carry(carry),
     )
     finite = jnp.all(jnp.isfinite(run.weights))
     solved = jnp.where(finite, run.weights, weights)
     out = HISTORY_FRAMES  # the oldest solved frame: final after this call
     frame = Iterate(run.weights[out], run.history, run.steps, run.converged & finite)
-    solution = _solution(problem, offsets[out], method, weights[out], frame)
+    solution = _solution(problem, offsets[out], method, weights[out], frame, projections[out])
     solved = solved.at[out].set(solution.weights)
-    return solution, (offsets, projections, solved, present)
+    return solution, (offsets, projections, solved, present, carry)
 
 
 _lagged_jit = eqx.filter_jit(_lagged_one)
@@ -419,6 +432,7 @@ class Stream:
             jnp.zeros((n, self.problem.columns.shape[0]), dtype),
             jnp.zeros((n, self.problem.n_blendshapes), dtype),
             jnp.zeros(n, bool),
+            self.method.initial_window_carry(self.problem, self.lag + 1),
         )
         self.pending = 0  # frames in the window not returned yet
         self.returned = self.frame  # index of the next frame to return

@@ -260,8 +260,9 @@ def _temporal_table(cases: dict[str, dict]) -> str:
         )
         for mode, row in p["streams"].items():
             text += (
-                f"- `{mode}`: `Stream(problem, TemporalNewton(alpha, smoothness), "
-                f"lag={row['lag']})`, one frame per call, weights {row['lag']} frames late: "
+                f"- `{mode}`: `Stream(problem, TemporalNewton(alpha, smoothness"
+                + (f', stream_blocks="{row["stream_blocks"]}"' if "stream_blocks" in row else "")
+                + f"), lag={row['lag']})`, one frame per call, weights {row['lag']} frames late: "
                 f"{row['ms']:.2f} ms per frame against a projection floor of "
                 f"{row['projection_ms']:.2f} ms in the same loop, ratio {row['ratio']:.2f}x "
                 f"(target <= {p['stream_target_ratio']:g}x: "
