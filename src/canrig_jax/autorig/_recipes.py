@@ -22,6 +22,7 @@ from ._protocols import anchored_base_key, cached_transfer
 from ._train import (
     RigAnyFaceTrainOptions,
     TrainingSet,
+    augmented_heads,
     load_riganyface,
     train_riganyface,
     training_set,
@@ -131,6 +132,55 @@ def add_recipe_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPa
         "still (default: 0, no gate)",
     )
     add(
+        "--init-from",
+        default=None,
+        help="fine-tune raf / raf_no_global_encoder from this RigAnyFace checkpoint (e.g. the "
+        "packaged model, canrig_jax.autorig.DEFAULT_CHECKPOINT); its width must be --raf-width",
+    )
+    add(
+        "--warp-copies",
+        type=int,
+        default=0,
+        help="smoothly warped copies of each training head added to a pure model's training "
+        "set (stylised proportions and a low-frequency displacement field; default: none)",
+    )
+    add(
+        "--warp-amplitude",
+        type=float,
+        default=RigAnyFaceTrainOptions.warp_amplitude,
+        help="standard deviation of the warp's RBF weights, cm (default: %(default)s)",
+    )
+    add(
+        "--warp-proportions",
+        type=float,
+        default=RigAnyFaceTrainOptions.warp_proportions,
+        help="standard deviation of the warp's log scale per axis (default: %(default)s)",
+    )
+    add(
+        "--flip-weight",
+        type=float,
+        default=0.0,
+        help="weight of the pure models' flipped-triangle penalty (default: 0, none)",
+    )
+    add(
+        "--flip-margin",
+        type=float,
+        default=RigAnyFaceTrainOptions.flip_margin,
+        help="cosine from which the flip penalty starts (default: %(default)s)",
+    )
+    add(
+        "--stretch-weight",
+        type=float,
+        default=0.0,
+        help="weight of the pure models' edge-stretch penalty (default: 0, none)",
+    )
+    add(
+        "--stretch-margin",
+        type=float,
+        default=RigAnyFaceTrainOptions.stretch_margin,
+        help="|log edge-length ratio| free of the stretch penalty (default: %(default)s)",
+    )
+    add(
         "--residual-static-weight",
         type=float,
         default=RESIDUAL_OPTIONS["static_weight"],
@@ -170,6 +220,7 @@ def recipe_options(args: argparse.Namespace, name: str | None = None) -> RigAnyF
             width=args.raf_width,
             n_conditional=args.raf_conditional_blocks,
             **PURE_MODELS[name],
+            **_robust_options(args),
         )
     return dataclasses.replace(
         options,
@@ -179,6 +230,18 @@ def recipe_options(args: argparse.Namespace, name: str | None = None) -> RigAnyF
         warmup_steps=5 if quick else min(200, args.residual_steps // 10),
         max_minutes=None,
     )
+
+
+def _robust_options(args: argparse.Namespace) -> dict:
+    """The pure models' mesh-quality, warp and fine-tuning options (their defaults when the
+    parser predates them)."""
+    names = {"init_from": None, "warp_copies": 0, "warp_amplitude": 1.0,
+             "warp_proportions": 0.1, "flip_weight": 0.0, "flip_margin": 0.5,
+             "stretch_weight": 0.0, "stretch_margin": 0.25}  # fmt: skip
+    out = {name: getattr(args, name, default) for name, default in names.items()}
+    if out["init_from"] is not None:
+        out["init_from"] = str(out["init_from"])
+    return out
 
 
 def recipe_base(name: str) -> str | None:
@@ -202,13 +265,16 @@ def recipe_training_set(
     cache: str | Path | None = None,
     seed: int = 0,
     progress: bool = True,
+    options: RigAnyFaceTrainOptions | None = None,
 ) -> TrainingSet:
     """The training set of model ``name`` on ``dataset.train`` (``training_set`` with ``k``
     eigenvectors): the heads alone for a pure model; for a residual model also each head's
     deformation-transfer poses as the base (plain, or anchored per its mode below
-    ``ANCHOR_CM``), through ``cached_transfer(cache=, seed=)``."""
+    ``ANCHOR_CM``), through ``cached_transfer(cache=, seed=)``. ``options``: a pure model's
+    training heads are ``augmented_heads(dataset.train, options)`` (its warped copies)."""
     if recipe_base(name) is None:
-        return training_set(dataset.train, dataset.poses, k=k, progress=progress)
+        heads = dataset.train if options is None else augmented_heads(dataset.train, options)
+        return training_set(heads, dataset.poses, k=k, progress=progress)
     mode = ANCHORED_RESIDUAL_MODELS.get(name)
     base: list[Float[ArrayLike, "P _V 3"]] = [
         cached_transfer(
