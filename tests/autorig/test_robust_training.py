@@ -179,6 +179,7 @@ def test_warp_head_keeps_the_topology_and_warps_the_posed_shapes():
         ("warp_amplitude", -1.0),
         ("warp_proportions", float("inf")),
         ("warp_radius", 0.0),
+        ("warp_targets", "truth"),
     ],
 )
 def test_options_refuse_bad_values_naming_the_field(field, value):

@@ -157,6 +157,13 @@ def add_recipe_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPa
         help="standard deviation of the warp's log scale per axis (default: %(default)s)",
     )
     add(
+        "--warp-targets",
+        choices=("warped", "transfer"),
+        default="warped",
+        help="targets of the warped copies: the warped ICT truth, or anchored deformation "
+        "transfer onto the warped head (distillation; --cache keeps it)",
+    )
+    add(
         "--flip-weight",
         type=float,
         default=0.0,
@@ -236,7 +243,8 @@ def _robust_options(args: argparse.Namespace) -> dict:
     """The pure models' mesh-quality, warp and fine-tuning options (their defaults when the
     parser predates them)."""
     names = {"init_from": None, "warp_copies": 0, "warp_amplitude": 1.0,
-             "warp_proportions": 0.1, "flip_weight": 0.0, "flip_margin": 0.5,
+             "warp_proportions": 0.1, "warp_targets": "warped", "flip_weight": 0.0,
+             "flip_margin": 0.5,
              "stretch_weight": 0.0, "stretch_margin": 0.25}  # fmt: skip
     out = {name: getattr(args, name, default) for name, default in names.items()}
     if out["init_from"] is not None:
@@ -271,9 +279,19 @@ def recipe_training_set(
     eigenvectors): the heads alone for a pure model; for a residual model also each head's
     deformation-transfer poses as the base (plain, or anchored per its mode below
     ``ANCHOR_CM``), through ``cached_transfer(cache=, seed=)``. ``options``: a pure model's
-    training heads are ``augmented_heads(dataset.train, options)`` (its warped copies)."""
+    training heads are ``augmented_heads(dataset.train, options)`` (its warped copies; with
+    ``warp_targets="transfer"`` their targets anchored transfer, through ``cached_transfer``)."""
     if recipe_base(name) is None:
         heads = dataset.train if options is None else augmented_heads(dataset.train, options)
+        if options is not None and options.warp_targets == "transfer":
+            # distillation: the warped copies learn anchored transfer, not the warped truth
+            n = len(dataset.train)
+            heads = heads[:n] + [
+                dataclasses.replace(
+                    h, displacements=cached_transfer(dataset, h, cache, seed, ANCHOR_CM)
+                )
+                for h in heads[n:]
+            ]
         return training_set(heads, dataset.poses, k=k, progress=progress)
     mode = ANCHORED_RESIDUAL_MODELS.get(name)
     base: list[Float[ArrayLike, "P _V 3"]] = [

@@ -74,6 +74,9 @@ RESIDUAL_CHECKPOINT_SHA256 = "4d3cce9bde900d55754d0d4c739b9e77d3b6da0e8fbdd07e4b
 LOSSES = ("squared", "euclidean")
 BALANCE_FLOOR = 1e-3
 """With ``balance_poses``: a pose's divisor is at least this fraction of the training set's."""
+WARP_TARGETS = ("warped", "transfer")
+"""``RigAnyFaceTrainOptions.warp_targets``: the warped truth, or anchored transfer
+(distillation)."""
 STATIC_CM = 0.001
 """A vertex is static in a pose when its ground-truth displacement is below 0.01 mm."""
 
@@ -104,6 +107,10 @@ class RigAnyFaceTrainOptions:
         warp_proportions: standard deviation of the log scale of each axis of the whole head
             (twice that for the eyes, nose and mouth regions).
         warp_radius: the RBFs' radius (cm).
+        warp_targets: what the warped copies are trained to: "warped" (the ICT truth warped
+            with the head) or "transfer" (distillation: anchored deformation transfer of the
+            generic ICT poses onto the warped head, ``transfer_poses(static_below=ANCHOR_CM)``,
+            as on a head with no ground truth).
     """
 
     width: int = 32
@@ -138,6 +145,7 @@ class RigAnyFaceTrainOptions:
     warp_amplitude: float = 1.0
     warp_proportions: float = 0.1
     warp_radius: float = 8.0
+    warp_targets: str = "warped"
 
     def __post_init__(self):
         for name in ("flip_weight", "stretch_weight", "stretch_margin"):
@@ -152,6 +160,10 @@ class RigAnyFaceTrainOptions:
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"{name}: expected a finite value >= 0, got {value}")
+        if self.warp_targets not in WARP_TARGETS:
+            raise ValueError(
+                f"warp_targets: expected one of {WARP_TARGETS}, got {self.warp_targets!r}"
+            )
         if not (np.isfinite(self.warp_radius) and self.warp_radius > 0):
             raise ValueError(f"warp_radius: expected > 0 (cm), got {self.warp_radius}")
         if self.init_from is not None and not isinstance(self.init_from, str):
