@@ -131,6 +131,18 @@ def add_recipe_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPa
         "|b|^2 / (|b|^2 + tau^2) with b the DT displacement: what DT leaves still stays "
         "still (default: 0, no gate)",
     )
+    _add_robust_arguments(add)
+    add(
+        "--residual-static-weight",
+        type=float,
+        default=RESIDUAL_OPTIONS["static_weight"],
+        help="weight of the residual models' static-vertex term (default: %(default)s)",
+    )
+    return parser
+
+
+def _add_robust_arguments(add) -> None:
+    """The pure models' fine-tuning, warp and mesh-quality flags (``add_recipe_arguments``)."""
     add(
         "--init-from",
         default=None,
@@ -187,13 +199,6 @@ def add_recipe_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPa
         default=RigAnyFaceTrainOptions.stretch_margin,
         help="|log edge-length ratio| free of the stretch penalty (default: %(default)s)",
     )
-    add(
-        "--residual-static-weight",
-        type=float,
-        default=RESIDUAL_OPTIONS["static_weight"],
-        help="weight of the residual models' static-vertex term (default: %(default)s)",
-    )
-    return parser
 
 
 def recipe_options(args: argparse.Namespace, name: str | None = None) -> RigAnyFaceTrainOptions:
