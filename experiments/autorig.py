@@ -117,7 +117,13 @@ def train_all(args, dataset, anchors) -> tuple[dict, dict]:
         if data is None or name not in PURE_MODELS:  # the pure models share their data
             data = None  # release the previous training set first
             data = recipe_training_set(
-                dataset, name, k=k, cache=args.cache, seed=args.seed, progress=progress
+                dataset,
+                name,
+                k=k,
+                cache=args.cache,
+                seed=args.seed,
+                progress=progress,
+                options=recipe_options(args, name),
             )
             print(f"{name}: {len(dataset.train)} training heads, {data.vertices.shape[1]} v")
         path = args.out / f"checkpoint_{name}.eqx"

@@ -49,9 +49,15 @@ def main(argv=None):
     )
     options = recipe_options(args, args.model)
     data = recipe_training_set(
-        dataset, args.model, k=options.k, cache=args.cache, seed=args.seed, progress=progress
+        dataset,
+        args.model,
+        k=options.k,
+        cache=args.cache,
+        seed=args.seed,
+        progress=progress,
+        options=options,
     )
-    print(f"{len(dataset.train)} training heads ({data.vertices.shape[1]} padded vertices)")
+    print(f"{data.n_heads} training heads ({data.vertices.shape[1]} padded vertices)")
     path = args.out / f"checkpoint_{args.model}.eqx"
     train_checkpoint(path, data, dataset.poses, options, progress=progress, devices=args.devices)
     if group.is_main:  # process 0 writes the checkpoint

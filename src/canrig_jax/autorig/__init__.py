@@ -41,9 +41,11 @@ from ._avatar import (
 )
 from ._data import (
     ANCHOR_MODES,
+    MULTIPIE_REGIONS,
     AutorigDataset,
     PoseSet,
     RiggedHead,
+    SmoothWarp,
     anchor_parts,
     copy_poses,
     face_placement,
@@ -55,7 +57,10 @@ from ._data import (
     make_head,
     pose_displacements,
     quartic_pose_set,
+    random_warp,
     transfer_poses,
+    warp_head,
+    warped_heads,
 )
 from ._diffusion import (
     LearnedDiffusion,
@@ -153,16 +158,27 @@ from ._train import (
     STATIC_CM,
     RigAnyFaceTrainOptions,
     RigAnyFaceTrainResult,
+    augmented_heads,
     export_riganyface,
+    flip_penalty,
     head_inputs,
     load_riganyface,
     make_model,
     static_vertex_error,
+    stretch_penalty,
     train_riganyface,
     training_set,
 )
 
 __all__ = [
+    "MULTIPIE_REGIONS",
+    "SmoothWarp",
+    "augmented_heads",
+    "flip_penalty",
+    "random_warp",
+    "stretch_penalty",
+    "warp_head",
+    "warped_heads",
     "CHECK_LIMITS",
     "Check",
     "RigCheck",

@@ -532,3 +532,176 @@ def copy_poses(
         np.asarray(head.vertices, np.float64),
     )
     return (carried @ rotation.T).astype(np.float32)
+
+
+MULTIPIE_REGIONS = {
+    "eyes": tuple(range(36, 48)),
+    "nose": tuple(range(27, 36)),
+    "mouth": tuple(range(48, 68)),
+}
+"""Multi-PIE landmark indices (of ``RiggedHead.landmarks``) of the regions that
+``SmoothWarp`` rescales: both eyes (one scaling, so the warp keeps the eyes alike), the nose,
+the mouth."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SmoothWarp:
+    """A smooth deformation of space (centimetres): stylised proportions plus a low-frequency
+    displacement field,
+
+        w(x) = c + S (x - c) + sum_k a_k g_k(x) + sum_r (D_r - I)(x - m_r) h_r(x),
+
+    with ``g_k(x) = exp(-|x - b_k|^2 / (2 radius^2))`` (Gaussian RBFs) and ``h_r`` the same
+    around a region centre ``m_r`` with the region's own radius. The identity when every
+    scale is 1 and every weight 0 (``SmoothWarp.identity``).
+
+    Attributes:
+        centre: (3,) c, the head's centre; scale: (3,) the diagonal of S (whole-head
+            proportions).
+        rbf_centres: (K, 3) b_k; rbf_weights: (K, 3) a_k (cm); radius: the RBFs' radius (cm).
+        region_centres: (R, 3) m_r; region_scales: (R, 3) diagonals of D_r;
+        region_radii: (R,) cm.
+    """
+
+    centre: Float64[np.ndarray, " 3"]
+    scale: Float64[np.ndarray, " 3"]
+    rbf_centres: Float64[np.ndarray, "K 3"]
+    rbf_weights: Float64[np.ndarray, "K 3"]
+    radius: float
+    region_centres: Float64[np.ndarray, "R 3"]
+    region_scales: Float64[np.ndarray, "R 3"]
+    region_radii: Float64[np.ndarray, " R"]
+
+    @classmethod
+    def identity(cls, centre: Float[ArrayLike, " 3"] = (0.0, 0.0, 0.0)) -> "SmoothWarp":
+        empty = np.zeros((0, 3))
+        return cls(np.asarray(centre, np.float64), np.ones(3), empty, empty, 1.0, empty,
+                   empty, np.zeros(0))  # fmt: skip
+
+    def __call__(self, points: Float[ArrayLike, "... 3"]) -> Float64[np.ndarray, "... 3"]:
+        """The warped points, same shape (float64)."""
+        x = np.asarray(points, np.float64)
+        out = self.centre + (x - self.centre) * self.scale
+        if len(self.rbf_centres):
+            d2 = np.sum((x[..., None, :] - self.rbf_centres) ** 2, axis=-1)  # (..., K)
+            out = out + np.exp(-d2 / (2 * self.radius**2)) @ self.rbf_weights
+        for m, s, r in zip(self.region_centres, self.region_scales, self.region_radii,
+                           strict=True):  # fmt: skip
+            h = np.exp(-np.sum((x - m) ** 2, axis=-1) / (2 * r**2))[..., None]
+            out = out + (x - m) * (s - 1.0) * h
+        return out
+
+
+WARP_REGION_LOG_LIMIT = 0.4
+"""``random_warp`` clips each region's log scale to +-this: with the Gaussian falloff the
+warp's Jacobian stays positive definite (its worst eigenvalue is 1 - 1.74 (1 - e^-0.4) > 0.4)."""
+
+
+def random_warp(
+    rng: np.random.Generator,
+    vertices: Float[ArrayLike, "V 3"],
+    landmarks: Int[ArrayLike, " L"],
+    *,
+    amplitude: float = 1.0,
+    proportions: float = 0.1,
+    radius: float = 8.0,
+    n_rbf: int = 8,
+) -> SmoothWarp:
+    """A random ``SmoothWarp`` of a head (centimetres; ``landmarks`` its 68 Multi-PIE
+    vertices, for the regions of ``MULTIPIE_REGIONS``).
+
+    Args:
+        amplitude: standard deviation (cm) of each RBF weight component; 0 for none.
+        proportions: standard deviation of the log scale of each axis of the whole head, and
+            twice that of each region's (clipped to ``WARP_REGION_LOG_LIMIT``); 0 for none.
+        radius: the RBFs' radius (cm; the default 8 cm is low frequency on a ~25 cm head).
+        n_rbf: RBF centres, drawn among the head's vertices.
+
+    The RBF part's Jacobian is at most about 0.61 sqrt(n_rbf) amplitude / radius in norm
+    (0.22 at the defaults), so the warp does not fold a head at these values; ``warp_head``
+    refuses one that turns any triangle over."""
+    for name, value in (("amplitude", amplitude), ("proportions", proportions)):
+        if not (np.isfinite(value) and value >= 0):
+            raise ValueError(f"{name}: expected a finite value >= 0, got {value}")
+    if not (np.isfinite(radius) and radius > 0):
+        raise ValueError(f"radius: expected > 0 (cm), got {radius}")
+    if n_rbf < 0:
+        raise ValueError(f"n_rbf: expected >= 0, got {n_rbf}")
+    x = np.asarray(vertices, np.float64)
+    landmarks = np.asarray(landmarks)
+    centre = 0.5 * (x.min(axis=0) + x.max(axis=0))
+    scale = np.exp(rng.normal(0.0, proportions, 3)) if proportions else np.ones(3)
+    picks = rng.choice(len(x), n_rbf, replace=len(x) < n_rbf) if n_rbf else []
+    rbf_centres = x[picks].reshape(-1, 3)
+    rbf_weights = rng.normal(0.0, 1.0, (n_rbf, 3)) * amplitude
+    centres, scales, radii = [], [], []
+    if proportions:
+        for ids in MULTIPIE_REGIONS.values():
+            points = x[landmarks[list(ids)]]
+            m = points.mean(axis=0)
+            centres.append(m)
+            radii.append(max(float(np.linalg.norm(points - m, axis=1).max()), 1e-3))
+            log_scale = np.clip(rng.normal(0.0, 2 * proportions, 3), -WARP_REGION_LOG_LIMIT,
+                                WARP_REGION_LOG_LIMIT)  # fmt: skip
+            scales.append(np.exp(log_scale))
+    return SmoothWarp(
+        centre, scale, rbf_centres, rbf_weights, float(radius),
+        np.asarray(centres, np.float64).reshape(-1, 3), np.asarray(scales).reshape(-1, 3),
+        np.asarray(radii, np.float64),
+    )  # fmt: skip
+
+
+def warp_head(head: RiggedHead, warp: SmoothWarp, *, name: str | None = None) -> RiggedHead:
+    """``head`` deformed by ``warp``: the neutral warped and every pose's displacement carried
+    as ``warp(neutral + d) - warp(neutral)`` (the posed shape warped by the same map), the
+    topology, landmarks and parts kept. Refuses (``ValueError``) a warp that turns any of the
+    head's non-degenerate triangles against its normal."""
+    from ..mesh import flipped_triangles
+
+    neutral = np.asarray(head.vertices, np.float64)
+    warped = warp(neutral)
+    if flipped_triangles(warped[None], neutral, head.faces).any():
+        raise ValueError(f"warp: it folds {head.name} (a triangle turns over); use a smaller "
+                         "amplitude or proportions")  # fmt: skip
+    posed = warp(neutral[None] + np.asarray(head.displacements, np.float64))
+    return dataclasses.replace(
+        head,
+        name=name or f"{head.name}/warp",
+        vertices=warped.astype(np.float32),
+        displacements=(posed - warped[None]).astype(np.float32),
+    )
+
+
+def warped_heads(
+    heads: list[RiggedHead],
+    copies: int,
+    *,
+    amplitude: float = 1.0,
+    proportions: float = 0.1,
+    radius: float = 8.0,
+    seed: int = 0,
+    attempts: int = 10,
+) -> list[RiggedHead]:
+    """``copies`` warped versions of each head (``random_warp`` then ``warp_head``), named
+    ``<name>/warp<j>``. The warp of copy j of head i is drawn from
+    ``numpy.random.default_rng([seed, i, j, attempt])``, attempt 0 first; a draw that would
+    turn a triangle over (a strongly anisotropic region scaling can turn a sliver) is
+    redrawn with the next attempt, up to ``attempts`` (then ``ValueError``). A head's warps
+    do not depend on the others'; heads of one identity in several remeshings (the training
+    set's) get different warps."""
+    if copies < 0:
+        raise ValueError(f"copies: expected >= 0, got {copies}")
+    out = []
+    for i, head in enumerate(heads):
+        for j in range(copies):
+            for attempt in range(attempts):
+                rng = np.random.default_rng([seed, i, j, attempt])
+                warp = random_warp(rng, head.vertices, head.landmarks, amplitude=amplitude,
+                                   proportions=proportions, radius=radius)  # fmt: skip
+                try:
+                    out.append(warp_head(head, warp, name=f"{head.name}/warp{j}"))
+                    break
+                except ValueError:
+                    if attempt == attempts - 1:
+                        raise
+    return out

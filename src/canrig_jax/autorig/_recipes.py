@@ -22,6 +22,7 @@ from ._protocols import anchored_base_key, cached_transfer
 from ._train import (
     RigAnyFaceTrainOptions,
     TrainingSet,
+    augmented_heads,
     load_riganyface,
     train_riganyface,
     training_set,
@@ -130,6 +131,7 @@ def add_recipe_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPa
         "|b|^2 / (|b|^2 + tau^2) with b the DT displacement: what DT leaves still stays "
         "still (default: 0, no gate)",
     )
+    _add_robust_arguments(add)
     add(
         "--residual-static-weight",
         type=float,
@@ -137,6 +139,66 @@ def add_recipe_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPa
         help="weight of the residual models' static-vertex term (default: %(default)s)",
     )
     return parser
+
+
+def _add_robust_arguments(add) -> None:
+    """The pure models' fine-tuning, warp and mesh-quality flags (``add_recipe_arguments``)."""
+    add(
+        "--init-from",
+        default=None,
+        help="fine-tune raf / raf_no_global_encoder from this RigAnyFace checkpoint (e.g. the "
+        "packaged model, canrig_jax.autorig.DEFAULT_CHECKPOINT); its width must be --raf-width",
+    )
+    add(
+        "--warp-copies",
+        type=int,
+        default=0,
+        help="smoothly warped copies of each training head added to a pure model's training "
+        "set (stylised proportions and a low-frequency displacement field; default: none)",
+    )
+    add(
+        "--warp-amplitude",
+        type=float,
+        default=RigAnyFaceTrainOptions.warp_amplitude,
+        help="standard deviation of the warp's RBF weights, cm (default: %(default)s)",
+    )
+    add(
+        "--warp-proportions",
+        type=float,
+        default=RigAnyFaceTrainOptions.warp_proportions,
+        help="standard deviation of the warp's log scale per axis (default: %(default)s)",
+    )
+    add(
+        "--warp-targets",
+        choices=("warped", "transfer"),
+        default="warped",
+        help="targets of the warped copies: the warped ICT truth, or anchored deformation "
+        "transfer onto the warped head (distillation; --cache keeps it)",
+    )
+    add(
+        "--flip-weight",
+        type=float,
+        default=0.0,
+        help="weight of the pure models' flipped-triangle penalty (default: 0, none)",
+    )
+    add(
+        "--flip-margin",
+        type=float,
+        default=RigAnyFaceTrainOptions.flip_margin,
+        help="cosine from which the flip penalty starts (default: %(default)s)",
+    )
+    add(
+        "--stretch-weight",
+        type=float,
+        default=0.0,
+        help="weight of the pure models' edge-stretch penalty (default: 0, none)",
+    )
+    add(
+        "--stretch-margin",
+        type=float,
+        default=RigAnyFaceTrainOptions.stretch_margin,
+        help="|log edge-length ratio| free of the stretch penalty (default: %(default)s)",
+    )
 
 
 def recipe_options(args: argparse.Namespace, name: str | None = None) -> RigAnyFaceTrainOptions:
@@ -170,6 +232,7 @@ def recipe_options(args: argparse.Namespace, name: str | None = None) -> RigAnyF
             width=args.raf_width,
             n_conditional=args.raf_conditional_blocks,
             **PURE_MODELS[name],
+            **_robust_options(args),
         )
     return dataclasses.replace(
         options,
@@ -179,6 +242,19 @@ def recipe_options(args: argparse.Namespace, name: str | None = None) -> RigAnyF
         warmup_steps=5 if quick else min(200, args.residual_steps // 10),
         max_minutes=None,
     )
+
+
+def _robust_options(args: argparse.Namespace) -> dict:
+    """The pure models' mesh-quality, warp and fine-tuning options (their defaults when the
+    parser predates them)."""
+    names = {"init_from": None, "warp_copies": 0, "warp_amplitude": 1.0,
+             "warp_proportions": 0.1, "warp_targets": "warped", "flip_weight": 0.0,
+             "flip_margin": 0.5,
+             "stretch_weight": 0.0, "stretch_margin": 0.25}  # fmt: skip
+    out = {name: getattr(args, name, default) for name, default in names.items()}
+    if out["init_from"] is not None:
+        out["init_from"] = str(out["init_from"])
+    return out
 
 
 def recipe_base(name: str) -> str | None:
@@ -202,13 +278,26 @@ def recipe_training_set(
     cache: str | Path | None = None,
     seed: int = 0,
     progress: bool = True,
+    options: RigAnyFaceTrainOptions | None = None,
 ) -> TrainingSet:
     """The training set of model ``name`` on ``dataset.train`` (``training_set`` with ``k``
     eigenvectors): the heads alone for a pure model; for a residual model also each head's
     deformation-transfer poses as the base (plain, or anchored per its mode below
-    ``ANCHOR_CM``), through ``cached_transfer(cache=, seed=)``."""
+    ``ANCHOR_CM``), through ``cached_transfer(cache=, seed=)``. ``options``: a pure model's
+    training heads are ``augmented_heads(dataset.train, options)`` (its warped copies; with
+    ``warp_targets="transfer"`` their targets anchored transfer, through ``cached_transfer``)."""
     if recipe_base(name) is None:
-        return training_set(dataset.train, dataset.poses, k=k, progress=progress)
+        heads = dataset.train if options is None else augmented_heads(dataset.train, options)
+        if options is not None and options.warp_targets == "transfer":
+            # distillation: the warped copies learn anchored transfer, not the warped truth
+            n = len(dataset.train)
+            heads = heads[:n] + [
+                dataclasses.replace(
+                    h, displacements=cached_transfer(dataset, h, cache, seed, ANCHOR_CM)
+                )
+                for h in heads[n:]
+            ]
+        return training_set(heads, dataset.poses, k=k, progress=progress)
     mode = ANCHORED_RESIDUAL_MODELS.get(name)
     base: list[Float[ArrayLike, "P _V 3"]] = [
         cached_transfer(

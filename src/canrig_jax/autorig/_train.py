@@ -45,7 +45,7 @@ from .._checkpoint import (
 from .._metrics import CM_TO_MM
 from .._sharding import data_parallel
 from ..mesh import MeshOperators, mesh_operators, pad_vertices, stack_operators
-from ._data import PoseSet, RiggedHead
+from ._data import PoseSet, RiggedHead, warped_heads
 from ._model import RigAnyFace, normalise
 
 CHECKPOINT_FORMAT = "riganyface-checkpoint-1"
@@ -74,12 +74,45 @@ RESIDUAL_CHECKPOINT_SHA256 = "4d3cce9bde900d55754d0d4c739b9e77d3b6da0e8fbdd07e4b
 LOSSES = ("squared", "euclidean")
 BALANCE_FLOOR = 1e-3
 """With ``balance_poses``: a pose's divisor is at least this fraction of the training set's."""
+WARP_TARGETS = ("warped", "transfer")
+"""``RigAnyFaceTrainOptions.warp_targets``: the warped truth, or anchored transfer
+(distillation)."""
 STATIC_CM = 0.001
 """A vertex is static in a pose when its ground-truth displacement is below 0.01 mm."""
 
 
 @dataclasses.dataclass(frozen=True)
 class RigAnyFaceTrainOptions:
+    """Options of one RigAnyFace training run (see the module docstring for the loss).
+
+    The mesh-quality terms (both 0 by default: the committed recipes):
+        flip_weight: weight of ``flip_penalty`` (triangles whose predicted normal turns
+            against the neutral's further than the truth's, or than ``flip_margin``).
+        flip_margin: the cosine (between a posed and the neutral normal) from which the
+            flip penalty starts; 0.5 = 60 degrees, -1 < margin <= 1.
+        stretch_weight: weight of ``stretch_penalty`` (edges stretched or compressed beyond
+            the truth's and beyond ``stretch_margin``).
+        stretch_margin: the |log(length / neutral length)| every edge may reach for free
+            (0.25: about 28 % stretch or 22 % compression).
+        init_from: a RigAnyFace checkpoint (training or ``export_riganyface``'s) whose weights
+            and output scale start this run (fine-tuning), instead of a fresh model of
+            ``seed``; its architecture must be these options'. None: from scratch.
+
+    Geometry beyond ICT's identity space (``augmented_heads``, applied by
+    ``recipe_training_set``; 0 copies by default):
+        warp_copies: smoothly warped copies of each training head added to the training set
+            (``warped_heads``: stylised proportions and a low-frequency displacement field,
+            the same warp on the neutral and on every posed shape).
+        warp_amplitude: standard deviation of the warp's RBF weights (cm).
+        warp_proportions: standard deviation of the log scale of each axis of the whole head
+            (twice that for the eyes, nose and mouth regions).
+        warp_radius: the RBFs' radius (cm).
+        warp_targets: what the warped copies are trained to: "warped" (the ICT truth warped
+            with the head) or "transfer" (distillation: anchored deformation transfer of the
+            generic ICT poses onto the warped head, ``transfer_poses(static_below=ANCHOR_CM)``,
+            as on a head with no ground truth).
+    """
+
     width: int = 32
     n_shared: int = 2
     n_conditional: int = 2
@@ -103,8 +136,38 @@ class RigAnyFaceTrainOptions:
     balance_poses: float = 0.0
     residual: bool = False
     residual_gate: float = 0.0
+    flip_weight: float = 0.0
+    flip_margin: float = 0.5
+    stretch_weight: float = 0.0
+    stretch_margin: float = 0.25
+    init_from: str | None = None
+    warp_copies: int = 0
+    warp_amplitude: float = 1.0
+    warp_proportions: float = 0.1
+    warp_radius: float = 8.0
+    warp_targets: str = "warped"
 
     def __post_init__(self):
+        for name in ("flip_weight", "stretch_weight", "stretch_margin"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"{name}: expected a finite value >= 0, got {value}")
+        if not -1 < self.flip_margin <= 1:
+            raise ValueError(f"flip_margin: expected a cosine in (-1, 1], got {self.flip_margin}")
+        if not isinstance(self.warp_copies, int) or self.warp_copies < 0:
+            raise ValueError(f"warp_copies: expected an int >= 0, got {self.warp_copies!r}")
+        for name in ("warp_amplitude", "warp_proportions"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"{name}: expected a finite value >= 0, got {value}")
+        if self.warp_targets not in WARP_TARGETS:
+            raise ValueError(
+                f"warp_targets: expected one of {WARP_TARGETS}, got {self.warp_targets!r}"
+            )
+        if not (np.isfinite(self.warp_radius) and self.warp_radius > 0):
+            raise ValueError(f"warp_radius: expected > 0 (cm), got {self.warp_radius}")
+        if self.init_from is not None and not isinstance(self.init_from, str):
+            raise ValueError(f"init_from: expected a path as str or None, got {self.init_from!r}")
         if self.loss not in LOSSES:
             raise ValueError(f"loss: expected one of {LOSSES}, got {self.loss!r}")
         if not self.static_weight >= 0:
@@ -127,6 +190,21 @@ class RigAnyFaceTrainOptions:
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+
+def augmented_heads(heads: list[RiggedHead], options: RigAnyFaceTrainOptions) -> list[RiggedHead]:
+    """``heads`` followed by ``options.warp_copies`` warped copies of each (``warped_heads``
+    with the options' amplitude, proportions, radius and seed); ``heads`` unchanged at 0."""
+    if not options.warp_copies:
+        return list(heads)
+    return list(heads) + warped_heads(
+        heads,
+        options.warp_copies,
+        amplitude=options.warp_amplitude,
+        proportions=options.warp_proportions,
+        radius=options.warp_radius,
+        seed=options.seed,
+    )
 
 
 def make_model(
@@ -277,6 +355,92 @@ def static_vertex_error(
     return jnp.sum(length * still) / jnp.maximum(jnp.sum(still), 1.0)
 
 
+def _face_normals(points: Float[Array, "... V 3"], faces: Int[Array, "F 3"]):
+    a, b, c = (points[..., faces[:, i], :] for i in range(3))
+    return jnp.cross(b - a, c - a)
+
+
+def _safe_norm(x: Float[Array, "... 3"]) -> Float[Array, "..."]:
+    squared = jnp.sum(x**2, axis=-1)
+    positive = squared > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, squared, 1.0)), 0.0)
+
+
+def _real_faces(vertices, faces, face_mask):
+    """(F,) 1 for a real, non-degenerate neutral triangle, else 0; and its neutral normal."""
+    n0 = _face_normals(vertices, faces)
+    area = _safe_norm(n0)
+    real = jnp.asarray(face_mask, jnp.float32) * (area > 1e-12 * jnp.max(area))
+    return real, n0, area
+
+
+def flip_penalty(
+    predicted: Float[ArrayLike, "Q V 3"],
+    truth: Float[ArrayLike, "Q V 3"],
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    face_mask: Float[ArrayLike, " F"] | Int[ArrayLike, " F"] | Bool[ArrayLike, " F"] | None = None,
+    margin: float | Float[Array, ""] = 0.5,
+) -> Float[Array, ""]:
+    """Mean over poses and real triangles of ``relu(min(c_truth, margin) - c_predicted)``,
+    where ``c`` is the cosine between a triangle's normal posed (``vertices + displacements``)
+    and at rest: how far a predicted triangle turns beyond both the truth's turn and
+    ``margin`` (a cosine; 0.5 = 60 degrees). The surface analogue of a negative
+    deformation-gradient determinant (the tangent-plane map's determinant is the area ratio
+    times that cosine), without its scale. 0 for a prediction equal to the truth and for any
+    rigid motion turning triangles by less than ``arccos(margin)``; up to ``1 + margin`` for a
+    triangle turned over. Degenerate rest triangles and padding (``face_mask`` 0) are left
+    out. Displacements and vertices in the same units (any)."""
+    predicted, truth = jnp.asarray(predicted), jnp.asarray(truth)
+    vertices, faces = jnp.asarray(vertices), jnp.asarray(faces)
+    mask = jnp.ones(faces.shape[0]) if face_mask is None else face_mask
+    real, n0, area0 = _real_faces(vertices, faces, mask)
+    area = jnp.where(real > 0, area0, 1.0)
+
+    def cosine(displacements):
+        n = _face_normals(vertices[None] + displacements, faces)  # (Q, F, 3)
+        # padding and degenerate rest triangles divide by 1 (their cosine is masked out); a
+        # collapsed posed triangle's length is floored at 1e-4 of its rest area (finite gradient)
+        length = jnp.sqrt(jnp.sum(n**2, -1) + (1e-4 * area) ** 2)
+        return jnp.sum(n * n0, axis=-1) / (length * area)
+
+    bound = jnp.minimum(jax.lax.stop_gradient(cosine(truth)), margin)
+    penalty = jax.nn.relu(bound - cosine(predicted)) * real
+    return jnp.sum(penalty) / (jnp.maximum(jnp.sum(real), 1.0) * predicted.shape[0])
+
+
+def stretch_penalty(
+    predicted: Float[ArrayLike, "Q V 3"],
+    truth: Float[ArrayLike, "Q V 3"],
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    face_mask: Float[ArrayLike, " F"] | Int[ArrayLike, " F"] | Bool[ArrayLike, " F"] | None = None,
+    margin: float | Float[Array, ""] = 0.25,
+) -> Float[Array, ""]:
+    """Mean over poses and the edges of real triangles (each triangle's three; an interior
+    edge counts twice) of ``relu(|log r_predicted| - max(|log r_truth|, margin))``, with ``r``
+    an edge's posed length over its rest length: how far an edge is stretched or compressed
+    beyond both the truth and ``margin``. 0 for a prediction equal to the truth and for any
+    rigid motion. Rest edges of zero length and padding are left out."""
+    predicted, truth = jnp.asarray(predicted), jnp.asarray(truth)
+    vertices, faces = jnp.asarray(vertices), jnp.asarray(faces)
+    mask = jnp.ones(faces.shape[0]) if face_mask is None else jnp.asarray(face_mask, jnp.float32)
+    tails = jnp.concatenate([faces[:, 0], faces[:, 1], faces[:, 2]])
+    heads = jnp.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])
+    rest = _safe_norm(vertices[heads] - vertices[tails])
+    real = jnp.tile(mask, 3) * (rest > 1e-9 * jnp.max(rest))
+    rest = jnp.where(real > 0, rest, 1.0)
+
+    def log_ratio(displacements):
+        x = vertices[None] + displacements
+        length = jnp.sqrt(jnp.sum((x[:, heads] - x[:, tails]) ** 2, -1) + 1e-30)
+        return jnp.abs(jnp.log(length / rest))
+
+    bound = jnp.maximum(jax.lax.stop_gradient(log_ratio(truth)), margin)
+    penalty = jax.nn.relu(log_ratio(predicted) - bound) * real
+    return jnp.sum(penalty) / (jnp.maximum(jnp.sum(real), 1.0) * predicted.shape[0])
+
+
 def batch_loss(
     model: RigAnyFace,
     data: TrainingSet,
@@ -287,8 +451,14 @@ def batch_loss(
     loss_kind: str = "squared",
     static_weight: float | Float[Array, ""] = 0.0,
     balance_poses: float = 0.0,
+    quality: tuple[float, float, float, float] = (0.0, 0.5, 0.0, 0.25),
 ) -> tuple[Float[Array, ""], Float[Array, ""]]:
-    """Loss and mean vertex error (unit-sphere units) of ``heads`` (B,) x ``poses`` (B, Q)."""
+    """Loss and mean vertex error (unit-sphere units) of ``heads`` (B,) x ``poses`` (B, Q).
+
+    ``quality``: (flip_weight, flip_margin, stretch_weight, stretch_margin) of the mesh-quality
+    terms (``flip_penalty``, ``stretch_penalty``; Python floats: a zero weight leaves its term
+    out of the computation)."""
+    flip_weight, flip_margin, stretch_weight, stretch_margin = quality
 
     def one(h, pose_ids):
         ops = jax.tree.map(lambda x: x[h], data.operators)
@@ -303,6 +473,15 @@ def batch_loss(
         root = jnp.sqrt(reference)
         # mean predicted motion where the truth is still, over the loss's own scale
         static = static_vertex_error(predicted, truth, mask, STATIC_CM / data.scale[h]) / root
+        terms_quality = 0.0
+        if flip_weight:
+            terms_quality = terms_quality + flip_weight * flip_penalty(
+                predicted, truth, data.vertices[h], ops.faces, ops.face_mask, flip_margin
+            )
+        if stretch_weight:
+            terms_quality = terms_quality + stretch_weight * stretch_penalty(
+                predicted, truth, data.vertices[h], ops.faces, ops.face_mask, stretch_margin
+            )
         if loss_kind == "squared":
             per_vertex, scale = squared, reference
         else:
@@ -319,13 +498,14 @@ def batch_loss(
             divisor = jnp.maximum(terms(size), BALANCE_FLOOR * scale)
             if balance_poses != 1:
                 divisor = scale ** (1 - balance_poses) * divisor**balance_poses
-            return jnp.mean(terms(per_vertex) / divisor) + static_weight * static, distance
+            fit = jnp.mean(terms(per_vertex) / divisor)
+            return fit + static_weight * static + terms_quality, distance
         # the balanced branch's mean with every divisor = scale, summed in the order the committed
         # checkpoints were trained with, so their commands regenerate them bit for bit
         vertex_term = jnp.sum(per_vertex * mask) / (jnp.sum(mask) * squared.shape[0])
         landmark_term = jnp.mean(per_vertex[:, data.landmarks[h]])
         fit = (vertex_term + landmark_weight * landmark_term) / scale
-        return fit + static_weight * static, distance
+        return fit + static_weight * static + terms_quality, distance
 
     loss, distance = jax.vmap(one)(heads, poses)
     return jnp.mean(loss), jnp.mean(distance)
@@ -344,6 +524,7 @@ def train_step(
     loss_kind: str = "squared",
     static_weight: float | Float[Array, ""] = 0.0,
     balance_poses: float = 0.0,
+    quality: tuple[float, float, float, float] = (0.0, 0.5, 0.0, 0.25),
 ) -> tuple[RigAnyFace, PyTree, Float[Array, ""], Float[Array, ""]]:
     (loss, distance), grads = eqx.filter_value_and_grad(batch_loss, has_aux=True)(
         model,
@@ -355,6 +536,7 @@ def train_step(
         loss_kind,
         static_weight,
         balance_poses,
+        quality,
     )
     updates, opt_state = optim.update(grads, opt_state, eqx.filter(model, eqx.is_array))
     return eqx.apply_updates(model, updates), opt_state, loss, distance
@@ -442,10 +624,14 @@ def train_riganyface(
     reference = mean_square_displacement(data)
     optim = optimiser(options)
 
+    initial = _initial_model(options, poses)
+    # a fine-tuned model keeps the output scale of the model it starts from
+    start_scale = float(np.sqrt(reference)) if initial is None else initial[1]
+
     def init(header):
         # a resumed model keeps the output scale it was built with
-        scale = header.get("output_scale", float(np.sqrt(reference)))
-        model = make_model(options, poses.n_basis, scale)
+        scale = header.get("output_scale", start_scale)
+        model = make_model(options, poses.n_basis, scale) if initial is None else initial[0]
         return model, optim.init(eqx.filter(model, eqx.is_array))
 
     run = resume_training(
@@ -454,7 +640,7 @@ def train_riganyface(
     header = {
         "options": options.to_dict(),
         "poses": poses.to_dict(),
-        "output_scale": run.header.get("output_scale", float(np.sqrt(reference))),
+        "output_scale": run.header.get("output_scale", start_scale),
         "reference": reference,
     }
     data, run.tree = placement.replicate((data, run.tree))
@@ -477,6 +663,30 @@ def train_riganyface(
     )
 
 
+ARCHITECTURE_FIELDS = ("width", "n_shared", "n_conditional", "global_size", "global_width",
+                       "k", "method", "stem_method", "residual", "residual_gate")  # fmt: skip
+"""The options that define a RigAnyFace network's structure (``init_from`` must match them)."""
+
+
+def _initial_model(options: RigAnyFaceTrainOptions, poses: PoseSet):
+    """(model, output scale) of ``options.init_from``, or None."""
+    if options.init_from is None:
+        return None
+    if not os.path.isfile(options.init_from):
+        raise ValueError(f"init_from: no such file {options.init_from!r}")
+    model, their_poses, state = load_riganyface(options.init_from)
+    theirs = state["options"]
+    differ = [f for f in ARCHITECTURE_FIELDS if theirs.get(f) != getattr(options, f)]
+    if differ:
+        raise ValueError(
+            f"init_from: {options.init_from} was built with other "
+            + ", ".join(f"{f}={theirs.get(f)!r} (options: {getattr(options, f)!r})" for f in differ)
+        )
+    if their_poses != poses:
+        raise ValueError(f"init_from: {options.init_from} has another pose set")
+    return model, float(state["output_scale"])
+
+
 def _check_training_inputs(data: TrainingSet, poses: PoseSet, options: RigAnyFaceTrainOptions):
     if data.poses.shape[0] != poses.n_poses:
         raise ValueError(f"data: {data.poses.shape[0]} poses, the pose set {poses.n_poses}")
@@ -490,6 +700,15 @@ def _check_training_inputs(data: TrainingSet, poses: PoseSet, options: RigAnyFac
         raise ValueError(
             f"poses_per_step: {options.poses_per_step} exceeds the {poses.n_poses} poses"
         )
+
+
+def _quality(options: RigAnyFaceTrainOptions) -> tuple[float, float, float, float]:
+    return (
+        float(options.flip_weight),
+        float(options.flip_margin),
+        float(options.stretch_weight),
+        float(options.stretch_margin),
+    )
 
 
 def _step_function(data, poses, options, optim, reference: float, placement):
@@ -523,6 +742,7 @@ def _step_function(data, poses, options, optim, reference: float, placement):
             options.loss,
             static_weight,
             options.balance_poses,
+            _quality(options),
         )
         metrics = {"loss": loss, "error_unit": distance, "error_mm": distance * mm_per_unit}
         return (model, opt_state), metrics
