@@ -15,7 +15,9 @@ RESULTS = Path(__file__).resolve().parents[2] / "experiments" / "results"
 FOLDERS = sorted(
     p.name
     for p in RESULTS.glob("autorig*")
-    if (p / "results.json").is_file() and (p / "table.md").is_file() and p.name != "autorig_2d"
+    if (p / "results.json").is_file()
+    and (p / "table.md").is_file()
+    and p.name not in ("autorig_2d", "autorig_robust")  # their own tables
 )
 
 
