@@ -235,15 +235,7 @@ def _temporal_table(cases: dict[str, dict]) -> str:
         text += (
             "### ict: the validation curve (frames "
             f"{ict['validation_frames'][0]}-{ict['validation_frames'][1]})\n\n"
-            "| smoothness (cm^2) | validation rmse_mm | / per-frame | roughness |\n"
-            "|---|---|---|---|\n"
-        )
-        base = next(r for r in ict["validation_curve"] if r["smoothness"] == 0)["rmse_mean_mm"]
-        for r in ict["validation_curve"]:
-            text += (
-                f"| {r['smoothness']:g} | {r['rmse_mean_mm']:.4g} | "
-                f"{r['rmse_mean_mm'] / base:.3f} | {r['roughness']:.4g} |\n"
-            )
+        ) + _curve_table(ict["validation_curve"])
         text += f"\nChosen: {ict['smoothness_cm2']:g} cm^2.\n\n"
     for name, case in cases.items():
         p = case["protocol"]
@@ -300,15 +292,8 @@ def _split_table(cases: dict[str, dict], rule: str) -> str:
         f"Chosen smoothness: {ict['smoothness_cm2']:g} cm^2 (ICT validation half, frames "
         f"{ict['validation_frames'][0]}-{ict['validation_frames'][1]}).\n\n"
         "### ict: the validation curve (validation half)\n\n"
-        "| smoothness (cm^2) | validation rmse_mm | / per-frame | roughness |\n"
-        "|---|---|---|---|\n"
-    )
+    ) + _curve_table(ict["validation_curve"])
     base = next(r for r in ict["validation_curve"] if r["smoothness"] == 0)["rmse_mean_mm"]
-    for r in ict["validation_curve"]:
-        text += (
-            f"| {r['smoothness']:g} | {r['rmse_mean_mm']:.4g} | {r['rmse_mean_mm'] / base:.3f} "
-            f"| {r['roughness']:.4g} |\n"
-        )
     best = min(ict["validation_curve"], key=lambda r: r["rmse_mean_mm"])
     chosen = next(r for r in ict["validation_curve"] if r["smoothness"] == ict["smoothness_cm2"])
     text += (
@@ -335,4 +320,18 @@ def _split_table(cases: dict[str, dict], rule: str) -> str:
         "ms_per_frame: one timed run after compilation, the machine's two cores shared with "
         "other jobs.\n"
     )
+    return text
+
+
+def _curve_table(curve: list[dict]) -> str:
+    """The validation curve as a table: smoothness, RMSE, its ratio to no smoothing's."""
+    base = next(r for r in curve if r["smoothness"] == 0)["rmse_mean_mm"]
+    text = (
+        "| smoothness (cm^2) | validation rmse_mm | / per-frame | roughness |\n|---|---|---|---|\n"
+    )
+    for r in curve:
+        text += (
+            f"| {r['smoothness']:g} | {r['rmse_mean_mm']:.4g} | {r['rmse_mean_mm'] / base:.3f} "
+            f"| {r['roughness']:.4g} |\n"
+        )
     return text
