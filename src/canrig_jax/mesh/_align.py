@@ -72,24 +72,88 @@ def similarity_icp(
     if not 0 < trim <= 1:
         raise ValueError(f"trim: expected a fraction in (0, 1], got {trim}")
     tv, tf = check_mesh(target_vertices, target_faces)
-    scale, rotation = 1.0, np.eye(3)
     translation = tv[np.argmax(tv[:, 2])] - points[np.argmax(points[:, 2])]
+    start = (1.0, np.eye(3), translation)
+    done = 0
+    if points.shape[0] >= 2 * ICP_COARSE_POINTS:  # converge on a subsample, then refine
+        coarse = points[:: points.shape[0] // ICP_COARSE_POINTS]
+        *start, _, done = _icp(coarse, tv, tf, start, trim, iterations, tolerance, with_scale)
+    scale, rotation, translation, rms, more = _icp(
+        points, tv, tf, start, trim, max(iterations - done, 1), tolerance, with_scale
+    )
+    return SimilarityFit(float(scale), rotation, np.asarray(translation), rms, done + more)
+
+
+ICP_COARSE_POINTS = 400
+"""``similarity_icp`` of more than twice this many points first converges on a regular
+subsample of about this many, then refines on all of them (most alternations are then cheap)."""
+
+
+ICP_MEMORY = 5
+"""Alternations ``similarity_icp`` extrapolates from (Anderson acceleration)."""
+
+
+def _icp(points, tv, tf, start, trim, iterations, tolerance, with_scale):
+    """Trimmed ICP alternations from ``start`` (scale, rotation, translation), Anderson-
+    accelerated on the transform's parameters (Pavlov et al. 2018, AA-ICP): the next
+    transform extrapolates the last ``ICP_MEMORY`` alternations; one that raises the kept RMS
+    is replaced by the plain alternation. Returns (scale, rotation, translation, kept RMS,
+    alternations run)."""
     keep = max(3, int(round(trim * points.shape[0])))
-    rms, previous, done = np.inf, np.inf, 0
+    radius = float(np.linalg.norm(points - points.mean(0), axis=1).max())
+    x = _transform_params(*start, radius)
+    xs, gs = [], []  # accepted parameters and their plain alternations
+    best_rms, best, done = np.inf, None, 0
     for done in range(1, iterations + 1):  # noqa: B007 (reported after the loop)
-        moved = scale * points @ rotation.T + translation
-        found = closest_surface_points(moved, tv, tf)
+        scale, rotation, translation = _params_transform(x, radius)
+        found = closest_surface_points(scale * points @ rotation.T + translation, tv, tf)
         closest = np.einsum("nk,nkd->nd", found.barycentric, tv[tf[found.triangle]])
         kept = np.argsort(found.distance)[:keep]
         rms = float(np.sqrt(np.mean(found.distance[kept] ** 2)))
+        if rms > best_rms and xs:  # the extrapolation went uphill: the plain step instead
+            xs, gs = [], []
+            x = best[1]
+            continue
         s, rotation, translation = similarity_transform(points[kept], closest[kept])
-        scale = s if with_scale else 1.0
         if not with_scale:
+            s = 1.0
             translation = closest[kept].mean(0) - rotation @ points[kept].mean(0)
-        if abs(previous - rms) <= tolerance * max(rms, 1e-30):
+        g = _transform_params(s, rotation, translation, radius)
+        converged = abs(best_rms - rms) <= tolerance * max(rms, 1e-30)
+        best_rms, best = rms, (x, g)
+        if converged:
             break
-        previous = rms
-    return SimilarityFit(float(scale), rotation, np.asarray(translation), rms, done)
+        xs, gs = (xs + [x])[-ICP_MEMORY - 1 :], (gs + [g])[-ICP_MEMORY - 1 :]
+        x = _anderson(np.array(xs), np.array(gs))
+    scale, rotation, translation = _params_transform(best[1], radius)
+    return scale, rotation, translation, best_rms, done
+
+
+def _anderson(xs, gs):
+    """The Anderson (type II) extrapolation of fixed-point iterates ``xs`` (m, 7) with their
+    images ``gs`` (m, 7): the plain image when there is one iterate."""
+    if len(xs) < 2:
+        return gs[-1]
+    f = gs - xs
+    df, dg = np.diff(f, axis=0).T, np.diff(gs, axis=0).T
+    gamma = np.linalg.lstsq(df, f[-1], rcond=None)[0]
+    return gs[-1] - dg @ gamma
+
+
+def _transform_params(scale, rotation, translation, radius):
+    """(7,) a similarity as (log scale, rotation vector) times ``radius`` and translation:
+    every entry a distance, so the extrapolation weighs them alike."""
+    from scipy.spatial.transform import Rotation
+
+    rotvec = Rotation.from_matrix(rotation).as_rotvec()
+    return np.concatenate([[np.log(scale) * radius], rotvec * radius, translation])
+
+
+def _params_transform(x, radius):
+    from scipy.spatial.transform import Rotation
+
+    rotation = Rotation.from_rotvec(x[1:4] / radius).as_matrix()
+    return float(np.exp(x[0] / radius)), rotation, x[4:]
 
 
 def fit_landmarks(
@@ -103,6 +167,7 @@ def fit_landmarks(
     trim: float = 0.9,
     max_rms: float | None = None,
     max_scale_ratio: float = 2.0,
+    tolerance: float = 1e-6,
 ) -> tuple[Int[np.ndarray, " L"], SimilarityFit]:
     """A template's landmarks placed on a new head: trimmed-ICP similarity of the template's
     ``source_region`` vertices onto the target, then each transformed landmark snapped to the
@@ -119,6 +184,9 @@ def fit_landmarks(
             converges to a wrong fit at 1.8 %: refused).
         max_scale_ratio: refuse a fit whose scale is outside [1 / ratio, ratio]: the head is
             then in other units than the template (e.g. metres or decimetres for cm).
+        tolerance: ``similarity_icp``'s stopping fraction. Looser than its default: the
+            landmarks are snapped to vertices, and ICP's last slow alternations move them
+            by a small fraction of an edge.
 
     Returns:
         ((L,) target vertex indices, the ``SimilarityFit``).
@@ -136,7 +204,7 @@ def fit_landmarks(
     points = sv[region]
     if points.shape[0] > 4000:  # a regular subsample keeps the fit fast
         points = points[:: int(np.ceil(points.shape[0] / 4000))]
-    fit = similarity_icp(points, tv, tf, trim=trim)
+    fit = similarity_icp(points, tv, tf, trim=trim, tolerance=tolerance)
     size = float(np.linalg.norm(points.max(0) - points.min(0)))
     limit = 0.012 * size if max_rms is None else float(max_rms)
     if not np.isfinite(fit.rms) or fit.rms > limit:

@@ -17,7 +17,9 @@ ground-truth rig (``canrig_jax.rig.remesh_rig``). By construction
 ``map.carry(original_vertices)`` equals the new vertices.
 """
 
+import collections
 import dataclasses
+import hashlib
 
 import numpy as np
 import scipy.sparse as sp
@@ -118,25 +120,69 @@ def _closest_on_triangles(p, a, b, c):
     )
     va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
     safe = lambda x: np.where(np.abs(x) > 1e-300, x, 1e-300)  # noqa: E731
-    denom = safe(va + vb + vc)
-    v, w = vb / denom, vc / denom
-    bary = np.stack([1 - v - w, v, w], axis=-1)
-
-    def put(mask, values):
-        bary[mask] = values[mask]
-
-    zero = np.zeros_like(d1)
-    w_bc = (d4 - d3) / safe((d4 - d3) + (d5 - d6))
-    put((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), np.stack([zero, 1 - w_bc, w_bc], -1))
-    w_ac = d2 / safe(d2 - d6)
-    put((vb <= 0) & (d2 >= 0) & (d6 <= 0), np.stack([1 - w_ac, zero, w_ac], -1))
-    put((d6 >= 0) & (d5 <= d6), np.stack([zero, zero, zero + 1], -1))
-    v_ab = d1 / safe(d1 - d3)
-    put((vc <= 0) & (d1 >= 0) & (d3 <= 0), np.stack([1 - v_ab, v_ab, zero], -1))
-    put((d3 >= 0) & (d4 <= d3), np.stack([zero, zero + 1, zero], -1))
-    put((d1 <= 0) & (d2 <= 0), np.stack([zero + 1, zero, zero], -1))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = safe(va + vb + vc)
+        v, w = vb / denom, vc / denom
+        w_bc = (d4 - d3) / safe((d4 - d3) + (d5 - d6))
+        w_ac = d2 / safe(d2 - d6)
+        v_ab = d1 / safe(d1 - d3)
+    # the Voronoi region of each closest point, the first that holds (vertex regions first)
+    regions = [
+        (d1 <= 0) & (d2 <= 0),  # vertex a
+        (d3 >= 0) & (d4 <= d3),  # vertex b
+        (vc <= 0) & (d1 >= 0) & (d3 <= 0),  # edge ab
+        (d6 >= 0) & (d5 <= d6),  # vertex c
+        (vb <= 0) & (d2 >= 0) & (d6 <= 0),  # edge ac
+        (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),  # edge bc
+    ]
+    bary = np.stack(
+        [
+            np.select(regions, [1.0, 0.0, 1 - v_ab, 0.0, 1 - w_ac, 0.0], 1 - v - w),
+            np.select(regions, [0.0, 1.0, v_ab, 0.0, 0.0, 1 - w_bc], v),
+            np.select(regions, [0.0, 0.0, 0.0, 1.0, w_ac, w_bc], w),
+        ],
+        axis=-1,
+    )
     bary = np.clip(np.nan_to_num(bary, nan=1.0 / 3.0), 0.0, 1.0)
     return bary / bary.sum(axis=-1, keepdims=True)
+
+
+@dataclasses.dataclass(frozen=True)
+class _SurfaceIndex:
+    """What closest-point queries on one mesh share: KD-trees of its triangle centroids and
+    vertices, and each vertex's incident triangles (V, width), padded with -1."""
+
+    centroids: KDTree
+    vertices: KDTree
+    ring: Int[np.ndarray, "V W"]
+
+
+_INDEXES: collections.OrderedDict[bytes, _SurfaceIndex] = collections.OrderedDict()
+_INDEXES_KEPT = 8
+
+
+def _build_index(vertices: np.ndarray, faces: np.ndarray) -> _SurfaceIndex:
+    order = np.argsort(faces.ravel(), kind="stable")
+    corner_vertex = faces.ravel()[order]
+    degree = np.bincount(corner_vertex, minlength=vertices.shape[0])
+    starts = np.concatenate([[0], np.cumsum(degree)[:-1]])
+    slot = np.arange(order.size) - np.repeat(starts, degree)
+    ring = np.full((vertices.shape[0], max(int(degree.max()), 1)), -1, np.int64)
+    ring[corner_vertex, slot] = order // 3
+    return _SurfaceIndex(KDTree(vertices[faces].mean(axis=1)), KDTree(vertices), ring)
+
+
+def _surface_index(vertices: np.ndarray, faces: np.ndarray) -> _SurfaceIndex:
+    """The mesh's ``_SurfaceIndex``, built once per mesh content and kept for the last
+    ``_INDEXES_KEPT`` meshes (an iterative fit queries the same surface many times)."""
+    digest = hashlib.blake2b(vertices.tobytes(), digest_size=16)
+    digest.update(faces.tobytes())
+    key = digest.digest() + repr((vertices.shape, faces.shape)).encode()
+    index = _INDEXES.pop(key, None) or _build_index(vertices, faces)
+    _INDEXES[key] = index
+    while len(_INDEXES) > _INDEXES_KEPT:
+        _INDEXES.popitem(last=False)
+    return index
 
 
 def closest_surface_points(
@@ -150,27 +196,19 @@ def closest_surface_points(
 
     Candidates are the ``n_candidates`` triangles with the nearest centroids plus every
     triangle at the nearest vertex; exact when the closest triangle is among them (always,
-    in practice, for meshes of comparable or finer resolution than the query spacing).
+    in practice, for meshes of comparable or finer resolution than the query spacing). The
+    mesh's search trees are kept for the next query on the same mesh.
     """
     points = np.asarray(points, np.float64).reshape(-1, 3)
     vertices, faces = check_mesh(vertices, faces)
+    index = _surface_index(vertices, faces)
     n_candidates = min(n_candidates, faces.shape[0])
-    centroids = vertices[faces].mean(axis=1)
-    _, near = KDTree(centroids).query(points, k=n_candidates)
+    _, near = index.centroids.query(points, k=n_candidates)
     near = near.reshape(points.shape[0], -1)
     # Triangles at the nearest vertex (padded with the nearest centroid's triangle).
-    _, nearest_vertex = KDTree(vertices).query(points)
-    incidence = sp.csr_matrix(
-        (np.ones(faces.size), (faces.ravel(), np.repeat(np.arange(faces.shape[0]), 3))),
-        shape=(vertices.shape[0], faces.shape[0]),
-    )
-    degree = np.diff(incidence.indptr)
-    width = int(degree.max())
-    ring = np.repeat(near[:, :1], width, axis=1)
-    starts = incidence.indptr[nearest_vertex]
-    for j in range(width):
-        has = degree[nearest_vertex] > j
-        ring[has, j] = incidence.indices[starts[has] + j]
+    _, nearest_vertex = index.vertices.query(points)
+    ring = index.ring[nearest_vertex]
+    ring = np.where(ring >= 0, ring, near[:, :1])
     candidates = np.concatenate([near, ring], axis=1)  # (N, C)
     tri = vertices[faces[candidates]]  # (N, C, 3 corners, 3)
     query = np.broadcast_to(points[:, None, :], candidates.shape + (3,))
