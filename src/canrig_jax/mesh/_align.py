@@ -58,6 +58,10 @@ def similarity_icp(
 ) -> SimilarityFit:
     """Trimmed ICP of ``source_points`` (N, 3) onto the target surface.
 
+    The alternations (closest points, then the best similarity to them) are Anderson-
+    accelerated (``_icp``); more than ``2 * ICP_COARSE_POINTS`` points first converge on a
+    regular subsample, then refine on all of them.
+
     Args:
         trim: fraction of closest-point pairs kept at each iteration (0 < trim <= 1).
         iterations: at most this many alternations.
@@ -167,7 +171,6 @@ def fit_landmarks(
     trim: float = 0.9,
     max_rms: float | None = None,
     max_scale_ratio: float = 2.0,
-    tolerance: float = 1e-6,
 ) -> tuple[Int[np.ndarray, " L"], SimilarityFit]:
     """A template's landmarks placed on a new head: trimmed-ICP similarity of the template's
     ``source_region`` vertices onto the target, then each transformed landmark snapped to the
@@ -184,9 +187,6 @@ def fit_landmarks(
             converges to a wrong fit at 1.8 %: refused).
         max_scale_ratio: refuse a fit whose scale is outside [1 / ratio, ratio]: the head is
             then in other units than the template (e.g. metres or decimetres for cm).
-        tolerance: ``similarity_icp``'s stopping fraction. Looser than its default: the
-            landmarks are snapped to vertices, and ICP's last slow alternations move them
-            by a small fraction of an edge.
 
     Returns:
         ((L,) target vertex indices, the ``SimilarityFit``).
@@ -204,7 +204,7 @@ def fit_landmarks(
     points = sv[region]
     if points.shape[0] > 4000:  # a regular subsample keeps the fit fast
         points = points[:: int(np.ceil(points.shape[0] / 4000))]
-    fit = similarity_icp(points, tv, tf, trim=trim, tolerance=tolerance)
+    fit = similarity_icp(points, tv, tf, trim=trim)
     size = float(np.linalg.norm(points.max(0) - points.min(0)))
     limit = 0.012 * size if max_rms is None else float(max_rms)
     if not np.isfinite(fit.rms) or fit.rms > limit:
