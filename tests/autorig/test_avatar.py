@@ -12,6 +12,7 @@ second; the real rig runs on both Rocketbox FBX bodies.
 
 from __future__ import annotations
 
+import copy
 import json
 import shutil
 import struct
@@ -201,7 +202,7 @@ def build_avatar(path, data_dir, *, head_name="Head", extra_head=False, grid=0):
     times = glb.add(np.array([[0.0], [1.0]], np.float32), 5126, "SCALAR", True)
     turn = glb.add(np.array([[0, 0, 0, 1], [0, 0.2588, 0, 0.9659]], np.float32), 5126, "VEC4")
     image_view = glb.raw(_png())
-    roots = [0] + [i for i, n in enumerate(nodes) if n["name"].endswith("Mesh")]
+    roots = [0] + [i for i, n in enumerate(nodes) if n["name"].endswith(("Mesh", "Spare Head"))]
     document = {
         "asset": {"version": "2.0", "generator": "canrig_jax tests"},
         "scene": 0,
@@ -366,6 +367,36 @@ def test_whole_avatar_rigged_in_place_everything_else_kept(avatar_file, stand_in
         np.testing.assert_allclose(got, want, atol=1e-4)
         np.testing.assert_array_equal(world_cm[:, ~moving], 0.0)
     _validate(tmp_path / "out.glb")
+
+
+def test_only_the_default_scene_is_rigged_and_every_scene_kept(
+    tmp_path, data_dir, stand_in
+):
+    """A file of two scenes: the head and face meshes of the default scene are rigged (a second
+    scene's head is not "another head", its meshes get no targets) and the scenes stay."""
+    build_avatar(tmp_path / "two.glb", data_dir, extra_head=True)
+    avatar = read_gltf_avatar(tmp_path / "two.glb")
+    document = avatar.document
+    spare = next(i for i, n in enumerate(document["nodes"]) if n["name"] == "Spare Head")
+    body = next(i for i, m in enumerate(document["meshes"]) if m["name"] == "Body")
+    document["nodes"][spare]["mesh"] = len(document["meshes"])  # a face-sized box of its own
+    document["meshes"].append(copy.deepcopy(document["meshes"][body]) | {"name": "SpareFace"})
+    document["scenes"][0]["nodes"].remove(spare)
+    document["scenes"].append({"name": "spare", "nodes": [spare]})
+    write_gltf_avatar(avatar, tmp_path / "scenes.glb")
+    said = []
+    result = autorig.auto_rig_avatar(tmp_path / "scenes.glb", tmp_path / "out.glb",
+                                     progress=said.append)  # fmt: skip
+    assert result.head_node == HEAD_NODE
+    assert result.head_meshes == ("HeadSkin", "EyeLeft", "EyeRight")
+    assert any("2 scenes" in line and "default scene (scene 0)" in line for line in said)
+    out = read_gltf_avatar(tmp_path / "out.glb").document
+    assert out["scenes"] == document["scenes"]
+    assert "targets" not in out["meshes"][-1]["primitives"][0]
+    # the spare scene made the default: its head is the one found, and it has no face
+    document["scene"] = 1
+    write_gltf_avatar(avatar, tmp_path / "spare.glb")
+    assert autorig.find_head_node(read_gltf_avatar(tmp_path / "spare.glb")) == spare
 
 
 def test_a_face_rig_failing_a_hard_check_is_flagged_or_with_strict_not_written(

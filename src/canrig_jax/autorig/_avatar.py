@@ -42,6 +42,7 @@ from ..rig import (
     with_extra_shapes,
     write_gltf_avatar,
 )
+from ..rig._gltf_avatar import scene_nodes
 from ._any_head import auto_rig, check_auto_rig
 from ._rig_checks import RigCheck, failed_hard_checks
 
@@ -125,7 +126,12 @@ def find_head_node(avatar: GltfAvatar) -> int | None:
         return int(stated)
     joints = {j for skin in document.get("skins", []) for j in skin.get("joints", [])}
     nodes = document.get("nodes", [])
-    named = [i for i, n in enumerate(nodes) if _HEAD_NAME.search(n.get("name", "").strip())]
+    in_scene = scene_nodes(document)
+    named = [
+        i
+        for i, n in enumerate(nodes)
+        if i in in_scene and _HEAD_NAME.search(n.get("name", "").strip())
+    ]
     if len(named) > 1 and joints:
         named = [i for i in named if i in joints] or named
     tops = [i for i in named if not any(i in node_descendants(document, j) - {j} for j in named)]
@@ -293,6 +299,12 @@ def auto_rig_avatar(
     if head is None and standing_body(source):
         found = "no head bone: the head of a standing body, by geometry"
     say(f"{found}; face meshes {list(mesh_names)}: {sum(int(m.sum()) for _, m in chosen)} vertices")
+    if len(document.get("scenes", [])) > 1:
+        say(
+            f"the file has {len(document['scenes'])} scenes: its default scene (scene "
+            f"{int(document.get('scene', 0))}) is rigged; meshes only in the others are kept "
+            "as they are"
+        )
     seconds = {"read": time.perf_counter() - start}
     parts, faces, offset = [], [], 0
     for vertices, mask in chosen:

@@ -166,6 +166,16 @@ def node_descendants(document: dict, root: int) -> set[int]:
     return out
 
 
+def scene_nodes(document: dict) -> set[int]:
+    """The nodes of the document's default scene (``scene``, else the first of ``scenes``)
+    and every node below them; every node when the document has no scene."""
+    scenes = document.get("scenes", [])
+    if not scenes:
+        return set(range(len(document.get("nodes", []))))
+    roots = scenes[int(document.get("scene", 0))].get("nodes", [])
+    return set().union(*(node_descendants(document, r) for r in roots))
+
+
 @dataclasses.dataclass(frozen=True)
 class MeshVertices:
     """One glTF mesh's vertices (each POSITION accessor once) in the world at bind time.
@@ -220,12 +230,14 @@ def _pad(columns: np.ndarray, width: int) -> np.ndarray:
 
 
 def mesh_vertices(avatar: GltfAvatar) -> list[MeshVertices]:
-    """Every instanced mesh's vertices in the world at bind time (``MeshVertices``)."""
+    """Every mesh the default scene instances (``scene_nodes``), its vertices in the world at
+    bind time (``MeshVertices``)."""
     document = avatar.document
     world_nodes = node_world_matrices(document)
+    in_scene = scene_nodes(document)
     first_node: dict[int, int] = {}
     for i, node in enumerate(document.get("nodes", [])):
-        if "mesh" in node:
+        if "mesh" in node and i in in_scene:
             first_node.setdefault(node["mesh"], i)
     out = []
     for m, n in sorted(first_node.items()):
