@@ -92,7 +92,7 @@ def test_help(command, capsys):
         assert "--method {transfer,raf,transfer-residual}" in text and "--examples" in text
         from canrig_jax.autorig import DEFAULT_METHOD
 
-        assert f"(default: {DEFAULT_METHOD})" in " ".join(text.split())
+        assert f"(default: {DEFAULT_METHOD.name})" in " ".join(text.split())
         assert "--names {arkit,ict}" in text and "--up" in text and "--forward" in text
 
 
