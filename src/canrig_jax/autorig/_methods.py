@@ -63,7 +63,8 @@ class PoseDisplacements(NamedTuple):
     """What a method returns: every pose on the upright head.
 
     Attributes:
-        displacements: (P, V, 3) float64, centimetres, in the convention's frame.
+        displacements: (P, V, 3) centimetres, in the convention's frame (float32 or float64,
+            as the method computes them).
         poses: the ``PoseSet`` (the first A poses single shapes, the rest combinations that
             become correctives), or None for a linear rig of ``names`` (P = A).
         names: the A single shapes' names in the method's own convention (ICT's
@@ -220,7 +221,7 @@ class AbstractNetworkMethod(AbstractAutoRigMethod):
         return network, poses
 
     def loaded(self) -> "AbstractNetworkMethod":
-        return type(self)(model=self.network())
+        return dataclasses.replace(self, model=self.network())
 
     def generate(
         self,
