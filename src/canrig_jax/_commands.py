@@ -235,7 +235,7 @@ def _autorig_method_class(args):
     from . import autorig
 
     if args.method is None:
-        args.method = "transfer" if args.template else autorig.DEFAULT_METHOD.name
+        args.method = autorig.Transfer.name if args.template else autorig.DEFAULT_METHOD.name
     method_class = getattr(autorig, AUTORIG_METHODS[args.method])
     model_path = None
     if issubclass(method_class, autorig.AbstractNetworkMethod):

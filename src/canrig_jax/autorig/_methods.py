@@ -93,7 +93,7 @@ class AbstractAutoRigMethod(eqx.Module):
     @abc.abstractmethod
     def displacements(self, head: UprightHead, dataset: AutorigDataset | None) -> PoseDisplacements:
         """Every pose on ``head`` (centimetres, the convention's frame). ``dataset``: the ICT
-        source (None only for a method that does not ``need_landmarks``)."""
+        source (None only for a method that does not ``needs_landmarks``)."""
 
     def loaded(self) -> "AbstractAutoRigMethod":
         """This method with what it reads from disk read once (a network's checkpoint), for
@@ -164,7 +164,7 @@ class Transfer(AbstractAutoRigMethod):
         )
 
 
-Model = tuple[RigAnyFace, PoseSet] | str | os.PathLike | None
+NetworkModel = tuple[RigAnyFace, PoseSet] | str | os.PathLike | None
 """A network method's ``model``: a loaded ``(RigAnyFace, PoseSet)`` (``load_riganyface(path)[:2]``),
 a checkpoint's path, or None for the packaged model."""
 
@@ -179,7 +179,7 @@ class AbstractNetworkMethod(AbstractAutoRigMethod):
             anchored transfer (the model's own ``residual`` must agree).
     """
 
-    model: AbstractVar[Model]
+    model: AbstractVar[NetworkModel]
     checkpoint: AbstractClassVar[Path]
     residual: AbstractClassVar[bool]
 
@@ -314,7 +314,7 @@ class RigAnyFaceNetwork(AbstractNetworkMethod):
             (``DEFAULT_CHECKPOINT``).
     """
 
-    model: Model = None
+    model: NetworkModel = None
     name: ClassVar[str] = "raf"
     needs_landmarks: ClassVar[bool] = False
     checkpoint: ClassVar[Path] = DEFAULT_CHECKPOINT
@@ -333,7 +333,7 @@ class TransferResidual(AbstractNetworkMethod):
             packaged residual model (``RESIDUAL_CHECKPOINT``).
     """
 
-    model: Model = None
+    model: NetworkModel = None
     name: ClassVar[str] = "transfer-residual"
     needs_landmarks: ClassVar[bool] = True
     checkpoint: ClassVar[Path] = RESIDUAL_CHECKPOINT
