@@ -10,15 +10,16 @@ process, median over ``--repeats``:
   gradients): what every new head costs before the network runs;
 - **operators, from the disk cache** (the same head again, ``cache=`` a folder): against
   computing them;
-- **orientation check** (``head_orientation``, the guard ``generate_rig`` runs first): against
+- **orientation check** (``head_orientation``, the guard the network runs first): against
   the operators;
-- **network, all poses, chunks of 16** (the library's ``generate_rig`` path: (V, 16, C)
-  features through the conditional blocks, ``lax.map`` over 6 chunks), warm jit;
+- **network, all poses, chunks of 16** (the library's ``RigAnyFaceNetwork.generate`` path:
+  (V, 16, C) features through the conditional blocks, ``lax.map`` over 6 chunks), warm jit;
 - **network, all poses in one pass** ((V, 96, C) features: the same function, activations
   too large for the CPU caches);
 - **reference: one pose per call**, the same network called 96 times (what a per-pose
   DiffusionNet would cost);
-- **generate_rig, warm** (a new head of similar size: operators + network + rig assembly).
+- **generate_rig, warm** (``RigAnyFaceNetwork.generate`` of a new head of similar size:
+  operators + network + rig assembly).
 
 Each checkpoint is a column (default: the default model, ``autorig.DEFAULT_CHECKPOINT``, width
 64, and the width-32 ``autorig`` one), timed in the same process on the same head. Timing does
@@ -44,8 +45,8 @@ from canrig_jax._io import save_text
 from canrig_jax.autorig import (
     DEFAULT_CHECKPOINT,
     DEFAULT_POSE_CHUNK,
+    RigAnyFaceNetwork,
     RigAnyFaceTrainOptions,
-    generate_rig,
     head_inputs,
     head_orientation,
     load_riganyface,
@@ -77,8 +78,8 @@ def median_seconds(function, repeats: int) -> float:
 
 
 def time_model(model, poses, mesh, other, repeats: int) -> dict:
-    """Seconds of each network row and of the warm ``generate_rig`` on ``mesh`` (``other``:
-    a second triangulation of similar size, which compiles the padding bucket)."""
+    """Seconds of each network row and of the warm ``RigAnyFaceNetwork.generate`` on ``mesh``
+    (``other``: a second triangulation of similar size, which compiles the padding bucket)."""
     vectors = jnp.asarray(poses.vectors())
     unit, operators, _, _ = head_inputs(mesh.vertices, mesh.faces, k=128, cache=False)
     padded = pad_to_bucket(operators, 256)
@@ -100,9 +101,10 @@ def time_model(model, poses, mesh, other, repeats: int) -> dict:
         ][-1],
         max(1, repeats // 2),
     )
-    generate_rig(model, poses, other.vertices, other.faces)  # compile this bucket
+    network = RigAnyFaceNetwork((model, poses))
+    network.generate(other.vertices, other.faces)  # compile this bucket
     warm = median_seconds(
-        lambda: generate_rig(model, poses, mesh.vertices, mesh.faces).displacements, repeats
+        lambda: network.generate(mesh.vertices, mesh.faces).displacements, repeats
     )
     return {"chunked": chunked, "batched": batched, "per_pose": per_pose, "warm": warm}
 

@@ -42,6 +42,7 @@ import numpy as np  # noqa: E402
 from canrig_jax._io import save_json, save_text  # noqa: E402
 from canrig_jax._provenance import experiment_command, provenance, record_command  # noqa: E402
 from canrig_jax.autorig import (  # noqa: E402
+    AUTO_RIG_METHODS,
     DEFAULT_METHOD,
     EXAMPLE_ORDER,
     SculptedHead,
@@ -134,7 +135,7 @@ def apply_rule(results: dict, out: Path) -> str:
     )
     results["default_method"] = default
     results["rule_worst_ratio"] = worst
-    results["library_default"] = DEFAULT_METHOD
+    results["library_default"] = DEFAULT_METHOD.name
     for name in results["heads"]:
         results["heads"][name]["default"] = results["heads"][name][default]
     results["few_shot"] = {
@@ -160,13 +161,14 @@ def templates_and_figures(results, heads, dataset, default, out, log) -> None:
         log(f"template {source} -> {target}: {row['skin_mae_mm']:.3f} "
             f"(none {row['no_motion']['skin_mae_mm']:.3f})")  # fmt: skip
         figure(out / f"shapes_{target}_template.png", heads[target], rig)
+    (method_class,) = (cls for cls in AUTO_RIG_METHODS if cls.name == default)  # the rule's
     for name in ("rocketbox_female", "rocketbox_male", "makehuman"):
         head = heads[name]
-        rig0 = auto_rig(head.vertices, head.faces, method=default, dataset=dataset).rig
+        rig0 = auto_rig(head.vertices, head.faces, method=method_class(), dataset=dataset).rig
         figure(out / f"shapes_{name}_k0.png", head, rig0)
         examples = {n: head.shapes([n])[0] for n in EXAMPLE_ORDER[:3]}
         rig3 = auto_rig(
-            head.vertices, head.faces, method=default, dataset=dataset, examples=examples
+            head.vertices, head.faces, method=method_class(), dataset=dataset, examples=examples
         ).rig
         figure(out / f"shapes_{name}_k3.png", head, rig3, ("mouthFunnel", "browInnerUp",
                "mouthSmileRight"))  # fmt: skip

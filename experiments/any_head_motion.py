@@ -57,6 +57,8 @@ from canrig_jax.rig import (  # noqa: E402
 )
 
 KS = (0, 1, 3)
+METHOD_NAMES = tuple(cls.name for cls in AUTO_RIG_METHODS)
+"""Each method's name, as results are keyed."""
 HARD = {name for name, (_, _, hard) in CHECK_LIMITS.items() if hard}
 VALIDATION = ("ict_heldout_0", "ict_heldout_1", "rocketbox_female", "rocketbox_male")
 """The validation heads of the rule (``RULE.md``): the ICT held-out identities and the
@@ -182,7 +184,8 @@ def run_head(name, head, dataset, capture, quick, log, sheets: Path) -> tuple[di
     art_flips = {d: float(flipped_triangles(f, head.vertices, head.faces, mask=skin_faces)
                           .sum(1).mean()) for d, f in artist.items()}  # fmt: skip
     rows: dict = {}
-    for method in AUTO_RIG_METHODS:
+    for method_class in AUTO_RIG_METHODS:
+        method = method_class.name
         rows[method] = {}
         for k in KS if not quick else (0,):
             given = [n for n in EXAMPLE_ORDER[:k] if n in head.names]
@@ -190,8 +193,9 @@ def run_head(name, head, dataset, capture, quick, log, sheets: Path) -> tuple[di
             t = time.perf_counter()
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                result = auto_rig(head.vertices, head.faces, method=method, dataset=dataset,
-                                  examples=examples, up="+y", forward="+z")  # fmt: skip
+                result = auto_rig(head.vertices, head.faces, method=method_class(),
+                                  dataset=dataset, examples=examples, up="+y",
+                                  forward="+z")  # fmt: skip
             seconds = time.perf_counter() - t
             scores = score(result.rig, head, artist, drives, skin_faces)
             checks = check_rig(result.rig, capture.weights_for(result.rig.names, missing="zero"))
@@ -218,7 +222,7 @@ def apply_rule(results: dict) -> tuple[str, dict]:
     distance ratio to no motion; else the fewest failed hard checks."""
     heads = [h for h in VALIDATION if h in results["heads"]]
     report = {}
-    for method in AUTO_RIG_METHODS:
+    for method in METHOD_NAMES:
         failed, ratios, eligible = 0, [], True
         for h in heads:
             row = results["heads"][h][method]["0"]
@@ -230,11 +234,11 @@ def apply_rule(results: dict) -> tuple[str, dict]:
             ratios.append(row["mean_mm"] / row["no_motion_mean_mm"])
         report[method] = {"eligible": bool(eligible), "failed_hard": failed,
                           "mean_ratio_to_no_motion": float(np.mean(ratios))}  # fmt: skip
-    eligible = [m for m in AUTO_RIG_METHODS if report[m]["eligible"]]
+    eligible = [m for m in METHOD_NAMES if report[m]["eligible"]]
     if eligible:
         return min(eligible, key=lambda m: report[m]["mean_ratio_to_no_motion"]), report
     key = lambda m: (report[m]["failed_hard"], report[m]["mean_ratio_to_no_motion"])  # noqa: E731
-    return min(AUTO_RIG_METHODS, key=key), report
+    return min(METHOD_NAMES, key=key), report
 
 
 def table(results: dict) -> str:
@@ -289,9 +293,9 @@ def flips_figure(results: dict, path: Path) -> None:
     """Flipped skin triangles per frame at k = 0, each method beside the artist's rig."""
     heads = list(results["heads"])
     fig, ax = plt.subplots(figsize=(8, 3))
-    width = 0.8 / (len(AUTO_RIG_METHODS) + 1)
-    for j, method in enumerate(("artist", *AUTO_RIG_METHODS)):
-        values = [results["heads"][h][AUTO_RIG_METHODS[0]]["0"]["artist_flips_per_frame"]
+    width = 0.8 / (len(METHOD_NAMES) + 1)
+    for j, method in enumerate(("artist", *METHOD_NAMES)):
+        values = [results["heads"][h][METHOD_NAMES[0]]["0"]["artist_flips_per_frame"]
                   if method == "artist" else results["heads"][h][method]["0"]["flips_per_frame"]
                   for h in heads]  # fmt: skip
         ax.bar(np.arange(len(heads)) + j * width, values, width, label=method)
@@ -328,7 +332,7 @@ def main(argv=None) -> None:
     results["default_method"], results["rule_report"] = apply_rule(results)
     results["amplitude_prior_gain"] = choose_prior(results)
     results["rule"] = (out / "RULE.md").read_text() if (out / "RULE.md").exists() else ""
-    results["library_default"] = DEFAULT_METHOD
+    results["library_default"] = DEFAULT_METHOD.name
     results["provenance"] = provenance(command)
     flips_figure(results, out / "flips.png")
     save_results(out, results, table(results))

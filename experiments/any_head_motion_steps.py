@@ -24,6 +24,7 @@ import canrig_jax.autorig._slits as slits
 from canrig_jax._io import save_text
 from canrig_jax.autorig import (
     SculptedHead,
+    Transfer,
     auto_rig,
     check_rig,
     ict_pose_source,
@@ -65,7 +66,7 @@ def main(argv=None) -> None:
             _set_variant(variant, originals)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                made_rig = auto_rig(head.vertices, head.faces, method="transfer",
+                made_rig = auto_rig(head.vertices, head.faces, method=Transfer(),
                                     dataset=dataset, up="+y", forward="+z").rig  # fmt: skip
                 checks = check_rig(made_rig, capture.weights_for(made_rig.names, missing="zero"))
             made = frames_of(made_rig, weights)

@@ -57,7 +57,7 @@ def main(argv=None):
     }
     results = json.loads(path.read_text())
     results["seconds"] = measure_cli_seconds(heads, log)
-    results["library_default"] = DEFAULT_METHOD
+    results["library_default"] = DEFAULT_METHOD.name
     results["provenance_seconds"] = provenance(command)
     save_json(path, results)
     save_text(out / "table.md", any_head_table(results))

@@ -54,6 +54,7 @@ from canrig_jax.autorig import (
     PURE_MODELS,
     RESIDUAL_MODEL,
     STATIC_MM,
+    RigAnyFaceNetwork,
     add_recipe_arguments,
     anchored_base_key,
     autorig_table,
@@ -61,7 +62,6 @@ from canrig_jax.autorig import (
     evaluate_makehuman,
     evaluate_splits,
     evaluation_rows,
-    generate_rig,
     gltf_round_trip,
     ict_autorig_dataset,
     makehuman_shapes,
@@ -162,7 +162,7 @@ def main(argv=None):
     )
     rig_seconds = rig_timing(models["raf"], poses, dataset.head)  # ~1,750 vertices
     head, _ = found["examples"][HELDOUT_SPLIT]
-    exported = generate_rig(models["raf"], poses, head.vertices, head.faces).rig
+    exported = RigAnyFaceNetwork((models["raf"], poses)).generate(head.vertices, head.faces).rig
     results = {
         "config": {
             "quick": args.quick,

@@ -33,9 +33,9 @@ from canrig_jax._io import save_json, save_text
 from canrig_jax._provenance import experiment_command, provenance, record_command
 from canrig_jax.autorig import (
     SUPERVISION_2D_RUNS,
+    RigAnyFaceNetwork,
     chunk_overflow,
     evaluate_2d,
-    generate_rig,
     ict_autorig_dataset,
     padded_faces,
     parse_supervision_2d_args,
@@ -55,7 +55,9 @@ def figures(models: dict, dataset, out: Path):
     pose by every model and the ground truth."""
     head = dataset.test["unseen_topology"][0]
     poses = dataset.poses
-    rig = generate_rig(models["2d_unrigged_plus_3d"], poses, head.vertices, head.faces)
+    rig = RigAnyFaceNetwork((models["2d_unrigged_plus_3d"], poses)).generate(
+        head.vertices, head.faces
+    )
     names = ["jawOpen", "mouthSmile_L", "eyeBlink_L", "browInnerUp_L"]
     ids = [poses.labels.index(n) for n in names if n in poses.labels]
     centre = head.vertices.mean(0)
@@ -79,7 +81,7 @@ def figures(models: dict, dataset, out: Path):
     plt.close(fig)
     p = poses.labels.index("jawOpen")
     panels = [
-        (name, generate_rig(m, poses, head.vertices, head.faces).displacements[p])
+        (name, RigAnyFaceNetwork((m, poses)).generate(head.vertices, head.faces).displacements[p])
         for name, m in models.items()
     ]
     panels.append(("ground truth", head.displacements[p]))

@@ -8,11 +8,12 @@ the rule in ``RULE.md`` (committed before any arm trained) picks among them.
         --arm ...   # once, after the choice: MakeHuman (evaluation only), appended
 
 Candidates: ``transfer`` (the library default), ``raf`` (the packaged model) and every
-``--arm NAME=CHECKPOINT`` (``auto_rig(method="raf", model=...)``). Heads (cm, +y up, facing
-+z): the two Rocketbox head crops (validation); with ``--evaluate`` MakeHuman instead, whose
-rows are stored under ``evaluation`` and change nothing. Per head and candidate: skin distance
-to the artist's animation (mean, p95, max; mm) beside no motion's, flipped skin triangles per
-frame (and the artist rig's), new self-intersections per frame, ``check_rig``'s checks.
+``--arm NAME=CHECKPOINT`` (``auto_rig(method=RigAnyFaceNetwork(model=...))``). Heads (cm, +y
+up, facing +z): the two Rocketbox head crops (validation); with ``--evaluate`` MakeHuman
+instead, whose rows are stored under ``evaluation`` and change nothing. Per head and
+candidate: skin distance to the artist's animation (mean, p95, max; mm) beside no motion's,
+flipped skin triangles per frame (and the artist rig's), new self-intersections per frame,
+``check_rig``'s checks.
 """
 
 from __future__ import annotations
@@ -34,7 +35,9 @@ from canrig_jax._provenance import experiment_command, provenance, record_comman
 from canrig_jax.autorig import (  # noqa: E402
     CHECK_LIMITS,
     DEFAULT_METHOD,
+    RigAnyFaceNetwork,
     SculptedHead,
+    Transfer,
     auto_rig,
     check_rig,
     ict_pose_source,
@@ -74,12 +77,12 @@ def run_head(name, head: SculptedHead, candidates, dataset, capture, out: Path, 
                       .sum(1).mean())  # fmt: skip
     rows = {"_artist": {"checks": art_checks.as_dict(), "flips_per_frame": art_flips,
                         "no_motion_mean_mm": no_motion["mean_mm"]}}  # fmt: skip
-    for label, (method, model) in candidates.items():
+    for label, method in candidates.items():
         t = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             result = auto_rig(head.vertices, head.faces, method=method, dataset=dataset,
-                              model=model, up="+y", forward="+z")  # fmt: skip
+                              up="+y", forward="+z")  # fmt: skip
         seconds = time.perf_counter() - t
         take = capture.weights_for(result.rig.names, missing="zero")
         made = frames_of(result.rig, take)
@@ -208,13 +211,13 @@ def main(argv=None) -> None:
     capture = load_livelinkface(data_dir)
     warnings.filterwarnings("ignore", message=".*(TongueOut|stay at weight 0)")
     dataset = ict_pose_source(data_dir, progress=False)
-    candidates = {"transfer": ("transfer", None), "raf": ("raf", None)}
+    candidates = {"transfer": Transfer(), "raf": RigAnyFaceNetwork().loaded()}
     arms = []
     for spec in args.arm:
         label, _, path = spec.partition("=")
         if not path:
             parser.error(f"--arm: expected NAME=CHECKPOINT, got {spec!r}")
-        candidates[label] = ("raf", load_riganyface(path)[:2])
+        candidates[label] = RigAnyFaceNetwork(model=load_riganyface(path)[:2])
         arms.append(label)
     if not args.evaluate:
         record_command(out, command)
@@ -225,7 +228,7 @@ def main(argv=None) -> None:
         results["arms"] = {a: args.arm[i] for i, a in enumerate(arms)}
         results["rule_outcome"] = apply_rule(results["heads"], arms)
         results["rule"] = (out / "RULE.md").read_text() if (out / "RULE.md").exists() else ""
-        results["library_default"] = DEFAULT_METHOD
+        results["library_default"] = DEFAULT_METHOD.name
         results["provenance"] = provenance(command)
     else:
         results = json.loads((out / "results.json").read_text())

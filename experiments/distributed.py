@@ -108,7 +108,7 @@ def worker(out: Path, pinned: bool) -> None:
     coefficients = np.random.default_rng(11).standard_normal((2, 100))
     heads = [(ict_identity(c, model=ict), np.asarray(ict.faces)) for c in coefficients]
     start = time.perf_counter()
-    rigs = autorig.auto_rig_heads(heads, method="raf", across_processes=True)
+    rigs = autorig.auto_rig_heads(heads, method=autorig.RigAnyFaceNetwork(), across_processes=True)
     record["autorig_seconds"], record["autorig_heads"] = time.perf_counter() - start, len(heads)
     arrays["rigs"] = np.stack([np.asarray(r.rig.deltas) for r in rigs])
     if group.is_main:

@@ -27,7 +27,7 @@ from canrig_jax._metrics import CM_TO_MM
 from canrig_jax._provenance import experiment_command, provenance, record_command
 from canrig_jax.autorig import (
     DEFAULT_CHECKPOINT,
-    generate_rig,
+    RigAnyFaceNetwork,
     load_makehuman,
     load_riganyface,
     shared_shape_matrix,
@@ -55,7 +55,7 @@ def main(argv=None) -> None:
 
     head = load_makehuman(args.data_dir)
     model, poses, _ = load_riganyface(args.checkpoint)
-    rig = generate_rig(model, poses, head.neutral, head.faces).rig
+    rig = RigAnyFaceNetwork((model, poses)).generate(head.neutral, head.faces).rig
     target_index, matrix = shared_shape_matrix(rig.names, head.names)
     predicted = np.einsum("sk,kvd->svd", matrix, np.asarray(rig.deltas))
     truth = head.deltas[target_index]

@@ -127,7 +127,7 @@ def run(out: Path, steps: int) -> None:
     identities = np.random.default_rng(11).standard_normal((2, 100))
     heads = [(ict_identity(c, model=ict_head), np.asarray(ict_head.faces)) for c in identities]
     t = time.perf_counter()
-    rigs = autorig.auto_rig_heads(heads, method="raf", across_processes=True)
+    rigs = autorig.auto_rig_heads(heads, method=autorig.RigAnyFaceNetwork(), across_processes=True)
     seconds["autorig"] = time.perf_counter() - t
     for i, r in enumerate(rigs):
         result[f"autorig_{i}_deltas"] = np.asarray(r.rig.deltas)

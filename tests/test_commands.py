@@ -92,7 +92,7 @@ def test_help(command, capsys):
         assert "--method {transfer,raf,transfer-residual}" in text and "--examples" in text
         from canrig_jax.autorig import DEFAULT_METHOD
 
-        assert f"(default: {DEFAULT_METHOD})" in " ".join(text.split())
+        assert f"(default: {DEFAULT_METHOD.name})" in " ".join(text.split())
         assert "--names {arkit,ict}" in text and "--up" in text and "--forward" in text
 
 
@@ -260,6 +260,17 @@ def test_errors_name_the_file_and_write_nothing(workspace, capsys, tmp_path):
     cases = [
         (("autorig", tmp_path / "nohead.obj", "-o", tmp_path / "r.glb"), "nohead.obj"),
         (("autorig", tmp_path / "h.obj", "-o", tmp_path / "missing" / "r.glb"), "does not exist"),
+        (("autorig", tmp_path / "h.obj", "-o", tmp_path / "r.glb", "--model", "m.eqx"), "--model"),
+        (
+            ("autorig", tmp_path / "h.obj", "-o", tmp_path / "r.glb", "--method", "raf")
+            + ("--template", tmp_path / "h.obj"),
+            "--template: only --method transfer",
+        ),
+        (
+            ("autorig", tmp_path / "h.obj", "-o", tmp_path / "r.glb", "--method", "raf")
+            + ("--model", tmp_path / "none.eqx"),
+            "checkpoint not found",
+        ),
         (("animate", root / "rig.npz", tmp_path / "bad.csv", "-o", tmp_path / "a.glb"), "line 2"),
         (("animate", root / "rig.npz", root / "take.csv", "-o", tmp_path / "a.txt"), ".glb"),
         (("invert", root / "rig.npz", tmp_path / "nothing", "-o", tmp_path / "t.csv"), "nothing"),

@@ -43,6 +43,13 @@ INVERSE_METHODS = {
     "lbfgsb": "JaxoptLBFGSB",
 }
 """``--method`` values of ``canrig invert`` and the ``canrig_jax.inverse`` class of each."""
+AUTORIG_METHODS = {
+    "transfer": "Transfer",
+    "raf": "RigAnyFaceNetwork",
+    "transfer-residual": "TransferResidual",
+}
+"""``--method`` values of ``canrig autorig`` and the ``canrig_jax.autorig`` method class of each
+(``AbstractAutoRigMethod``; the name is the class's ``name``)."""
 
 
 class CommandError(Exception):
@@ -149,16 +156,7 @@ def _autorig(args) -> None:
     from .rig import check_extra_sets, export_gltf, with_extra_shapes
 
     out = _output(args.output, (".glb", ".vrm", ".usda", ".usdc", ".usd"))
-    if args.method is None:
-        args.method = "transfer" if args.template else autorig.DEFAULT_METHOD
-    if args.method == "raf" or args.method == "transfer-residual":
-        model_path = Path(args.model) if args.model else autorig.default_model(args.method)
-        if not model_path.is_file():
-            raise CommandError(f"--model {model_path}: RigAnyFace checkpoint not found")
-    elif args.model:
-        raise CommandError(f"--model: --method {args.method} uses no network")
-    if args.template and args.method != "transfer":
-        raise CommandError("--template: only --method transfer carries a template")
+    method_class, model_path = _autorig_method_class(args)
     if (args.up is None) != (args.forward is None):
         raise CommandError("--up, --forward: state both of the head's axes or neither")
     progress = _Progress(args.quiet)
@@ -189,31 +187,17 @@ def _autorig(args) -> None:
             )
         progress(f"read {examples.n_blendshapes} example shapes: {', '.join(examples.names)}")
     dataset = None  # the network method needs no data folder
-    if args.method != "raf":
+    if method_class.needs_landmarks:
         progress("loading the ICT source rig")
         dataset = autorig.ict_pose_source(progress=False)
-    template = None
-    if args.template:
-        assert dataset is not None  # --template means --method transfer
-        rig = _load_rig(args.template, "--template", crop="head")
-        progress(f"fitting the template {args.template} ({rig.n_blendshapes} shapes)")
-        try:
-            template = autorig.Template.from_rig(dataset, rig, Path(args.template).name)
-        except ValueError as error:
-            raise CommandError(f"--template {args.template}: {error}") from error
-    model = None
-    if args.method in ("raf", "transfer-residual"):
-        progress(f"loading the network {model_path}")
-        model = autorig.load_riganyface(model_path)[:2]
+    method = _autorig_method(args, method_class, model_path, dataset, progress)
     try:
         result = autorig.auto_rig(
             head.vertices_in("cm"),
             head.faces,
-            method=args.method,
+            method=method,
             dataset=dataset,
-            template=template,
             examples=examples,
-            model=model,
             up=args.up,
             forward=args.forward,
             names="source" if args.names == "ict" else "arkit",
@@ -232,7 +216,7 @@ def _autorig(args) -> None:
     progress(
         f"generated {rig.n_blendshapes} blendshapes ({args.names} names) and "
         f"{sum(int(c.indices.shape[0]) for c in rig.correctives)} correctives with "
-        f"{args.method} in {result.seconds['total']:.1f} s"
+        f"{result.method} in {result.seconds['total']:.1f} s"
     )
     _check_generated(result, args, progress)
     if usd:
@@ -243,6 +227,47 @@ def _autorig(args) -> None:
         return
     export_gltf(rig, out)
     progress(f"wrote {out} (centimetres)")
+
+
+def _autorig_method_class(args):
+    """(the ``autorig`` method class ``--method`` names, its checkpoint path or None), with
+    ``--model`` and ``--template`` checked against it."""
+    from . import autorig
+
+    if args.method is None:
+        args.method = autorig.Transfer.name if args.template else autorig.DEFAULT_METHOD.name
+    method_class = getattr(autorig, AUTORIG_METHODS[args.method])
+    model_path = None
+    if issubclass(method_class, autorig.AbstractNetworkMethod):
+        model_path = Path(args.model) if args.model else method_class.checkpoint
+        if not model_path.is_file():
+            raise CommandError(f"--model {model_path}: RigAnyFace checkpoint not found")
+    elif args.model:
+        raise CommandError(f"--model: --method {args.method} uses no network")
+    if args.template and method_class is not autorig.Transfer:
+        raise CommandError("--template: only --method transfer carries a template")
+    return method_class, model_path
+
+
+def _autorig_method(args, method_class, model_path, dataset, progress):
+    """The ``autorig`` method object of ``--method`` (with ``--template`` or ``--model``)."""
+    from . import autorig
+
+    if args.template:
+        rig = _load_rig(args.template, "--template", crop="head")
+        progress(f"fitting the template {args.template} ({rig.n_blendshapes} shapes)")
+        try:
+            template = autorig.Template.from_rig(dataset, rig, Path(args.template).name)
+        except ValueError as error:
+            raise CommandError(f"--template {args.template}: {error}") from error
+        return autorig.Transfer(template=template)
+    if model_path is not None:
+        progress(f"loading the network {model_path}")
+        try:
+            return method_class(model=autorig.load_riganyface(model_path)[:2])
+        except ValueError as error:
+            raise CommandError(f"--model {model_path}: {error}") from error
+    return method_class()
 
 
 def _check_generated(result, args, progress) -> None:
@@ -369,14 +394,14 @@ def _autorig_avatar(args, out: Path, progress) -> None:
     options = {"names": "source" if args.names == "ict" else "arkit"}
     if args.up is not None:
         options.update(up=args.up, forward=args.forward)
-    if args.model:
-        options["model"] = autorig.load_riganyface(Path(args.model))[:2]
+    method_class, model_path = _autorig_method_class(args)
+    method = _autorig_method(args, method_class, model_path, None, progress)
     progress(f"reading the avatar {args.head}")
     try:
         result = autorig.auto_rig_avatar(
             args.head,
             out,
-            method=args.method,
+            method=method,
             replace=args.replace,
             extras=args.extras,
             check=not args.no_check,
@@ -934,7 +959,7 @@ def _add_autorig_parser(sub) -> None:
     )
     p.add_argument(
         "--method",
-        choices=("transfer", "raf", "transfer-residual"),
+        choices=tuple(AUTORIG_METHODS),
         default=None,  # autorig.DEFAULT_METHOD (chosen on validation heads), or transfer
         help="raf: the RigAnyFace network; transfer: the template's expressions carried onto "
         "the head (anchored deformation transfer; closer without --examples on heads sculpted "

@@ -10,8 +10,10 @@ import pytest
 from canrig_jax.autorig import (
     STYLE_GRID,
     OrientationError,
+    RigAnyFaceNetwork,
     Style,
     Template,
+    Transfer,
     auto_rig,
     axis_rotations,
     decide_orientation,
@@ -374,7 +376,7 @@ def z_up_head(data_dir):
 @pytest.fixture(scope="module")
 def plain_rig(source, z_up_head):
     """k = 0: template transfer (no network to compile), orientation and landmarks found."""
-    return auto_rig(z_up_head["vertices"], z_up_head["faces"], method="transfer", dataset=source)
+    return auto_rig(z_up_head["vertices"], z_up_head["faces"], method=Transfer(), dataset=source)
 
 
 @pytest.fixture(scope="module")
@@ -383,7 +385,7 @@ def styled_rig(source, z_up_head, plain_rig):
     return auto_rig(
         z_up_head["vertices"],
         z_up_head["faces"],
-        method="transfer",
+        method=Transfer(),
         dataset=source,
         examples=z_up_head["examples"],
         orientation=plain_rig.orientation,
@@ -477,7 +479,7 @@ def test_a_template_carried_onto_its_own_head_gives_its_shapes_back(
         z_up_head["vertices"],
         z_up_head["faces"],
         dataset=source,
-        template=Template(rig, landmarks, "rocketbox"),
+        method=Transfer(template=Template(rig, landmarks, "rocketbox")),
         landmarks=landmarks,
         up="+z",
         forward="-y",
@@ -513,7 +515,7 @@ def test_raf_runs_without_the_data_folder(z_up_head, monkeypatch):
 
     monkeypatch.setattr(_data, "ict_pose_source", unavailable)
     monkeypatch.setattr(_any_head, "place_landmarks", unavailable)
-    result = auto_rig(z_up_head["vertices"], z_up_head["faces"], method="raf")
+    result = auto_rig(z_up_head["vertices"], z_up_head["faces"], method=RigAnyFaceNetwork())
     assert result.orientation.up == "+z" and result.orientation.forward == "-y"
     assert result.landmarks is None and result.rig.n_blendshapes == 51
     np.testing.assert_array_equal(result.rig.neutral, np.float32(z_up_head["vertices"]))

@@ -325,11 +325,12 @@ def _validate(path):
 # ------------------------------------------------------------------------------------- tests
 def test_whole_avatar_rigged_in_place_everything_else_kept(avatar_file, stand_in, tmp_path):
     path, world, labels = avatar_file
-    result = autorig.auto_rig_avatar(path, tmp_path / "out.glb", method="raf")
+    method = autorig.RigAnyFaceNetwork()
+    result = autorig.auto_rig_avatar(path, tmp_path / "out.glb", method=method)
     assert result.head_node == HEAD_NODE
     assert result.head_meshes == ("HeadSkin", "EyeLeft", "EyeRight")  # not the body, not hair
     [(given, faces, options)] = stand_in
-    assert options["method"] == "raf"
+    assert options["method"] is method
     # the face, in cm at bind: the head skin minus its neck ring (weighted to the neck), eyes
     skin = world[labels == 0]
     on_neck = skin[:, 1] < skin[:, 1].min() + 0.03

@@ -57,7 +57,7 @@ def test_export_keeps_the_weights_and_drops_the_optimiser_state(tmp_path):
     assert small_state == {**state, "weights_only": True}
 
 
-@pytest.mark.slow  # ~1 min: the ICT pose source, one held-out head, DT and generate_rig
+@pytest.mark.slow  # ~1 min: the ICT pose source, one held-out head, DT and the network
 def test_default_model_beats_no_motion_and_dt_and_moves_the_eyes(data_dir):
     """test00/decimate_1300 (one of the 8 held-out heads of experiments/results/autorig_*):
     the default's MAE is below no motion's and DT's on single expressions and on combinations,
@@ -65,8 +65,8 @@ def test_default_model_beats_no_motion_and_dt_and_moves_the_eyes(data_dir):
     criterion its pre-registered rule used on the validation identities."""
     from canrig_jax.autorig import (
         DEFAULT_CHECKPOINT,
+        RigAnyFaceNetwork,
         class_errors,
-        generate_rig,
         ict_autorig_dataset,
         load_riganyface,
         sculpted_shape_errors,
@@ -78,7 +78,9 @@ def test_default_model_beats_no_motion_and_dt_and_moves_the_eyes(data_dir):
     poses = dataset.poses
     model, model_poses, _ = load_riganyface(DEFAULT_CHECKPOINT)
     assert model_poses.labels == poses.labels
-    raf = np.asarray(generate_rig(model, model_poses, head.vertices, head.faces).displacements)
+    raf = np.asarray(
+        RigAnyFaceNetwork((model, model_poses)).generate(head.vertices, head.faces).displacements
+    )
     dt = np.asarray(transfer_poses(dataset, head))
     truth = head.displacements
     errors = {

@@ -15,9 +15,10 @@ from canrig_jax.autorig import (
     STATIC_MM,
     PoseSet,
     RigAnyFace,
+    RigAnyFaceNetwork,
     RigAnyFaceTrainOptions,
+    TransferResidual,
     class_errors,
-    generate_rig,
     head_inputs,
     load_makehuman,
     load_riganyface,
@@ -66,7 +67,7 @@ def residual_model(poses, key=0):
     )
 
 
-@pytest.mark.slow  # 12 s: builds operators and compiles generate_rig for the residual model
+@pytest.mark.slow  # 12 s: builds operators and compiles the residual network
 def test_residual_model_at_initialisation_returns_the_base_exactly(small_head, tiny_poses):
     mesh, unit, operators, scale = small_head
     rng = np.random.default_rng(0)
@@ -78,10 +79,10 @@ def test_residual_model_at_initialisation_returns_the_base_exactly(small_head, t
         jnp.asarray(tiny_poses.vectors()), jnp.asarray(unit), operators, base=base, pose_chunk=4
     )
     np.testing.assert_array_equal(np.asarray(chunked), base)
-    # through generate_rig, in the head's units (cm): the rig is deformation transfer
+    # through TransferResidual.generate, in the head's units (cm): the rig is deformation transfer
     base_cm = base * scale
-    generated = generate_rig(
-        model, tiny_poses, mesh.vertices, mesh.faces, k=32, operators=operators, base=base_cm
+    generated = TransferResidual((model, tiny_poses)).generate(
+        mesh.vertices, mesh.faces, k=32, operators=operators, base=base_cm
     )
     np.testing.assert_allclose(generated.displacements, base_cm, rtol=1e-5, atol=1e-7)
     # a plain model of the same size does move the head (the zero start is the residual's)
@@ -96,11 +97,11 @@ def test_residual_model_refuses_a_missing_or_misshaped_base(small_head, tiny_pos
     mesh, unit, operators, _ = small_head
     model = residual_model(tiny_poses)
     with pytest.raises(ValueError, match="base"):
-        generate_rig(model, tiny_poses, mesh.vertices, mesh.faces, k=32, operators=operators)
+        TransferResidual((model, tiny_poses)).generate(
+            mesh.vertices, mesh.faces, k=32, operators=operators
+        )
     with pytest.raises(ValueError, match="base"):
-        generate_rig(
-            model,
-            tiny_poses,
+        TransferResidual((model, tiny_poses)).generate(
             mesh.vertices,
             mesh.faces,
             k=32,
@@ -109,9 +110,7 @@ def test_residual_model_refuses_a_missing_or_misshaped_base(small_head, tiny_pos
         )
     plain = RigAnyFace(tiny_poses.n_basis, width=8, global_size=0, key=jax.random.PRNGKey(1))
     with pytest.raises(ValueError, match="base"):
-        generate_rig(
-            plain,
-            tiny_poses,
+        RigAnyFaceNetwork((plain, tiny_poses)).generate(
             mesh.vertices,
             mesh.faces,
             k=32,

@@ -1,4 +1,5 @@
-"""Orientation of a head: found from its shape, refused or fixed by ``generate_rig``."""
+"""Orientation of a head: found from its shape, refused or fixed by the network
+(``RigAnyFaceNetwork.generate``)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import pytest
 from canrig_jax.autorig import (
     PoseSet,
     RigAnyFace,
-    generate_rig,
+    RigAnyFaceNetwork,
     head_orientation,
     load_makehuman,
 )
@@ -82,17 +83,17 @@ def test_makehuman_head_passes_as_it_is_stored(data_dir):
 def upright_rig(ict_heads, model_and_poses):
     model, poses = model_and_poses
     mesh = ict_heads["identity"]
-    return generate_rig(model, poses, mesh.vertices, mesh.faces, k=128)
+    return RigAnyFaceNetwork((model, poses)).generate(mesh.vertices, mesh.faces, k=128)
 
 
 @pytest.mark.parametrize("axis, degrees", TURNS)
-def test_generate_rig_refuses_a_turned_head(ict_heads, model_and_poses, upright_rig, axis, degrees):
+def test_the_network_refuses_a_turned_head(ict_heads, model_and_poses, upright_rig, axis, degrees):
     model, poses = model_and_poses
     mesh = ict_heads["identity"]
     assert not upright_rig.rotated and upright_rig.orientation.conventional
     turned = mesh.vertices @ _about(axis, degrees).T
     with pytest.raises(ValueError, match="vertices: the head seems to face") as error:
-        generate_rig(model, poses, turned, mesh.faces, k=128)
+        RigAnyFaceNetwork((model, poses)).generate(turned, mesh.faces, k=128)
     assert "facing" in str(error.value) and "orientation='fix'" in str(error.value)
 
 
@@ -104,13 +105,15 @@ def test_orientation_fix_gives_the_same_rig_turned(
     mesh = ict_heads["identity"]
     r = _about(axis, degrees)
     turned = (mesh.vertices @ r.T).astype(np.float32)
-    fixed = generate_rig(model, poses, turned, mesh.faces, k=128, orientation="fix")
+    fixed = RigAnyFaceNetwork((model, poses)).generate(turned, mesh.faces, k=128, orientation="fix")
     assert fixed.rotated
     # the same rig, turned: displacements rotate with the head, the neutral is as given
     np.testing.assert_allclose(fixed.displacements, upright_rig.displacements @ r.T, atol=1e-6)
     np.testing.assert_array_equal(np.asarray(fixed.rig.neutral), turned)
     if (axis, degrees) == (1, 180):  # "trust" runs the model on the turned head: another rig
-        trusted = generate_rig(model, poses, turned, mesh.faces, k=128, orientation="trust")
+        trusted = RigAnyFaceNetwork((model, poses)).generate(
+            turned, mesh.faces, k=128, orientation="trust"
+        )
         assert np.abs(trusted.displacements - fixed.displacements).max() > 1e-4
 
 
@@ -125,10 +128,10 @@ def test_inconclusive_heads_pass_and_a_partly_known_turn_is_not_fixed(
     found = head_orientation(mask.vertices, mask.faces)
     # a face-only mask: left-right and forward are clear, up is not (no neck cut)
     assert (found.lateral, found.forward, found.up) == ("x", "+z", None)
-    generate_rig(model, poses, mask.vertices, mask.faces, k=128)  # passes the check
+    RigAnyFaceNetwork((model, poses)).generate(mask.vertices, mask.faces, k=128)  # passes the check
     turned = mask.vertices @ _about(2, 90).T
     with pytest.raises(ValueError, match="vertices: .*only partly determined"):
-        generate_rig(model, poses, turned, mask.faces, k=128, orientation="fix")
+        RigAnyFaceNetwork((model, poses)).generate(turned, mask.faces, k=128, orientation="fix")
     # a sphere has no cue: undetermined, let through
     sphere = np.random.default_rng(0).standard_normal((200, 3))
     sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)

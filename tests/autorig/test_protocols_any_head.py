@@ -38,6 +38,7 @@ from canrig_jax.data import ICTFaceModel
 from canrig_jax.rig import BlendshapeRig
 
 MODULE = "canrig_jax.autorig._any_head_protocols"
+METHOD_NAMES = [cls.name for cls in AUTO_RIG_METHODS]
 RESULTS = Path(__file__).resolve().parents[2] / "experiments" / "results" / "any_head"
 NAMES = ("jawOpen", "mouthSmileLeft", "eyeBlinkLeft", "browInnerUp", "mouthFunnel", "cheekPuff")
 
@@ -98,16 +99,16 @@ def _auto_rig_stand_in(calls: list):
     given replace their shapes exactly."""
     factors = {"transfer": 0.8, "raf": 0.5, "transfer-residual": 0.9}
 
-    def auto_rig(vertices, faces, *, method="raf", examples=None, dataset=None,
-                 orientation=None, landmarks=None, template=None):  # fmt: skip
-        calls.append((method, None if examples is None else tuple(examples), orientation))
+    def auto_rig(vertices, faces, *, method, examples=None, dataset=None,
+                 orientation=None, landmarks=None):  # fmt: skip
+        calls.append((method.name, None if examples is None else tuple(examples), orientation))
         head = _HEAD
-        deltas = factors[method] * head.shapes(NAMES)
+        deltas = factors[method.name] * head.shapes(NAMES)
         for name, shape in (examples or {}).items():
             deltas[NAMES.index(name)] = shape
         rig = BlendshapeRig(head.vertices, deltas, (), NAMES, head.faces)
         return types.SimpleNamespace(
-            rig=rig, style=Style(gain=factors[method]), orientation="upright",
+            rig=rig, style=Style(gain=factors[method.name]), orientation="upright",
             landmarks=np.zeros(68, int), fit={"by": "face", "rms_cm": 0.1},
         )  # fmt: skip
 
@@ -126,10 +127,10 @@ def test_few_shot_scores_each_k_on_the_shapes_not_given(monkeypatch):
     assert all(c[2] == "upright" for c in calls[1:])
     assert len(calls) == 1 + len(AUTO_RIG_METHODS) * len(FEW_SHOT_KS)
     assert fit == {"ok": True, "by": "face", "rms_cm": 0.1}
-    assert list(methods) == ["no_motion", *AUTO_RIG_METHODS]
+    assert list(methods) == ["no_motion", *METHOD_NAMES]
     raf = methods["raf"]
     assert raf == sculpted_head_errors(_rig(_HEAD, 0.5), _HEAD, NAMES)
-    for method in AUTO_RIG_METHODS:
+    for method in METHOD_NAMES:
         assert list(few[method]) == [str(k) for k in FEW_SHOT_KS]
         for k in FEW_SHOT_KS:
             row, rest = few[method][str(k)], [n for n in NAMES if n not in EXAMPLE_ORDER[:k]]
@@ -145,7 +146,7 @@ def test_few_shot_scores_each_k_on_the_shapes_not_given(monkeypatch):
 def test_mean_few_shot_averages_over_heads():
     def rows(value):
         errors = {"skin_mae_mm": value, "active_mae_mm": 2 * value}
-        few = {m: {"0": {**errors, "no_motion": errors, "style": {}}} for m in AUTO_RIG_METHODS}
+        few = {m: {"0": {**errors, "no_motion": errors, "style": {}}} for m in METHOD_NAMES}
         return {"no_motion": errors, "raf": errors}, few, {}
 
     methods, few = mean_few_shot([rows(1.0), rows(3.0)])
@@ -168,11 +169,12 @@ def test_template_row_carries_the_shared_shapes_and_scores_the_target(monkeypatc
             made.update(names=rig.names, deltas=np.asarray(rig.deltas), name=name)
             return "template"
 
-    def auto_rig(vertices, faces, *, template, dataset):
-        assert template == "template" and vertices is target.vertices
+    def auto_rig(vertices, faces, *, method, dataset):
+        assert method == ("transfer", "template") and vertices is target.vertices
         return types.SimpleNamespace(rig=_rig(target, 1.0, NAMES[:5]))
 
     monkeypatch.setattr(f"{MODULE}.Template", Template)
+    monkeypatch.setattr(f"{MODULE}.Transfer", lambda template: ("transfer", template))
     monkeypatch.setattr(f"{MODULE}.auto_rig", auto_rig)
     row, rig = template_row(target, source, _dataset())
     assert made["names"] == NAMES[:5] and made["name"] == "source"

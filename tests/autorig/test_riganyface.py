@@ -12,8 +12,8 @@ import trimesh
 from canrig_jax.autorig import (
     PoseSet,
     RigAnyFace,
+    RigAnyFaceNetwork,
     RigAnyFaceTrainOptions,
-    generate_rig,
     head_inputs,
     head_rig,
     inner_outside,
@@ -257,7 +257,9 @@ def test_spectral_gradient_shortcut_equals_the_sparse_gradient_of_the_diffusion(
 @pytest.mark.slow
 def test_generated_rig_reproduces_every_predicted_pose(small_model, poses, heads):
     head = heads[0]
-    generated = generate_rig(small_model, poses, head.vertices * 3.0, head.faces, k=64)
+    generated = RigAnyFaceNetwork((small_model, poses)).generate(
+        head.vertices * 3.0, head.faces, k=64
+    )
     rig = generated.rig
     assert rig.names == poses.basis_names and rig.n_vertices == head.n_vertices
     posed = jax.vmap(lambda w: evaluate(rig, w))(jnp.asarray(poses.vectors()))
@@ -265,7 +267,7 @@ def test_generated_rig_reproduces_every_predicted_pose(small_model, poses, heads
         np.asarray(posed) - np.asarray(rig.neutral)[None], generated.displacements, atol=1e-4
     )
     # units follow the input: scaling the head scales the displacements
-    unit = generate_rig(small_model, poses, head.vertices, head.faces, k=64)
+    unit = RigAnyFaceNetwork((small_model, poses)).generate(head.vertices, head.faces, k=64)
     np.testing.assert_allclose(
         generated.displacements, 3.0 * unit.displacements, rtol=1e-3, atol=1e-5
     )
@@ -394,20 +396,22 @@ def test_training_lowers_the_error_and_resumes_to_the_same_model(heads, poses, t
 def test_bad_input_raises_naming_the_argument(small_model, poses, heads, head_operators):
     head = heads[0]
     with pytest.raises(ValueError, match="faces"):
-        generate_rig(small_model, poses, head.vertices, np.zeros((0, 3), np.int32))
+        RigAnyFaceNetwork((small_model, poses)).generate(head.vertices, np.zeros((0, 3), np.int32))
     bad = head.vertices.copy()
     bad[5] = np.nan
     with pytest.raises(ValueError, match="vertices"):
-        generate_rig(small_model, poses, bad, head.faces)
+        RigAnyFaceNetwork((small_model, poses)).generate(bad, head.faces)
     with pytest.raises(ValueError, match="memory_budget"):
-        generate_rig(small_model, poses, head.vertices, head.faces, memory_budget=1 << 20)
+        RigAnyFaceNetwork((small_model, poses)).generate(
+            head.vertices, head.faces, memory_budget=1 << 20
+        )
     unit, operators = head_operators
     with pytest.raises(ValueError, match="poses"):
         small_model(jnp.ones((3, 52)), jnp.asarray(unit), operators)
     with pytest.raises(ValueError, match="pose_chunk"):
-        generate_rig(small_model, poses, head.vertices, head.faces, pose_chunk=0)
+        RigAnyFaceNetwork((small_model, poses)).generate(head.vertices, head.faces, pose_chunk=0)
     other = PoseSet(poses.basis_names[:52], tuple((i,) for i in range(52)))
     with pytest.raises(ValueError, match="poses"):
-        generate_rig(small_model, other, head.vertices, head.faces, k=16)
+        RigAnyFaceNetwork((small_model, other)).generate(head.vertices, head.faces, k=16)
     with pytest.raises(ValueError, match="combinations"):
         PoseSet(poses.basis_names, ((1,), (0,)))

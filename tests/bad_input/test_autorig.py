@@ -1,8 +1,9 @@
-"""Bad inputs of the auto-rigger's public entry points: rig generation, pose sets, features,
-``auto_rig``."""
+"""Bad inputs of the auto-rigger's public entry points: the network methods and their rig
+generation (``RigAnyFaceNetwork.generate``), pose sets, features, ``auto_rig``."""
 
 from __future__ import annotations
 
+import dataclasses
 import types
 
 import jax.numpy as jnp
@@ -11,14 +12,17 @@ import pytest
 
 import canrig_jax.autorig._any_head as any_head_module  # patched: the work after the checks
 import canrig_jax.autorig._data as data_module  # patched: the ICT source
+import canrig_jax.autorig._methods as methods_module  # patched: every method's work
 from canrig_jax.autorig import (
     AutorigDataset,
     PoseSet,
+    RigAnyFaceNetwork,
     RigAnyFaceTrainOptions,
     Template,
+    Transfer,
+    TransferResidual,
     auto_rig,
     fit_head_landmarks,
-    generate_rig,
     heat_kernel_signature,
     hks_times,
     make_model,
@@ -46,6 +50,7 @@ def ctx(data_dir):
         width=8, n_shared=1, n_conditional=1, global_size=8, global_width=8, k=8
     )
     model = make_model(options, poses.n_basis, 1.0)
+    residual = make_model(dataclasses.replace(options, residual=True), poses.n_basis, 1.0)
     face = load_mediapipe_face(data_dir)
     operators = mesh_operators(face.neutral, face.faces, k=16, cache=False)
     ict = load_ict(data_dir, parts=None)
@@ -55,6 +60,7 @@ def ctx(data_dir):
         rig=rig,
         poses=poses,
         model=model,
+        residual=residual,
         face=face,
         operators=operators,
         head=head,
@@ -69,7 +75,7 @@ BACKWARDS = np.diag([-1.0, 1.0, -1.0])  # 180 degrees about y: facing -z
 def _generate(c, **kw):
     args = dict(vertices=c.face.neutral, faces=c.face.faces, k=8)
     args.update(kw)
-    return generate_rig(c.model, c.poses, **args)
+    return RigAnyFaceNetwork((c.model, c.poses)).generate(**args)
 
 
 GENERATE_RIG = [
@@ -86,21 +92,48 @@ GENERATE_RIG = [
     raises("no-faces", lambda c: _generate(c, faces=np.zeros((0, 3), int)), ValueError, "faces"),
     raises(
         "not-a-model",
-        lambda c: generate_rig(None, c.poses, c.face.neutral, c.face.faces),
+        lambda c: RigAnyFaceNetwork((None, c.poses)),
         TypeError,
         "model",
     ),
     raises(
         "not-a-pose-set",
-        lambda c: generate_rig(c.model, [[0]], c.face.neutral, c.face.faces),
+        lambda c: RigAnyFaceNetwork((c.model, [[0]])),
         TypeError,
-        "poses",
+        "model",
+    ),
+    raises("model-not-a-pair", lambda c: RigAnyFaceNetwork(c.model), TypeError, "model"),
+    raises(
+        "residual-model-without-transfer",
+        lambda c: RigAnyFaceNetwork((c.residual, c.poses)),
+        ValueError,
+        "model: a residual",
+    ),
+    raises(
+        "plain-model-as-residual",
+        lambda c: TransferResidual((c.model, c.poses)),
+        ValueError,
+        "model: a plain",
+    ),
+    raises(
+        "missing-checkpoint",
+        lambda c: RigAnyFaceNetwork("no/such/checkpoint.eqx").generate(
+            c.face.neutral, c.face.faces
+        ),
+        FileNotFoundError,
+        "model",
+    ),
+    raises(
+        "residual-without-base",
+        lambda c: TransferResidual((c.residual, c.poses)).generate(c.face.neutral, c.face.faces),
+        ValueError,
+        "base",
     ),
     raises(
         "pose-set-of-another-model",
-        lambda c: generate_rig(
-            c.model, PoseSet(("a", "b", "c"), ((0,), (1,), (2,))), c.face.neutral, c.face.faces
-        ),
+        lambda c: RigAnyFaceNetwork(
+            (c.model, PoseSet(("a", "b", "c"), ((0,), (1,), (2,))))
+        ).generate(c.face.neutral, c.face.faces),
         ValueError,
         "poses",
     ),
@@ -188,7 +221,7 @@ GENERATE_RIG = [
 
 
 @pytest.mark.parametrize("case", GENERATE_RIG)
-def test_generate_rig(case, ctx):
+def test_network_methods_and_generate(case, ctx):
     run_case(case, ctx)
 
 
@@ -342,8 +375,10 @@ def no_work_reached(monkeypatch):
         raise AssertionError("auto_rig did work before refusing its input")
 
     monkeypatch.setattr(data_module, "ict_pose_source", reached)
-    for name in ("decide_orientation", "place_landmarks", "_pose_displacements"):
+    for name in ("decide_orientation", "place_landmarks"):
         monkeypatch.setattr(any_head_module, name, reached)
+    for name in ("_anchored_transfer", "_template_rig", "generate_rig"):
+        monkeypatch.setattr(methods_module, name, reached)
 
 
 def _auto_rig(c, **kw):
@@ -353,17 +388,18 @@ def _auto_rig(c, **kw):
 
 
 AUTO_RIG = [
-    raises("unknown-method", lambda c: _auto_rig(c, method="fast"), ValueError, "method"),
+    raises("unknown-method", lambda c: _auto_rig(c, method="fast"), TypeError, "method"),
+    raises(
+        "method-by-its-name",
+        lambda c: _auto_rig(c, method="raf"),
+        TypeError,
+        "method: expected an auto-rig method (autorig.Transfer()",
+    ),
+    raises("method-a-class", lambda c: _auto_rig(c, method=Transfer), TypeError, "method"),
     raises("unknown-names", lambda c: _auto_rig(c, names="ict"), ValueError, "names"),
     raises(
-        "template-with-raf",
-        lambda c: _auto_rig(c, method="raf", template=c.template),
-        ValueError,
-        "template",
-    ),
-    raises(
         "template-not-a-template",
-        lambda c: _auto_rig(c, template=c.template.rig),
+        lambda c: _auto_rig(c, method=Transfer(template=c.template.rig)),
         TypeError,
         "template",
     ),

@@ -1,20 +1,13 @@
 """RigAnyFace: DiffusionNet in equinox, the FACS-conditioned auto-rigger, its data and metrics."""
 
 from ._any_head import (
-    ANCHOR_CM,
-    AUTO_RIG_METHODS,
-    DEFAULT_METHOD,
     EXAMPLE_ORDER,
     STYLE_GRID,
     AutoRig,
     Style,
-    Template,
     auto_rig,
     auto_rig_heads,
-    default_model,
     fit_style,
-    place_landmarks,
-    skin_of,
 )
 from ._any_head_protocols import (
     FEW_SHOT_KS,
@@ -94,7 +87,21 @@ from ._evaluation_protocols import (
     rig_timing,
 )
 from ._features import heat_kernel_signature, hks_times, mass_weighted_mean
+from ._landmarks import place_landmarks, skin_of
 from ._makehuman import MakeHumanHead, load_makehuman
+from ._methods import (
+    ANCHOR_CM,
+    AUTO_RIG_METHODS,
+    DEFAULT_METHOD,
+    AbstractAutoRigMethod,
+    AbstractNetworkMethod,
+    PoseDisplacements,
+    RigAnyFaceNetwork,
+    Template,
+    Transfer,
+    TransferResidual,
+    UprightHead,
+)
 from ._metrics import (
     error_stats,
     inner_outside,
@@ -144,7 +151,6 @@ from ._report import autorig_table, plot_pose_examples, plot_shape_ratios, plot_
 from ._rig import (
     DEFAULT_POSE_CHUNK,
     GeneratedRig,
-    generate_rig,
     pad_to_bucket,
     predict_displacements,
     rig_from_poses,
@@ -242,13 +248,19 @@ __all__ = [
     "DEFAULT_METHOD",
     "EXAMPLE_ORDER",
     "AUTO_RIG_METHODS",
+    "AbstractAutoRigMethod",
+    "AbstractNetworkMethod",
+    "PoseDisplacements",
+    "RigAnyFaceNetwork",
+    "Transfer",
+    "TransferResidual",
+    "UprightHead",
     "STYLE_GRID",
     "AutoRig",
     "Style",
     "Template",
     "auto_rig",
     "auto_rig_heads",
-    "default_model",
     "fit_style",
     "place_landmarks",
     "skin_of",
@@ -301,7 +313,6 @@ __all__ = [
     "RigAnyFaceTrainOptions",
     "RigAnyFaceTrainResult",
     "error_stats",
-    "generate_rig",
     "predict_displacements",
     "heat_kernel_signature",
     "hks_times",

@@ -1,15 +1,11 @@
 """Any head to an ARKit rig, one call: ``auto_rig(vertices, faces, method=...)``.
 
-Three methods share the call and its steps (orientation decided or refused, ICT landmarks
-placed on the head, the rig built in the convention and turned back, the artist's style
-applied, ARKit names):
-
-- ``"transfer"``: template transfer — the template's expressions carried onto the head by
-  anchored deformation transfer (Sumner & Popović 2004; per pose, the vertices whose carried
-  displacement is below ``ANCHOR_CM`` stay still). The template is the ICT rig with its
-  combination poses (correctives) unless a ``Template`` of the user's is given.
-- ``"raf"``: RigAnyFace (Ma et al. 2025), the packaged default network.
-- ``"transfer-residual"``: anchored transfer plus a RigAnyFace residual trained on it.
+The method is an ``AbstractAutoRigMethod`` (``Transfer()``, the default;
+``RigAnyFaceNetwork()``; ``TransferResidual()``; see ``_methods``): it gives the displacement
+of every pose on the head turned into the convention; the steps around it are every method's
+(orientation decided or refused, ICT landmarks placed on the head when the method needs them,
+the rig built in the convention and turned back, the artist's style applied, the blinks
+closed, ARKit names).
 
 Few-shot style: given ``examples`` (k of the head's own sculpted ARKit shapes), a ``Style``
 (a gain, a falloff exponent and a relative floor: amplitude and locality) is fitted so the
@@ -20,54 +16,22 @@ shapes themselves are taken as sculpted.
 import dataclasses
 import time
 from collections.abc import Callable, Mapping, Sequence
-from pathlib import Path
 
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float, Float32, Int
 
-from .._metrics import CM_TO_MM
 from .._warnings import warn
 from ..data import arkit_name_of
-from ..mesh import SimilarityFit, check_mesh, closest_point_correspondence, connected_components
-from ..rig import (
-    UNIT_IN_CM,
-    BlendshapeRig,
-    arkit_channels,
-    deformation_transfer,
-    rename_to_arkit,
-)
+from ..mesh import check_mesh
+from ..rig import UNIT_IN_CM, BlendshapeRig, arkit_channels, rename_to_arkit
 from ._blink_fit import close_blinks
-from ._data import (
-    AutorigDataset,
-    PoseSet,
-    fit_head_landmarks,
-    head_correspondence,
-    transfer_poses,
-)
-from ._evaluation import STATIC_MM
-from ._model import RigAnyFace
-from ._orientation import (
-    OrientationDecision,
-    decide_orientation,
-    inner_face,
-    stated_orientation,
-)
+from ._data import AutorigDataset
+from ._landmarks import place_landmarks, skin_of
+from ._methods import AUTO_RIG_METHODS, DEFAULT_METHOD, AbstractAutoRigMethod, UprightHead
+from ._orientation import OrientationDecision, decide_orientation, stated_orientation
 from ._rig import rig_from_poses
 from ._rig_checks import RigCheck, check_rig
 
-AUTO_RIG_METHODS = ("transfer", "raf", "transfer-residual")
-DEFAULT_METHOD = "transfer"
-"""What ``auto_rig`` and ``canrig autorig`` use unless told: chosen in motion, on validation
-heads only (held-out ICT identities and both Rocketbox heads, k = 0, driven by the data
-folder's Live Link capture), by the rule committed in
-``experiments/results/any_head_motion/RULE.md`` before it ran: transfer fails no hard rig
-check (``check_rig``) on any of them; the RigAnyFace network ("raf") fails blink, eyeball,
-locality, flipped-triangle and crossing checks on both Rocketbox heads (its lids and lips
-fold off ICT's geometry). No method met the rule's flips bound on every head (transfer on
-the Rocketbox male: 8.3 flips per frame, the artist's rig 2.8)."""
-ANCHOR_CM = STATIC_MM / CM_TO_MM
-"""Anchored transfer: per pose, target vertices whose carried displacement is shorter than
-this (0.01 mm, the evaluation's static threshold) stay exactly still."""
 EXAMPLE_ORDER = ("jawOpen", "mouthSmileLeft", "eyeBlinkLeft", "browInnerUp", "mouthFunnel")
 """The order in which few-shot examples are asked for (and measured): the largest motions of
 the jaw, the mouth corners, the lids, the brows and the lips."""
@@ -150,98 +114,18 @@ def fit_style(
 
 
 @dataclasses.dataclass(frozen=True)
-class Template:
-    """A rig to carry onto new heads (``method="transfer"``): in centimetres, +y up, facing
-    +z, with faces.
-
-    Attributes:
-        rig: the ``BlendshapeRig`` (linear: correctives are not carried).
-        landmarks: (68,) its vertices at the ICT Multi-PIE landmarks (``from_rig`` fits them).
-        name: shown in messages and results.
-    """
-
-    rig: BlendshapeRig
-    landmarks: Int[np.ndarray, " L"]
-    name: str = "template"
-
-    @classmethod
-    def from_rig(
-        cls, dataset: AutorigDataset, rig: BlendshapeRig, name: str = "template"
-    ) -> "Template":
-        """A template from any rig with faces (cm, +y up, facing +z): its landmarks are
-        fitted like a head's (``place_landmarks``)."""
-        if not isinstance(rig, BlendshapeRig):
-            raise TypeError(f"rig: expected a BlendshapeRig, got {type(rig).__name__}")
-        if rig.faces is None:
-            raise ValueError("rig: a template needs faces (a mesh), this rig has none")
-        vertices = np.asarray(rig.neutral, np.float64) * UNIT_IN_CM[rig.units]
-        landmarks, _, _ = place_landmarks(dataset, vertices, np.asarray(rig.faces))
-        return cls(rig, landmarks, name)
-
-
-def skin_of(
-    vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"]
-) -> Bool[np.ndarray, " V"]:
-    """(V,) bool: the largest connected component (a head's skin; eyes, teeth, lashes are
-    separate parts)."""
-    labels = connected_components(np.asarray(faces), np.shape(vertices)[0])
-    return labels == np.bincount(labels).argmax()
-
-
-def place_landmarks(
-    dataset: AutorigDataset,
-    vertices: Float[ArrayLike, "V 3"],
-    faces: Int[ArrayLike, "F 3"],
-    *,
-    region: Bool[ArrayLike, " V"] | None = None,
-) -> tuple[Int[np.ndarray, " L"], SimilarityFit, str]:
-    """The ICT landmarks on a head (cm, +y up, facing +z): the ICT face part fitted by
-    trimmed ICP (``fit_head_landmarks``); where that fails (a face-only mask, a stylised
-    head), the inner face (eyes, nose, mouth; ``inner_face``) with a looser trim.
-
-    Returns ((68,) vertex indices, the ``SimilarityFit``, "face" | "inner face"). Raises
-    ValueError saying why and what to try when neither fits."""
-    from ..mesh import fit_landmarks
-    from ._orientation import FIT_TRIM
-
-    if region is None:
-        region = skin_of(vertices, faces)
-    try:
-        landmarks, fit = fit_head_landmarks(dataset, vertices, faces, region=region)
-        return landmarks, fit, "face"
-    except ValueError as first:
-        head = dataset.head
-        try:
-            landmarks, fit = fit_landmarks(
-                head.neutral,
-                head.landmarks,
-                inner_face(dataset),
-                vertices,
-                faces,
-                target_region=region,
-                trim=FIT_TRIM,
-            )
-            return landmarks, fit, "inner face"
-        except ValueError as second:
-            raise ValueError(
-                f"vertices: the ICT face does not fit this head, whole ({first}) or by its "
-                f"inner face ({str(second).replace('target_vertices', 'vertices')}). Is it a "
-                "face in centimetres, y up, facing +z? Otherwise pass its landmarks by hand "
-                "(landmarks=, 68 vertex indices) or carry from a template closer to its style "
-                "(template=, canrig autorig --template)"
-            ) from second
-
-
-@dataclasses.dataclass(frozen=True)
 class AutoRig:
     """What ``auto_rig`` returns.
 
     Attributes:
         rig: the ``BlendshapeRig`` in the head's own frame, centimetres; ARKit names unless
             ``names="source"``.
-        method: the method run; style: the ``Style`` applied (``Style()`` without examples).
+        method: the name of the method run (``AbstractAutoRigMethod.name``: "transfer",
+            "raf", "transfer-residual"); style: the ``Style`` applied (``Style()`` without
+            examples).
         orientation: how the head was turned for the method (``OrientationDecision``).
-        landmarks: (68,) the ICT landmarks on the head (None for "raf", which needs none);
+        landmarks: (68,) the ICT landmarks on the head (None for a method that does not
+            ``needs_landmarks``, unless given);
             fit: how they were placed ("face", "inner face", "given") and the trimmed RMS (cm).
         examples: the ARKit names of the example shapes taken as sculpted (an example the
             rig has no single shape for only shapes the style, with a warning).
@@ -304,11 +188,9 @@ def auto_rig(
     vertices: Float[ArrayLike, "V 3"],
     faces: Int[ArrayLike, "F 3"],
     *,
-    method: str | None = None,
+    method: AbstractAutoRigMethod | None = None,
     dataset: AutorigDataset | None = None,
-    template: Template | None = None,
     examples: BlendshapeRig | Mapping[str, Float[ArrayLike, "V 3"]] | None = None,
-    model: tuple[RigAnyFace, PoseSet] | None = None,
     up: str | None = None,
     forward: str | None = None,
     orientation: OrientationDecision | None = None,
@@ -321,15 +203,15 @@ def auto_rig(
     Args:
         vertices: (V, 3) neutral head in **centimetres**, any axis-aligned orientation;
             faces: (F, 3) triangles.
-        method: one of ``AUTO_RIG_METHODS`` (default: ``DEFAULT_METHOD``, or "transfer" when
-            a ``template`` is given; see the module docstring).
+        method: an ``AbstractAutoRigMethod`` (default: ``DEFAULT_METHOD``, ``Transfer()``):
+            ``Transfer(template=...)`` carries a ``Template`` of the user's;
+            ``RigAnyFaceNetwork(model=...)`` and ``TransferResidual(model=...)`` run a
+            network other than the packaged one.
         dataset: the ICT source (``ict_pose_source()``; loaded from the data folder when
-            None and the method needs it: "raf" does not, it runs without the data folder).
-        template: a ``Template`` to carry from instead of ICT (``method="transfer"`` only).
+            None and the method ``needs_landmarks`` or ``landmarks`` are given; the network
+            alone, ``RigAnyFaceNetwork``, runs without the data folder).
         examples: k of this head's ARKit shapes as sculpted by its artist (a
             ``BlendshapeRig`` on the head's mesh or {name: (V, 3) cm}); fits a ``Style``.
-        model: ``(RigAnyFace, PoseSet)`` for "raf"/"transfer-residual" (default: the packaged
-            model of that method).
         up, forward: the head's up and forward axes ("+z", "-y"); default: decided from the
             fitted face, or refused (``OrientationError``) — never guessed.
         orientation: an ``OrientationDecision`` already made (skips the decision).
@@ -338,15 +220,15 @@ def auto_rig(
             template's own names, e.g. ICT's ``browDown_L``).
         progress: called with a message before each step.
 
-    Returns an ``AutoRig``. Raises ValueError naming the argument for bad input, before any
-    compiled work.
+    Returns an ``AutoRig``. Raises ValueError naming the argument for bad input (TypeError
+    for a ``method`` that is not an ``AbstractAutoRigMethod``), before any compiled work.
     """
     start = time.perf_counter()
-    method = _check_method(method, names, template)
+    method = _check_method(method, names)
     v, faces = _check_head(vertices, faces)
     sculpted = _check_examples(examples, v.shape[0])
     orientation, landmarks = _check_placement(orientation, up, forward, landmarks, len(v))
-    if dataset is None and (method != "raf" or landmarks is not None):
+    if dataset is None and (method.needs_landmarks or landmarks is not None):
         from ._data import ict_pose_source
 
         _progress(progress, "loading the ICT source rig")
@@ -365,15 +247,9 @@ def auto_rig(
     seconds["landmarks"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    _progress(progress, f"building the rig ({method})")
-    head = _Head(upright, np.asarray(faces), landmarks, skin)
-    if template is not None:
-        carried = _template_rig(template, head)
-        displacements, pose_set = np.asarray(carried.deltas, np.float64), None
-        source_names = tuple(carried.names)
-    else:
-        displacements, pose_set = _pose_displacements(method, dataset, head, model)
-        source_names = tuple(pose_set.basis_names)
+    _progress(progress, f"building the rig ({method.name})")
+    head = UprightHead(upright, np.asarray(faces), landmarks, skin)
+    displacements, pose_set, source_names = method.displacements(head, dataset)
     seconds["method"] = time.perf_counter() - t
 
     style = Style()
@@ -395,7 +271,7 @@ def auto_rig(
         rig, up=orientation.up, forward=orientation.forward, keep=taken
     )
     seconds["total"] = time.perf_counter() - start
-    return AutoRig(rig, method, style, orientation, landmarks, fit_record, taken, seconds)
+    return AutoRig(rig, method.name, style, orientation, landmarks, fit_record, taken, seconds)
 
 
 def auto_rig_heads(
@@ -406,8 +282,9 @@ def auto_rig_heads(
 ) -> list[AutoRig]:
     """``auto_rig(vertices, faces, **options)`` of every ``(vertices, faces)`` pair in
     ``heads`` (centimetres), in order. Every head is checked first (ValueError naming
-    ``heads[i]``); the ICT source and the network are loaded once for all. ``options`` apply
-    to every head (state ``up``/``forward`` only when all heads share their axes).
+    ``heads[i]``); the ICT source and the method's network are loaded once for all
+    (``AbstractAutoRigMethod.loaded``). ``options`` apply to every head (state
+    ``up``/``forward`` only when all heads share their axes).
 
     ``across_processes``: after ``canrig_jax.distributed.initialize``, each process rigs its
     share of the heads and every process returns the whole list (``distributed.map_items``);
@@ -424,17 +301,12 @@ def auto_rig_heads(
             _check_head(*head)
         except ValueError as error:
             raise ValueError(f"heads[{i}]: {error}") from error
-    method = _check_method(
-        options.get("method"), options.get("names", "arkit"), options.get("template")
-    )
-    if options.get("dataset") is None and method != "raf":
+    method = _check_method(options.get("method"), options.get("names", "arkit"))
+    if options.get("dataset") is None and method.needs_landmarks:
         from ._data import ict_pose_source
 
         options["dataset"] = ict_pose_source(progress=False)
-    if options.get("model") is None and method in ("raf", "transfer-residual"):
-        from ._train import load_riganyface
-
-        options["model"] = load_riganyface(default_model(method))[:2]
+    options["method"] = method.loaded()
 
     def one(head):
         return auto_rig(head[0], head[1], **options)
@@ -442,18 +314,20 @@ def auto_rig_heads(
     return map_items(one, heads) if across_processes else [one(head) for head in heads]
 
 
-def _check_method(method, names, template) -> str:
-    """The method to run (``DEFAULT_METHOD``, or "transfer" with a template)."""
-    if method is None:
-        method = "transfer" if template is not None else DEFAULT_METHOD
-    if method not in AUTO_RIG_METHODS:
-        raise ValueError(f"method: expected one of {AUTO_RIG_METHODS}, got {method!r}")
+def _check_method(method, names) -> AbstractAutoRigMethod:
+    """The method to run (``DEFAULT_METHOD`` for None); TypeError naming ``method`` for
+    anything but an ``AbstractAutoRigMethod`` (a name is the command line's)."""
     if names not in NAME_STYLES:
         raise ValueError(f"names: expected one of {NAME_STYLES}, got {names!r}")
-    if template is not None and method != "transfer":
-        raise ValueError(f"template: only method='transfer' carries a template, not {method!r}")
-    if template is not None and not isinstance(template, Template):
-        raise TypeError(f"template: expected a Template, got {type(template).__name__}")
+    if method is None:
+        return DEFAULT_METHOD
+    if not isinstance(method, AbstractAutoRigMethod):
+        methods = ", ".join(f"autorig.{cls.__name__}()" for cls in AUTO_RIG_METHODS)
+        got = f"the string {method!r}" if isinstance(method, str) else type(method).__name__
+        raise TypeError(
+            f"method: expected an auto-rig method ({methods}), got {got}; a method's name "
+            "is for the command line (canrig autorig --method NAME)"
+        )
     return method
 
 
@@ -511,12 +385,12 @@ def _check_placement(orientation, up, forward, landmarks, n_vertices: int):
 
 
 def _landmarks(dataset, upright, faces, skin, landmarks, method, progress):
-    """The ICT landmarks on the upright head and how they were placed (the network needs
-    none: None for "raf" unless given)."""
+    """The ICT landmarks on the upright head and how they were placed (None for a method
+    that does not ``needs_landmarks``, unless given)."""
     if landmarks is not None:
         return landmarks, {"by": "given", "rms_cm": float("nan")}
-    if method == "raf":
-        return None, {"by": "not needed (raf)", "rms_cm": float("nan")}
+    if not method.needs_landmarks:
+        return None, {"by": f"not needed ({method.name})", "rms_cm": float("nan")}
     _progress(progress, "placing the ICT landmarks on the head")
     landmarks, fit, fitted_by = place_landmarks(dataset, upright, faces, region=skin)
     return landmarks, {"by": fitted_by, "rms_cm": float(fit.rms)}
@@ -532,75 +406,6 @@ def _assemble(vertices, faces, displacements, pose_set, source_names, names) -> 
     else:
         rig = BlendshapeRig(neutral, displacements, (), source_names, faces)
     return rename_to_arkit(rig) if names == "arkit" else rig
-
-
-@dataclasses.dataclass(frozen=True)
-class _Head:
-    vertices: np.ndarray
-    faces: np.ndarray
-    landmarks: np.ndarray | None
-    skin: np.ndarray
-
-
-def _pose_displacements(method: str, dataset, head: _Head, model):
-    """((P, V, 3) cm of every pose on the upright head, the ``PoseSet``). "raf" needs no
-    dataset (None): its poses come with the model."""
-    base = None
-    if method in ("transfer", "transfer-residual"):
-        assert head.landmarks is not None  # placed for every method but "raf"
-        correspondence = head_correspondence(dataset, head.vertices, head.faces, head.landmarks)
-        base = transfer_poses(dataset, head, correspondence, static_below=ANCHOR_CM)
-        if method == "transfer":
-            return base, dataset.poses
-    from ._rig import generate_rig
-    from ._train import load_riganyface
-
-    if model is None:
-        model = load_riganyface(default_model(method))[:2]
-    network, poses = model
-    if not isinstance(poses, PoseSet):
-        raise TypeError(f"model: expected (RigAnyFace, PoseSet), got {type(poses).__name__}")
-    if dataset is not None and poses.labels != dataset.poses.labels:
-        raise ValueError("model: its pose set is not the ICT source's (dataset)")
-    generated = generate_rig(
-        network, poses, head.vertices, head.faces, base=base, orientation="trust"
-    )
-    return np.asarray(generated.displacements, np.float64), poses
-
-
-def default_model(method: str) -> Path:
-    """The packaged checkpoint of a network method."""
-    from ._train import DEFAULT_CHECKPOINT, RESIDUAL_CHECKPOINT
-
-    return {"raf": DEFAULT_CHECKPOINT, "transfer-residual": RESIDUAL_CHECKPOINT}[method]
-
-
-def _template_rig(template: Template, head: _Head) -> BlendshapeRig:
-    """The template's shapes carried onto the upright head (anchored deformation transfer),
-    in centimetres."""
-    source = template.rig
-    scale = UNIT_IN_CM[source.units]
-    neutral = np.asarray(source.neutral, np.float64) * scale
-    # a coarse template holds some landmarks on one vertex; the landmark spline needs each
-    # template point once (a repeated point makes its system singular)
-    _, first = np.unique(np.asarray(template.landmarks), return_index=True)
-    once = np.sort(first)
-    correspondence = closest_point_correspondence(
-        neutral,
-        np.asarray(source.faces),
-        head.vertices,
-        head.faces,
-        np.asarray(template.landmarks)[once],
-        np.asarray(head.landmarks)[once],
-    )
-    linear = BlendshapeRig(
-        neutral.astype(np.float32),
-        (np.asarray(source.deltas, np.float64) * scale).astype(np.float32),
-        (),
-        source.names,
-        np.asarray(source.faces),
-    )
-    return deformation_transfer(linear, head.vertices, correspondence, static_below=ANCHOR_CM)
 
 
 def _shapes_by_arkit(displacements, source_names, wanted: Mapping, rotation):

@@ -23,17 +23,11 @@ from jaxtyping import ArrayLike, Float, Float32, Int
 from ..data import ARKIT_NAMES, data_file, read_arrays, save_obj
 from ..rig import BlendshapeRig
 from ..watchdog import progress as tick
-from ._any_head import (
-    AUTO_RIG_METHODS,
-    DEFAULT_METHOD,
-    EXAMPLE_ORDER,
-    Template,
-    auto_rig,
-    place_landmarks,
-    skin_of,
-)
+from ._any_head import EXAMPLE_ORDER, auto_rig
 from ._data import AutorigDataset, ict_autorig_dataset
 from ._evaluation import sculpted_target_errors, shared_shape_matrix
+from ._landmarks import place_landmarks, skin_of
+from ._methods import AUTO_RIG_METHODS, DEFAULT_METHOD, Template, Transfer
 from ._orientation import OrientationError, axis_rotations, decide_orientation
 from ._protocols import face_crop
 
@@ -129,17 +123,18 @@ def few_shot_rows(
 ) -> tuple[dict, dict, dict]:
     """Every ``auto_rig`` method on ``head`` with k = each of ``FEW_SHOT_KS`` example shapes
     given (the first k of ``EXAMPLE_ORDER``, never chosen by error), each scored on the shapes
-    not given beside no motion on the same shapes; the orientation and landmarks of a first
-    ``"transfer"`` call are shared by all.
+    not given beside no motion on the same shapes, under the method's name; the orientation
+    and landmarks of a first ``Transfer()`` call are shared by all.
 
     Returns (row -> errors at k = 0 on every scored shape, ``"no_motion"`` first; method ->
     str(k) -> errors with their ``"no_motion"``, ``"style"`` and ``"seconds"``; the landmark
     fit {"ok", "by", "rms_cm"})."""
-    first = auto_rig(head.vertices, head.faces, method="transfer", dataset=dataset)
+    first = auto_rig(head.vertices, head.faces, method=Transfer(), dataset=dataset)
     scored = [n for n in head.names if n in first.rig.names]
     methods = {"no_motion": _no_motion_errors(head, scored)}
     few: dict = {}
-    for method in AUTO_RIG_METHODS:
+    for method_class in AUTO_RIG_METHODS:
+        method = method_class.name
         few[method] = {}
         for k in FEW_SHOT_KS:
             given = list(EXAMPLE_ORDER[:k])
@@ -149,7 +144,7 @@ def few_shot_rows(
             result = auto_rig(
                 head.vertices,
                 head.faces,
-                method=method,
+                method=method_class(),
                 examples=examples,
                 dataset=dataset,
                 orientation=first.orientation,
@@ -266,7 +261,7 @@ def measure_cli_seconds(heads: Mapping[str, SculptedHead], log: Log = print) -> 
             log(f"canrig autorig {name}: {seconds[name]['warm_s']:.1f} s")
         cold = dict(env, CANRIG_CACHE=str(Path(tmp) / "empty_cache"))
         seconds["makehuman"]["cold_cache_s"] = _cli_seconds(heads["makehuman"], Path(tmp), cold)
-    seconds["method"] = DEFAULT_METHOD
+    seconds["method"] = DEFAULT_METHOD.name
     return seconds
 
 
@@ -282,7 +277,7 @@ def choose_default_method(
     ``tie`` (relative) of it the first in ``preference``. Returns (the method, method -> its
     worst ratio)."""
     worst = {}
-    for method in AUTO_RIG_METHODS:
+    for method in (cls.name for cls in AUTO_RIG_METHODS):
         ratios = []
         for head, k in cases:
             row = few[head][method][k]
@@ -383,12 +378,12 @@ def template_row(
     target: SculptedHead, source: SculptedHead, dataset: AutorigDataset
 ) -> tuple[dict, BlendshapeRig]:
     """``source``'s artist's shapes (those ``target`` has too) carried onto ``target`` as a
-    ``Template`` of the same style (``auto_rig(template=)``), scored against ``target``'s own
+    ``Template`` of the same style (``Transfer(template=)``), scored against ``target``'s own
     beside no motion. Returns (errors with their ``"no_motion"``, the generated rig)."""
     names = [n for n in source.names if n in target.names]
     rig = BlendshapeRig(source.vertices, source.shapes(names), (), names, source.faces)
     template = Template.from_rig(dataset, rig, source.name)
-    result = auto_rig(target.vertices, target.faces, template=template, dataset=dataset)
+    result = auto_rig(target.vertices, target.faces, method=Transfer(template), dataset=dataset)
     scored = [n for n in target.names if n in result.rig.names]
     row = sculpted_head_errors(result.rig, target, scored)
     row["no_motion"] = _no_motion_errors(target, scored)
@@ -409,6 +404,6 @@ def mean_few_shot(per_head: Sequence[tuple[dict, dict, dict]]) -> tuple[dict, di
             }
             for k in per_head[0][1][method]
         }
-        for method in AUTO_RIG_METHODS
+        for method in (cls.name for cls in AUTO_RIG_METHODS)
     }
     return methods, few

@@ -44,6 +44,7 @@ from ..rig import (
 )
 from ..rig._gltf_avatar import scene_nodes
 from ._any_head import auto_rig, check_auto_rig
+from ._methods import AbstractAutoRigMethod
 from ._rig_checks import RigCheck, failed_hard_checks
 
 AVATAR_FORMATS = (".glb", ".vrm", ".fbx")
@@ -244,7 +245,7 @@ def auto_rig_avatar(
     avatar: str | os.PathLike,
     out: str | os.PathLike,
     *,
-    method: str | None = None,
+    method: AbstractAutoRigMethod | None = None,
     replace: bool = False,
     extras: Sequence[str] = (),
     check: bool = True,
@@ -259,7 +260,7 @@ def auto_rig_avatar(
         out: the ``.glb`` to write (atomically; an existing file is replaced only on success),
             or a ``.vrm``: the same with VRM 1.0 expressions (``rig.add_vrm_expressions``;
             the avatar needs a humanoid skeleton).
-        method: ``auto_rig``'s method (default: its default).
+        method: ``auto_rig``'s method (an ``AbstractAutoRigMethod``; default: its default).
         replace: a target name a face mesh already has is replaced (else a ValueError).
         extras: sets of ``rig.EXTRA_SHAPES`` to add after the rig's shapes (``"visemes"``,
             ``"rpm"``), each target the documented sum of ARKit targets.
@@ -267,7 +268,7 @@ def auto_rig_avatar(
         strict: a face rig that fails a hard check is not written (a ValueError naming the
             checks); else it is written and the failures are in ``AvatarRig.checks``.
         progress: called with a message before each step.
-        options: passed on to ``auto_rig`` (``dataset``, ``model``, ``up``, ``forward``...).
+        options: passed on to ``auto_rig`` (``dataset``, ``up``, ``forward``...).
 
     Returns an ``AvatarRig``. The blendshapes become targets named as ``auto_rig`` names them
     (ARKit by default); its correctives have no linear equivalent and are not written.

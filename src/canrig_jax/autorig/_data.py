@@ -403,7 +403,7 @@ def face_placement(
         vertices, faces: the head (centimetres, y up, facing +z, as ``fit_head_landmarks``).
         fit: a ``SimilarityFit`` already computed for this head (skips the fit).
 
-    Returns ``(centre (3,), scale)`` for ``generate_rig(..., placement=...)``.
+    Returns ``(centre (3,), scale)`` for ``AbstractNetworkMethod.generate(..., placement=...)``.
     """
     from ._model import normalise
 

@@ -21,8 +21,8 @@ exactly still, and the correction acts in full where the base moves by several t
 
 All poses of a head go through one call as (V, P, C) features, so diffusion and the spatial
 gradients act on all poses in one matrix product (optionally over chunks of ``pose_chunk``
-poses, which keeps the activations in a CPU's cache); ``generate_rig`` turns the predictions
-into a ``BlendshapeRig`` in the head's own units.
+poses, which keeps the activations in a CPU's cache); ``AbstractNetworkMethod.generate`` turns
+the predictions into a ``BlendshapeRig`` in the head's own units.
 
 The stem is our reading of the paper's "conditional diffusion blocks": the first blocks do not
 depend on the pose, so computing them once per head instead of once per pose gives the same

@@ -16,8 +16,9 @@ three cues of a human head that do not depend on where it was cropped:
   open boundary (a neck or shoulder cut: below); the cues that are clear must agree.
 
 Each cue reports a margin; a head whose cues are weak (a sphere, a flat patch, a head
-turned by other than a multiple of 90 degrees) is "undetermined", which ``generate_rig``
-lets through: it refuses or fixes only what the cues show clearly.
+turned by other than a multiple of 90 degrees) is "undetermined", which the network
+(``AbstractNetworkMethod.generate``) lets through: it refuses or fixes only what the cues
+show clearly.
 """
 
 import dataclasses

@@ -17,7 +17,6 @@ from jaxtyping import ArrayLike, Bool, Float, Int, Int32
 
 from .._io import atomic_path
 from ..mesh import MeshOperators, TriangleCorrespondence
-from ._any_head import ANCHOR_CM
 from ._data import (
     AutorigDataset,
     PoseSet,
@@ -30,6 +29,7 @@ from ._data import (
 )
 from ._evaluation import ACTIVE_MM, sculpted_target_errors, shared_shape_matrix
 from ._makehuman import MakeHumanHead, load_makehuman
+from ._methods import ANCHOR_CM
 from ._model import RigAnyFace
 from ._rig import GeneratedRig, generate_rig
 

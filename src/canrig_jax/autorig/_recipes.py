@@ -15,8 +15,8 @@ from pathlib import Path
 from jaxtyping import ArrayLike, Float
 
 from .._checkpoint import parameter_count
-from ._any_head import ANCHOR_CM
 from ._data import ANCHOR_MODES, AutorigDataset, PoseSet
+from ._methods import ANCHOR_CM
 from ._model import RigAnyFace
 from ._protocols import anchored_base_key, cached_transfer
 from ._train import (

@@ -1,7 +1,9 @@
 """Rig generation: a neutral head in, a ``BlendshapeRig`` out, in one batched call.
 
-``generate_rig`` normalises the head to the unit sphere, computes (or loads) its operators,
-predicts every pose of the pose set at once and scales back to the head's units. Single
+``generate_rig`` (reached through the network methods' one door,
+``AbstractNetworkMethod.generate``) normalises the head to the unit sphere, computes (or loads)
+its operators, predicts every pose of the pose set at once and scales back to the head's
+units. Single
 expressions become the rig's deltas; a combination pose becomes a corrective of its order,
 its prediction minus its expressions' predictions and minus the correctives of its
 sub-combinations (Racković eq. (5)), so evaluating the rig with weight 1 on a combination's

@@ -66,9 +66,10 @@ DEFAULT_CHECKPOINT_SHA256 = "7e894ad4fd0f19962d9643221c3aab5fa48df509e2b1ef92ddc
 RESIDUAL_CHECKPOINT = Path(
     str(files("canrig_jax.autorig") / "models" / "riganyface_residual.eqx.xz")
 )
-"""The packaged DT + learned residual model (``auto_rig(method="transfer-residual")``):
-``export_riganyface`` of ``experiments/results/autorig/checkpoint_raf_anchored_dt_residual.eqx``
-(a residual on anchored deformation transfer, chosen on validation identities)."""
+"""The packaged DT + learned residual model (``TransferResidual()``; ``canrig autorig --method
+transfer-residual``): ``export_riganyface`` of
+``experiments/results/autorig/checkpoint_raf_anchored_dt_residual.eqx`` (a residual on anchored
+deformation transfer, chosen on validation identities)."""
 RESIDUAL_CHECKPOINT_SHA256 = "4d3cce9bde900d55754d0d4c739b9e77d3b6da0e8fbdd07e4b0dac341be1eaa0"
 """SHA-256 of the file ``RESIDUAL_CHECKPOINT``."""
 LOSSES = ("squared", "euclidean")
