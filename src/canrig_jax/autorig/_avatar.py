@@ -214,6 +214,24 @@ def _without_cut_slivers(mask: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return out
 
 
+def _what_was_found(source: GltfAvatar, head: int | None, chosen, mesh_names) -> str:
+    """The progress line naming the head, the face meshes and (of several) the scene rigged."""
+    document = source.document
+    head_name = document["nodes"][head].get("name") if head is not None else None
+    found = f"the head bone {head_name!r}" if head is not None else "no head bone: rigged whole"
+    if head is None and standing_body(source):
+        found = "no head bone: the head of a standing body, by geometry"
+    count = sum(int(m.sum()) for _, m in chosen)
+    line = f"{found}; face meshes {list(mesh_names)}: {count} vertices"
+    if len(document.get("scenes", [])) > 1:
+        line += (
+            f"; the file has {len(document['scenes'])} scenes: its default scene (scene "
+            f"{int(document.get('scene', 0))}) is rigged, meshes only in the others are kept "
+            "as they are"
+        )
+    return line
+
+
 def standing_body(avatar: GltfAvatar) -> bool:
     """Whether the avatar is a standing body whose head ``auto_rig_avatar`` finds by
     geometry when it has no head bone (``BODY_HEIGHT_CM``)."""
@@ -295,17 +313,7 @@ def auto_rig_avatar(
     _check_face(path, chosen, head)
     document = source.document
     mesh_names = tuple(document["meshes"][v.mesh].get("name", f"mesh{v.mesh}") for v, _ in chosen)
-    head_name = document["nodes"][head].get("name") if head is not None else None
-    found = f"the head bone {head_name!r}" if head is not None else "no head bone: rigged whole"
-    if head is None and standing_body(source):
-        found = "no head bone: the head of a standing body, by geometry"
-    say(f"{found}; face meshes {list(mesh_names)}: {sum(int(m.sum()) for _, m in chosen)} vertices")
-    if len(document.get("scenes", [])) > 1:
-        say(
-            f"the file has {len(document['scenes'])} scenes: its default scene (scene "
-            f"{int(document.get('scene', 0))}) is rigged; meshes only in the others are kept "
-            "as they are"
-        )
+    say(_what_was_found(source, head, chosen, mesh_names))
     seconds = {"read": time.perf_counter() - start}
     parts, faces, offset = [], [], 0
     for vertices, mask in chosen:
