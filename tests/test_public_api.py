@@ -1,17 +1,21 @@
 """The public API is deliberate: every exported name is in a committed list.
 
-``tests/public_api.txt`` holds one line per public name: ``canrig_jax.NAME`` for the top
-level, ``canrig_jax.SUB.NAME`` for each subpackage's ``__all__`` (``watchdog``, a module
-without ``__all__``: the public names it defines). Adding, renaming or removing a public name
-is a change of that file in the same commit; regenerate it with
+``tests/public_api.txt`` holds the toolkit, one line per public name: ``canrig_jax.NAME`` for
+the top level, ``canrig_jax.SUB.NAME`` for each subpackage's ``__all__`` (``watchdog``, a
+module without ``__all__``: the public names it defines). ``tests/papers_api.txt`` holds the
+papers' protocols apart (``canrig_jax.papers.PAPER.NAME``), which the experiments import and
+the toolkit never does. Adding, renaming or removing a public name is a change of one of those
+files in the same commit; regenerate them with
 
     python tests/test_public_api.py > tests/public_api.txt
+    python tests/test_public_api.py --papers > tests/papers_api.txt
 
 and review the diff (and add a CHANGELOG line for a rename or a removal).
 """
 
 from __future__ import annotations
 
+import ast
 import importlib
 import importlib.metadata
 import inspect
@@ -24,6 +28,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 LISTING = Path(__file__).with_name("public_api.txt")
+PAPERS_LISTING = Path(__file__).with_name("papers_api.txt")
 SUBPACKAGES = (
     "autorig",
     "canrig",
@@ -37,6 +42,8 @@ SUBPACKAGES = (
     "watchdog",
     "wpse",
 )
+PAPERS = ("wpse",)
+"""The subpackages of ``canrig_jax.papers``, one per paper."""
 
 
 def exported(module) -> list[str]:
@@ -66,18 +73,59 @@ def public_api() -> list[str]:
     return sorted(lines)
 
 
-def test_public_api_matches_the_committed_list():
-    committed = [
-        line for line in LISTING.read_text().splitlines() if line and not line.startswith("#")
-    ]
-    current = public_api()
+def papers_api() -> list[str]:
+    """Every name of the papers' protocols, one ``canrig_jax.papers.PAPER.NAME`` per entry."""
+    lines = []
+    for paper in PAPERS:
+        module = importlib.import_module(f"canrig_jax.papers.{paper}")
+        lines += [f"canrig_jax.papers.{paper}.{n}" for n in module.__all__]
+    return sorted(lines)
+
+
+def _committed(listing: Path) -> list[str]:
+    return [line for line in listing.read_text().splitlines() if line and not line.startswith("#")]
+
+
+@pytest.mark.parametrize(
+    "listing, current, flag",
+    [(LISTING, public_api, ""), (PAPERS_LISTING, papers_api, " --papers")],
+    ids=["toolkit", "papers"],
+)
+def test_public_api_matches_the_committed_list(listing, current, flag):
+    committed = _committed(listing)
+    current = current()
     added = sorted(set(current) - set(committed))
     removed = sorted(set(committed) - set(current))
     assert not added and not removed, (
         f"public API changed: added {added}, removed {removed}; if deliberate, regenerate "
-        "tests/public_api.txt (python tests/test_public_api.py > tests/public_api.txt)"
+        f"tests/{listing.name} (python tests/test_public_api.py{flag} > tests/{listing.name})"
     )
     assert len(current) == len(set(current)), "a name is listed twice in one __all__"
+
+
+def test_every_paper_is_listed():
+    papers = ROOT / "src" / "canrig_jax" / "papers"
+    found = sorted(p.parent.name for p in papers.glob("*/__init__.py"))
+    assert found == sorted(PAPERS), found
+
+
+def test_the_toolkit_never_imports_the_papers():
+    """Layers are one-way: ``canrig_jax.papers`` imports the toolkit, never the reverse."""
+    source = ROOT / "src" / "canrig_jax"
+    found = []
+    for path in sorted(source.rglob("*.py")):
+        if path.is_relative_to(source / "papers"):
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom):
+                parts = [*(node.module or "").split(".")] + [a.name for a in node.names]
+            elif isinstance(node, ast.Import):
+                parts = [p for a in node.names for p in a.name.split(".")]
+            else:
+                continue
+            if "papers" in parts:
+                found.append(f"{path.relative_to(source)}:{node.lineno}")
+    assert not found, f"the toolkit imports canrig_jax.papers: {found}"
 
 
 @pytest.mark.parametrize("sub", SUBPACKAGES)
@@ -145,6 +193,11 @@ def test_importing_the_package_loads_no_subpackage_and_no_jax():
 
 
 if __name__ == "__main__":
-    print("# The public API of canrig_jax (tests/test_public_api.py); regenerate with")
-    print("#   python tests/test_public_api.py > tests/public_api.txt")
-    print("\n".join(public_api()))
+    if sys.argv[1:] == ["--papers"]:
+        print("# The papers' protocols, canrig_jax.papers (tests/test_public_api.py); regenerate")
+        print("#   python tests/test_public_api.py --papers > tests/papers_api.txt")
+        print("\n".join(papers_api()))
+    else:
+        print("# The public API of canrig_jax (tests/test_public_api.py); regenerate with")
+        print("#   python tests/test_public_api.py > tests/public_api.txt")
+        print("\n".join(public_api()))
