@@ -5,8 +5,8 @@
 
 Targets: the rig at the 180 Live Link Face frames (retargeted onto ICT, missing channels
 zero) plus Gaussian noise of variance 0.03 cm^2 per coordinate (seed 0). Timed, in one
-process: the NumPy float64 reference of Algorithm 1 (``inverse.reference``, 5 passes, the
-full rig evaluated twice per coordinate, one frame at a time); QuarticCD with the paper's 5
+process: the NumPy float64 reference of Algorithm 1 (``papers.inverse_rig.numpy_quartic_cd``,
+5 passes, the full rig evaluated twice per coordinate, one frame at a time); QuarticCD with the paper's 5
 passes, batched; converged QuarticCD (the defaults: tol 1e-5, Newton steps) batched over the
 take (``solve_sequence``) and one frame per call (``inverse.Stream``, cold and warm-started);
 and the pieces of one frame: the projection M^T (b - b0) (the one 3V-sized product, in the
@@ -40,7 +40,7 @@ from canrig_jax import inverse
 from canrig_jax._io import save_text
 from canrig_jax._threads import single_threaded_blas
 from canrig_jax.data import load_livelinkface
-from canrig_jax.inverse import (
+from canrig_jax.papers.inverse_rig import (
     NumpyDenseRig,
     decreasing_norm_order,
     numpy_quartic_cd,

@@ -71,10 +71,7 @@ from canrig_jax._io import update_results
 from canrig_jax._provenance import experiment_command, provenance, record_command
 from canrig_jax.data import load_livelinkface
 from canrig_jax.inverse import (
-    holistic_lambdas,
     lowest_error_smoothness,
-    numpy_holistic_cd,
-    select_alpha,
     select_smoothness,
     smooth_training_takes,
     smoothness_curve,
@@ -83,7 +80,10 @@ from canrig_jax.inverse import (
     temporal_targets,
     validation_split,
 )
+from canrig_jax.inverse._temporal import take_objective
 from canrig_jax.inverse._temporal_protocols import _split_table, _temporal_table
+from canrig_jax.papers import inverse_rig
+from canrig_jax.papers.inverse_rig import holistic_lambdas, numpy_holistic_cd, select_alpha
 from canrig_jax.render import save_figure
 from canrig_jax.rig import (
     UNIT_IN_CM,
@@ -220,7 +220,7 @@ def evaluate_case(name, rig, take, fps, rng, args, smoothness=None):
 
     offsets = (targets[:frames] - np.asarray(problem.neutral)).reshape(frames, -1)
     subset_objective = {
-        mode: float(inverse.take_objective(problem, weights[mode][:frames], offsets, a, s))
+        mode: float(take_objective(problem, weights[mode][:frames], offsets, a, s))
         for mode in ("temporal", "authors_temporal", "per_frame")
     }
     whole, stitched = weights["temporal"], weights["temporal_window"]
@@ -259,7 +259,7 @@ def stream_modes(name, rig, problem, targets, clean, a, s, args, modes, test_mod
     streams, weights = {}, {}
     for mode, lag, blocks in STREAMS:
         method = inverse.TemporalNewton(alpha=a, smoothness=s, stream_blocks=blocks)
-        row = inverse.time_against_projection(
+        row = inverse_rig.time_against_projection(
             problem, targets, method, lag=lag, repeats=1 if args.quick else 3
         )
         w = np.asarray(row.pop("weights"), np.float64)

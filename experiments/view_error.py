@@ -57,7 +57,7 @@ from canrig_jax.canrig import (
     load_model,
 )
 from canrig_jax.data import load_livelinkface
-from canrig_jax.inverse import mm_per_unit, summarize
+from canrig_jax.inverse import summarize
 from canrig_jax.mesh import DeformationGradientBlend
 from canrig_jax.rig import (
     UNIT_IN_CM,
@@ -105,7 +105,7 @@ def inverse_rig_take(args) -> dict:
     method = inverse.QuarticCD(alpha=alpha_cm2 / scale**2)
     weights = np.asarray(inverse.solve_sequence(rig, noisy, method).weights)
     solved = np.asarray(evaluate_batch(rig, weights))
-    error = per_vertex_distance(solved, clean) * mm_per_unit(rig)
+    error = per_vertex_distance(solved, clean) * (UNIT_IN_CM[rig.units] * CM_TO_MM)
     row = summarize(rig, weights, clean)
     return {
         "meshes": solved,

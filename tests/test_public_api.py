@@ -42,7 +42,7 @@ SUBPACKAGES = (
     "watchdog",
     "wpse",
 )
-PAPERS = ("wpse",)
+PAPERS = ("inverse_rig", "wpse")
 """The subpackages of ``canrig_jax.papers``, one per paper."""
 
 

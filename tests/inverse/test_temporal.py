@@ -12,6 +12,7 @@ import pytest
 
 from canrig_jax import inverse
 from canrig_jax.inverse._temporal import block_banded_solve, difference_bands
+from canrig_jax.papers import inverse_rig
 from canrig_jax.rig import evaluate
 
 ALPHA = 0.5
@@ -163,7 +164,7 @@ def test_the_authors_holistic_cd_reaches_the_same_objective(synthetic_rig, take)
     targets = targets[:8]
     smoothness = 20.0
     n, k = 3 * synthetic_rig.n_vertices, synthetic_rig.n_blendshapes
-    lambda1, lambda2 = inverse.holistic_lambdas(ALPHA, smoothness, n, k)
+    lambda1, lambda2 = inverse_rig.holistic_lambdas(ALPHA, smoothness, n, k)
     # the paper's J = (1/n)||F - B||^2 + (lambda1/m) 1^T C + lambda2 ||C D^T||^2 is (2/n) E
     w = np.random.default_rng(0).uniform(0, 1, (8, k))
     meshes = np.asarray(jax.vmap(evaluate, (None, 0))(synthetic_rig, w.astype(np.float32)))
@@ -174,7 +175,7 @@ def test_the_authors_holistic_cd_reaches_the_same_objective(synthetic_rig, take)
     )
     np.testing.assert_allclose(0.5 * n * j, _energy(synthetic_rig, targets, w, ALPHA, smoothness))
 
-    reference = inverse.numpy_holistic_cd(
+    reference = inverse_rig.numpy_holistic_cd(
         synthetic_rig, targets, lambda1, lambda2, interval=8, passes_max=60
     )
     method = inverse.TemporalNewton(alpha=ALPHA, smoothness=smoothness, tol=1e-7)
@@ -228,7 +229,7 @@ def test_bad_input_names_the_argument(take):
     with pytest.raises(ValueError, match="targets"):
         inverse.solve_sequence(problem, targets[:, :-1], method)
     with pytest.raises(ValueError, match="interval"):
-        inverse.numpy_holistic_cd(problem.rig, targets, 0.1, 0.1, interval=2)
+        inverse_rig.numpy_holistic_cd(problem.rig, targets, 0.1, 0.1, interval=2)
     with pytest.raises(ValueError, match="sweep"):
         inverse.select_smoothness([{"smoothness": 1.0, "rmse_mean_mm": 1.0}])
     with pytest.raises(ValueError, match="fps"):

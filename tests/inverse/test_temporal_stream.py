@@ -14,6 +14,7 @@ import pytest
 from scipy.optimize import minimize
 
 from canrig_jax import inverse
+from canrig_jax.inverse._solve import HISTORY_FRAMES
 from canrig_jax.inverse._temporal import difference_bands, weighted_difference_bands
 from canrig_jax.rig import BlendshapeRig, evaluate_batch
 
@@ -84,7 +85,7 @@ def test_a_lagged_frame_is_the_window_solve_with_the_earlier_frames_fixed(take):
     method = inverse.TemporalNewton(alpha=ALPHA, smoothness=SMOOTHNESS, velocity=VELOCITY, tol=1e-9)
     streamed = _streamed(problem, targets, method, lag)
     for frame in (0, 1, 4, 6):  # the first frames have fewer (or no) fixed frames before them
-        fixed = streamed[max(frame - inverse.HISTORY_FRAMES, 0) : frame]
+        fixed = streamed[max(frame - HISTORY_FRAMES, 0) : frame]
         window = targets[frame : frame + lag + 1]
         reference = _window_minimum(problem, window, fixed, SMOOTHNESS, VELOCITY)
         np.testing.assert_allclose(streamed[frame], reference[0], atol=2e-4)
