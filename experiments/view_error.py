@@ -51,14 +51,13 @@ from canrig_jax.canrig import (
     dialogue_replacement,
     evaluate_poses,
     expression_region,
-    farthest_point_vertices,
     influence_reach,
     interior_vertices,
     load_model,
 )
 from canrig_jax.data import load_livelinkface
 from canrig_jax.inverse import summarize
-from canrig_jax.mesh import DeformationGradientBlend
+from canrig_jax.mesh import DeformationGradientBlend, farthest_point_vertices
 from canrig_jax.rig import (
     UNIT_IN_CM,
     evaluate_batch,
@@ -191,7 +190,7 @@ def wpse_take(args) -> dict:
 def canrig_workflows_take(args) -> dict:
     """Dialogue replacement (direct) with the committed CANRig checkpoint."""
     # the workflow experiment's own settings
-    from canrig_jax.pbs._workflow_protocols import (
+    from canrig_jax.papers.canrig.workflows import (
         DIALOGUE_HANDLES,
         DIALOGUE_RADIUS_CM,
         FALLOFF_PER_CM,
