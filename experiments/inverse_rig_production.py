@@ -78,7 +78,7 @@ def _skin_triangles(name, rig, data_dir):
     faces = np.asarray(rig.faces)
     if name == "ict":
         return np.all(faces < ICT_FACE_VERTICES, axis=1)
-    from canrig_jax.data._paths import data_file, read_arrays  # the hm08 face groups
+    from canrig_jax.data import data_file, read_arrays  # the hm08 face groups
 
     groups = read_arrays(data_file("makehuman/hm08_face.npz", data_dir), ("face_group",))
     group = groups["face_group"]
