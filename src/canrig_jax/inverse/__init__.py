@@ -39,15 +39,6 @@ from ._retarget import retarget
 from ._solution import Solution
 from ._solve import FRAMES_PER_CALL, Stream, solve, solve_sequence
 from ._temporal import DEFAULT_SMOOTHNESS_CM2, TemporalNewton
-from ._temporal_protocols import (
-    lowest_error_smoothness,
-    select_smoothness,
-    smooth_training_takes,
-    smoothness_curve,
-    temporal_row,
-    temporal_targets,
-    validation_split,
-)
 
 METHODS = (
     QuarticCD,
@@ -95,12 +86,4 @@ __all__ = [
     "solve",
     "solve_sequence",
     "summarize",
-    # the temporal smoothness rule (moves to canrig_jax.papers.inverse_rig)
-    "lowest_error_smoothness",
-    "select_smoothness",
-    "smooth_training_takes",
-    "smoothness_curve",
-    "temporal_row",
-    "temporal_targets",
-    "validation_split",
 ]
