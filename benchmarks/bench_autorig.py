@@ -41,6 +41,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
+from canrig_jax._checkpoint import parameter_count
 from canrig_jax._io import save_text
 from canrig_jax.autorig import (
     DEFAULT_CHECKPOINT,
@@ -55,7 +56,6 @@ from canrig_jax.autorig import (
     predict_displacements,
     quartic_pose_set,
 )
-from canrig_jax.canrig import parameter_count
 from canrig_jax.data import load_ict
 from canrig_jax.mesh import decimate
 from canrig_jax.rig import ict_quartic_rig

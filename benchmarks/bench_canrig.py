@@ -43,18 +43,18 @@ import numpy as np
 from canrig_jax._io import save_text
 from canrig_jax._timing import call_times_ms
 from canrig_jax.canrig import (
-    DENSE,
     FitOptions,
     NeuralRig,
     ShapePreservingCANRig,
     deform,
     dialogue_replacement,
     expression_region,
-    farthest_point_vertices,
     interior_vertices,
     load_model,
     pose_a_to_b,
 )
+from canrig_jax.canrig._layout import DENSE
+from canrig_jax.mesh import farthest_point_vertices
 from canrig_jax.pbs import local_fit_rig, patch_layout, pbs_basis
 from canrig_jax.rig import evaluate_batch, ict_linear_rig, random_sparse_poses
 

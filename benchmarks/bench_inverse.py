@@ -5,19 +5,20 @@
 
 Targets: the rig at the 180 Live Link Face frames (retargeted onto ICT, missing channels
 zero) plus Gaussian noise of variance 0.03 cm^2 per coordinate (seed 0). Timed, in one
-process: the NumPy float64 reference of Algorithm 1 (``inverse.reference``, 5 passes, the
-full rig evaluated twice per coordinate, one frame at a time); QuarticCD with the paper's 5
-passes, batched; converged QuarticCD (the defaults: tol 1e-5, Newton steps) batched over the
-take (``solve_sequence``) and one frame per call (``inverse.Stream``, cold and warm-started);
-and the pieces of one frame: the projection M^T (b - b0) (the one 3V-sized product, in the
-row-major layout the library uses and in the transposed layout it used before), and Joshi
-(a closed form, i.e. the fixed cost of one compiled call); QuarticNewton (projected
-Gauss-Newton on the same objective) batched and one frame per call, cold and warm-started.
-One frame per call is also timed inside ``canrig_jax._threads.single_threaded_blas()`` (the Newton
-step's Cholesky runs in SciPy's OpenBLAS) and in a subprocess whose XLA runs every op on one
-thread (``XLA_FLAGS``, which a library cannot set for its caller). Issue 22's targets:
-converged <= 0.5 ms/frame batched and <= 2 ms/frame one frame per call. A Markdown table is
-printed and written to ``--out`` (atomically).
+process: the NumPy float64 reference of Algorithm 1
+(``papers.inverse_rig.numpy_quartic_cd``, 5 passes, the full rig evaluated twice per
+coordinate, one frame at a time); QuarticCD with the paper's 5 passes, batched; converged
+QuarticCD (the defaults: tol 1e-5, Newton steps) batched over the take (``solve_sequence``)
+and one frame per call (``inverse.Stream``, cold and warm-started); and the pieces of one
+frame: the projection M^T (b - b0) (the one 3V-sized product, in the row-major layout the
+library uses and in the transposed layout it used before), and Joshi (a closed form, i.e.
+the fixed cost of one compiled call); QuarticNewton (projected Gauss-Newton on the same
+objective) batched and one frame per call, cold and warm-started. One frame per call is also
+timed inside ``canrig_jax._threads.single_threaded_blas()`` (the Newton step's Cholesky runs
+in SciPy's OpenBLAS) and in a subprocess whose XLA runs every op on one thread
+(``XLA_FLAGS``, which a library cannot set for its caller). Issue 22's targets: converged <=
+0.5 ms/frame batched and <= 2 ms/frame one frame per call. A Markdown table is printed and
+written to ``--out`` (atomically).
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ from canrig_jax import inverse
 from canrig_jax._io import save_text
 from canrig_jax._threads import single_threaded_blas
 from canrig_jax.data import load_livelinkface
-from canrig_jax.inverse import (
+from canrig_jax.papers.inverse_rig import (
     NumpyDenseRig,
     decreasing_norm_order,
     numpy_quartic_cd,

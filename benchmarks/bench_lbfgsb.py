@@ -7,7 +7,7 @@ ict-quartic rig, every ratio measured in this run.
 Targets: the rig at the first ``--frames`` Live Link Face frames plus N(0, 0.03 cm^2) noise
 (seed 0). Timed, compiled and warmed up first, the best of three interleaved rounds each (the
 CPU is shared): ``solve`` called once per frame (the reference: the total over the frames, per
-frame; and the median frame, as ``inverse.time_single_frames`` reports it), and
+frame; and the median frame, as ``inverse_rig.time_single_frames`` reports it), and
 ``solve_sequence`` over the take (one call; the library runs jaxopt's frames one after another
 under ``vmap``, ``sequential_vmap``). For the record, jaxopt's solver under a plain
 ``jax.vmap`` (how it was batched before) on the first ``--plain-frames`` frames, in a

@@ -72,9 +72,10 @@ def measure():
         pose_a_to_b,
     )
     from canrig_jax.data import FACE, load_livelinkface
-    from canrig_jax.pbs import PerPatchPBS, local_fit_rig, patch_layout, patch_means, pbs_basis
+    from canrig_jax.pbs import PerPatchPBS, local_fit_rig, patch_layout, pbs_basis
+    from canrig_jax.pbs._model import patch_means
     from canrig_jax.rig import ict_quartic_rig, random_sparse_poses
-    from canrig_jax.wpse import solve_coefficients
+    from canrig_jax.wpse._pse import solve_coefficients
 
     rig, _ = ict_quartic_rig(parts=FACE, progress=False)
     with warnings.catch_warnings():

@@ -39,27 +39,25 @@ import numpy as np
 
 from canrig_jax._io import save_text
 from canrig_jax._timing import median_ms
-from canrig_jax.canrig import (
-    CLAMP,
-    ShapePreservingCANRig,
-    influence_mask,
+from canrig_jax.canrig import CLAMP, ShapePreservingCANRig, influence_mask
+from canrig_jax.data import load_ict
+from canrig_jax.mesh import (
+    attached_edge_graph,
+    bridged_edge_graph,
+    farthest_point_vertices,
     weighted_geodesic_distance,
 )
-from canrig_jax.data import load_ict
-from canrig_jax.mesh import attached_edge_graph, bridged_edge_graph, farthest_point_vertices
 from canrig_jax.pbs import (
     PBSTrainOptions,
     build_pbs_training_set,
     load_pbs_model,
     patch_layout,
-    patch_means,
     pbs_basis,
-    pbs_delta_shape,
-    predict_pbs_weights,
     seed_distances,
 )
 from canrig_jax.pbs._basis import local_fit_factor, local_fit_solve
-from canrig_jax.pbs._train import make_pbs_model
+from canrig_jax.pbs._model import patch_means, pbs_delta_shape
+from canrig_jax.pbs._train import make_pbs_model, predict_pbs_weights
 from canrig_jax.rig import evaluate_batch, ict_linear_rig, random_sparse_poses
 
 DEFAULT_DIR = Path(__file__).parents[1] / "experiments/results/canrig_pbs_attached_local_prior"

@@ -11,7 +11,7 @@ some blendshape moves by more than 1 micrometre. Run time is one frame per call 
 1-minute load average is printed: the 2-core machine is shared, and timings scale with it.
 
 A second table times the run time's distance product (S, K) x (K, P) alone, at P and at
-``wpse.dot_width(P)`` (the padded width ``apply`` uses), alternating the two in one process.
+``dot_width(P)`` (the padded width ``apply`` uses), alternating the two in one process.
 """
 
 from __future__ import annotations
@@ -27,8 +27,9 @@ import numpy as np
 
 from canrig_jax import wpse
 from canrig_jax._io import save_text
+from canrig_jax.papers.wpse import time_runtime
 from canrig_jax.rig import evaluate_batch, ict_linear_rig, random_sparse_poses
-from canrig_jax.wpse import time_runtime
+from canrig_jax.wpse._metric import dot_width
 
 DEFAULT_OUT = Path(__file__).parent / "results" / "bench_wpse.md"
 
@@ -90,8 +91,7 @@ def _dot_widths(metric, repeats: int) -> list[str]:
     for p in (10, 20, 48, 50, 100):
         rng = np.random.default_rng(p)
         right = {
-            w: jnp.asarray(rng.random((w, metric.shape[1]), np.float32))
-            for w in {p, wpse.dot_width(p)}
+            w: jnp.asarray(rng.random((w, metric.shape[1]), np.float32)) for w in {p, dot_width(p)}
         }
         times = {w: [] for w in right}
         for d in right.values():
@@ -101,7 +101,7 @@ def _dot_widths(metric, repeats: int) -> list[str]:
                 start = time.perf_counter()
                 jax.block_until_ready(product(metric, d))
                 times[w].append(time.perf_counter() - start)
-        padded = wpse.dot_width(p)
+        padded = dot_width(p)
         rows.append(
             f"| {p} | {1e3 * np.median(times[p]):.2f} | {1e3 * np.median(times[padded]):.2f} "
             f"| {padded} |"

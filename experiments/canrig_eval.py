@@ -20,23 +20,14 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
+from canrig_jax._checkpoint import parameter_count
 from canrig_jax._io import save_json, save_text
 from canrig_jax._metrics import CM_TO_MM
 from canrig_jax._provenance import experiment_command, provenance
-from canrig_jax.canrig import (
-    CLAMP,
-    EVAL_FALLOFF_PER_CM,
-    RADII_CM,
-    NeuralRig,
-    evaluate_poses,
-    farthest_point_vertices,
-    held_out_poses,
-    influence_mask,
-    load_model,
-    parameter_count,
-    split_capture,
-)
+from canrig_jax.canrig import CLAMP, NeuralRig, evaluate_poses, influence_mask, load_model
 from canrig_jax.data import load_livelinkface
+from canrig_jax.mesh import farthest_point_vertices
+from canrig_jax.papers.canrig import EVAL_FALLOFF_PER_CM, RADII_CM, held_out_poses, split_capture
 from canrig_jax.render import plot_vertex_scalar, save_figure
 from canrig_jax.rig import ict_quartic_rig
 from canrig_jax.watchdog import run_watched

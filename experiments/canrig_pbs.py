@@ -10,7 +10,7 @@ ict-quartic correctives exist on the face part only) at the Live Link capture's 
 second half and 100 random sparse poses of another seed (``canrig.held_out_poses``). The
 trained rows read OUT/models/NAME/checkpoint.eqx (a missing one is skipped). Writes
 results.json, table.md, COMMAND, patch_layout.png, pbs_error.png (and whole_head_edit.png,
-table6_error.png with trained models). The protocols are ``canrig_jax.pbs._whole_head_protocols``.
+table6_error.png with trained models). The protocols are ``canrig_jax.papers.canrig.whole_head``.
 """
 
 from __future__ import annotations
@@ -32,15 +32,12 @@ from canrig_jax._io import save_json, save_text  # noqa: E402
 from canrig_jax._metrics import CM_TO_MM  # noqa: E402
 from canrig_jax._provenance import experiment_command, provenance  # noqa: E402
 from canrig_jax._timing import median_ms  # noqa: E402
-from canrig_jax.canrig import (  # noqa: E402
-    ShapePreservingCANRig,
-    influence_mask,
-    weighted_geodesic_distance,
-)
-from canrig_jax.pbs import PBS_VARIANTS, PBSTrainOptions, load_pbs_model, pbs_shape  # noqa: E402
-from canrig_jax.pbs._whole_head_protocols import (  # noqa: E402
+from canrig_jax.canrig import ShapePreservingCANRig, influence_mask
+from canrig_jax.mesh import weighted_geodesic_distance
+from canrig_jax.papers.canrig.whole_head import (  # noqa: E402
     EVAL_FALLOFF_PER_CM,
     EVAL_RADIUS_CM,
+    FIGURE8_MODELS,
     FIGURE8_TAG,
     LOCAL_FIT_RIDGE,
     MODELS_DIR,
@@ -61,6 +58,7 @@ from canrig_jax.pbs._whole_head_protocols import (  # noqa: E402
     whole_head,
     whole_head_options_from_args,
 )
+from canrig_jax.pbs import PBSTrainOptions, load_pbs_model, pbs_shape
 from canrig_jax.render import plot_vertex_scalar, save_figure  # noqa: E402
 from canrig_jax.watchdog import run_watched  # noqa: E402
 
@@ -80,7 +78,7 @@ def _trained_rows(head, data, handles, handle_distance, models):
     trained, nets, forward, figure8 = {}, {}, {}, {}
     h200, d200 = jnp.asarray(handles[:200]), jnp.asarray(handle_distance[:, :200])
     test = jnp.asarray(head.test_shapes[:1])
-    for name in (*TABLE5_MODELS, *(v + FIGURE8_TAG for v in PBS_VARIANTS)):
+    for name in (*TABLE5_MODELS, *(v + FIGURE8_TAG for v in FIGURE8_MODELS)):
         checkpoint = models / name / "checkpoint.eqx"
         if not checkpoint.exists():
             print(f"{name}: no checkpoint at {checkpoint}, row skipped")

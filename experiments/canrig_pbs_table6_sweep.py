@@ -8,7 +8,7 @@ folder.
 Needs OUT's trained checkpoints (``canrig_pbs_train.py``; a missing network's column is left
 out). Adds ``table6_handle_sweep`` to OUT's results.json and its section to table.md (a rerun
 replaces it; the rest is kept) and this command to OUT/COMMAND
-(``canrig_jax.pbs._whole_head_protocols.table6_sweep``).
+(``canrig_jax.papers.canrig.whole_head.table6_sweep``).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from pathlib import Path
 
 from canrig_jax._io import save_json, save_text
 from canrig_jax._provenance import experiment_command, provenance, record_command
-from canrig_jax.pbs._whole_head_protocols import (
+from canrig_jax.papers.canrig.whole_head import (
     MODELS_DIR,
     SWEEP_HEADER,
     SWEEP_PROTOCOL,

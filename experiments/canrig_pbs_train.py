@@ -6,7 +6,7 @@ for ``canrig_pbs.py``'s evaluation.
 
 Trains into OUT/models/MODEL[TAG]/checkpoint.eqx (resumable: the same command continues a
 run and reproduces an uninterrupted one) with its train.json, on the whole head of
-``canrig_jax.pbs._whole_head_protocols.whole_head`` (the same options as the evaluation's).
+``canrig_jax.papers.canrig.whole_head.whole_head`` (the same options as the evaluation's).
 """
 
 from __future__ import annotations
@@ -19,8 +19,7 @@ import numpy as np
 from canrig_jax._io import save_json
 from canrig_jax._provenance import experiment_command, provenance
 from canrig_jax.distributed import add_process_options, initialize_from_args
-from canrig_jax.pbs import PBS_MODELS, PBSTrainOptions, train_pbs
-from canrig_jax.pbs._whole_head_protocols import (
+from canrig_jax.papers.canrig.whole_head import (
     MODELS_DIR,
     add_whole_head_options,
     check_model_matches,
@@ -28,6 +27,7 @@ from canrig_jax.pbs._whole_head_protocols import (
     whole_head,
     whole_head_options_from_args,
 )
+from canrig_jax.pbs import PBS_MODELS, PBSTrainOptions, train_pbs
 from canrig_jax.watchdog import run_watched
 
 

@@ -20,19 +20,13 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
+from canrig_jax._checkpoint import parameter_count
 from canrig_jax._io import save_json
 from canrig_jax._provenance import experiment_command, provenance
-from canrig_jax.canrig import (
-    DataOptions,
-    TrainOptions,
-    add_training_options,
-    parameter_count,
-    split_capture,
-    train,
-    training_options_from_args,
-)
+from canrig_jax.canrig import DataOptions, TrainOptions, train
 from canrig_jax.data import load_livelinkface
 from canrig_jax.distributed import add_process_options, initialize_from_args
+from canrig_jax.papers.canrig import add_training_options, split_capture, training_options_from_args
 from canrig_jax.render import save_figure
 from canrig_jax.rig import ict_quartic_rig
 from canrig_jax.watchdog import run_watched

@@ -12,7 +12,7 @@ poses (``canrig.held_out_poses``, as ``canrig_eval.py``). Table 4 as the paper r
 all 9,409 face vertices. Geodesic farthest-point handles from vertex 0 (``canrig_eval.py``'s
 placement) are reported beside it as a second protocol. Writes results.json, table.md and
 figures (a_to_b_error.png, layers.png, clip_edit.png). The protocols are
-``canrig_jax.pbs._workflow_protocols``.
+``canrig_jax.papers.canrig.workflows``.
 
 Then, into the same folder: ``canrig_workflows_dialogue.py`` (dialogue replacement and its
 Table 6 baselines) and ``canrig_workflows_floor.py`` (the floor of Table 4's random-vertex
@@ -38,8 +38,10 @@ from canrig_jax._io import save_json, save_text
 from canrig_jax._metrics import CM_TO_MM
 from canrig_jax._provenance import experiment_command, provenance
 from canrig_jax._timing import median_ms
-from canrig_jax.canrig import RADII_CM, FitOptions, farthest_point_vertices, pose_a_to_b
-from canrig_jax.pbs._workflow_protocols import (
+from canrig_jax.canrig import FitOptions, pose_a_to_b
+from canrig_jax.mesh import farthest_point_vertices
+from canrig_jax.papers.canrig import RADII_CM
+from canrig_jax.papers.canrig.workflows import (
     DISTANCE_LIMIT_CM,
     FALLOFF_PER_CM,
     HANDLE_COUNTS,

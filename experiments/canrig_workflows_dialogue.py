@@ -7,7 +7,7 @@ global-blendshape baselines, added to a ``canrig_workflows.py`` results folder.
 
 The source clip (capture frames 90-134) takes the mouth of the target clip (135-179) inside
 the mouth mask: CANRig direct and fitted at 60 mouth handles, and the global-blendshape
-baselines (``canrig_jax.pbs._workflow_protocols.dialogue_table``). Updates OUT's
+baselines (``canrig_jax.papers.canrig.workflows.dialogue_table``). Updates OUT's
 results.json (``dialogue``, ``timing.dialogue_ms_per_frame``), table.md and dialogue.png; the
 rest is kept. ``--rig local-fit`` rebuilds the ``LocalFitRig`` that OUT's ``canrig_workflows.py
 --rig local-fit`` run selected.
@@ -27,7 +27,7 @@ from canrig_jax._metrics import CM_TO_MM
 from canrig_jax._provenance import experiment_command, provenance
 from canrig_jax._timing import median_ms
 from canrig_jax.canrig import FitOptions, dialogue_replacement, expression_region
-from canrig_jax.pbs._workflow_protocols import (
+from canrig_jax.papers.canrig.workflows import (
     DIALOGUE_RADIUS_CM,
     FALLOFF_PER_CM,
     MOUTH_THRESHOLD_CM,

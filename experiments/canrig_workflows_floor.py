@@ -7,7 +7,7 @@ results folder.
         --out experiments/results/canrig_workflows --pairs 1000
 
 The same (A, B) pairs and random handle sets as OUT's Table 4 (``--pairs`` and ``--seed``
-must be its own; checked), ``canrig_jax.pbs._workflow_protocols.unreached_floor``.
+must be its own; checked), ``canrig_jax.papers.canrig.workflows.unreached_floor``.
 Updates OUT's results.json (``a_to_b_floor``) and table.md; the rest is kept. The rig only
 places the handles (geodesic distances) and gives the masks' clamp: ``--rig local-fit``
 rebuilds the ``LocalFitRig`` OUT's run selected.
@@ -20,7 +20,7 @@ from pathlib import Path
 
 from canrig_jax._io import save_json, save_text
 from canrig_jax._provenance import experiment_command, provenance
-from canrig_jax.pbs._workflow_protocols import (
+from canrig_jax.papers.canrig.workflows import (
     local_fit_from_selection,
     network_rig,
     results_of_the_same_pairs,

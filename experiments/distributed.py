@@ -41,6 +41,8 @@ from pathlib import Path
 
 import numpy as np
 
+from canrig_jax.papers import canrig as canrig_paper
+
 CONFIGS = {
     "1 process": (1, False),
     "2 processes": (2, False),
@@ -92,7 +94,7 @@ def worker(out: Path, pinned: bool) -> None:
     record = {"inverse_seconds": seconds, "inverse_frames": len(take)}
     arrays = {"weights": np.asarray(solution.weights)}
 
-    capture, _ = canrig.split_capture(take[:48])
+    capture, _ = canrig_paper.split_capture(take[:48])
     data = canrig.build_training_set(rig, capture, n_random=48, n_pool=400, seed=0)
     # the default examples (8 per step, 384 vertices), 50-100 handles: one compiled shape
     examples = canrig.ExampleOptions(n_handles=(50, 100), handle_bucket=100)

@@ -19,16 +19,14 @@ import numpy as np
 
 from canrig_jax import inverse
 from canrig_jax._io import save_results
-from canrig_jax._metrics import per_vertex_distance
+from canrig_jax._metrics import CM_TO_MM, per_vertex_distance
 from canrig_jax._provenance import experiment_command, provenance, record_command
 from canrig_jax.data import load_livelinkface
-from canrig_jax.inverse import (
+from canrig_jax.inverse import roughness, summarize
+from canrig_jax.papers.inverse_rig import (
     measure_reference,
     minimum,
-    mm_per_unit,
-    roughness,
     select_alpha,
-    summarize,
     time_batched,
     time_single_frames,
 )
@@ -365,7 +363,7 @@ def _error_maps(case, path):
         ax.axis("off")
     for ax, name in zip(axes.ravel(), names, strict=False):
         mesh = np.asarray(evaluate(rig, case["weights"][name][frame]))
-        error = per_vertex_distance(mesh, clean[frame]) * mm_per_unit(rig)
+        error = per_vertex_distance(mesh, clean[frame]) * (UNIT_IN_CM[rig.units] * CM_TO_MM)
         mapper = plot_vertex_scalar(
             ax, clean[frame], rig.faces, error, vmax=1.0,
             title=f"{name}\nmean {error.mean():.3f} mm",

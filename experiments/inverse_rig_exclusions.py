@@ -11,7 +11,7 @@ The protocol, fixed before measuring, is ``inverse_rig.py``'s:
 - method: converged ``inverse.QuarticNewton`` (its defaults: 50 iterations, tol 1e-5, box
   [0, 1]), frames solved independently (no warm start);
 - alpha = ``ALPHA_CM2`` = 1.0 cm^2: the alpha ``inverse_rig.py`` chose for converged QuarticCD
-  (``inverse.select_alpha``'s 5 % rule on random training poses), read from the committed
+  (``inverse_rig.select_alpha``'s 5 % rule on random training poses), read from the committed
   ``experiments/results/inverse_rig/results.json`` (``cases.ict.quartic_cd_converged.alpha``)
   and fixed here, not re-selected;
 - pairs: ``rig.exclusive_pairs(rig.names)`` (the default ``rig.MUTUALLY_EXCLUSIVE`` that the
@@ -41,7 +41,8 @@ from canrig_jax import inverse
 from canrig_jax._io import update_results
 from canrig_jax._provenance import experiment_command, provenance, record_command
 from canrig_jax.data import load_livelinkface
-from canrig_jax.inverse import CARDINALITY_TOL, both_active, summarize, time_batched
+from canrig_jax.inverse import CARDINALITY_TOL, both_active, summarize
+from canrig_jax.papers.inverse_rig import time_batched
 from canrig_jax.render import save_figure
 from canrig_jax.rig import UNIT_IN_CM, evaluate_batch, exclusive_pairs, ict_quartic_rig
 from canrig_jax.watchdog import run_watched
@@ -142,7 +143,7 @@ def main(argv=None):
             "frames independent",
             "alpha_cm2": ALPHA_CM2,
             "alpha_source": "experiments/results/inverse_rig/results.json "
-            "cases.ict.quartic_cd_converged.alpha (inverse.select_alpha, 5 % rule), fixed",
+            "cases.ict.quartic_cd_converged.alpha (inverse_rig.select_alpha, 5 % rule), fixed",
             "noise_variance_cm2": NOISE_VARIANCE_CM2,
             "seed": args.seed,
             "tie_weights_cm2": list(TIE_WEIGHTS),

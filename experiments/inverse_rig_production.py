@@ -47,8 +47,9 @@ from canrig_jax import inverse
 from canrig_jax._io import update_results
 from canrig_jax._provenance import experiment_command, provenance, record_command
 from canrig_jax.data import load_livelinkface, load_mediapipe_face
-from canrig_jax.inverse import CARDINALITY_TOL, both_active, roughness, summarize, time_batched
+from canrig_jax.inverse import CARDINALITY_TOL, both_active, roughness, summarize
 from canrig_jax.mesh import bind_points, farthest_point_vertices
+from canrig_jax.papers.inverse_rig import time_batched
 from canrig_jax.rig import (
     UNIT_IN_CM,
     evaluate_batch,
@@ -77,7 +78,7 @@ def _skin_triangles(name, rig, data_dir):
     faces = np.asarray(rig.faces)
     if name == "ict":
         return np.all(faces < ICT_FACE_VERTICES, axis=1)
-    from canrig_jax.data._paths import data_file, read_arrays  # the hm08 face groups
+    from canrig_jax.data import data_file, read_arrays  # the hm08 face groups
 
     groups = read_arrays(data_file("makehuman/hm08_face.npz", data_dir), ("face_group",))
     group = groups["face_group"]

@@ -8,7 +8,7 @@ The rule, fixed before measuring:
 
 - method: ``inverse.QuarticNewton`` (its defaults: 50 iterations, tol 1e-5, box [0, 1]),
   frames solved independently (no warm start, so a frame's result does not depend on the take);
-- alpha (cm^2): for each head and target set, ``inverse.select_alpha`` (the largest alpha whose
+- alpha (cm^2): for each head and target set, ``inverse_rig.select_alpha`` (the largest alpha whose
   mean per-frame RMSE is within 5 % of the best) over ``ALPHAS`` on ``TRAIN_POSES`` random
   sparse poses of the source ARKit rig (``rig.random_sparse_poses``, seed 0), never on the
   capture.
@@ -35,11 +35,19 @@ import numpy as np
 
 from canrig_jax import inverse
 from canrig_jax._io import update_results
+from canrig_jax._metrics import CM_TO_MM
 from canrig_jax._provenance import experiment_command, provenance, record_command
 from canrig_jax.data import data_file, load_livelinkface
-from canrig_jax.inverse import CARDINALITY_TOL, mm_per_unit, roughness, select_alpha
+from canrig_jax.inverse import CARDINALITY_TOL, roughness
+from canrig_jax.papers.inverse_rig import select_alpha
 from canrig_jax.render import save_figure
-from canrig_jax.rig import evaluate_batch, load_fbx_rig, random_sparse_poses, select_control_set
+from canrig_jax.rig import (
+    UNIT_IN_CM,
+    evaluate_batch,
+    load_fbx_rig,
+    random_sparse_poses,
+    select_control_set,
+)
 from canrig_jax.watchdog import run_watched
 
 HEADS = {"rocketbox_female": "Female_Adult_01", "rocketbox_male": "Male_Adult_08"}
@@ -51,7 +59,9 @@ TOLERANCE = 0.05
 
 def offsets_mm(rig, weights) -> np.ndarray:
     """(T, V, 3) the rig's offsets from its neutral at ``weights``, in mm."""
-    return np.asarray(evaluate_batch(rig, weights) - rig.neutral, np.float64) * mm_per_unit(rig)
+    return np.asarray(evaluate_batch(rig, weights) - rig.neutral, np.float64) * (
+        UNIT_IN_CM[rig.units] * CM_TO_MM
+    )
 
 
 def frame_rmse_mm(source_mm: np.ndarray, target_rig, weights) -> tuple[np.ndarray, np.ndarray]:

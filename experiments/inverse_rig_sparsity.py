@@ -1,6 +1,6 @@
 """Is the converged quartic inverse rig sparser than the least-squares baselines at no loss of
 accuracy? On ict-quartic and the MakeHuman hm08 head (evaluation only), with the rule of
-``canrig_jax.inverse._sparsity`` fixed before the test take is touched: alpha is the largest
+``canrig_jax.papers.inverse_rig`` fixed before the test take is touched: alpha is the largest
 whose mean training RMSE (the case's own random sparse poses) is no higher than the lower of
 Joshi's and Cetinaslan's; the noisy Live Link take is then solved once at that alpha and the
 cardinality compared (target: at least 15 % below both, at equal or lower RMSE). The whole
@@ -24,7 +24,7 @@ from canrig_jax import inverse
 from canrig_jax._io import update_results
 from canrig_jax._provenance import experiment_command, provenance, record_command
 from canrig_jax.data import load_livelinkface
-from canrig_jax.inverse import (
+from canrig_jax.papers.inverse_rig import (
     SPARSITY_TARGET,
     alpha_sweep,
     noisy_meshes,
@@ -150,7 +150,7 @@ def lbfgsb_vmap(args):
         "steps_mean": float(np.mean(np.asarray(solution.stats["steps"]))),
         "results": {c: codes.count(c) for c in sorted(set(codes))},
         "note": "ict-quartic, Live Link frames + noise; batched = solve_sequence per frame, single "
-        "= inverse.time_single_frames (median frame of a Stream); best of 3 interleaved rounds "
+        "= inverse_rig.time_single_frames (median frame of a Stream); best of 3 interleaved rounds "
         "each (shared CPU)",
     }
 

@@ -10,7 +10,7 @@ The protocol, fixed before measuring:
   ``ALPHA_CM2`` (the alpha ``inverse_rig.py`` chose for the paper's QuarticCD, read from the
   committed ``results.json``, ``convergence.ict.alpha``);
 - every configuration in ``CONFIGS`` runs one frame per call through ``inverse.Stream``
-  (``inverse.time_against_projection``: before each frame, that frame's projection alone is
+  (``inverse_rig.time_against_projection``: before each frame, that frame's projection alone is
   timed; best of 3 repeats of the take);
 - a configuration counts as converged when every frame reports ``converged`` and its mean
   energy 1/2 ||f(w) - b||^2 + alpha 1^T w (float64, the full rig) is within ``ENERGY_TOL``
@@ -32,6 +32,7 @@ from canrig_jax import inverse
 from canrig_jax._io import update_results
 from canrig_jax._provenance import experiment_command, provenance, record_command
 from canrig_jax.data import load_livelinkface
+from canrig_jax.papers import inverse_rig
 from canrig_jax.rig import evaluate_batch, ict_quartic_rig
 
 NOISE_VARIANCE_CM2 = 0.03
@@ -80,7 +81,7 @@ TRIED = (
 
 def energies(rig, weights, targets, alpha):
     """(T,) float64 1/2 ||f(w) - b||^2 + alpha 1^T w under the full rig."""
-    dense = inverse.NumpyDenseRig(rig)
+    dense = inverse_rig.NumpyDenseRig(rig)
     return np.array(
         [
             0.5 * np.sum((dense(np.asarray(w, np.float64)) - np.ravel(b)) ** 2) + alpha * np.sum(w)
@@ -112,7 +113,7 @@ def main(argv=None):
     load_before = os.getloadavg()[0]
     rows = {}
     for name, (make, warm) in CONFIGS.items():
-        row = inverse.time_against_projection(
+        row = inverse_rig.time_against_projection(
             problem, noisy, make(ALPHA_CM2), warm_start=warm, repeats=args.repeats
         )
         weights = row.pop("weights")

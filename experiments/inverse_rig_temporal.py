@@ -70,7 +70,9 @@ from canrig_jax import inverse
 from canrig_jax._io import update_results
 from canrig_jax._provenance import experiment_command, provenance, record_command
 from canrig_jax.data import load_livelinkface
-from canrig_jax.inverse import (
+from canrig_jax.inverse import summarize
+from canrig_jax.papers import inverse_rig
+from canrig_jax.papers.inverse_rig import (
     holistic_lambdas,
     lowest_error_smoothness,
     numpy_holistic_cd,
@@ -78,12 +80,13 @@ from canrig_jax.inverse import (
     select_smoothness,
     smooth_training_takes,
     smoothness_curve,
-    summarize,
+    take_objective,
     temporal_row,
+    temporal_table,
     temporal_targets,
     validation_split,
+    validation_split_table,
 )
-from canrig_jax.inverse._temporal_protocols import _split_table, _temporal_table
 from canrig_jax.render import save_figure
 from canrig_jax.rig import (
     UNIT_IN_CM,
@@ -220,7 +223,7 @@ def evaluate_case(name, rig, take, fps, rng, args, smoothness=None):
 
     offsets = (targets[:frames] - np.asarray(problem.neutral)).reshape(frames, -1)
     subset_objective = {
-        mode: float(inverse.take_objective(problem, weights[mode][:frames], offsets, a, s))
+        mode: float(take_objective(problem, weights[mode][:frames], offsets, a, s))
         for mode in ("temporal", "authors_temporal", "per_frame")
     }
     whole, stitched = weights["temporal"], weights["temporal_window"]
@@ -259,7 +262,7 @@ def stream_modes(name, rig, problem, targets, clean, a, s, args, modes, test_mod
     streams, weights = {}, {}
     for mode, lag, blocks in STREAMS:
         method = inverse.TemporalNewton(alpha=a, smoothness=s, stream_blocks=blocks)
-        row = inverse.time_against_projection(
+        row = inverse_rig.time_against_projection(
             problem, targets, method, lag=lag, repeats=1 if args.quick else 3
         )
         w = np.asarray(row.pop("weights"), np.float64)
@@ -304,13 +307,13 @@ def run_stream_only(args, capture, rigs, command):
         cases[name] = {"rig": rig, "modes": modes, "protocol": p,
                        "weights": {"truth": take}}  # fmt: skip
     if args.quick:
-        print(_temporal_table(cases))
+        print(temporal_table(cases))
         return cases
     update_results(
         args.out,
         "temporal",
         {n: c["modes"] for n, c in cases.items()},
-        table=_temporal_table(cases),
+        table=temporal_table(cases),
     )
     update_results(args.out, "temporal_protocol", {n: c["protocol"] for n, c in cases.items()},
                    merge=True)  # fmt: skip
@@ -391,12 +394,15 @@ def run_validation_split(args, capture, rigs, command):
         "provenance": provenance(command),
     }
     update_results(
-        args.out, "temporal_validation_split", value, table=_split_table(cases, VALIDATION_RULE)
+        args.out,
+        "temporal_validation_split",
+        value,
+        table=validation_split_table(cases, VALIDATION_RULE),
     )
     if not args.quick:
         record_command(args.out, command)
     _validation_curve(cases["ict"], args.out / "temporal_validation_curve.png")
-    print(_split_table(cases, VALIDATION_RULE))
+    print(validation_split_table(cases, VALIDATION_RULE))
     print(f"wrote {args.out}")
     return cases
 
@@ -454,7 +460,7 @@ def main(argv=None):
         args.out,
         "temporal",
         {n: c["modes"] for n, c in cases.items()},
-        table=_temporal_table(cases),
+        table=temporal_table(cases),
     )
     update_results(
         args.out,

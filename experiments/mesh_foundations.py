@@ -26,14 +26,9 @@ from canrig_jax._metrics import CM_TO_MM
 from canrig_jax._provenance import experiment_command, provenance, record_command
 from canrig_jax.autorig import LearnedDiffusion
 from canrig_jax.data import ict_identity, load_ict, load_mediapipe_face
-from canrig_jax.mesh import (
-    MeshOperators,
-    closest_point_correspondence,
-    decimate,
-    flip_quad_split,
-    identity_correspondence,
-    mesh_geometry,
-)
+from canrig_jax.mesh import MeshOperators, closest_point_correspondence, decimate, flip_quad_split
+from canrig_jax.mesh._operators import mesh_geometry
+from canrig_jax.mesh._transfer import identity_correspondence
 from canrig_jax.render import plot_vertex_scalar, save_figure
 from canrig_jax.rig import BlendshapeRig, deformation_transfer
 from canrig_jax.watchdog import run_watched

@@ -51,14 +51,13 @@ from canrig_jax.canrig import (
     dialogue_replacement,
     evaluate_poses,
     expression_region,
-    farthest_point_vertices,
     influence_reach,
     interior_vertices,
     load_model,
 )
 from canrig_jax.data import load_livelinkface
-from canrig_jax.inverse import mm_per_unit, summarize
-from canrig_jax.mesh import DeformationGradientBlend
+from canrig_jax.inverse import summarize
+from canrig_jax.mesh import DeformationGradientBlend, farthest_point_vertices
 from canrig_jax.rig import (
     UNIT_IN_CM,
     evaluate_batch,
@@ -105,7 +104,7 @@ def inverse_rig_take(args) -> dict:
     method = inverse.QuarticCD(alpha=alpha_cm2 / scale**2)
     weights = np.asarray(inverse.solve_sequence(rig, noisy, method).weights)
     solved = np.asarray(evaluate_batch(rig, weights))
-    error = per_vertex_distance(solved, clean) * mm_per_unit(rig)
+    error = per_vertex_distance(solved, clean) * (UNIT_IN_CM[rig.units] * CM_TO_MM)
     row = summarize(rig, weights, clean)
     return {
         "meshes": solved,
@@ -191,7 +190,7 @@ def wpse_take(args) -> dict:
 def canrig_workflows_take(args) -> dict:
     """Dialogue replacement (direct) with the committed CANRig checkpoint."""
     # the workflow experiment's own settings
-    from canrig_jax.pbs._workflow_protocols import (
+    from canrig_jax.papers.canrig.workflows import (
         DIALOGUE_HANDLES,
         DIALOGUE_RADIUS_CM,
         FALLOFF_PER_CM,

@@ -21,12 +21,12 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from canrig_jax import wpse
 from canrig_jax._io import save_json, save_text
 from canrig_jax._metrics import per_vertex_distance
 from canrig_jax._provenance import experiment_command, provenance
 from canrig_jax.data import load_livelinkface
 from canrig_jax.mesh import DeformationGradientBlend
+from canrig_jax.papers import wpse as wpse_paper
 from canrig_jax.render import plot_vertex_scalar, save_figure
 from canrig_jax.rig import evaluate_batch, ict_linear_rig, ict_quartic_rig, random_sparse_poses
 from canrig_jax.watchdog import run_watched
@@ -60,14 +60,14 @@ def main(argv=None):
     desired = blend(poses).astype(np.float32)
     linear = np.asarray(evaluate_batch(rig, poses))
     frame_error = per_vertex_distance(linear, desired).mean(axis=1)
-    edit_frames = wpse.select_edit_frames(frame_error, poses, max(BUDGETS), MIN_EDIT_DISTANCE)
+    edit_frames = wpse_paper.select_edit_frames(frame_error, poses, max(BUDGETS), MIN_EDIT_DISTANCE)
     held_out = np.setdiff1d(np.arange(len(poses)), edit_frames)
     print(f"{len(poses)} frames, {len(held_out)} held out, edits at the worst spread-out frames")
     mouth = [i for i, n in enumerate(names) if n.startswith(("mouth", "jaw"))]
     eyes = [i for i, n in enumerate(names) if n.startswith("eye")]
     frames = (poses, desired, linear)
 
-    compared = wpse.compare_methods(
+    compared = wpse_paper.compare_methods(
         rig,
         *frames,
         edit_frames,
@@ -80,7 +80,7 @@ def main(argv=None):
     errors, models, sigma = compared.errors, compared.models, compared.sigma
     for b in BUDGETS:
         print(f"p{b}", {m: round(errors[m][f"p{b}"]["mean_mm"], 4) for m in errors})
-    few_edits, new_width = wpse.few_edit_errors(
+    few_edits, new_width = wpse_paper.few_edit_errors(
         rig,
         *frames,
         edit_frames,
@@ -91,7 +91,7 @@ def main(argv=None):
     )
     for budget, row in few_edits.items():
         print("few edits", budget, {m: round(v["mean_mm"], 4) for m, v in row.items()})
-    temporal, curves = wpse.temporal_smoothness(
+    temporal, curves = wpse_paper.temporal_smoothness(
         rig,
         *frames,
         edit_frames,
@@ -100,7 +100,7 @@ def main(argv=None):
         support_tol=SUPPORT_TOL_CM,
     )
     _temporal_figure(temporal, curves, args.out)
-    reuse = wpse.reuse_by_search(
+    reuse = wpse_paper.reuse_by_search(
         rig,
         *frames,
         np.arange(len(capture)),
@@ -110,7 +110,7 @@ def main(argv=None):
         support_tol=SUPPORT_TOL_CM,
     )
     print("reuse", {k: v for k, v in reuse.items() if k.startswith(("error", "tau"))})
-    locality = wpse.locality_probe(
+    locality = wpse_paper.locality_probe(
         rig,
         {m: models[m, 50] for m in ("pse", "wpse")},
         poses,
@@ -121,7 +121,7 @@ def main(argv=None):
         eye_channels=eyes,
         mouth_channels=mouth,
     )
-    overshoot, magnitude = wpse.overshoot_sweep(
+    overshoot, magnitude = wpse_paper.overshoot_sweep(
         rig,
         models["fsm", 50],
         {f"{m}_p50": models[m, 50] for m in ("wpse", "wpse_rest_pose")},
@@ -129,7 +129,7 @@ def main(argv=None):
         sigma=sigma["wpse_p50"]["loo_sigma"],
     )
     _overshoot_figure(overshoot, magnitude, args.out)
-    layering = wpse.layering_probe(
+    layering = wpse_paper.layering_probe(
         rig, poses[edit_frames[0]], blend, sigma=sigma["wpse_p50"]["loo_sigma"]
     )
     search = _search(rig, poses, edit_frames, int(held_out[0]), linear, mouth, eyes, args.out)
@@ -162,7 +162,7 @@ def main(argv=None):
     }
     results["provenance"] = provenance(experiment_command(__file__, argv))
     save_json(args.out / "results.json", results)
-    table = wpse.results_table(results)
+    table = wpse_paper.results_table(results)
     save_text(args.out / "table.md", table)
     print(table)
     print(f"wrote {args.out}/results.json, table.md and PNG figures")
@@ -200,7 +200,7 @@ def _temporal_figure(temporal, curves, out_dir, around=40):
 
 def _overshoot_figure(overshoot, magnitude, out_dir):
     """Figure 9 analog: the largest correction along the sweep of the pair."""
-    t = np.linspace(0.0, 1.5, 31)  # wpse.overshoot_sweep's default sweep
+    t = np.linspace(0.0, 1.5, 31)  # wpse_paper.overshoot_sweep's default sweep
     fig, ax = plt.subplots(figsize=(5.5, 3.6))
     for k, v in magnitude.items():
         ax.plot(t, v, label=k, lw=2 if k == "desired" else 1.5)
@@ -218,7 +218,7 @@ def _search(rig, poses, edit_frames, query_frame, linear, mouth, eyes, out_dir, 
     """Section 4: the edit library ranked by the mouth ROI and by the eye ROI for one query
     frame; the result rows and the figure (the query and the first ``top`` found)."""
     regions = {"mouth": mouth, "eyes": eyes}
-    found = wpse.search_by_region(rig, poses[edit_frames], poses[query_frame], regions)
+    found = wpse_paper.search_by_region(rig, poses[edit_frames], poses[query_frame], regions)
     result = {"query_frame": query_frame}
     fig, axes = plt.subplots(2, top + 1, figsize=(3 * (top + 1), 6.4))
     for row, (region_name, region) in enumerate(found.items()):

@@ -20,11 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
-from canrig_jax import wpse
 from canrig_jax._io import save_json, save_text
 from canrig_jax._provenance import experiment_command, provenance
 from canrig_jax.data import load_livelinkface
 from canrig_jax.mesh import DeformationGradientBlend
+from canrig_jax.papers import wpse as wpse_paper
 from canrig_jax.rig import evaluate_batch, ict_linear_rig, random_sparse_poses
 from canrig_jax.watchdog import run_watched
 
@@ -62,7 +62,7 @@ def main(argv=None):
         edited = poses[edit_frames]
         edits = blend(edited).astype(np.float32) - np.asarray(evaluate_batch(part_rig, edited))
         for budget in budgets:
-            row = wpse.time_edit_model(
+            row = wpse_paper.time_edit_model(
                 part_rig,
                 edited[:budget],
                 edits[:budget],
@@ -75,7 +75,7 @@ def main(argv=None):
     results["timing"] = rows
     results["timing_provenance"] = provenance(experiment_command(__file__, argv))
     save_json(path, results)
-    table = wpse.results_table(results)
+    table = wpse_paper.results_table(results)
     save_text(args.out / "table.md", table)
     print(table)
     print(f"wrote the timing rows of {path} and table.md")

@@ -22,6 +22,8 @@ import time
 import warnings
 from pathlib import Path
 
+from canrig_jax.papers import canrig as canrig_paper
+
 
 def _flat(tree) -> "np.ndarray":  # noqa: F821
     import equinox as eqx
@@ -37,8 +39,8 @@ def run(out: Path, steps: int) -> None:
     import numpy as np
 
     from canrig_jax import autorig, canrig, distributed, inverse, pbs
-    from canrig_jax.canrig import edge_graph
     from canrig_jax.data import ict_identity, load_ict, load_livelinkface
+    from canrig_jax.mesh import edge_graph
     from canrig_jax.rig import evaluate_batch, ict_linear_rig, ict_quartic_rig, random_sparse_poses
 
     group = distributed.initialize()
@@ -51,7 +53,7 @@ def run(out: Path, steps: int) -> None:
         capture = load_livelinkface().weights_for(rig.names, missing="zero")
 
     # CANRig: 4 examples per step, data-parallel over every device
-    train_capture, _ = canrig.split_capture(capture[:12])
+    train_capture, _ = canrig_paper.split_capture(capture[:12])
     data = canrig.build_training_set(rig, train_capture, n_random=6, n_pool=40, seed=0)
     examples = canrig.ExampleOptions(batch=4, n_vertices=48, n_handles=(3, 12), handle_bucket=12)
     options = canrig.TrainOptions(steps=steps, log_every=1, examples=examples)

@@ -34,10 +34,12 @@ from canrig_jax.canrig import (
     pose_a_to_b,
 )
 from canrig_jax.data import FACE, load_livelinkface
-from canrig_jax.pbs import PerPatchPBS, local_fit_rig, patch_layout, patch_means, pbs_basis
+from canrig_jax.pbs import PerPatchPBS, local_fit_rig, patch_layout, pbs_basis
+from canrig_jax.pbs._model import patch_means
 from canrig_jax.rig import exclusive_pairs, ict_quartic_rig, random_sparse_poses
 from canrig_jax.watchdog import watchdog
-from canrig_jax.wpse import loo_error, solve_coefficients
+from canrig_jax.wpse._pse import solve_coefficients
+from canrig_jax.wpse._sigma import loo_error
 
 ROOT = Path(__file__).resolve().parents[1]
 NETWORK = ROOT / "experiments/results/canrig_workflows/model/checkpoint.eqx"

@@ -23,8 +23,10 @@ DOCS = ROOT / "docs"
 ISSUE = re.compile(r"\bissues?\s*#?\d+", re.IGNORECASE)
 """A reference to the project's issue tracker ("issue 19", "issues 3, 22", "Issue #4")."""
 SEED_PAGES = ("inverse-rig", "wpse", "canrig", "riganyface")
-API_PAGES = ("rig", "mesh", "inverse", "wpse", "canrig", "autorig", "data", "render", "viewer")
-API_PAGES += ("watchdog",)
+API_PAGES = ("rig", "mesh", "inverse", "wpse", "canrig", "pbs", "autorig", "data", "render")
+API_PAGES += ("viewer", "watchdog", "distributed")
+PAPER_PAGES = ("inverse_rig", "wpse", "canrig")
+"""The reference pages of ``canrig_jax.papers``, apart from the toolkit's."""
 
 
 def issue_references(text: str) -> list[str]:
@@ -80,6 +82,9 @@ def test_site_has_every_page_and_no_issue_numbers(site):
     for name in API_PAGES:
         page = (site / "reference" / name / "index.html").read_text(encoding="utf-8")
         assert f'id="canrig_jax.{name}.' in page, f"API page of canrig_jax.{name} lists nothing"
+    for name in PAPER_PAGES:
+        page = (site / "reference" / "papers" / name / "index.html").read_text(encoding="utf-8")
+        assert f'id="canrig_jax.papers.{name}.' in page, f"canrig_jax.papers.{name} lists nothing"
     assert (site / "tour" / "index.html").is_file()
     figures = list((site / "results" / "figures").rglob("*.png"))
     assert figures, "no result figures were copied into the site"

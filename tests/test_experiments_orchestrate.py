@@ -79,7 +79,7 @@ def script_imports(source: str) -> list[str]:
         ("import sys\nsys.path.insert(0, str(ROOT / 'experiments'))\n", True),
         # reading a committed result is not importing a script
         ("import json\njson.loads(open('experiments/results/wpse/results.json').read())\n", False),
-        ("from canrig_jax.canrig import reach_floor\n", False),
+        ("from canrig_jax.papers.canrig import reach_floor\n", False),
     ],
 )
 def test_the_scan_finds_each_way_of_loading_a_script(source, flagged):
@@ -99,5 +99,5 @@ def test_no_test_imports_an_experiment_script():
     }
     assert not offenders, (
         "tests import experiment scripts; move what they test into the library "
-        f"(e.g. a _protocols module) and test it there: {offenders}"
+        f"(a protocol into canrig_jax.papers) and test it there: {offenders}"
     )

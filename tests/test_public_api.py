@@ -1,17 +1,21 @@
 """The public API is deliberate: every exported name is in a committed list.
 
-``tests/public_api.txt`` holds one line per public name: ``canrig_jax.NAME`` for the top
-level, ``canrig_jax.SUB.NAME`` for each subpackage's ``__all__`` (``watchdog``, a module
-without ``__all__``: the public names it defines). Adding, renaming or removing a public name
-is a change of that file in the same commit; regenerate it with
+``tests/public_api.txt`` holds the toolkit, one line per public name: ``canrig_jax.NAME`` for
+the top level, ``canrig_jax.SUB.NAME`` for each subpackage's ``__all__`` (``watchdog``, a
+module without ``__all__``: the public names it defines). ``tests/papers_api.txt`` holds the
+papers' protocols apart (``canrig_jax.papers.PAPER.NAME``), which the experiments import and
+the toolkit never does. Adding, renaming or removing a public name is a change of one of those
+files in the same commit; regenerate them with
 
     python tests/test_public_api.py > tests/public_api.txt
+    python tests/test_public_api.py --papers > tests/papers_api.txt
 
 and review the diff (and add a CHANGELOG line for a rename or a removal).
 """
 
 from __future__ import annotations
 
+import ast
 import importlib
 import importlib.metadata
 import inspect
@@ -24,6 +28,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 LISTING = Path(__file__).with_name("public_api.txt")
+PAPERS_LISTING = Path(__file__).with_name("papers_api.txt")
 SUBPACKAGES = (
     "autorig",
     "canrig",
@@ -31,12 +36,27 @@ SUBPACKAGES = (
     "distributed",
     "inverse",
     "mesh",
+    "pbs",
     "render",
     "rig",
     "viewer",
     "watchdog",
     "wpse",
 )
+PAPERS_SOURCE = ROOT / "src" / "canrig_jax" / "papers"
+
+
+def paper_modules() -> list[str]:
+    """The public modules of ``canrig_jax.papers``: one subpackage per paper and its modules
+    without a leading underscore (``canrig.workflows``), as dotted paths below ``papers``."""
+    found = []
+    for path in sorted(PAPERS_SOURCE.rglob("*.py")):
+        parts = path.relative_to(PAPERS_SOURCE).with_suffix("").parts
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        if parts and not any(part.startswith("_") for part in parts):
+            found.append(".".join(parts))
+    return found
 
 
 def exported(module) -> list[str]:
@@ -66,18 +86,62 @@ def public_api() -> list[str]:
     return sorted(lines)
 
 
-def test_public_api_matches_the_committed_list():
-    committed = [
-        line for line in LISTING.read_text().splitlines() if line and not line.startswith("#")
-    ]
-    current = public_api()
+def papers_api() -> list[str]:
+    """Every name of the papers' protocols, one ``canrig_jax.papers.PAPER.NAME`` per entry."""
+    lines = []
+    for paper in paper_modules():
+        module = importlib.import_module(f"canrig_jax.papers.{paper}")
+        lines += [f"canrig_jax.papers.{paper}.{n}" for n in module.__all__]
+    return sorted(lines)
+
+
+def _committed(listing: Path) -> list[str]:
+    return [line for line in listing.read_text().splitlines() if line and not line.startswith("#")]
+
+
+@pytest.mark.parametrize(
+    "listing, current, flag",
+    [(LISTING, public_api, ""), (PAPERS_LISTING, papers_api, " --papers")],
+    ids=["toolkit", "papers"],
+)
+def test_public_api_matches_the_committed_list(listing, current, flag):
+    committed = _committed(listing)
+    current = current()
     added = sorted(set(current) - set(committed))
     removed = sorted(set(committed) - set(current))
     assert not added and not removed, (
         f"public API changed: added {added}, removed {removed}; if deliberate, regenerate "
-        "tests/public_api.txt (python tests/test_public_api.py > tests/public_api.txt)"
+        f"tests/{listing.name} (python tests/test_public_api.py{flag} > tests/{listing.name})"
     )
     assert len(current) == len(set(current)), "a name is listed twice in one __all__"
+
+
+@pytest.mark.parametrize("paper", paper_modules())
+def test_every_paper_module_says_what_it_exports(paper):
+    module = importlib.import_module(f"canrig_jax.papers.{paper}")
+    names = getattr(module, "__all__", None)
+    assert names is not None, f"canrig_jax.papers.{paper} has no __all__"
+    missing = [n for n in names if not hasattr(module, n)]
+    assert not missing, f"canrig_jax.papers.{paper}.__all__ names missing attributes: {missing}"
+
+
+def test_the_toolkit_never_imports_the_papers():
+    """Layers are one-way: ``canrig_jax.papers`` imports the toolkit, never the reverse."""
+    source = ROOT / "src" / "canrig_jax"
+    found = []
+    for path in sorted(source.rglob("*.py")):
+        if path.is_relative_to(source / "papers"):
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom):
+                parts = [*(node.module or "").split(".")] + [a.name for a in node.names]
+            elif isinstance(node, ast.Import):
+                parts = [p for a in node.names for p in a.name.split(".")]
+            else:
+                continue
+            if "papers" in parts:
+                found.append(f"{path.relative_to(source)}:{node.lineno}")
+    assert not found, f"the toolkit imports canrig_jax.papers: {found}"
 
 
 @pytest.mark.parametrize("sub", SUBPACKAGES)
@@ -145,6 +209,11 @@ def test_importing_the_package_loads_no_subpackage_and_no_jax():
 
 
 if __name__ == "__main__":
-    print("# The public API of canrig_jax (tests/test_public_api.py); regenerate with")
-    print("#   python tests/test_public_api.py > tests/public_api.txt")
-    print("\n".join(public_api()))
+    if sys.argv[1:] == ["--papers"]:
+        print("# The papers' protocols, canrig_jax.papers (tests/test_public_api.py); regenerate")
+        print("#   python tests/test_public_api.py --papers > tests/papers_api.txt")
+        print("\n".join(papers_api()))
+    else:
+        print("# The public API of canrig_jax (tests/test_public_api.py); regenerate with")
+        print("#   python tests/test_public_api.py > tests/public_api.txt")
+        print("\n".join(public_api()))

@@ -38,6 +38,7 @@ class Seed:
     patterns: tuple[str, ...]  # folder names or globs, in page order
     intro: str
     guide: str  # the guide page of the system, relative to docs/
+    protocols: str = ""  # the reference page of its canrig_jax.papers module, if any
 
 
 SEEDS = (
@@ -50,6 +51,7 @@ SEEDS = (
         "with noise: ict-quartic and the MakeHuman head (evaluation only). The weight of the L1 "
         "term is chosen per method on training poses only. Errors in mm against the clean mesh.",
         "guides/inverse-rig.md",
+        "reference/papers/inverse_rig.md",
     ),
     Seed(
         "wpse",
@@ -59,6 +61,7 @@ SEEDS = (
         "deformation-gradient blend as the sculpt: edits at the worst frames of the Live Link "
         "capture and random poses, scored on held-out frames (mm).",
         "guides/wpse.md",
+        "reference/papers/wpse.md",
     ),
     Seed(
         "canrig",
@@ -78,6 +81,7 @@ SEEDS = (
         "recommended whole-head configuration; the other `canrig_pbs*` folders are the "
         "paper's model and named variants.",
         "guides/canrig.md",
+        "reference/papers/canrig.md",
     ),
     Seed(
         "riganyface",
@@ -261,6 +265,11 @@ def seed_page(seed: Seed) -> str:
         f"How to use the system: [the guide](../{seed.guide}). This page is generated when the "
         "site is built, from each folder's `table.md`, `COMMAND` and figures.\n",
     ]
+    if seed.protocols:
+        module = Path(seed.protocols).stem
+        parts.append(
+            f"The evaluation's protocols: [`canrig_jax.papers.{module}`](../{seed.protocols}).\n"
+        )
     found = folders(seed)
     if not found:
         parts.append("No results are committed for this system.\n")

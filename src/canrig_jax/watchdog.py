@@ -171,3 +171,6 @@ def run_watched(main: Callable[..., _T], what: str, *args, **kwargs) -> _T:
     how the ``canrig`` command and the experiments run."""
     with watchdog(limit_from_environment(DEFAULT_LIMIT), what):
         return main(*args, **kwargs)
+
+
+__all__ = ["EXIT_STATUS", "Watchdog", "progress", "run_watched", "watchdog"]

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from canrig_jax._checkpoint import parameter_count
 from canrig_jax.autorig import FACE_PLACED, RigAnyFaceTrainOptions, make_model
-from canrig_jax.canrig import parameter_count
 
 EXPERIMENTS = Path(__file__).resolve().parents[2] / "experiments"
 

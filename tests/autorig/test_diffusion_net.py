@@ -21,14 +21,8 @@ from canrig_jax.autorig import (
     spectral_diffusion,
 )
 from canrig_jax.data import FACE, load_ict, load_mediapipe_face
-from canrig_jax.mesh import (
-    MeshOperators,
-    decimate,
-    flip_quad_split,
-    mesh_geometry,
-    pad_vertices,
-    stack_operators,
-)
+from canrig_jax.mesh import MeshOperators, decimate, flip_quad_split, pad_vertices, stack_operators
+from canrig_jax.mesh._operators import mesh_geometry
 
 METHODS = ("spectral", "implicit")
 

@@ -10,14 +10,9 @@ import jax
 import numpy as np
 import pytest
 
-from canrig_jax.canrig import (
-    DataOptions,
-    TrainOptions,
-    capture_mixes_of,
-    check_handle_parameters,
-    correlation_edge_factor,
-    influence_mask,
-)
+from canrig_jax.canrig import TrainOptions, correlation_edge_factor, influence_mask
+from canrig_jax.canrig._data import DataOptions, capture_mixes_of
+from canrig_jax.canrig._masks import check_handle_parameters
 from canrig_jax.data import load_mediapipe_face
 
 from .conftest import handled, raises, run_case

@@ -16,12 +16,12 @@ from canrig_jax.data import (
     load_head,
     load_ict,
     load_ict_obj_folder,
-    load_identity_modes,
     load_livelinkface,
     load_mediapipe_face,
     read_livelink_csv,
     retarget_weights,
 )
+from canrig_jax.data._ict import load_identity_modes
 
 from .conftest import handled, raises, run_case
 

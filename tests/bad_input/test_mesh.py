@@ -16,14 +16,14 @@ from canrig_jax.mesh import (
     decimate,
     edge_graph,
     farthest_point_vertices,
-    identity_correspondence,
     mesh_edges,
-    mesh_geometry,
     pad_vertices,
     subdivide,
     transfer_deltas,
     weighted_geodesic_distance,
 )
+from canrig_jax.mesh._operators import mesh_geometry
+from canrig_jax.mesh._transfer import identity_correspondence
 
 from .conftest import handled, raises, run_case
 

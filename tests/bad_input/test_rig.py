@@ -378,7 +378,7 @@ def _animated(c, weights, **kw):
 
 def _keys_read_back(path, c):
     """The morph weights written: the rig's 2 weights and the corrective's product."""
-    from canrig_jax.rig import morph_target_weights
+    from canrig_jax.rig._gltf_animation import morph_target_weights
 
     np.testing.assert_allclose(
         morph_target_weights(c.rig, np.array([[1.0, 0.5], [0.0, 2.0]])),

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from canrig_jax.canrig import masked_cross_attention
+from canrig_jax.canrig._attention import masked_cross_attention
 
 
 def _reference(q, k, v, mask, beta):

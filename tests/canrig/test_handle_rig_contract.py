@@ -21,7 +21,6 @@ from canrig_jax.canrig import (
 )
 from canrig_jax.pbs import (
     HANDLE_RIGS,
-    PBS_VARIANTS,
     LocalFitRig,
     PBSRig,
     local_fit_rig,
@@ -29,6 +28,7 @@ from canrig_jax.pbs import (
     pbs_basis,
     pbs_rig,
 )
+from canrig_jax.pbs._model import PBS_VARIANTS
 
 SMALL = {"n_heads": 2, "latent": 16, "width": 16, "n_layers": 2}
 RADIUS, FALLOFF = 1.5, 2.0  # cm, 1/cm: each handle reaches ~2.5 cm of the 10 cm sheet

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from canrig_jax import canrig, mesh
-from canrig_jax.canrig import CLAMP, MIN_EDGE_FACTOR, correlation_edge_factor, influence_mask
+from canrig_jax.canrig import CLAMP, correlation_edge_factor, influence_mask
+from canrig_jax.canrig._masks import MIN_EDGE_FACTOR
 from canrig_jax.mesh import (
     edge_graph,
     farthest_point_vertices,
@@ -17,14 +18,15 @@ from canrig_jax.mesh import (
 
 
 def test_geometry_has_one_home():
-    """canrig consumes mesh's graph geometry (re-exported, not re-derived)."""
-    for name in (
-        "mesh_edges",
-        "edge_graph",
-        "weighted_geodesic_distance",
-        "farthest_point_vertices",
-    ):
-        assert getattr(canrig, name) is getattr(mesh, name)
+    """canrig consumes mesh's graph geometry (not re-derived, and not exported again: the
+    one door is ``canrig_jax.mesh``)."""
+    from canrig_jax.canrig import _data, _masks
+
+    for name in ("mesh_edges", "edge_graph", "weighted_geodesic_distance"):
+        assert getattr(_masks, name) is getattr(mesh, name)
+        assert name not in canrig.__all__
+    assert _data.farthest_point_vertices is mesh.farthest_point_vertices
+    assert "farthest_point_vertices" not in canrig.__all__
 
 
 def _grid(n=4, m=3, seed=0):

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from canrig_jax.canrig import ZeroPreservingMLP
+from canrig_jax.canrig._mlp import ZeroPreservingMLP
 
 
 @settings(max_examples=3, deadline=None)

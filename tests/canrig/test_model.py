@@ -194,7 +194,7 @@ def test_block_sparse_forward_equals_dense(neural_rig, placed, ict_face, sparse_
 
 
 def test_vertex_blocks_partition_the_mesh(face):
-    from canrig_jax.canrig import vertex_blocks
+    from canrig_jax.canrig._layout import vertex_blocks
 
     blocks = vertex_blocks(face[0], 48)
     assert blocks.shape[1] <= 48

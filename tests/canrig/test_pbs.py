@@ -9,18 +9,14 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from canrig_jax.mesh import vertex_adjacency
-from canrig_jax.pbs import (
-    PatchLayout,
+from canrig_jax.pbs import PatchLayout, fit_pbs, local_pbs_fit, patch_layout, pbs_basis, pbs_shape
+from canrig_jax.pbs._basis import (
     check_basis,
-    fit_pbs,
     global_blendshape_dialogue,
     global_blendshape_fit,
-    local_pbs_fit,
-    patch_layout,
-    pbs_basis,
-    pbs_shape,
+    local_fit_factor,
+    local_fit_solve,
 )
-from canrig_jax.pbs._basis import local_fit_factor, local_fit_solve
 from canrig_jax.rig import evaluate_batch, random_sparse_poses
 
 N_PATCHES = 60

@@ -10,22 +10,22 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from canrig_jax.canrig import edge_graph, influence_mask
+from canrig_jax.canrig import influence_mask
+from canrig_jax.mesh import edge_graph
 from canrig_jax.pbs import (
-    PBS_VARIANTS,
     PBSTrainOptions,
     ShapeTransformer,
     build_pbs_training_set,
     local_pbs_fit,
     patch_layout,
-    patch_means,
     pbs_basis,
     pbs_reconstruct,
     pbs_shape,
-    predict_pbs_weights,
     seed_distances,
     train_pbs,
 )
+from canrig_jax.pbs._model import PBS_VARIANTS, patch_means
+from canrig_jax.pbs._train import predict_pbs_weights
 from canrig_jax.rig import evaluate_batch, random_sparse_poses
 
 N_PATCHES = 60

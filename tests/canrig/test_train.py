@@ -14,23 +14,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from canrig_jax.canrig import (
+from canrig_jax.canrig import ExampleOptions, TrainOptions, build_training_set, load_model, train
+from canrig_jax.canrig._data import DataOptions, capture_mixes_of, sample_examples
+from canrig_jax.canrig._train import (
     EUCLIDEAN_SOFTNESS_MM,
-    DataOptions,
-    ExampleOptions,
-    TrainOptions,
-    add_training_options,
-    build_training_set,
-    capture_mixes_of,
-    load_model,
     make_optimiser,
     read_checkpoint_state,
-    sample_examples,
-    split_capture,
-    train,
-    training_options_from_args,
     vertex_penalty,
 )
+from canrig_jax.papers.canrig import add_training_options, split_capture, training_options_from_args
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -12,27 +12,24 @@ import pytest
 
 from canrig_jax.canrig import (
     CLAMP,
-    DENSE,
     CANRig,
     FitOptions,
     NeuralRig,
-    PartsLayout,
     ShapePreservingCANRig,
-    apply_jacobian,
     clip_edit,
     deform,
     dialogue_replacement,
-    displacement_jacobian,
     expression_region,
-    farthest_point_vertices,
     influence_mask,
     influence_reach,
     interior_vertices,
     iterative_layers,
-    normal_matrix,
     pose_a_to_b,
-    smoothstep_fade,
 )
+from canrig_jax.canrig._attention_fit import apply_jacobian, displacement_jacobian, normal_matrix
+from canrig_jax.canrig._layout import DENSE, PartsLayout
+from canrig_jax.canrig._workflows import smoothstep_fade
+from canrig_jax.mesh import farthest_point_vertices
 from canrig_jax.rig import evaluate_batch
 
 FALLOFF = 3.0

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from canrig_jax import CorruptFileError
-from canrig_jax.data import ARKIT_NAMES, arkit_name_of, load_fbx, load_fbx_meshes, load_head
+from canrig_jax.data import ARKIT_NAMES, arkit_name_of, load_fbx, load_head
+from canrig_jax.data._fbx import load_fbx_meshes
 from canrig_jax.rig import load_fbx_rig
 
 HEADS = ("Female_Adult_01", "Male_Adult_08")

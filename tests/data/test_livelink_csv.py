@@ -12,16 +12,15 @@ import pytest
 from canrig_jax.data import (
     ARKIT_NAMES,
     LIVELINK_CSV_CHANNELS,
-    LIVELINK_ROTATIONS,
     capture_from_weights,
     format_timecode,
     load_ict,
     load_livelinkface,
-    parse_timecode,
     read_livelink_csv,
     to_arkit,
     write_livelink_csv,
 )
+from canrig_jax.data._livelink_csv import LIVELINK_ROTATIONS, parse_timecode
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from canrig_jax import distributed
-from canrig_jax.distributed import process_group, process_share
+from canrig_jax.distributed._process_group import process_group
+from canrig_jax.distributed._share import process_share
 
 SLURM = {
     "SLURM_JOB_ID": "4242",

@@ -104,7 +104,7 @@ def _wait_until_alive(process: subprocess.Popen, timeout: float = 120) -> list[s
 
 @pytest.mark.parametrize("killed", [1, 0], ids=["worker", "coordinator"])
 def test_a_killed_process_ends_the_others_with_a_clear_error(killed):
-    from canrig_jax.distributed import free_port
+    from canrig_jax.distributed._launch import free_port
 
     port = free_port()
     procs = _start_waiting(

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from canrig_jax import inverse
-from canrig_jax.inverse import roughness, select_alpha, summarize
+from canrig_jax.inverse import roughness, summarize
+from canrig_jax.papers.inverse_rig import select_alpha
 from canrig_jax.rig import evaluate_batch, random_sparse_poses
 
 ALPHAS = (0.0, 0.5, 1.0, 2.0, 5.0, 10.0)

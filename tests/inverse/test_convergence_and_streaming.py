@@ -11,6 +11,7 @@ import pytest
 
 from canrig_jax import inverse
 from canrig_jax.inverse import CARDINALITY_TOL
+from canrig_jax.inverse._coordinate_descent import objective
 from canrig_jax.rig import evaluate
 
 
@@ -108,14 +109,14 @@ def test_converged_quartic_cd_reaches_an_independent_float64_lbfgsb_minimum(
 ):
     """SciPy's float64 L-BFGS-B from zero on the same objective (``reference.minimum``,
     gradient written out independently) finds no lower value than converged QuarticCD."""
-    from canrig_jax.inverse import minimum
+    from canrig_jax.papers.inverse_rig import minimum
 
     problem, alpha = ict_quartic_problem, 5.0
     for target in noisy[:2]:
         cd = inverse.solve(problem, target, inverse.QuarticCD(alpha=alpha))
         best = minimum(problem, target, alpha)
         offset = (np.asarray(target) - np.asarray(problem.neutral)).ravel()
-        value = float(inverse.objective(problem, best.astype(np.float32), offset, alpha))
+        value = float(objective(problem, best.astype(np.float32), offset, alpha))
         assert float(cd.objective) <= value * (1 + 2e-5), (float(cd.objective), value)
 
 

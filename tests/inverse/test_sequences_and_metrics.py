@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from canrig_jax import inverse
-from canrig_jax.inverse import frame_metrics, roughness, select_alpha
+from canrig_jax.inverse import frame_metrics, roughness
 from canrig_jax.rig import evaluate
 
 
@@ -53,22 +53,6 @@ def test_roughness_is_the_summed_squared_second_difference():
     assert roughness(np.linspace(0, 1, 9)[:, None] * np.ones((1, 4))) == pytest.approx(0.0)
     with pytest.raises(ValueError, match="weights"):
         roughness(w[:2])
-
-
-def test_select_alpha_takes_the_sparsest_row_within_tolerance_of_the_best():
-    rows = [
-        {"alpha": 0.0, "rmse_mean_mm": 0.40},
-        {"alpha": 1.0, "rmse_mean_mm": 0.38},
-        {"alpha": 2.0, "rmse_mean_mm": 0.395},
-        {"alpha": 5.0, "rmse_mean_mm": 0.41},
-    ]
-    assert select_alpha(rows)["alpha"] == 2.0  # 0.395 <= 1.05 * 0.38, 0.41 is not
-    assert select_alpha(rows, tolerance=0.0)["alpha"] == 1.0
-    with pytest.raises(ValueError, match="sweep"):
-        select_alpha([])
-    failed = [*rows, {"alpha": 10.0, "rmse_mean_mm": float("nan")}]
-    with pytest.raises(ValueError, match=r"'lmmm' at alpha \[10.0\]"):
-        select_alpha(failed, method="lmmm")
 
 
 def test_metrics_are_in_millimetres_whatever_the_rig_unit(take):

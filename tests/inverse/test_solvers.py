@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from canrig_jax import inverse
+from canrig_jax.inverse._coordinate_descent import objective
 from canrig_jax.rig import evaluate
 
 
@@ -104,9 +105,7 @@ def default_order_progress(setup):
     """(objective at w = 0, objective after 3 passes in the default order), 3 frames."""
     _, problem, _, targets = setup
     zero = jnp.zeros(problem.n_blendshapes)
-    start = [
-        inverse.objective(problem, zero, (b - problem.neutral).ravel(), 0.5) for b in targets[:3]
-    ]
+    start = [objective(problem, zero, (b - problem.neutral).ravel(), 0.5) for b in targets[:3]]
     default = _solve_all(problem, targets[:3], _paper(0.5, ORDER_PASSES))
     return np.asarray(start), np.asarray(default.objective)
 

@@ -9,6 +9,7 @@ import optimistix as optx
 import pytest
 
 from canrig_jax import inverse
+from canrig_jax.papers import inverse_rig
 from canrig_jax.rig import BlendshapeRig, Corrective, evaluate_batch
 
 ALPHA = 0.05
@@ -28,7 +29,7 @@ def take(synthetic_rig):
 def _energies(rig, weights, targets):
     """E(w) = 1/2 ||f(w) - b||^2 + alpha 1^T w per frame, in float64 NumPy (independent of
     the float32 coefficient-space value the solver reports)."""
-    dense = inverse.NumpyDenseRig(rig)
+    dense = inverse_rig.NumpyDenseRig(rig)
     return np.array([
         0.5 * np.sum((dense(np.asarray(w, np.float64)) - np.asarray(b, np.float64).ravel()) ** 2)
         + ALPHA * np.sum(np.asarray(w, np.float64))

@@ -14,7 +14,9 @@ import pytest
 from scipy.optimize import minimize
 
 from canrig_jax import inverse
+from canrig_jax.inverse._solve import HISTORY_FRAMES
 from canrig_jax.inverse._temporal import difference_bands, weighted_difference_bands
+from canrig_jax.papers import inverse_rig
 from canrig_jax.rig import BlendshapeRig, evaluate_batch
 
 ALPHA, SMOOTHNESS, VELOCITY = 0.1, 5.0, 0.5
@@ -84,7 +86,7 @@ def test_a_lagged_frame_is_the_window_solve_with_the_earlier_frames_fixed(take):
     method = inverse.TemporalNewton(alpha=ALPHA, smoothness=SMOOTHNESS, velocity=VELOCITY, tol=1e-9)
     streamed = _streamed(problem, targets, method, lag)
     for frame in (0, 1, 4, 6):  # the first frames have fewer (or no) fixed frames before them
-        fixed = streamed[max(frame - inverse.HISTORY_FRAMES, 0) : frame]
+        fixed = streamed[max(frame - HISTORY_FRAMES, 0) : frame]
         window = targets[frame : frame + lag + 1]
         reference = _window_minimum(problem, window, fixed, SMOOTHNESS, VELOCITY)
         np.testing.assert_allclose(streamed[frame], reference[0], atol=2e-4)
@@ -147,7 +149,7 @@ def test_the_default_smoothness_is_the_value_the_rule_chose():
     protocol = results["temporal_protocol"]["ict"]
     assert protocol["rule"].endswith("RULE_temporal.md")
     assert protocol["smoothness_chosen_on"] == "ict validation half"
-    chosen = inverse.lowest_error_smoothness(protocol["validation_curve"])["smoothness"]
+    chosen = inverse_rig.lowest_error_smoothness(protocol["validation_curve"])["smoothness"]
     assert chosen == protocol["smoothness_cm2"] == inverse.DEFAULT_SMOOTHNESS_CM2
     assert results["temporal_protocol"]["makehuman"]["smoothness_cm2"] == chosen
     # in a rig's own units: cm^2 divided by (cm per unit)^2
@@ -167,12 +169,12 @@ def test_the_rule_takes_the_lowest_error_and_the_larger_smoothness_on_a_tie():
         {"smoothness": 100.0, "rmse_mean_mm": 0.8},
         {"smoothness": 1000.0, "rmse_mean_mm": 0.99},
     ]
-    assert inverse.lowest_error_smoothness(sweep)["smoothness"] == 100.0
-    assert inverse.lowest_error_smoothness(sweep[:1])["smoothness"] == 0.0
+    assert inverse_rig.lowest_error_smoothness(sweep)["smoothness"] == 100.0
+    assert inverse_rig.lowest_error_smoothness(sweep[:1])["smoothness"] == 0.0
     with pytest.raises(ValueError, match="sweep"):
-        inverse.lowest_error_smoothness(sweep[1:])
+        inverse_rig.lowest_error_smoothness(sweep[1:])
     with pytest.raises(ValueError, match="sweep"):
-        inverse.lowest_error_smoothness([*sweep, {"smoothness": 3.0, "rmse_mean_mm": np.nan}])
+        inverse_rig.lowest_error_smoothness([*sweep, {"smoothness": 3.0, "rmse_mean_mm": np.nan}])
 
 
 def test_weighted_bands_of_unit_rows_are_the_difference_bands():

@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from canrig_jax.mesh import DeformationGradientBlend, triangle_edges
+from canrig_jax.mesh import DeformationGradientBlend
+from canrig_jax.mesh._deformation_gradient import triangle_edges
 from canrig_jax.rig import BlendshapeRig, deformation_gradient_blend
 
 SHAPES = ("jawOpen", "mouthClose", "mouthSmile_L", "mouthFunnel", "eyeBlink_L", "browDown_L")

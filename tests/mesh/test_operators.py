@@ -8,7 +8,8 @@ import scipy.sparse as sp
 
 import canrig_jax.mesh._operators as ops_module  # patched: the cache's compute step
 from canrig_jax.data import FACE, load_ict, load_mediapipe_face
-from canrig_jax.mesh import compute_geometry, connected_components, decimate, mesh_geometry
+from canrig_jax.mesh import connected_components, decimate
+from canrig_jax.mesh._operators import compute_geometry, mesh_geometry
 
 
 @pytest.fixture(scope="module")

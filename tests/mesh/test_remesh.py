@@ -7,14 +7,8 @@ import numpy as np
 import pytest
 
 from canrig_jax.data import FACE, load_ict, load_mediapipe_face
-from canrig_jax.mesh import (
-    closest_surface_points,
-    connected_components,
-    decimate,
-    flip_quad_split,
-    quad_pairs,
-    subdivide,
-)
+from canrig_jax.mesh import connected_components, decimate, flip_quad_split, subdivide
+from canrig_jax.mesh._remesh import closest_surface_points, quad_pairs
 from canrig_jax.rig import BlendshapeRig, Corrective, evaluate, remesh_rig
 
 

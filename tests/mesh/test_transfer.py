@@ -10,9 +10,9 @@ from canrig_jax.mesh import (
     closest_point_correspondence,
     connected_components,
     decimate,
-    identity_correspondence,
     similarity_transform,
 )
+from canrig_jax.mesh._transfer import identity_correspondence
 from canrig_jax.rig import BlendshapeRig, Corrective, deformation_transfer
 
 MM = 10.0

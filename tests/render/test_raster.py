@@ -14,7 +14,6 @@ import pytest
 from canrig_jax.render import (
     Camera,
     RasterSettings,
-    camera_depth,
     displacement_field,
     lambert_image,
     look_at,
@@ -24,6 +23,7 @@ from canrig_jax.render import (
     ray_cast,
     screen_displacement,
 )
+from canrig_jax.render._camera import camera_depth
 
 
 def front_camera(vertices, size, **kwargs):

@@ -11,15 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from canrig_jax.rig import (
-    BlendshapeRig,
-    Corrective,
-    check_weights,
-    evaluate,
-    evaluate_batch,
-    load_rig,
-    save_rig,
-)
+from canrig_jax.rig import BlendshapeRig, Corrective, evaluate, evaluate_batch, load_rig, save_rig
+from canrig_jax.rig._blendshape import check_weights
 
 HYPOTHESIS = settings(max_examples=20, deadline=None)
 

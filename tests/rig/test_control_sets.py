@@ -13,9 +13,9 @@ from canrig_jax.rig import (
     control_set_of,
     evaluate_batch,
     load_fbx_rig,
-    select_blendshapes,
     select_control_set,
 )
+from canrig_jax.rig._control_sets import select_blendshapes
 
 
 @pytest.mark.parametrize(

@@ -17,11 +17,10 @@ from canrig_jax.rig import (
     evaluate_batch,
     export_animated_gltf,
     find_gltf_validator,
-    head_rotation_quaternions,
     load_gltf_rig,
-    morph_target_weights,
     validate_gltf,
 )
+from canrig_jax.rig._gltf_animation import head_rotation_quaternions, morph_target_weights
 
 
 def read_glb(path) -> tuple[dict, dict]:

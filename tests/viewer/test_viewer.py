@@ -38,15 +38,10 @@ from canrig_jax.rig import (
     remesh_rig,
     validate_gltf,
 )
-from canrig_jax.viewer import (
-    HOST,
-    HeadlessChromium,
-    ViewerPage,
-    ViewerServer,
-    error_colors,
-    find_chromium,
-    inspect_glb,
-)
+from canrig_jax.viewer import ViewerServer, error_colors, find_chromium, inspect_glb
+from canrig_jax.viewer._browser import HeadlessChromium
+from canrig_jax.viewer._page import ViewerPage
+from canrig_jax.viewer._server import HOST
 
 BACKGROUND = np.array([0x1E, 0x22, 0x26], float)  # the page's clear colour
 

@@ -52,8 +52,8 @@ def real_edits(ict_face, livelink_weights, ict_face_blend):
     8 Live Link frames where the linear rig is worst (at least 0.5 apart), and 16 other
     frames with their desired meshes for evaluation."""
 
+    from canrig_jax.papers.wpse import select_edit_frames
     from canrig_jax.rig import evaluate_batch
-    from canrig_jax.wpse import select_edit_frames
 
     frames = livelink_weights[::3]  # 60 frames keep the blend cheap
     desired = ict_face_blend(frames).astype(np.float32)

@@ -7,13 +7,8 @@ import numpy as np
 import pytest
 
 from canrig_jax.rig import evaluate, evaluate_batch
-from canrig_jax.wpse import (
-    apply,
-    apply_layered,
-    assign_layers,
-    fit_layered,
-    fit_pose_space_edit,
-)
+from canrig_jax.wpse import apply, apply_layered, fit_layered, fit_pose_space_edit
+from canrig_jax.wpse._layers import assign_layers
 
 
 def test_assign_layers_rule():

@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from canrig_jax.wpse import (
-    blendshape_metric,
+from canrig_jax.wpse import blendshape_metric
+from canrig_jax.wpse._metric import (
     dot_width,
     euclidean_metric,
     gaussian_kernel,

@@ -8,21 +8,16 @@ import numpy as np
 import pytest
 
 import canrig_jax.wpse._frames as frames_module  # patched: the grouping cost
-from canrig_jax.rig import BlendshapeRig, evaluate, evaluate_batch
-from canrig_jax.wpse import (
+from canrig_jax.papers.wpse import (
     NumpyEditEvaluator,
-    apply,
-    blendshape_metric,
-    correction,
-    edited_mesh,
-    fit_pose_space_edit,
-    frame_matrices,
-    local_frames,
-    local_to_world,
     reference_frames,
     reference_vertex_frames,
     time_runtime,
 )
+from canrig_jax.rig import BlendshapeRig, evaluate, evaluate_batch
+from canrig_jax.wpse import apply, blendshape_metric, fit_pose_space_edit
+from canrig_jax.wpse._frames import frame_matrices, local_frames, local_to_world
+from canrig_jax.wpse._pse import correction, edited_mesh
 
 
 def loop_wpse(rig, poses, edits, sigma, weights, metric="weighted", epsilon=1e-3):

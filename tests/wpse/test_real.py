@@ -8,20 +8,17 @@ import numpy as np
 import pytest
 
 from canrig_jax._metrics import CM_TO_MM
+from canrig_jax.papers.wpse import NumpyEditEvaluator, reference_vertex_frames, retained_fraction
 from canrig_jax.rig import evaluate
 from canrig_jax.wpse import (
-    NumpyEditEvaluator,
     apply,
     blendshape_metric,
     fit_prepared,
     fit_sigma,
     fit_width,
-    frame_matrices,
-    local_frames,
     prepare_edits,
-    reference_vertex_frames,
-    retained_fraction,
 )
+from canrig_jax.wpse._frames import frame_matrices, local_frames
 
 
 @pytest.fixture(scope="module")

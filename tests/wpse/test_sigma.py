@@ -5,15 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from canrig_jax.wpse import (
-    GUI_MIN,
-    fit_sigma,
-    gui_from_sigma,
-    loo_residuals,
-    prepare_edits,
-    reference_coefficients,
-    sigma_from_gui,
-)
+from canrig_jax.papers.wpse import reference_coefficients
+from canrig_jax.wpse import fit_sigma, prepare_edits, sigma_from_gui
+from canrig_jax.wpse._sigma import GUI_MIN, gui_from_sigma, loo_residuals
 
 
 def test_gui_mapping_fixed_points_and_monotone():

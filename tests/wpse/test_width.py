@@ -6,15 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from canrig_jax.papers.wpse import reference_coefficients
 from canrig_jax.rig import evaluate_batch
-from canrig_jax.wpse import (
-    fit_width,
-    loo_distance_per_edit,
-    prepare_edits,
-    reference_coefficients,
-    reuse_edits,
-    temporal_change,
-)
+from canrig_jax.wpse import fit_width, prepare_edits, reuse_edits, temporal_change
+from canrig_jax.wpse._width import loo_distance_per_edit
 
 
 def _numpy_loo_distances(metric, poses, displacements, sigma, ridge=1e-6):

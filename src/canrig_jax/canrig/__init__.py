@@ -2,179 +2,63 @@
 zero-preserving MLPs, the shape-preserving variant, training on real rig shapes, and the
 workflows an artist runs on it (pose A to B direct and fitted, iterative layers, clip editing,
 dialogue replacement), all on one family of handle rigs (``AbstractHandleRig``). Patch
-blendshapes (PBS) for the whole head are ``canrig_jax.pbs``."""
+blendshapes (PBS) for the whole head are ``canrig_jax.pbs``; the paper's evaluation (held-out
+splits, the workflow tables, the training script's options) is ``canrig_jax.papers.canrig``.
+"""
 
-from ._attention import masked_attention_weights, masked_cross_attention
-from ._attention_fit import apply_jacobian, displacement_jacobian, normal_matrix, trace_edit
-from ._data import (
-    EVAL_FALLOFF_PER_CM,
-    FARTHEST_METRICS,
-    RADII_CM,
-    DataOptions,
-    ExampleOptions,
-    Examples,
-    TrainingSet,
-    build_training_set,
-    capture_mixes_of,
-    evaluate_poses,
-    farthest_point_vertices,
-    held_out_poses,
-    nearby_poses,
-    sample_examples,
-    split_capture,
-)
-from ._handle_rig import (
-    AbstractHandleRig,
-    FitOptions,
-    FitState,
-    HandleEdit,
-    Handles,
-    edit_mask,
-)
-from ._layout import (
-    DENSE,
-    BlockLayout,
-    DenseLayout,
-    Layout,
-    PartsLayout,
-    block_layout,
-    influence_reach,
-    vertex_blocks,
-)
-from ._masks import (
-    CLAMP,
-    MIN_EDGE_FACTOR,
-    check_handle_parameters,
-    correlation_edge_factor,
-    edge_graph,
-    influence_mask,
-    mesh_edges,
-    weighted_geodesic_distance,
-)
-from ._mlp import ZeroPreservingMLP
-from ._model import AbstractCANRig, Architecture, CANRig, ShapePreservingCANRig, parameter_count
-from ._protocols import add_training_options, training_options_from_args
+from ._data import DataOptions, ExampleOptions, TrainingSet, build_training_set, evaluate_poses
+from ._handle_rig import AbstractHandleRig, FitOptions, HandleEdit, Handles
+from ._layout import influence_reach
+from ._masks import CLAMP, correlation_edge_factor, influence_mask
+from ._model import CANRig, ShapePreservingCANRig
 from ._rig import NeuralRig, deform
-from ._train import (
-    EUCLIDEAN_SOFTNESS_MM,
-    LOSSES,
-    VARIANTS,
-    TrainOptions,
-    TrainResult,
-    load_checkpoint,
-    load_model,
-    make_optimiser,
-    read_checkpoint_state,
-    save_checkpoint,
-    train,
-    train_step,
-    vertex_penalty,
-)
+from ._train import TrainOptions, TrainResult, load_model, train
 from ._workflows import (
-    FIT_PARTS,
-    FIT_WIDTH_MULTIPLE,
     ClipEdit,
     FitSolution,
     LayerResult,
     clip_edit,
     dialogue_replacement,
-    direct_displacements,
     expression_region,
-    fit_displacements,
     interior_vertices,
     iterative_layers,
-    max_acceleration,
     pose_a_to_b,
-    region_error,
-    smoothstep_fade,
 )
 
 HANDLE_RIGS = (CANRig, ShapePreservingCANRig)
 """The final handle rigs of this subpackage (``AbstractHandleRig``); ``canrig_jax.pbs``
-adds ``LocalFitRig`` and ``PBSRig`` (``canrig_jax.pbs.HANDLE_RIGS`` lists all four)."""
+adds ``LocalFitRig`` and ``PBSRig`` (``canrig_jax.pbs.HANDLE_RIGS``, public, lists all
+four)."""
 
 __all__ = [
-    "AbstractHandleRig",
-    "FitState",
-    "HANDLE_RIGS",
-    "add_training_options",
-    "training_options_from_args",
-    "ClipEdit",
-    "FitOptions",
-    "FIT_PARTS",
-    "FIT_WIDTH_MULTIPLE",
-    "FitSolution",
-    "LayerResult",
-    "apply_jacobian",
-    "clip_edit",
-    "dialogue_replacement",
-    "direct_displacements",
-    "displacement_jacobian",
-    "expression_region",
-    "fit_displacements",
-    "interior_vertices",
-    "iterative_layers",
-    "max_acceleration",
-    "normal_matrix",
-    "pose_a_to_b",
-    "region_error",
-    "smoothstep_fade",
-    "DataOptions",
-    "EUCLIDEAN_SOFTNESS_MM",
-    "FARTHEST_METRICS",
-    "LOSSES",
-    "MIN_EDGE_FACTOR",
-    "VARIANTS",
-    "check_handle_parameters",
-    "influence_reach",
-    "make_optimiser",
-    "read_checkpoint_state",
-    "vertex_blocks",
-    "vertex_penalty",
-    "DENSE",
-    "AbstractCANRig",
-    "Architecture",
-    "BlockLayout",
-    "PartsLayout",
-    "DenseLayout",
-    "HandleEdit",
-    "Layout",
-    "block_layout",
-    "edit_mask",
     "CLAMP",
-    "EVAL_FALLOFF_PER_CM",
-    "RADII_CM",
+    "AbstractHandleRig",
     "CANRig",
+    "ClipEdit",
+    "DataOptions",
     "ExampleOptions",
-    "Examples",
+    "FitOptions",
+    "FitSolution",
+    "HandleEdit",
     "Handles",
+    "LayerResult",
     "NeuralRig",
     "ShapePreservingCANRig",
     "TrainOptions",
     "TrainResult",
     "TrainingSet",
-    "ZeroPreservingMLP",
     "build_training_set",
-    "capture_mixes_of",
+    "clip_edit",
     "correlation_edge_factor",
     "deform",
-    "trace_edit",
-    "edge_graph",
+    "dialogue_replacement",
     "evaluate_poses",
-    "farthest_point_vertices",
+    "expression_region",
     "influence_mask",
-    "load_checkpoint",
+    "influence_reach",
+    "interior_vertices",
+    "iterative_layers",
     "load_model",
-    "masked_attention_weights",
-    "masked_cross_attention",
-    "mesh_edges",
-    "nearby_poses",
-    "parameter_count",
-    "sample_examples",
-    "save_checkpoint",
-    "split_capture",
-    "held_out_poses",
+    "pose_a_to_b",
     "train",
-    "train_step",
-    "weighted_geodesic_distance",
 ]

@@ -14,7 +14,6 @@ handles, so the loss over a subset is an unbiased estimate of the loss over all 
 """
 
 import dataclasses
-from collections.abc import Sequence
 from typing import Any
 
 import equinox as eqx
@@ -31,15 +30,6 @@ home of these numbers; experiments, benchmarks and ``ExampleOptions.eval_radii_c
 
 EVAL_FALLOFF_PER_CM = 3.0
 """Falloff of the evaluation's masks (per cm)."""
-
-
-def split_capture(
-    capture: Float[np.ndarray, "F K"],
-) -> tuple[Float[np.ndarray, "_ K"], Float[np.ndarray, "_ K"]]:
-    """(train, test): the first and second half of a capture (contiguous, so that no test
-    frame has a neighbouring frame in the training set)."""
-    half = len(capture) // 2
-    return capture[:half], capture[half:]
 
 
 def nearby_poses(
@@ -240,15 +230,6 @@ def capture_mixes_of(
     b = (a + rng.integers(1, len(capture), n)) % len(capture)
     t = rng.uniform(size=(n, 1)).astype(np.float32)
     return (1.0 - t) * capture[a] + t * capture[b]
-
-
-def held_out_poses(
-    capture_test: Float[np.ndarray, "F K"], names: Sequence[str], n_random: int = 100, seed: int = 1
-) -> Float32[np.ndarray, "N K"]:
-    """Held-out poses: the capture's test half and ``n_random`` random sparse poses drawn
-    with a different seed than training (continuous weights: disjoint almost surely)."""
-    random_poses = random_sparse_poses(np.random.default_rng(10_000 + seed), n_random, names)
-    return np.concatenate([capture_test, random_poses]).astype(np.float32)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,83 +1,48 @@
-"""Loaders for the real assets in the shared data folder (ICT, Live Link Face, MediaPipe)."""
+"""Loaders for the real assets in the shared data folder (ICT, Live Link Face, MediaPipe).
 
-from ._fbx import FbxMesh, FbxScene, FbxSkin, load_fbx, load_fbx_meshes, load_fbx_scene
-from ._head_file import (
-    HEAD_FORMATS,
-    HEAD_PLAUSIBLE_CM,
-    HEAD_SIZE_CM,
-    HEAD_UNITS_CM,
-    HeadMesh,
-    infer_units,
-    load_head,
-    save_obj,
-)
-from ._ict import (
-    ENCLOSING_PARTS,
-    FACE,
-    ICT_PARTS,
-    INNER_PARTS,
-    ICTFaceModel,
-    ict_identity,
-    load_ict,
-    load_ict_obj_folder,
-    load_identity_modes,
-)
-from ._livelink_csv import (
-    LIVELINK_CSV_CHANNELS,
-    LIVELINK_ROTATIONS,
-    capture_from_weights,
-    format_timecode,
-    parse_timecode,
-    read_livelink_csv,
-    write_livelink_csv,
-)
+Also importable here but not in ``__all__`` (for the other subpackages and the command line):
+``ENCLOSING_PARTS``, ``INNER_PARTS``, ``HEAD_PLAUSIBLE_CM``, ``capture_from_weights``,
+``format_timecode``."""
+
+from ._fbx import FbxScene, load_fbx, load_fbx_scene
+from ._head_file import HEAD_PLAUSIBLE_CM as HEAD_PLAUSIBLE_CM
+from ._head_file import HeadMesh, load_head, save_obj
+from ._ict import ENCLOSING_PARTS as ENCLOSING_PARTS
+from ._ict import FACE, ICTFaceModel, ict_identity, load_ict, load_ict_obj_folder
+from ._ict import INNER_PARTS as INNER_PARTS
+from ._livelink_csv import LIVELINK_CSV_CHANNELS, read_livelink_csv, write_livelink_csv
+from ._livelink_csv import capture_from_weights as capture_from_weights
+from ._livelink_csv import format_timecode as format_timecode
 from ._livelinkface import LiveLinkCapture, load_livelinkface
 from ._mediapipe import MediaPipeFace, load_mediapipe_face
 from ._names import ARKIT_NAMES, RetargetReport, arkit_name_of, retarget_weights, to_arkit
-from ._paths import ENV_VAR, data_file, read_arrays, resolve_data_dir
+from ._paths import data_file, read_arrays, resolve_data_dir
 
 __all__ = [
-    "FbxMesh",
-    "FbxScene",
-    "FbxSkin",
-    "load_fbx_scene",
-    "load_fbx",
-    "load_fbx_meshes",
-    "arkit_name_of",
-    "HEAD_FORMATS",
-    "HEAD_PLAUSIBLE_CM",
-    "HEAD_SIZE_CM",
-    "HEAD_UNITS_CM",
-    "HeadMesh",
-    "infer_units",
-    "load_head",
-    "save_obj",
-    "LIVELINK_CSV_CHANNELS",
-    "LIVELINK_ROTATIONS",
-    "capture_from_weights",
-    "format_timecode",
-    "parse_timecode",
-    "read_livelink_csv",
-    "write_livelink_csv",
-    "data_file",
-    "read_arrays",
     "ARKIT_NAMES",
-    "ENCLOSING_PARTS",
-    "ENV_VAR",
     "FACE",
-    "ICT_PARTS",
+    "LIVELINK_CSV_CHANNELS",
+    "FbxScene",
+    "HeadMesh",
     "ICTFaceModel",
-    "INNER_PARTS",
     "LiveLinkCapture",
     "MediaPipeFace",
     "RetargetReport",
+    "arkit_name_of",
+    "data_file",
     "ict_identity",
+    "load_fbx",
+    "load_fbx_scene",
+    "load_head",
     "load_ict",
     "load_ict_obj_folder",
-    "load_identity_modes",
     "load_livelinkface",
     "load_mediapipe_face",
+    "read_arrays",
+    "read_livelink_csv",
     "resolve_data_dir",
     "retarget_weights",
+    "save_obj",
     "to_arkit",
+    "write_livelink_csv",
 ]

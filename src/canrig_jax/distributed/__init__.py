@@ -1,7 +1,7 @@
 """Runs beyond one process: JAX's multi-controller runtime (``jax.distributed``), started from
 the arguments or the environment a launcher sets, and work shared across its processes.
 
-- ``initialize()`` first in every process (``ProcessGroup``, ``process_group``;
+- ``initialize()`` first in every process (it returns the ``ProcessGroup``;
   ``add_process_options``/``initialize_from_args`` for scripts). Afterwards the trainers
   (``canrig.train``, ``pbs.train_pbs``, ``autorig.train_riganyface``) run data-parallel over
   every process's devices, process 0 writing the checkpoint.
@@ -14,32 +14,17 @@ the arguments or the environment a launcher sets, and work shared across its pro
 The guide ``docs/guides/distributed.md`` shows each with the environment it needs.
 """
 
-from ._launch import LaunchResult, free_port, launch
-from ._process_group import (
-    ENV_COORDINATOR,
-    ENV_PROCESS_ID,
-    ENV_PROCESSES,
-    ProcessGroup,
-    add_process_options,
-    initialize,
-    initialize_from_args,
-    process_group,
-)
-from ._share import gather_frames, map_items, process_share
+from ._launch import LaunchResult, launch
+from ._process_group import ProcessGroup, add_process_options, initialize, initialize_from_args
+from ._share import gather_frames, map_items
 
 __all__ = [
-    "ENV_COORDINATOR",
-    "ENV_PROCESSES",
-    "ENV_PROCESS_ID",
     "LaunchResult",
     "ProcessGroup",
     "add_process_options",
-    "free_port",
     "gather_frames",
     "initialize",
     "initialize_from_args",
     "launch",
     "map_items",
-    "process_group",
-    "process_share",
 ]

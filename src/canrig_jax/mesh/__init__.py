@@ -1,108 +1,57 @@
 """Mesh geometry: topology, edges and geodesics, operators, deformation gradients, remeshing.
 
 The layer above ``data``: it knows arrays (vertices, faces, per-vertex data) and nothing of
-rigs; ``canrig_jax.rig`` builds rigs from it."""
+rigs; ``canrig_jax.rig`` builds rigs from it.
 
-from .._cache import mesh_fingerprint
+Also importable here but not in ``__all__`` (the checks and pieces the other subpackages build
+on): ``check_mesh``, ``connected_components``, ``mesh_edges``, ``rigid_residual``,
+``similarity_transform``, ``triangulate_quads``, ``vertex_adjacency``."""
+
 from ._align import SimilarityFit, bind_points, fit_landmarks, similarity_icp
-from ._checks import check_mesh, check_vertices
-from ._deformation_gradient import (
-    DeformationGradientBlend,
-    FallbackCounts,
-    triangle_edges,
-    triangle_frames,
-)
+from ._checks import check_mesh as check_mesh
+from ._deformation_gradient import DeformationGradientBlend
 from ._geodesic import (
     attached_edge_graph,
     bridged_edge_graph,
     edge_graph,
     farthest_point_vertices,
-    mesh_edges,
     weighted_geodesic_distance,
 )
-from ._motion import (
-    edge_stretch,
-    flipped_triangles,
-    rigid_residual,
-    self_intersections,
-)
-from ._operators import (
-    MeshGeometry,
-    MeshOperators,
-    SparseMatrix,
-    compute_geometry,
-    mesh_geometry,
-    mesh_operators,
-    pad_vertices,
-    stack_operators,
-)
-from ._remesh import (
-    Remeshed,
-    SurfaceMap,
-    closest_surface_points,
-    decimate,
-    flip_quad_split,
-    quad_pairs,
-    subdivide,
-    vertex_surface_map,
-)
-from ._topology import connected_components, vertex_adjacency
-from ._transfer import (
-    TriangleCorrespondence,
-    closest_point_correspondence,
-    identity_correspondence,
-    similarity_transform,
-    transfer_deltas,
-)
+from ._geodesic import mesh_edges as mesh_edges
+from ._motion import edge_stretch, flipped_triangles, self_intersections
+from ._motion import rigid_residual as rigid_residual
+from ._operators import MeshOperators, mesh_operators, pad_vertices, stack_operators
+from ._remesh import Remeshed, SurfaceMap, decimate, flip_quad_split, subdivide
+from ._topology import connected_components as connected_components
+from ._topology import vertex_adjacency as vertex_adjacency
+from ._transfer import TriangleCorrespondence, closest_point_correspondence, transfer_deltas
+from ._transfer import similarity_transform as similarity_transform
 from ._triangulate import triangulate_quads as triangulate_quads
 
 __all__ = [
-    "compute_geometry",
-    "quad_pairs",
     "DeformationGradientBlend",
-    "FallbackCounts",
-    "connected_components",
-    "attached_edge_graph",
-    "bridged_edge_graph",
-    "edge_graph",
-    "farthest_point_vertices",
-    "mesh_edges",
-    "weighted_geodesic_distance",
-    "mesh_fingerprint",
-    "triangle_edges",
-    "vertex_adjacency",
-]
-
-__all__ += ["SimilarityFit", "bind_points", "fit_landmarks", "similarity_icp"]
-
-__all__ += [
-    "MeshGeometry",
     "MeshOperators",
     "Remeshed",
-    "SparseMatrix",
+    "SimilarityFit",
     "SurfaceMap",
     "TriangleCorrespondence",
-    "check_mesh",
-    "check_vertices",
+    "attached_edge_graph",
+    "bind_points",
+    "bridged_edge_graph",
     "closest_point_correspondence",
-    "closest_surface_points",
     "decimate",
+    "edge_graph",
+    "edge_stretch",
+    "farthest_point_vertices",
+    "fit_landmarks",
     "flip_quad_split",
-    "identity_correspondence",
-    "mesh_geometry",
+    "flipped_triangles",
     "mesh_operators",
     "pad_vertices",
-    "transfer_deltas",
-    "triangle_frames",
-    "vertex_surface_map",
-    "similarity_transform",
+    "self_intersections",
+    "similarity_icp",
     "stack_operators",
     "subdivide",
-]
-
-__all__ += [
-    "edge_stretch",
-    "flipped_triangles",
-    "rigid_residual",
-    "self_intersections",
+    "transfer_deltas",
+    "weighted_geodesic_distance",
 ]

@@ -7,41 +7,23 @@ network with its basis) and ``LocalFitRig`` (local least-squares fits of the bas
 network)."""
 
 from ..canrig import HANDLE_RIGS as _ATTENTION_RIGS
-from ._basis import (
-    PatchLayout,
-    check_basis,
-    fit_pbs,
-    global_blendshape_dialogue,
-    global_blendshape_fit,
-    local_pbs_fit,
-    patch_layout,
-    pbs_basis,
-    pbs_shape,
-)
-from ._local_fit import LocalFitRig, local_fit_deform, local_fit_lsmr, local_fit_rig
+from ._basis import PatchLayout, fit_pbs, local_pbs_fit, patch_layout, pbs_basis, pbs_shape
+from ._local_fit import LocalFitRig, local_fit_rig
 from ._model import (
-    PBS_VARIANTS,
     AbstractCANRigPBS,
     BaseMultipliedPBS,
     NoModulationPBS,
     PerPatchPBS,
     ShapeTransformer,
-    patch_means,
-    pbs_delta_shape,
 )
-from ._protocols import check_pbs_training_matches, reach_floor
 from ._rig import PBSRig, pbs_rig
 from ._train import (
     PBS_MODELS,
-    PBSExamples,
     PBSTrainingSet,
     PBSTrainOptions,
     build_pbs_training_set,
     load_pbs_model,
-    pbs_example_loss,
     pbs_reconstruct,
-    predict_pbs_weights,
-    sample_pbs_examples,
     seed_distances,
     train_pbs,
 )
@@ -53,12 +35,10 @@ HANDLE_RIGS = (*_ATTENTION_RIGS, LocalFitRig, PBSRig)
 __all__ = [
     "HANDLE_RIGS",
     "PBS_MODELS",
-    "PBS_VARIANTS",
     "AbstractCANRigPBS",
     "BaseMultipliedPBS",
     "LocalFitRig",
     "NoModulationPBS",
-    "PBSExamples",
     "PBSRig",
     "PBSTrainOptions",
     "PBSTrainingSet",
@@ -66,27 +46,15 @@ __all__ = [
     "PerPatchPBS",
     "ShapeTransformer",
     "build_pbs_training_set",
-    "check_basis",
-    "check_pbs_training_matches",
     "fit_pbs",
-    "global_blendshape_dialogue",
-    "global_blendshape_fit",
     "load_pbs_model",
-    "local_fit_deform",
-    "local_fit_lsmr",
     "local_fit_rig",
     "local_pbs_fit",
     "patch_layout",
-    "patch_means",
     "pbs_basis",
-    "pbs_delta_shape",
-    "pbs_example_loss",
     "pbs_reconstruct",
     "pbs_rig",
     "pbs_shape",
-    "predict_pbs_weights",
-    "reach_floor",
-    "sample_pbs_examples",
     "seed_distances",
     "train_pbs",
 ]

@@ -36,17 +36,9 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float, Int, PyTree
 
-from ..canrig import (
-    CLAMP,
-    DENSE,
-    AbstractHandleRig,
-    FitOptions,
-    FitState,
-    HandleEdit,
-    Layout,
-    influence_mask,
-)
-from ..canrig._layout import Local
+from ..canrig import CLAMP, AbstractHandleRig, FitOptions, HandleEdit, influence_mask
+from ..canrig._handle_rig import FitState
+from ..canrig._layout import DENSE, Layout, Local
 from ._basis import PatchLayout, _pbs_shape, check_basis, local_fit_factor, local_fit_solve
 
 

@@ -15,8 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from ..canrig import DENSE, AbstractHandleRig, HandleEdit, Layout, influence_mask
-from ..canrig._layout import Local
+from ..canrig import AbstractHandleRig, HandleEdit, influence_mask
+from ..canrig._layout import DENSE, Layout, Local
 from ._basis import PatchLayout, check_basis
 from ._model import AbstractCANRigPBS, patch_means, pbs_delta_shape
 

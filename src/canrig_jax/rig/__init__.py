@@ -1,38 +1,29 @@
 """The blendshape rig of any corrective order, its (batched) evaluation, corrective synthesis,
 the ict-quartic and MakeHuman quartic rigs, and rigs carried onto other meshes (remeshing,
-deformation transfer)."""
+deformation transfer).
 
-from ._arkit import arkit_channels, rename_to_arkit
-from ._blendshape import (
-    UNIT_IN_CM,
-    BlendshapeRig,
-    Corrective,
-    check_weights,
-    combination_coefficients,
-    evaluate,
-    evaluate_batch,
-)
-from ._control_sets import CONTROL_SETS, control_set_of, select_blendshapes, select_control_set
-from ._extras import EXTRA_SHAPES, RPM_EXTRAS, VISEMES, check_extra_sets, with_extra_shapes
+Also importable here but not in ``__all__`` (for the other subpackages, the command line and
+the avatar checks): ``CONTROL_SETS``, ``accessor_array``, ``add_morph_targets``,
+``arkit_channels``, ``check_extra_sets``, ``check_humanoid``, ``combination_coefficients``,
+``mesh_vertices``, ``node_descendants``, ``rename_to_arkit``, ``target_names``."""
+
+from ._arkit import arkit_channels as arkit_channels
+from ._arkit import rename_to_arkit as rename_to_arkit
+from ._blendshape import UNIT_IN_CM, BlendshapeRig, Corrective, evaluate, evaluate_batch
+from ._blendshape import combination_coefficients as combination_coefficients
+from ._control_sets import CONTROL_SETS as CONTROL_SETS
+from ._control_sets import control_set_of, select_control_set
+from ._extras import EXTRA_SHAPES, with_extra_shapes
+from ._extras import check_extra_sets as check_extra_sets
 from ._fbx import load_fbx_rig
 from ._gltf import export_gltf, load_gltf_rig
-from ._gltf_animation import (
-    export_animated_gltf,
-    head_rotation_quaternions,
-    morph_target_weights,
-)
-from ._gltf_avatar import (
-    GltfAvatar,
-    MeshVertices,
-    accessor_array,
-    add_morph_targets,
-    avatar_from_fbx,
-    mesh_vertices,
-    node_descendants,
-    read_gltf_avatar,
-    target_names,
-    write_gltf_avatar,
-)
+from ._gltf_animation import export_animated_gltf
+from ._gltf_avatar import GltfAvatar, avatar_from_fbx, read_gltf_avatar, write_gltf_avatar
+from ._gltf_avatar import accessor_array as accessor_array
+from ._gltf_avatar import add_morph_targets as add_morph_targets
+from ._gltf_avatar import mesh_vertices as mesh_vertices
+from ._gltf_avatar import node_descendants as node_descendants
+from ._gltf_avatar import target_names as target_names
 from ._gltf_validate import find_gltf_validator, validate_gltf
 from ._ict_quartic import ict_linear_rig, ict_quartic_rig
 from ._io import load_rig, save_rig
@@ -44,77 +35,51 @@ from ._synthesis import (
     SynthesisOptions,
     SynthesisReport,
     exclusive_pairs,
-    overlapping_pairs,
     synthesize_correctives,
 )
 from ._transfer import deformation_transfer, remesh_rig
-from ._usd import USD_SUFFIXES, export_usd, load_usd_rig
-from ._vrm import (
-    REQUIRED_BONES,
-    VRM_PRESETS,
-    add_vrm_expressions,
-    check_humanoid,
-    humanoid_bones,
-)
+from ._usd import export_usd, load_usd_rig
+from ._vrm import REQUIRED_BONES, VRM_PRESETS, add_vrm_expressions, humanoid_bones
+from ._vrm import check_humanoid as check_humanoid
 
 __all__ = [
-    "USD_SUFFIXES",
-    "export_usd",
-    "load_usd_rig",
-    "REQUIRED_BONES",
-    "VRM_PRESETS",
-    "add_vrm_expressions",
-    "check_humanoid",
-    "humanoid_bones",
     "EXTRA_SHAPES",
-    "RPM_EXTRAS",
-    "VISEMES",
-    "check_extra_sets",
-    "with_extra_shapes",
-    "GltfAvatar",
-    "MeshVertices",
-    "accessor_array",
-    "add_morph_targets",
-    "avatar_from_fbx",
-    "mesh_vertices",
-    "node_descendants",
-    "read_gltf_avatar",
-    "target_names",
-    "write_gltf_avatar",
-    "CONTROL_SETS",
-    "control_set_of",
-    "select_blendshapes",
-    "select_control_set",
-    "arkit_channels",
-    "rename_to_arkit",
-    "UNIT_IN_CM",
-    "export_gltf",
-    "export_animated_gltf",
-    "find_gltf_validator",
-    "validate_gltf",
-    "head_rotation_quaternions",
-    "morph_target_weights",
-    "load_gltf_rig",
-    "load_fbx_rig",
-    "random_sparse_poses",
     "MUTUALLY_EXCLUSIVE",
+    "REQUIRED_BONES",
+    "UNIT_IN_CM",
+    "VRM_PRESETS",
     "BlendshapeRig",
     "Corrective",
+    "GltfAvatar",
     "SynthesisOptions",
     "SynthesisReport",
-    "check_weights",
-    "combination_coefficients",
+    "add_vrm_expressions",
+    "avatar_from_fbx",
+    "control_set_of",
     "deformation_gradient_blend",
     "deformation_transfer",
     "evaluate",
     "evaluate_batch",
     "exclusive_pairs",
+    "export_animated_gltf",
+    "export_gltf",
+    "export_usd",
+    "find_gltf_validator",
+    "humanoid_bones",
     "ict_linear_rig",
     "ict_quartic_rig",
+    "load_fbx_rig",
+    "load_gltf_rig",
     "load_rig",
+    "load_usd_rig",
     "makehuman_quartic_rig",
-    "overlapping_pairs",
+    "random_sparse_poses",
+    "read_gltf_avatar",
     "remesh_rig",
     "save_rig",
+    "select_control_set",
     "synthesize_correctives",
+    "validate_gltf",
+    "with_extra_shapes",
+    "write_gltf_avatar",
 ]

@@ -4,9 +4,8 @@
 plays the glb's animation on a timeline, lists its morph targets with sliders and shows
 wireframe and the per-vertex colour channel (``COLOR_0``, e.g. an error map) when present.
 ``screenshot_glb`` renders one frame in headless Chromium (the system's, driven through the
-DevTools protocol by ``HeadlessChromium``); ``ViewerPage`` poses the page for tests;
-``error_colors`` turns per-vertex errors into a white-to-red ``COLOR_0`` map;
-``export_error_glb`` writes a take of meshes with their error over the frames as that map
+DevTools protocol); ``error_colors`` turns per-vertex errors into a white-to-red ``COLOR_0``
+map; ``export_error_glb`` writes a take of meshes with their error over the frames as that map
 (an experiment's ``error.glb``), ``save_error_legend`` its colour scale.
 
 three.js is vendored in ``static/three.min.js`` (MIT, ``static/three.LICENSE``): npm ``three``
@@ -21,30 +20,18 @@ three.js is vendored in ``static/three.min.js`` (MIT, ``static/three.LICENSE``):
         --outfile=three.min.js
 """
 
-from ._browser import (
-    CHROMIUM_ENV_VAR,
-    CHROMIUM_NAMES,
-    BrowserError,
-    HeadlessChromium,
-    find_chromium,
-)
+from ._browser import BrowserError, find_chromium
 from ._colors import error_colors
 from ._error_take import ErrorGlb, export_error_glb, save_error_legend
 from ._glb import GlbSummary, inspect_glb
-from ._page import Screenshot, ViewerPage, screenshot_glb
-from ._server import HOST, STATIC_DIR, ViewerServer
+from ._page import Screenshot, screenshot_glb
+from ._server import ViewerServer
 
 __all__ = [
-    "CHROMIUM_ENV_VAR",
-    "CHROMIUM_NAMES",
-    "HOST",
-    "STATIC_DIR",
     "BrowserError",
     "ErrorGlb",
     "GlbSummary",
-    "HeadlessChromium",
     "Screenshot",
-    "ViewerPage",
     "ViewerServer",
     "error_colors",
     "export_error_glb",

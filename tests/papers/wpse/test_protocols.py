@@ -10,13 +10,14 @@ import numpy as np
 import pytest
 
 from canrig_jax import wpse
+from canrig_jax.papers import wpse as wpse_paper
 from canrig_jax.rig import evaluate, evaluate_batch
-from canrig_jax.wpse._protocols import rest_pose_correction_mm
+from canrig_jax.wpse._pse import correction
 
-from .conftest import grid_rig
+from ...wpse.conftest import grid_rig
 
 VARIANTS = ("pse", "wpse", "wpse_rest_pose", "wpse_global_frames")
-RESULTS = Path(__file__).resolve().parents[2] / "experiments" / "results" / "wpse"
+RESULTS = Path(__file__).resolve().parents[3] / "experiments" / "results" / "wpse"
 
 
 def _sculpt_of(rig):
@@ -44,7 +45,7 @@ def take():
     desired = sculpt(poses).astype(np.float32)
     linear = np.asarray(evaluate_batch(rig, poses))
     error = np.linalg.norm(desired - linear, axis=2).mean(axis=1)
-    edit_frames = wpse.select_edit_frames(error, poses, 5, 0.3)
+    edit_frames = wpse_paper.select_edit_frames(error, poses, 5, 0.3)
     held_out = np.setdiff1d(np.arange(len(poses)), edit_frames)
     return {
         "rig": rig,
@@ -59,7 +60,7 @@ def take():
 def compared(take):
     """compare_methods at two budgets (fits every variant's LOO width: slow tests only)."""
     poses, desired, linear = take["frames"]
-    return wpse.compare_methods(
+    return wpse_paper.compare_methods(
         take["rig"],
         *take["frames"],
         take["edit_frames"],
@@ -76,7 +77,7 @@ def test_error_summary_of_known_displacements():
     length = rng.uniform(0.0, 2.0, (3, 50))  # cm
     direction = rng.normal(size=(3, 50, 3))
     direction /= np.linalg.norm(direction, axis=2, keepdims=True)
-    summary, err = wpse.error_summary(desired + length[..., None] * direction, desired)
+    summary, err = wpse_paper.error_summary(desired + length[..., None] * direction, desired)
     np.testing.assert_allclose(err, 10 * length, rtol=1e-12)
     assert summary["mean_mm"] == pytest.approx(10 * length.mean())
     assert summary["max_mm"] == pytest.approx(10 * length.max())
@@ -126,7 +127,7 @@ def test_compare_methods_rest_pose_variant_is_zero_at_rest(compared):
 def test_few_edit_errors_use_the_given_and_the_one_se_widths(take):
     rig, (poses, desired, linear) = take["rig"], take["frames"]
     edit_frames, held_out = take["edit_frames"], take["held_out"]
-    rows, widths = wpse.few_edit_errors(
+    rows, widths = wpse_paper.few_edit_errors(
         rig,
         *take["frames"],
         edit_frames,
@@ -150,7 +151,7 @@ def test_few_edit_errors_use_the_given_and_the_one_se_widths(take):
     size = np.linalg.norm(edits, axis=2).mean() * 10
     assert w["no_correction_mm"] == pytest.approx(size, rel=1e-6)
     model = wpse.fit_prepared(data, 0.37)
-    meshes = wpse.apply_frames(model, poses[held_out], linear[held_out])
+    meshes = wpse_paper.apply_frames(model, poses[held_out], linear[held_out])
     err = np.linalg.norm(meshes - desired[held_out], axis=2) * 10
     assert row["wpse"]["mean_mm"] == pytest.approx(err.mean(), rel=1e-6)
 
@@ -158,7 +159,7 @@ def test_few_edit_errors_use_the_given_and_the_one_se_widths(take):
 def test_temporal_smoothness_edits_the_worst_frame_and_reproduces_it(take):
     rig, (_, desired, linear) = take["rig"], take["frames"]
     take_frames = np.arange(12)
-    summary, curves = wpse.temporal_smoothness(
+    summary, curves = wpse_paper.temporal_smoothness(
         rig, *take["frames"], take["edit_frames"], take_frames, sigma=0.5
     )
     candidates = [f for f in take_frames if f not in set(take["edit_frames"])]
@@ -176,18 +177,18 @@ def test_temporal_smoothness_edits_the_worst_frame_and_reproduces_it(take):
 
 def test_channel_region_of_disjoint_channel_sets_are_disjoint(take):
     rig = take["rig"]
-    regions = [wpse.channel_region(rig, c) for c in ([0, 1], [2, 3], [4, 5])]
+    regions = [wpse_paper.channel_region(rig, c) for c in ([0, 1], [2, 3], [4, 5])]
     assert sum(r.size for r in regions) == np.unique(np.concatenate(regions)).size
     alpha = wpse.blendshape_metric(rig.deltas)
     np.testing.assert_array_equal(regions[0], np.flatnonzero(alpha[:, 0] + alpha[:, 1] > 0.5))
-    everything = wpse.channel_region(rig, np.arange(rig.n_blendshapes))
+    everything = wpse_paper.channel_region(rig, np.arange(rig.n_blendshapes))
     np.testing.assert_array_equal(everything, np.arange(rig.n_vertices))
 
 
 @pytest.mark.slow
 def test_reuse_by_search_larger_tau_finds_more(take):
     rig, (_, desired, linear) = take["rig"], take["frames"]
-    out = wpse.reuse_by_search(
+    out = wpse_paper.reuse_by_search(
         rig,
         *take["frames"],
         np.arange(20),
@@ -213,20 +214,22 @@ def test_time_edit_model_row_describes_the_model(take):
     rig, (poses, desired, linear) = take["rig"], take["frames"]
     chosen = take["edit_frames"][:3]
     edits = desired[chosen] - linear[chosen]
-    row = wpse.time_edit_model(rig, poses[chosen], edits, poses[:4], sigma=0.4, support_tol=1e-4)
+    row = wpse_paper.time_edit_model(
+        rig, poses[chosen], edits, poses[:4], sigma=0.4, support_tol=1e-4
+    )
     model = wpse.fit_pose_space_edit(rig, poses[chosen], edits, sigma=0.4, support_tol=1e-4)
     assert row["edited_vertices"] == model.vertices.shape[0]
     assert (row["vertices"], row["edits"]) == (rig.n_vertices, 3)
     assert row["max_abs_diff_vs_numpy_cm"] < 1e-4
     with pytest.raises(ValueError, match="probe"):
-        wpse.time_edit_model(rig, poses[chosen], edits, poses[:4, :2], sigma=0.4)
+        wpse_paper.time_edit_model(rig, poses[chosen], edits, poses[:4, :2], sigma=0.4)
 
 
 def test_results_table_reproduces_the_committed_table():
     results = json.loads((RESULTS / "results.json").read_text())
     committed = (RESULTS / "table.md").read_text()
-    assert wpse.results_table(results) == committed
-    without = wpse.results_table({k: v for k, v in results.items() if k != "timing"})
+    assert wpse_paper.results_table(results) == committed
+    without = wpse_paper.results_table({k: v for k, v in results.items() if k != "timing"})
     timing_lines = [line for line in committed.splitlines() if line.startswith("| face")]
     assert timing_lines and not any(line in without for line in timing_lines)
     assert without.splitlines()[:5] == committed.splitlines()[:5]
@@ -254,19 +257,19 @@ def models(take):
 
 def test_rest_pose_correction_is_zero_for_the_pinned_model(take, models):
     rig = take["rig"]
-    assert rest_pose_correction_mm(models["wpse_rest_pose"], rig) < 1e-3
+    assert wpse_paper.rest_pose_correction_mm(models["wpse_rest_pose"], rig) < 1e-3
     rest = np.zeros(rig.n_blendshapes, np.float32)
-    plain = np.asarray(wpse.correction(models["wpse"], rest, evaluate(rig, rest)))
+    plain = np.asarray(correction(models["wpse"], rest, evaluate(rig, rest)))
     expected = np.linalg.norm(plain, axis=1).max() * 10
     assert expected > 1e-2
-    assert rest_pose_correction_mm(models["wpse"], rig) == pytest.approx(expected)
+    assert wpse_paper.rest_pose_correction_mm(models["wpse"], rig) == pytest.approx(expected)
 
 
 @pytest.mark.slow
 def test_locality_probe_keeps_everything_when_nothing_changes(take, models):
     """With no channel redrawn every probe is the edited pose: all is retained."""
     poses, _, linear = take["frames"]
-    out = wpse.locality_probe(
+    out = wpse_paper.locality_probe(
         take["rig"],
         {m: models[m] for m in ("pse", "wpse")},
         poses,
@@ -282,7 +285,7 @@ def test_locality_probe_keeps_everything_when_nothing_changes(take, models):
     assert out["probes"] == 3 * take["edit_frames"].size
     for name in ("pse", "wpse", "desired"):
         assert out[f"{name}_retained"] == pytest.approx(1.0, abs=1e-5)
-    changed = wpse.locality_probe(
+    changed = wpse_paper.locality_probe(
         take["rig"],
         {"wpse": models["wpse"]},
         poses,
@@ -301,7 +304,7 @@ def test_locality_probe_keeps_everything_when_nothing_changes(take, models):
 
 @pytest.mark.slow
 def test_overshoot_sweep_fix_shape_and_corner_edit_are_exact_at_the_corner(take, models):
-    summary, curves = wpse.overshoot_sweep(
+    summary, curves = wpse_paper.overshoot_sweep(
         take["rig"],
         models["fsm"],
         {"wpse_p5": models["wpse"], "wpse_rest_pose_p5": models["wpse_rest_pose"]},
@@ -326,7 +329,9 @@ def test_overshoot_sweep_fix_shape_and_corner_edit_are_exact_at_the_corner(take,
 @pytest.mark.slow  # 5-20 s of compilation
 def test_layering_probe_layers_reproduce_the_latest_sculpt_without_overshoot(take):
     poses = take["frames"][0]
-    out = wpse.layering_probe(take["rig"], poses[take["edit_frames"][0]], take["sculpt"], sigma=0.4)
+    out = wpse_paper.layering_probe(
+        take["rig"], poses[take["edit_frames"][0]], take["sculpt"], sigma=0.4
+    )
     assert out["pose_distance"] == pytest.approx(0.05, rel=1e-5)
     assert out["layer_sigma"] == pytest.approx(0.04)
     assert out["n_layers"] == 2
@@ -342,13 +347,13 @@ def test_layering_probe_layers_reproduce_the_latest_sculpt_without_overshoot(tak
 def test_search_by_region_keeps_the_library_below_the_percentile(take):
     rig, poses = take["rig"], take["frames"][0]
     library, query = poses[:15], poses[20]
-    found = wpse.search_by_region(
+    found = wpse_paper.search_by_region(
         rig, library, query, {"a": [0, 1, 2], "b": [3, 4, 5]}, percentile=40.0
     )
     alpha = wpse.blendshape_metric(rig.deltas)
     for name, channels in (("a", [0, 1, 2]), ("b", [3, 4, 5])):
         roi = found[name]["roi"]
-        np.testing.assert_array_equal(roi, wpse.channel_region(rig, channels))
+        np.testing.assert_array_equal(roi, wpse_paper.channel_region(rig, channels))
         diff = (query[None, :] - library) ** 2  # (N, K)
         energy = np.sqrt(alpha[roi] @ diff.T).sum(axis=0)  # E of eq. 7, each library pose
         assert found[name]["tau"] == pytest.approx(np.percentile(energy, 40.0), rel=1e-4)
@@ -363,13 +368,13 @@ def test_protocols_name_the_bad_argument(take, models):
     rig, frames = take["rig"], take["frames"]
     edit_frames, held_out = take["edit_frames"], take["held_out"]
     with pytest.raises(ValueError, match="budgets"):
-        wpse.compare_methods(
+        wpse_paper.compare_methods(
             rig, *frames, edit_frames, held_out, budgets=(9,), sculpt=take["sculpt"]
         )
     with pytest.raises(ValueError, match="budgets"):
-        wpse.few_edit_errors(rig, *frames, edit_frames, held_out, budgets=(0, 3))
+        wpse_paper.few_edit_errors(rig, *frames, edit_frames, held_out, budgets=(0, 3))
     with pytest.raises(ValueError, match="draws"):
-        wpse.locality_probe(
+        wpse_paper.locality_probe(
             rig,
             {"wpse": models["wpse"]},
             frames[0],
@@ -382,4 +387,4 @@ def test_protocols_name_the_bad_argument(take, models):
             draws=0,
         )
     with pytest.raises(ValueError, match="t:"):
-        wpse.overshoot_sweep(rig, models["fsm"], {}, take["sculpt"], sigma=0.4, t=[0.0, 1.0])
+        wpse_paper.overshoot_sweep(rig, models["fsm"], {}, take["sculpt"], sigma=0.4, t=[0.0, 1.0])

@@ -18,12 +18,15 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from jaxtyping import ArrayLike, Float, Float32
 
-from ..rig import UNIT_IN_CM, BlendshapeRig, random_sparse_poses
-from ._metrics import roughness, summarize
-from ._problem import InverseProblem
-from ._projected_newton import QuarticNewton
-from ._solve import solve_sequence
-from ._temporal import TemporalNewton
+from ...inverse import (
+    InverseProblem,
+    QuarticNewton,
+    TemporalNewton,
+    roughness,
+    solve_sequence,
+    summarize,
+)
+from ...rig import UNIT_IN_CM, BlendshapeRig, random_sparse_poses
 
 _COLUMNS = ("rmse_mm", "p95_mm", "cardinality", "roughness", "ms_per_frame")
 """The keys of a ``temporal_row``, in table order."""
@@ -213,7 +216,7 @@ def _verdict(t: dict) -> str:
     )
 
 
-def _temporal_table(cases: dict[str, dict]) -> str:
+def temporal_table(cases: dict[str, dict]) -> str:
     """The ``temporal`` section of the experiment's table.md: the rule and the ICT validation
     curve, then per case its whole-take modes, its test-half modes, the lagged streams and
     the protocol (alpha, smoothness, the authors' reference, windows, targets)."""
@@ -277,7 +280,7 @@ def _temporal_table(cases: dict[str, dict]) -> str:
     return text
 
 
-def _split_table(cases: dict[str, dict], rule: str) -> str:
+def validation_split_table(cases: dict[str, dict], rule: str) -> str:
     """The ``temporal_validation_split`` section of the experiment's table.md: the rule, the
     ICT validation curve and, per case, the test half's modes and targets."""
     ict = cases["ict"]["protocol"]

@@ -16,12 +16,11 @@ import jax
 import numpy as np
 from jaxtyping import ArrayLike, Float, Int
 
-from .._metrics import CM_TO_MM, per_vertex_distance
-from ..rig import BlendshapeRig, evaluate, evaluate_batch
-from ._fsm import coactivation_pairs, fix_shape_rig
-from ._metric import blendshape_metric
-from ._protocol import select_edit_frames, temporal_change
-from ._pse import (
+from ..._metrics import CM_TO_MM, per_vertex_distance
+from ...rig import BlendshapeRig, evaluate, evaluate_batch
+from ...wpse._fsm import coactivation_pairs, fix_shape_rig
+from ...wpse._metric import blendshape_metric
+from ...wpse._pse import (
     EditData,
     PoseSpaceEdit,
     apply,
@@ -30,9 +29,11 @@ from ._pse import (
     fit_prepared,
     prepare_edits,
 )
-from ._reuse import reuse_edits
-from ._sigma import fit_sigma, gui_from_sigma
-from ._width import fit_width
+from ...wpse._reuse import reuse_edits
+from ...wpse._sigma import fit_sigma, gui_from_sigma
+from ...wpse._temporal import temporal_change
+from ...wpse._width import fit_width
+from ._protocol import select_edit_frames
 
 VARIANTS: dict[str, dict] = {
     "pse": {"metric": "euclidean", "local_frames": True, "rest_pose": False},

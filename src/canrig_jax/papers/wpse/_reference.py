@@ -11,8 +11,8 @@ import jax
 import numpy as np
 from jaxtyping import ArrayLike, Float, Float64, Int
 
-from .._threads import single_threaded_blas
-from ._pse import PoseSpaceEdit, apply
+from ..._threads import single_threaded_blas
+from ...wpse._pse import PoseSpaceEdit, apply
 
 
 def reference_coefficients(

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 RESULTS = (
-    Path(__file__).parents[2] / "experiments" / "results" / "canrig_workflows" / "results.json"
+    Path(__file__).parents[3] / "experiments" / "results" / "canrig_workflows" / "results.json"
 )
 
 

@@ -1,4 +1,4 @@
-"""The evaluation protocols of the CANRig workflows experiment (``_workflow_protocols``):
+"""The evaluation protocols of the CANRig workflows experiment (``papers.canrig.workflows``):
 Table 4's random protocol and cells against independent computations, the floor against the
 masks' exact zeros, the workflows' guarantees as the protocols report them (on the rig with no
 network: cheap to compile), and the committed tables rendered back from their results."""
@@ -13,15 +13,14 @@ import pytest
 
 from canrig_jax.canrig import (
     CLAMP,
-    RADII_CM,
     FitOptions,
     NeuralRig,
     expression_region,
     influence_mask,
     pose_a_to_b,
 )
-from canrig_jax.pbs import local_fit_rig, patch_layout, pbs_basis
-from canrig_jax.pbs._workflow_protocols import (
+from canrig_jax.canrig._data import RADII_CM
+from canrig_jax.papers.canrig.workflows import (
     DIALOGUE_HANDLES,
     DIALOGUE_RADIUS_CM,
     FALLOFF_PER_CM,
@@ -43,9 +42,10 @@ from canrig_jax.pbs._workflow_protocols import (
     workflow_data,
     workflows_markdown,
 )
+from canrig_jax.pbs import local_fit_rig, patch_layout, pbs_basis
 from canrig_jax.rig import evaluate_batch, random_sparse_poses
 
-RESULTS = Path(__file__).resolve().parents[2] / "experiments" / "results"
+RESULTS = Path(__file__).resolve().parents[3] / "experiments" / "results"
 OPTIONS = FitOptions(max_steps=4, lsmr_steps=8)
 
 

@@ -23,11 +23,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float, Float64, Int
 
-from ..rig import BlendshapeRig
-from ._base import AbstractInverseMethod
-from ._coordinate_descent import QuarticCD
-from ._problem import InverseProblem, prepare
-from ._solve import Stream, solve_sequence
+from ...inverse import (
+    AbstractInverseMethod,
+    InverseProblem,
+    QuarticCD,
+    Stream,
+    prepare,
+    solve_sequence,
+)
+from ...rig import BlendshapeRig
 
 
 class NumpyDenseRig:

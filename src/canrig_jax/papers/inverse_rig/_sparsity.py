@@ -14,11 +14,8 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
-from ..rig import UNIT_IN_CM, BlendshapeRig, evaluate_batch
-from ._base import AbstractInverseMethod
-from ._metrics import summarize
-from ._problem import InverseProblem
-from ._solve import solve_sequence
+from ...inverse import AbstractInverseMethod, InverseProblem, solve_sequence, summarize
+from ...rig import UNIT_IN_CM, BlendshapeRig, evaluate_batch
 
 SPARSITY_TARGET = 0.15
 """Relative cardinality reduction the quartic method must reach against every baseline."""

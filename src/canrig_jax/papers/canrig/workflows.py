@@ -18,20 +18,14 @@ from pathlib import Path
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float, Float32, Int
 
-from .._metrics import CM_TO_MM
-from ..canrig._data import (
-    EVAL_FALLOFF_PER_CM,
-    RADII_CM,
-    evaluate_poses,
-    held_out_poses,
-    split_capture,
-)
-from ..canrig._handle_rig import FitOptions, Handles
-from ..canrig._layout import influence_reach
-from ..canrig._masks import influence_mask
-from ..canrig._rig import NeuralRig
-from ..canrig._train import load_model
-from ..canrig._workflows import (
+from ..._metrics import CM_TO_MM
+from ...canrig._data import EVAL_FALLOFF_PER_CM, RADII_CM, evaluate_poses
+from ...canrig._handle_rig import FitOptions, Handles
+from ...canrig._layout import influence_reach
+from ...canrig._masks import influence_mask
+from ...canrig._rig import NeuralRig
+from ...canrig._train import load_model
+from ...canrig._workflows import (
     ClipEdit,
     clip_edit,
     dialogue_replacement,
@@ -41,11 +35,12 @@ from ..canrig._workflows import (
     max_acceleration,
     pose_a_to_b,
 )
-from ..data import load_livelinkface
-from ..mesh import farthest_point_vertices
-from ..rig import BlendshapeRig, ict_quartic_rig, random_sparse_poses
-from ._basis import global_blendshape_dialogue, patch_layout, pbs_basis
-from ._local_fit import local_fit_rig
+from ...data import load_livelinkface
+from ...mesh import farthest_point_vertices
+from ...pbs._basis import global_blendshape_dialogue, patch_layout, pbs_basis
+from ...pbs._local_fit import local_fit_rig
+from ...rig import BlendshapeRig, ict_quartic_rig, random_sparse_poses
+from ._splits import held_out_poses, split_capture
 
 FALLOFF_PER_CM = EVAL_FALLOFF_PER_CM
 """Falloff of every workflow's masks (per cm), as CANRig's evaluation."""
@@ -786,3 +781,41 @@ def workflows_markdown(results: Mapping) -> str:
         lines += _floor_rows(floor)
     lines += _quantity_rows(results) + _table6_rows(results)
     return "\n".join(lines) + "\n"
+
+
+__all__ = [
+    "CLIP_HALF_WINDOW",
+    "CLIP_HANDLES",
+    "CLIP_RADIUS_CM",
+    "DIALOGUE_HANDLES",
+    "DIALOGUE_RADIUS_CM",
+    "DIALOGUE_SOURCE_FRAME",
+    "DIALOGUE_TARGET_FRAME",
+    "DISTANCE_LIMIT_CM",
+    "FALLOFF_PER_CM",
+    "GBS_PROTOCOL",
+    "HANDLE_COUNTS",
+    "LAYER_SCHEDULE",
+    "LOCAL_FIT_DESCRIPTION",
+    "LOCAL_FIT_GRID",
+    "MOUTH_THRESHOLD_CM",
+    "ClipEditRun",
+    "DialogueRun",
+    "WorkflowData",
+    "a_to_b_cell",
+    "a_to_b_table",
+    "clip_edit_protocol",
+    "dialogue_handle_vertices",
+    "dialogue_table",
+    "layers_protocol",
+    "local_fit_from_selection",
+    "local_fit_training_shapes",
+    "network_rig",
+    "random_pairs",
+    "results_of_the_same_pairs",
+    "select_local_fit",
+    "table4_protocol",
+    "unreached_floor",
+    "workflow_data",
+    "workflows_markdown",
+]

@@ -1,5 +1,5 @@
 """The evaluation protocols of patch blendshapes on the whole ICT head
-(``pbs._whole_head_protocols``) on
+(``papers.canrig.whole_head``) on
 a small setup of the real head (40 patches, a few poses): the options' command line, exact
 representation of basis shapes, Table 5's rows against their limits (no motion, an infinite
 ridge), the handles' reach and the mouth handles' isolation, Table 6's floor, and the
@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from canrig_jax.canrig import CLAMP, influence_mask, influence_reach, parameter_count
+from canrig_jax._checkpoint import parameter_count
+from canrig_jax.canrig import CLAMP, influence_mask, influence_reach
 from canrig_jax.data import load_ict
 from canrig_jax.mesh import edge_graph
-from canrig_jax.pbs import PBSTrainOptions, patch_layout, pbs_basis, seed_distances, train_pbs
-from canrig_jax.pbs._whole_head_protocols import (
+from canrig_jax.papers.canrig.whole_head import (
     DIALOGUE_REACH_CM,
     EVAL_FALLOFF_PER_CM,
     EVAL_RADIUS_CM,
@@ -50,9 +50,10 @@ from canrig_jax.pbs._whole_head_protocols import (
     whole_head,
     whole_head_options_from_args,
 )
+from canrig_jax.pbs import PBSTrainOptions, patch_layout, pbs_basis, seed_distances, train_pbs
 from canrig_jax.rig import evaluate_batch, ict_linear_rig, random_sparse_poses
 
-RESULTS = Path(__file__).resolve().parents[2] / "experiments" / "results"
+RESULTS = Path(__file__).resolve().parents[3] / "experiments" / "results"
 QUIET = dict(progress=lambda *_: None)
 
 

@@ -3,9 +3,9 @@ command line derived from the option dataclasses (``experiments/canrig_train.py`
 
 import argparse
 
-from .._cli import add_dataclass_options, from_args
-from ._data import FARTHEST_METRICS, DataOptions
-from ._train import LOSSES, VARIANTS, TrainOptions
+from ..._cli import add_dataclass_options, from_args
+from ...canrig._data import FARTHEST_METRICS, DataOptions
+from ...canrig._train import LOSSES, VARIANTS, TrainOptions
 
 _OPTION_ALIASES = {"n_heads": ["--heads"], "max_minutes": ["--minutes"]}
 """Short flags kept from the first version of the training command (committed commands use

@@ -7,8 +7,8 @@ import jax
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
-from ..rig import BlendshapeRig, evaluate, evaluate_batch
-from ._pse import fit_pose_space_edit
+from ...rig import BlendshapeRig, evaluate, evaluate_batch
+from ...wpse._pse import fit_pose_space_edit
 from ._reference import time_runtime
 
 

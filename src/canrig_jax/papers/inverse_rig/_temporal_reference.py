@@ -38,7 +38,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float, Float64
 from scipy.optimize import minimize
 
-from ..rig import BlendshapeRig
+from ...rig import BlendshapeRig
 from ._reference import NumpyDenseRig
 
 

@@ -11,9 +11,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from canrig_jax.pbs import PatchLayout, check_pbs_training_matches, reach_floor
+from canrig_jax.papers.canrig import check_pbs_training_matches, reach_floor
+from canrig_jax.pbs import PatchLayout
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def _run(name: str, argv: list[str]) -> None:

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float, Int
 
-from .._metrics import CM_TO_MM
-from ._basis import PatchLayout
+from ..._metrics import CM_TO_MM
+from ...pbs._basis import PatchLayout
 
 
 def check_pbs_training_matches(

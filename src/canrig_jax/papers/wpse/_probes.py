@@ -15,14 +15,14 @@ import jax
 import numpy as np
 from jaxtyping import ArrayLike, Float, Int
 
-from .._metrics import CM_TO_MM, per_vertex_distance
-from ..rig import BlendshapeRig, evaluate_batch
-from ._layers import apply_layered, fit_layered
-from ._metric import blendshape_metric
+from ..._metrics import CM_TO_MM, per_vertex_distance
+from ...rig import BlendshapeRig, evaluate_batch
+from ...wpse._layers import apply_layered, fit_layered
+from ...wpse._metric import blendshape_metric
+from ...wpse._pse import PoseSpaceEdit, apply, fit_pose_space_edit
+from ...wpse._search import search_edits
 from ._protocol import retained_fraction
 from ._protocols import Channels, Sculpt, channel_region
-from ._pse import PoseSpaceEdit, apply, fit_pose_space_edit
-from ._search import search_edits
 
 _apply_each = jax.vmap(apply, (None, 0, 0))
 

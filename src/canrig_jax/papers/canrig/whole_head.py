@@ -23,18 +23,16 @@ import scipy.sparse as sp
 from jax import Array
 from jaxtyping import ArrayLike, Bool, Float, Float32, Int
 
-from .._checkpoint import parameter_count
-from .._cli import add_dataclass_options, from_args
-from .._metrics import CM_TO_MM
-from ..autorig import head_rig
-from ..canrig._data import held_out_poses, split_capture
-from ..canrig._layout import influence_reach
-from ..canrig._masks import CLAMP, influence_mask
-from ..canrig._workflows import expression_region
-from ..data import ICTFaceModel, load_ict, load_livelinkface
-from ..mesh import attached_edge_graph, bridged_edge_graph, edge_graph, farthest_point_vertices
-from ..rig import BlendshapeRig, evaluate_batch, ict_quartic_rig, random_sparse_poses
-from ._basis import (
+from ..._checkpoint import parameter_count
+from ..._cli import add_dataclass_options, from_args
+from ..._metrics import CM_TO_MM
+from ...autorig import head_rig
+from ...canrig._layout import influence_reach
+from ...canrig._masks import CLAMP, influence_mask
+from ...canrig._workflows import expression_region
+from ...data import ICTFaceModel, load_ict, load_livelinkface
+from ...mesh import attached_edge_graph, bridged_edge_graph, edge_graph, farthest_point_vertices
+from ...pbs._basis import (
     PatchLayout,
     fit_pbs,
     global_blendshape_dialogue,
@@ -44,15 +42,17 @@ from ._basis import (
     pbs_basis,
     pbs_shape,
 )
-from ._model import AbstractCANRigPBS, ShapeTransformer
-from ._protocols import check_pbs_training_matches, reach_floor
-from ._train import (
+from ...pbs._model import PBS_VARIANTS, AbstractCANRigPBS, ShapeTransformer
+from ...pbs._train import (
     PBSTrainingSet,
     build_pbs_training_set,
     load_pbs_model,
     pbs_reconstruct,
     seed_distances,
 )
+from ...rig import BlendshapeRig, evaluate_batch, ict_quartic_rig, random_sparse_poses
+from ._pbs_checks import check_pbs_training_matches, reach_floor
+from ._splits import held_out_poses, split_capture
 
 SKIN = ("Face", "Head and Neck")
 """The ICT parts Table 5's handles (and the training handles) are drawn from."""
@@ -84,6 +84,9 @@ LOCAL_FIT_RIDGE = 1e-2
 """``local_pbs_fit``'s ridge for Table 5's no-network row (CANRigPBS's initial one)."""
 FIGURE8_TAG = "_fig8"
 """Figure 8's runs: 1,000 steps of the same 2,000-step schedule, in ``NAME + FIGURE8_TAG``."""
+FIGURE8_MODELS = tuple(PBS_VARIANTS)
+"""Figure 8's rows: the CANRig-PBS variants (``pbs.PBS_MODELS`` without the Shape
+Transformer)."""
 EVAL_RADIUS_CM, EVAL_FALLOFF_PER_CM = 4.0, 1.0
 """Table 5's masks (CANRig-PBS)."""
 POOL_SIZE = 4096
@@ -900,3 +903,53 @@ def pbs_protocol(options: WholeHeadOptions, head: WholeHead) -> dict:
         "handle displacements; dense_per_vertex_reference: an untrained per-vertex "
         "ShapePreservingCANRig with the same encoder on all 26,719 vertices, dense masks",
     }
+
+
+__all__ = [
+    "DIALOGUE_FALLOFF",
+    "DIALOGUE_HANDLES",
+    "DIALOGUE_RADIUS_CM",
+    "DIALOGUE_REACH_CM",
+    "DIALOGUE_SOURCE_FRAME",
+    "DIALOGUE_TARGET_FRAME",
+    "EVAL_FALLOFF_PER_CM",
+    "EVAL_RADIUS_CM",
+    "FIGURE8_MODELS",
+    "FIGURE8_TAG",
+    "GRAPHS",
+    "HANDLE_REGIONS",
+    "LOCAL_FIT_RIDGE",
+    "MODELS_DIR",
+    "MOUTH_INTERIOR",
+    "MOUTH_THRESHOLD_CM",
+    "POOL_SIZE",
+    "REGIONS",
+    "SKIN",
+    "SWEEP_HEADER",
+    "SWEEP_PROTOCOL",
+    "TABLE5_MODELS",
+    "DialogueClips",
+    "WholeHead",
+    "WholeHeadOptions",
+    "add_whole_head_options",
+    "check_model_matches",
+    "dialogue_clips",
+    "handle_reach",
+    "mask_graph",
+    "mouth_handles",
+    "pbs_markdown",
+    "pbs_protocol",
+    "pbs_representation",
+    "pbs_training_set",
+    "region_errors",
+    "sweep_markdown",
+    "table5_baselines",
+    "table5_handles",
+    "table5_local_fit",
+    "table5_reconstruct",
+    "table5_trained_row",
+    "table6",
+    "table6_sweep",
+    "whole_head",
+    "whole_head_options_from_args",
+]
