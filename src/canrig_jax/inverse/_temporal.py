@@ -31,7 +31,7 @@ the same steps as ``QuarticNewton`` at the same settings. ``solve_sequence`` cal
 """
 
 import abc
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import equinox as eqx
 import jax
@@ -544,139 +544,225 @@ class TemporalNewton(AbstractTemporalMethod):
         M^T o_t when the caller has them already; ``carry``: the solved frames' Gauss-Newton
         blocks to start from (``WindowCarry``), None to compute them. Returns the Iterate and
         the blocks last computed."""
-        gram, alpha, upper = problem.gram, self.alpha, self.upper
-        smoothness, velocity = self.smoothness_for(problem), self.velocity
-        n = offsets.shape[0]
-        if held_frames is None:
-            held_frames = jnp.zeros(n, bool)
-        if present is None:
-            present = jnp.ones(n, bool)
-        # a difference row counts when all its frames are there and one of them is solved
-        solved = ~held_frames
-        rows2 = (present[:-2] & present[1:-1] & present[2:]) & (
-            solved[:-2] | solved[1:-1] | solved[2:]
-        )
-        rows1 = (present[:-1] & present[1:]) & (solved[:-1] | solved[1:])
-        rows2, rows1 = rows2.astype(gram.dtype), rows1.astype(gram.dtype)
-        if projections is None:
-            projections = offsets @ problem.columns.T  # (T, P) rows p_t = M^T o_t
-        h = history
-        k = init.shape[1]
-        lengths = 0.5 ** jnp.arange(self.line_steps, dtype=gram.dtype)
-        second = weighted_difference_bands(rows2, n, 2)
-        first = weighted_difference_bands(rows1, n, 1)
-        bands = smoothness * second + velocity * first  # (3, T) of the time matrix
-        coefficients = jax.vmap(problem.coefficients)
-
-        def time_gradient(weights):
-            d2 = rows2[:, None] * second_difference(weights)
-            g = smoothness * _second_difference_adjoint(d2, n)
-            d1 = rows1[:, None] * jnp.diff(weights, axis=0)
-            return g + velocity * _first_difference_adjoint(d1, n)
-
-        def frame_blocks(rows):
-            """(S, K, K) blocks G_t Q G_t^T at (S, K) weights: one S K x P x P product (the
-            gram is small enough to stay in cache; a product over each weight's support
-            streamed ``support_gram``, 10x the gram, and was slower)."""
-            jacobian = jax.vmap(problem.jacobian)(rows)  # (S, K, P)
-            jacobian_gram = (jacobian.reshape(-1, gram.shape[0]) @ gram).reshape(jacobian.shape)
-            return jnp.matmul(jacobian_gram, jnp.swapaxes(jacobian, 1, 2))
-
-        def gauss_newton(weights):  # the solved frames' blocks
-            return frame_blocks(weights[h:])
+        terms = _take_terms(self, problem, offsets, held_frames, present, projections, history)
+        on_entry = carry is not None and self.stream_blocks == "on_entry"
 
         def iteration(state):
             i, weights, value, gain, history, blocks, age = state
-            a = coefficients(weights[h:])  # (T - h, P): no data terms in the history
-            residual = a @ gram - projections[h:]  # rows Q a_t - p_t
-            jacobian = jax.vmap(problem.jacobian)(weights[h:])  # (T - h, K, P) G_t
-            data_grad = jnp.einsum("tkp,tp->tk", jacobian, residual)
-            data_grad = jnp.concatenate([jnp.zeros((h, k), gram.dtype), data_grad])
-            grad = data_grad + alpha + time_gradient(weights)
-            grad = jnp.where(held_frames[:, None], 0.0, grad)
-            # the Gauss-Newton blocks: recomputed every ``refresh`` iterations and before the
-            # solve may stop (QuarticNewton's rule), carried in between
-            stale = (age >= self.refresh) | (gain <= self.tol * jnp.abs(value))
-            if on_entry:  # the carried blocks throughout (computed as each frame entered)
-                stale = jnp.asarray(False)
-            stale = _one_frame_or_batch(stale, jnp.asarray(True))  # a batch: every iteration
-            blocks = jax.lax.cond(stale, lambda: gauss_newton(weights), lambda: blocks)
-            age = jnp.where(stale, 1, age + 1)
-            data = jnp.concatenate([jnp.zeros((h, k, k), gram.dtype), blocks])
-            data = jnp.where(held_frames[:, None, None], 0.0, data)
-            eps = jnp.minimum(
-                1e-3 * upper, jnp.linalg.norm(weights - jnp.clip(weights - grad, 0.0, upper))
-            )
-            held = ((weights <= eps) & (grad > 0)) | ((weights >= upper - eps) & (grad < 0))
-            free = ~held & solved[:, None]
-            eye = jnp.eye(weights.shape[1], dtype=gram.dtype)
-            band0 = data + bands[0][:, None, None] * eye
-            ridge = 1e-6 * jnp.max(jnp.abs(jnp.diagonal(band0, axis1=1, axis2=2)))
-            band0 = jnp.where(free[:, :, None] & free[:, None, :], band0, 0.0)
-            band0 = band0 + jax.vmap(jnp.diag)(jnp.where(free, ridge, 1.0))
-            band1 = jax.vmap(jnp.diag)(bands[1][: n - 1, None] * (free[1:] & free[:-1]))
-            band2 = jax.vmap(jnp.diag)(bands[2][: n - 2, None] * (free[2:] & free[:-2]))
-            rhs = -jnp.where(free, grad, 0.0)
-            # the history is held (identity rows, zero right-hand side, no coupling to a free
-            # weight): its step is 0, so only the solved frames enter the solve
-            banded = dense_banded_solve if (n - h) * k <= DENSE_WINDOW else block_banded_solve
-            step = banded(band0[h:], band1[h:], band2[h:], rhs[h:])
-            step = jnp.concatenate([jnp.zeros((h, k), step.dtype), step])
-            step = jnp.where(free & jnp.isfinite(step), step, 0.0)
-            trials = jnp.clip(weights + lengths[:, None, None] * step, 0.0, upper)  # (L, T, K)
-            # E(trial) - E(W): data terms in coefficient space, time terms exactly
-            change = jax.vmap(coefficients)(trials[:, h:]) - a
-            data_change = jnp.sum(change * residual, axis=(1, 2)) + 0.5 * jnp.sum(
-                (change @ gram) * change, axis=(1, 2)
-            )
-            moved = trials - weights
-            time_change = jax.vmap(lambda c: jnp.sum(c * time_gradient(weights)))(moved)
-            time_change = time_change + jax.vmap(
-                lambda c: _weighted_time_penalty(c, smoothness, velocity, rows2, rows1)
-            )(moved)
-            decrease = data_change + alpha * moved.sum(axis=(1, 2)) + time_change
-            best = jnp.argmin(decrease)
-            better = decrease[best] < 0
-            weights = jnp.where(better, trials[best], weights)
-            gain = jnp.where(better, -decrease[best], 0.0)
+            a, residual, grad = _gradient(terms, weights)
+            blocks, age = self._blocks(terms, weights, value, gain, blocks, age, on_entry)
+            step = _newton_step(terms, weights, grad, blocks)
+            weights, gain = _line_search(terms, weights, step, a, residual, self.line_steps)
             value = value - gain
             return i + 1, weights, value, gain, history.at[i].set(value), blocks, age
 
         def keep_going(state):
             i, _, value, gain, _, _, age = state
-            small = gain <= self.tol * jnp.abs(value)
             fresh = jnp.asarray(True) if on_entry else age <= 1
-            return (i < self.iterations) & ((i == 0) | ~small | ~fresh)
+            stop = _small_gain(gain, value, self.tol) & fresh
+            return (i < self.iterations) & ((i == 0) | ~stop)
 
-        data0 = jax.vmap(lambda w, p, o: problem.objective(w, p, o @ o, alpha))(
-            init[h:], projections[h:], offsets[h:]
-        )
-        value0 = jnp.sum(jnp.where(held_frames[h:], 0.0, data0)) + _weighted_time_penalty(
-            init, smoothness, velocity, rows2, rows1
-        )
-        history0 = jnp.zeros(self.iterations, gram.dtype)
-        on_entry = carry is not None and self.stream_blocks == "on_entry"
-        if carry is None:  # nothing carried: the first iteration computes the blocks
-            blocks0, age0 = jnp.zeros((n - h, k, k), gram.dtype), jnp.asarray(self.refresh)
-        elif on_entry:  # the newest frame's block at its start, the others carried
-            blocks0, carried = carry
-            blocks0 = jax.lax.cond(
-                carried,
-                lambda: blocks0.at[-1].set(frame_blocks(init[-1:])[0]),
-                lambda: gauss_newton(init),
-            )
-            age0 = jnp.asarray(1)
-        else:
-            blocks0, carried = carry
-            age0 = jnp.where(carried, 1, self.refresh)
-        gain0 = jnp.asarray(jnp.inf, gram.dtype)
+        value0 = _take_value(terms, init, offsets)
+        history0 = jnp.zeros(self.iterations, terms.dtype)
+        blocks0, age0 = self._initial_blocks(terms, init, carry, on_entry)
+        gain0 = jnp.asarray(jnp.inf, terms.dtype)
         state = (jnp.asarray(0), init, value0, gain0, history0, blocks0, age0)
         i, weights, value, gain, history, blocks, age = jax.lax.while_loop(
             keep_going, iteration, state
         )
         history = jnp.where(jnp.arange(self.iterations) < i, history, value)
-        converged = (gain <= self.tol * jnp.abs(value)) & ((age == 1) | on_entry)
+        converged = _small_gain(gain, value, self.tol) & ((age == 1) | on_entry)
         return Iterate(weights, history, i, converged), (blocks, jnp.asarray(True))
+
+    def _blocks(self, terms, weights, value, gain, blocks, age, on_entry):
+        """The solved frames' Gauss-Newton blocks for this iteration and their age:
+        recomputed every ``refresh`` iterations and before the solve may stop
+        (``QuarticNewton``'s rule), carried in between; with ``on_entry`` the carried blocks
+        throughout (computed as each frame entered); under vmap every iteration."""
+        stale = (age >= self.refresh) | _small_gain(gain, value, self.tol)
+        if on_entry:
+            stale = jnp.asarray(False)
+        stale = _one_frame_or_batch(stale, jnp.asarray(True))
+        blocks = jax.lax.cond(stale, lambda: _solved_blocks(terms, weights), lambda: blocks)
+        return blocks, jnp.where(stale, 1, age + 1)
+
+    def _initial_blocks(self, terms, init, carry, on_entry):
+        """(blocks, age) the iteration starts from: nothing carried, the first iteration
+        computes them; ``on_entry``, the newest frame's block at its start and the others
+        carried (all computed when nothing was carried yet); else the carried blocks."""
+        n, k = init.shape
+        if carry is None:
+            zeros = jnp.zeros((n - terms.history, k, k), terms.dtype)
+            return zeros, jnp.asarray(self.refresh)
+        blocks, carried = carry
+        if on_entry:
+            blocks = jax.lax.cond(
+                carried,
+                lambda: blocks.at[-1].set(_frame_blocks(terms.problem, init[-1:])[0]),
+                lambda: _solved_blocks(terms, init),
+            )
+            return blocks, jnp.asarray(1)
+        return blocks, jnp.where(carried, 1, self.refresh)
+
+
+# ---------------------------------------------------------------------------------------------
+# the iteration of a take (``TemporalNewton._take``), in named steps
+
+
+class _TakeTerms(NamedTuple):
+    """What every iteration of one take's solve reads: the problem, the frames' projections
+    M^T o_t, which frames are held (``held``) or solved, the difference rows that count
+    (``rows2``, ``rows1``: all their frames present, one of them solved), the (3, T) bands of
+    the time matrix, the weights of the terms, and ``history`` (static) first frames held
+    with no data terms."""
+
+    problem: InverseProblem
+    projections: Float[Array, "T P"]
+    held: Bool[Array, " T"]
+    solved: Bool[Array, " T"]
+    rows2: Float[Array, " _T2"]
+    rows1: Float[Array, " _T1"]
+    bands: Float[Array, "3 T"]
+    alpha: Any
+    upper: Any
+    smoothness: Any
+    velocity: Any
+    history: int
+
+    @property
+    def dtype(self):
+        return self.problem.gram.dtype
+
+
+def _take_terms(method, problem, offsets, held, present, projections, history) -> _TakeTerms:
+    """``_TakeTerms`` of a take (``held`` None: nothing held; ``present`` None: every frame
+    there; ``projections`` None: computed from ``offsets``)."""
+    gram = problem.gram
+    n = offsets.shape[0]
+    if held is None:
+        held = jnp.zeros(n, bool)
+    if present is None:
+        present = jnp.ones(n, bool)
+    # a difference row counts when all its frames are there and one of them is solved
+    solved = ~held
+    rows2 = (present[:-2] & present[1:-1] & present[2:]) & (solved[:-2] | solved[1:-1] | solved[2:])
+    rows1 = (present[:-1] & present[1:]) & (solved[:-1] | solved[1:])
+    rows2, rows1 = rows2.astype(gram.dtype), rows1.astype(gram.dtype)
+    if projections is None:
+        projections = offsets @ problem.columns.T  # (T, P) rows p_t = M^T o_t
+    smoothness, velocity = method.smoothness_for(problem), method.velocity
+    second = weighted_difference_bands(rows2, n, 2)
+    first = weighted_difference_bands(rows1, n, 1)
+    bands = smoothness * second + velocity * first  # (3, T) of the time matrix
+    return _TakeTerms(problem, projections, held, solved, rows2, rows1, bands, method.alpha,
+                      method.upper, smoothness, velocity, history)  # fmt: skip
+
+
+def _time_gradient(terms: _TakeTerms, weights: Float[Array, "T K"]) -> Float[Array, "T K"]:
+    """The gradient of the (row-weighted) time terms."""
+    n = weights.shape[0]
+    d2 = terms.rows2[:, None] * second_difference(weights)
+    g = terms.smoothness * _second_difference_adjoint(d2, n)
+    d1 = terms.rows1[:, None] * jnp.diff(weights, axis=0)
+    return g + terms.velocity * _first_difference_adjoint(d1, n)
+
+
+def _take_value(terms: _TakeTerms, weights, offsets) -> Float[Array, ""]:
+    """E at ``weights``: the solved frames' data terms (the history's left out) and the
+    counted time terms."""
+    h, problem = terms.history, terms.problem
+    data = jax.vmap(lambda w, p, o: problem.objective(w, p, o @ o, terms.alpha))(
+        weights[h:], terms.projections[h:], offsets[h:]
+    )
+    return jnp.sum(jnp.where(terms.held[h:], 0.0, data)) + _weighted_time_penalty(
+        weights, terms.smoothness, terms.velocity, terms.rows2, terms.rows1
+    )
+
+
+def _frame_blocks(problem: InverseProblem, rows: Float[Array, "S K"]) -> Float[Array, "S K K"]:
+    """(S, K, K) Gauss-Newton blocks G_t Q G_t^T at (S, K) weights: one S K x P x P product
+    (the gram is small enough to stay in cache; a product over each weight's support
+    streamed ``support_gram``, 10x the gram, and was slower)."""
+    gram = problem.gram
+    jacobian = jax.vmap(problem.jacobian)(rows)  # (S, K, P)
+    jacobian_gram = (jacobian.reshape(-1, gram.shape[0]) @ gram).reshape(jacobian.shape)
+    return jnp.matmul(jacobian_gram, jnp.swapaxes(jacobian, 1, 2))
+
+
+def _solved_blocks(terms: _TakeTerms, weights) -> Float[Array, "S K K"]:
+    """The solved frames' (all but the history's) Gauss-Newton blocks."""
+    return _frame_blocks(terms.problem, weights[terms.history :])
+
+
+def _gradient(terms: _TakeTerms, weights):
+    """(a, residual, grad) at ``weights``: the solved frames' coefficients a_t (no data terms
+    in the history), their residuals Q a_t - p_t, and E's gradient (zero on held frames)."""
+    problem, gram, h = terms.problem, terms.problem.gram, terms.history
+    k = weights.shape[1]
+    a = jax.vmap(problem.coefficients)(weights[h:])  # (T - h, P)
+    residual = a @ gram - terms.projections[h:]  # rows Q a_t - p_t
+    jacobian = jax.vmap(problem.jacobian)(weights[h:])  # (T - h, K, P) G_t
+    data_grad = jnp.einsum("tkp,tp->tk", jacobian, residual)
+    data_grad = jnp.concatenate([jnp.zeros((h, k), gram.dtype), data_grad])
+    grad = data_grad + terms.alpha + _time_gradient(terms, weights)
+    return a, residual, jnp.where(terms.held[:, None], 0.0, grad)
+
+
+def _newton_step(terms: _TakeTerms, weights, grad, blocks) -> Float[Array, "T K"]:
+    """The projected Gauss-Newton step: the epsilon-active set (weights at a bound whose
+    gradient pushes them out) held, the block-banded system (data blocks + time bands) solved
+    on the free weights of the solved frames; zero on held weights and where not finite."""
+    h, upper, dtype = terms.history, terms.upper, terms.dtype
+    n, k = weights.shape
+    bands = terms.bands
+    data = jnp.concatenate([jnp.zeros((h, k, k), dtype), blocks])
+    data = jnp.where(terms.held[:, None, None], 0.0, data)
+    eps = jnp.minimum(1e-3 * upper, jnp.linalg.norm(weights - jnp.clip(weights - grad, 0.0, upper)))
+    at_bound = ((weights <= eps) & (grad > 0)) | ((weights >= upper - eps) & (grad < 0))
+    free = ~at_bound & terms.solved[:, None]
+    eye = jnp.eye(k, dtype=dtype)
+    band0 = data + bands[0][:, None, None] * eye
+    ridge = 1e-6 * jnp.max(jnp.abs(jnp.diagonal(band0, axis1=1, axis2=2)))
+    band0 = jnp.where(free[:, :, None] & free[:, None, :], band0, 0.0)
+    band0 = band0 + jax.vmap(jnp.diag)(jnp.where(free, ridge, 1.0))
+    band1 = jax.vmap(jnp.diag)(bands[1][: n - 1, None] * (free[1:] & free[:-1]))
+    band2 = jax.vmap(jnp.diag)(bands[2][: n - 2, None] * (free[2:] & free[:-2]))
+    rhs = -jnp.where(free, grad, 0.0)
+    # the history is held (identity rows, zero right-hand side, no coupling to a free
+    # weight): its step is 0, so only the solved frames enter the solve
+    banded = dense_banded_solve if (n - h) * k <= DENSE_WINDOW else block_banded_solve
+    step = banded(band0[h:], band1[h:], band2[h:], rhs[h:])
+    step = jnp.concatenate([jnp.zeros((h, k), step.dtype), step])
+    return jnp.where(free & jnp.isfinite(step), step, 0.0)
+
+
+def _line_search(terms: _TakeTerms, weights, step, a, residual, line_steps: int):
+    """(weights, gain): the projected trials W + 2^-j step (j < ``line_steps``), each
+    clipped to the box, scored by E(trial) - E(W) (data terms in coefficient space, time
+    terms exactly); the best one if it lowers E (gain its decrease), else W (gain 0)."""
+    problem, gram, h = terms.problem, terms.problem.gram, terms.history
+    lengths = 0.5 ** jnp.arange(line_steps, dtype=gram.dtype)
+    trials = jnp.clip(weights + lengths[:, None, None] * step, 0.0, terms.upper)  # (L, T, K)
+    change = jax.vmap(jax.vmap(problem.coefficients))(trials[:, h:]) - a
+    data_change = jnp.sum(change * residual, axis=(1, 2)) + 0.5 * jnp.sum(
+        (change @ gram) * change, axis=(1, 2)
+    )
+    moved = trials - weights
+    time_change = jax.vmap(lambda c: jnp.sum(c * _time_gradient(terms, weights)))(moved)
+    time_change = time_change + jax.vmap(
+        lambda c: _weighted_time_penalty(
+            c, terms.smoothness, terms.velocity, terms.rows2, terms.rows1
+        )  # fmt: skip
+    )(moved)
+    decrease = data_change + terms.alpha * moved.sum(axis=(1, 2)) + time_change
+    best = jnp.argmin(decrease)
+    better = decrease[best] < 0
+    return jnp.where(better, trials[best], weights), jnp.where(better, -decrease[best], 0.0)
+
+
+def _small_gain(gain, value, tol) -> Bool[Array, ""]:
+    """The stopping test: the last iteration lowered E by at most ``tol`` relative to E."""
+    return gain <= tol * jnp.abs(value)
 
 
 def take_objective(
