@@ -143,7 +143,7 @@ def main(argv=None):
             "frames independent",
             "alpha_cm2": ALPHA_CM2,
             "alpha_source": "experiments/results/inverse_rig/results.json "
-            "cases.ict.quartic_cd_converged.alpha (inverse_rig.select_alpha, 5 % rule), fixed",
+            "cases.ict.quartic_cd_converged.alpha (inverse.select_alpha, 5 % rule), fixed",
             "noise_variance_cm2": NOISE_VARIANCE_CM2,
             "seed": args.seed,
             "tie_weights_cm2": list(TIE_WEIGHTS),

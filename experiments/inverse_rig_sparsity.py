@@ -150,7 +150,7 @@ def lbfgsb_vmap(args):
         "steps_mean": float(np.mean(np.asarray(solution.stats["steps"]))),
         "results": {c: codes.count(c) for c in sorted(set(codes))},
         "note": "ict-quartic, Live Link frames + noise; batched = solve_sequence per frame, single "
-        "= inverse_rig.time_single_frames (median frame of a Stream); best of 3 interleaved rounds "
+        "= inverse.time_single_frames (median frame of a Stream); best of 3 interleaved rounds "
         "each (shared CPU)",
     }
 
