@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from canrig_jax.data import load_mediapipe_face
-from canrig_jax.mesh import _align, _remesh, closest_surface_points, similarity_icp
+from canrig_jax.mesh import _align, _remesh, similarity_icp
+from canrig_jax.mesh._remesh import closest_surface_points
 
 
 @pytest.fixture(scope="module")
