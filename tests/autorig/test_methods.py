@@ -31,6 +31,7 @@ from canrig_jax.autorig import (
     place_landmarks,
     skin_of,
 )
+from canrig_jax.autorig._weld import WELD_TAU, clumps, weld
 from canrig_jax.data import ARKIT_NAMES, ict_identity, load_ict
 from canrig_jax.mesh import decimate
 from canrig_jax.rig import BlendshapeRig, evaluate, rename_to_arkit
@@ -198,10 +199,13 @@ def test_auto_rig_is_the_methods_rig_in_the_heads_frame(case, rigged, methods, h
     np.testing.assert_array_equal(np.asarray(rig.faces), head.faces)
     assert rig.units == "cm" and rig.names == names
     assert rig.deltas.shape == (len(names), len(head.vertices), 3)
-    # every shape is the method's, turned with the head (the blinks are closed on the lid)
+    # every shape is the method's with its clumps welded, turned with the head (the blinks
+    # are closed on the lid)
+    labels = clumps(head.vertices, head.faces, head.skin, WELD_TAU)
+    welded = weld(np.asarray(displacements, np.float64), labels)
     for i, name in enumerate(names):
         if not name.startswith("eyeBlink"):
-            want = np.asarray(displacements[i], np.float64) @ Z_UP.T
+            want = welded[i] @ Z_UP.T
             np.testing.assert_allclose(np.asarray(rig.deltas[i]), want, atol=1e-5, err_msg=name)
     # zero weight is the neutral, exactly; combination poses become correctives
     zero = evaluate(rig, jnp.zeros(rig.n_blendshapes))

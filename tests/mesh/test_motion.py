@@ -49,6 +49,49 @@ def test_self_intersections_count_only_crossings_the_motion_made():
     np.testing.assert_array_equal(self_intersections(dropped[None], dropped, faces, near=10.0), [0])
 
 
+def _crossings_by_solving(frame, edges, faces):
+    """(E, F) bool: edge e passes strictly through triangle f (shares no vertex), by solving
+    p + s (q - p) = a + u (b - a) + v (c - a) for (s, u, v) pair by pair."""
+    out = np.zeros((len(edges), len(faces)), bool)
+    for i, (p, q) in enumerate(edges):
+        for j, (a, b, c) in enumerate(faces):
+            if {p, q} & {a, b, c}:
+                continue
+            m = np.stack([frame[q] - frame[p], frame[a] - frame[b], frame[a] - frame[c]], 1)
+            if abs(np.linalg.det(m)) < 1e-12:
+                continue
+            s, u, v = np.linalg.solve(m, frame[a] - frame[p])
+            out[i, j] = 0 < s < 1 and u > 0 and v > 0 and u + v < 1
+    return out
+
+
+def test_self_intersections_of_a_crumpled_sheet_are_every_new_crossing():
+    # a 6 x 6 grid sheet crumpled by random bumps about a cell wide (a third of the pairs
+    # are then too far apart for their relative motion to meet): the pairs
+    # the broad phase and the motion bound leave out must be pairs that never cross
+    g = np.stack(np.meshgrid(np.arange(6.0), np.arange(6.0), indexing="ij"), -1).reshape(-1, 2)
+    neutral = np.c_[g, np.zeros(len(g))]
+    i = np.arange(5)[:, None] * 6 + np.arange(5)[None]
+    quads = i.ravel()
+    faces = np.concatenate(
+        [np.c_[quads, quads + 6, quads + 1], np.c_[quads + 1, quads + 6, quads + 7]]
+    )
+    rng = np.random.default_rng(5)
+    frames = []
+    for _ in range(6):
+        centres, heights = rng.uniform(0, 5, (4, 2)), rng.normal(scale=1.2, size=(4, 3))
+        bump = np.exp(-((g[:, None] - centres[None]) ** 2).sum(-1) / 0.6)  # (V, 4)
+        frames.append(neutral + bump @ heights)
+    frames = np.stack(frames)
+    edges = np.unique(
+        np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), 1), axis=0
+    )
+    want = [_crossings_by_solving(x, edges, faces).sum() for x in frames]
+    assert sum(want) > 0  # the crumpling makes crossings
+    counts = self_intersections(frames, neutral, faces, near=100.0)
+    np.testing.assert_array_equal(counts, want)
+
+
 def test_rigid_residual_is_zero_for_a_rigid_motion_and_known_for_a_scale():
     rng = np.random.default_rng(3)
     rest = rng.normal(size=(40, 3))

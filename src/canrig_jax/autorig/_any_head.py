@@ -4,7 +4,8 @@ The method is an ``AbstractAutoRigMethod`` (``Transfer()``, the default;
 ``RigAnyFaceNetwork()``; ``TransferResidual()``; see ``_methods``): it gives the displacement
 of every pose on the head turned into the convention; the steps around it are every method's
 (orientation decided or refused, ICT landmarks placed on the head when the method needs them,
-the rig built in the convention and turned back, the artist's style applied, the blinks
+clumps of vertices a fraction of a millimetre apart welded to move as one (``_weld``), the rig
+built in the convention and turned back, the artist's style applied, the blinks
 closed, ARKit names).
 
 Few-shot style: given ``examples`` (k of the head's own sculpted ARKit shapes), a ``Style``
@@ -24,6 +25,7 @@ from .._warnings import warn
 from ..data import arkit_name_of
 from ..mesh import check_mesh
 from ..rig import UNIT_IN_CM, BlendshapeRig, arkit_channels, rename_to_arkit
+from . import _weld
 from ._blink_fit import close_blinks
 from ._data import AutorigDataset
 from ._landmarks import place_landmarks, skin_of
@@ -250,6 +252,7 @@ def auto_rig(
     _progress(progress, f"building the rig ({method.name})")
     head = UprightHead(upright, np.asarray(faces), landmarks, skin)
     displacements, pose_set, source_names = method.displacements(head, dataset)
+    displacements = _weld.weld(displacements, _weld.clumps(upright, faces, skin, _weld.WELD_TAU))
     seconds["method"] = time.perf_counter() - t
 
     style = Style()

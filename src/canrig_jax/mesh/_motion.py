@@ -133,6 +133,8 @@ def self_intersections(
     gap = np.linalg.norm(seg_centre[e] - tri_centre[f], axis=-1) - 0.5 * seg_length[e]
     movable = gap - tri_size[f] <= reach[edges[e]].max(axis=1) + reach[faces[f]].max(axis=1)
     e, f = e[movable], f[movable]
+    meet = _could_meet(neutral, x, edges[e], faces[f])
+    e, f = e[meet], f[meet]
     if e.size == 0:
         return np.zeros(x.shape[0], np.int64)
     # one compiled shape per size class of the pair list (padded with a pair that cannot cross)
@@ -145,6 +147,38 @@ def self_intersections(
     return np.asarray(
         _count_crossings(jnp.asarray(x, jnp.float32), seg_vertices, tri_vertices, valid)
     ).astype(np.int64)
+
+
+def _could_meet(neutral: np.ndarray, x: np.ndarray, seg: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """(N,) bool: segment n (vertices ``seg[n]``) and triangle n (``tri[n]``), apart in the
+    neutral, may meet in some frame of ``x``: two points meet only when their relative
+    motion covers their neutral distance, and the relative motion of a point of the segment
+    and one of the triangle is at most the largest of the six relative motions of their
+    vertices (both are convex combinations). The neutral distance is bounded below by the
+    largest gap along seven separating axes (the triangle's normal, its edges' in-plane
+    normals, the segment's direction across each edge): False only where they cannot meet."""
+    p = neutral[seg]  # (N, 2, 3)
+    t = neutral[tri]  # (N, 3, 3)
+    edge = t[:, [1, 2, 0]] - t  # (N, 3, 3)
+    normal = np.cross(edge[:, 0], edge[:, 1])
+    axes = np.concatenate(
+        [normal[:, None], np.cross(normal[:, None], edge), np.cross(p[:, 1:] - p[:, :1], edge)], 1
+    )  # (N, 7, 3)
+    axes /= np.maximum(np.linalg.norm(axes, axis=-1, keepdims=True), 1e-30)
+    on_seg = np.einsum("nkc,njc->nkj", axes, p)
+    on_tri = np.einsum("nkc,njc->nkj", axes, t)
+    gap = np.maximum(on_seg.min(-1) - on_tri.max(-1), on_tri.min(-1) - on_seg.max(-1))
+    gap = np.maximum(gap.max(-1), 0.0)  # (N,): at most the neutral distance
+    # the largest relative motion of a vertex pair, over the frames, each pair once
+    pairs = np.stack([np.repeat(seg, 3, axis=1), np.tile(tri, (1, 2))], -1).reshape(-1, 2)
+    unique, where = np.unique(pairs, axis=0, return_inverse=True)
+    motion = np.zeros(len(unique))
+    for start in range(0, x.shape[0], 32):
+        d = x[start : start + 32] - neutral
+        step = np.linalg.norm(d[:, unique[:, 0]] - d[:, unique[:, 1]], axis=-1).max(axis=0)
+        motion = np.maximum(motion, step)
+    reach = motion[where.reshape(-1)].reshape(-1, 6).max(axis=1)
+    return reach >= gap * (1 - 1e-6)
 
 
 @jax.jit
