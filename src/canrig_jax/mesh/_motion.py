@@ -170,12 +170,13 @@ def _could_meet(neutral: np.ndarray, x: np.ndarray, seg: np.ndarray, tri: np.nda
     gap = np.maximum(on_seg.min(-1) - on_tri.max(-1), on_tri.min(-1) - on_seg.max(-1))
     gap = np.maximum(gap.max(-1), 0.0)  # (N,): at most the neutral distance
     # the largest relative motion of a vertex pair, over the frames, each pair once
-    pairs = np.stack([np.repeat(seg, 3, axis=1), np.tile(tri, (1, 2))], -1).reshape(-1, 2)
-    unique, where = np.unique(pairs, axis=0, return_inverse=True)
+    key = np.repeat(seg, 3, axis=1).astype(np.int64) * len(neutral) + np.tile(tri, (1, 2))
+    unique, where = np.unique(key.reshape(-1), return_inverse=True)
+    first, second = np.divmod(unique, len(neutral))
     motion = np.zeros(len(unique))
     for start in range(0, x.shape[0], 32):
         d = x[start : start + 32] - neutral
-        step = np.linalg.norm(d[:, unique[:, 0]] - d[:, unique[:, 1]], axis=-1).max(axis=0)
+        step = np.linalg.norm(d[:, first] - d[:, second], axis=-1).max(axis=0)
         motion = np.maximum(motion, step)
     reach = motion[where.reshape(-1)].reshape(-1, 6).max(axis=1)
     return reach >= gap * (1 - 1e-6)
