@@ -23,7 +23,7 @@ from ._colors import error_colors
 
 @dataclasses.dataclass(frozen=True)
 class ErrorGlb:
-    """What ``export_error_glb`` wrote."""
+    """What ``export_error_glb`` wrote (its docstring lists the fields)."""
 
     path: Path
     vertex_error_mm: Float[np.ndarray, " V"]
@@ -71,8 +71,16 @@ def export_error_glb(
             slider reads as that frame); default the first frame.
         units: the meshes' length unit (recorded in the file).
 
-    Returns an ``ErrorGlb``. Raises ValueError naming the argument for inconsistent shapes,
-    non-finite values, negative errors, an empty region or a zero colour scale.
+    Returns:
+        An ``ErrorGlb``: the ``path`` written; ``vertex_error_mm`` (V,), the coloured error
+        (each vertex's mean over the frames, mm); ``vmax_mm``, the error drawn pure red (and
+        everything above it); ``worst_vertex``, the vertex with the largest mean error (within
+        ``region`` when given) and ``worst_frame``, the frame where its error is largest;
+        ``colors`` (V, 3), the linear RGB written as ``COLOR_0``; ``times`` (T,), the key time
+        of each frame (s).
+
+    Raises ValueError naming the argument for inconsistent shapes, non-finite values,
+    negative errors, an empty region or a zero colour scale.
     """
     meshes = np.asarray(meshes)
     if meshes.ndim != 3 or meshes.shape[2] != 3 or meshes.shape[0] < 1 or meshes.shape[1] < 3:
