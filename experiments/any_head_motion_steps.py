@@ -31,7 +31,8 @@ from canrig_jax.autorig import (
     load_makehuman,
     load_rocketbox_head,
 )
-from canrig_jax.data import load_livelinkface, resolve_data_dir
+from canrig_jax.data import load_livelinkface
+from canrig_jax.data._paths import resolve_data_dir
 from canrig_jax.mesh import flipped_triangles
 
 VARIANTS = ("plain", "slits")

@@ -17,7 +17,7 @@ from ._livelink_csv import format_timecode as format_timecode
 from ._livelinkface import LiveLinkCapture, load_livelinkface
 from ._mediapipe import load_mediapipe_face
 from ._names import ARKIT_NAMES, arkit_name_of, retarget_weights, to_arkit
-from ._paths import data_file, read_arrays, resolve_data_dir
+from ._paths import data_file, read_arrays
 
 __all__ = [
     "ARKIT_NAMES",
@@ -37,7 +37,6 @@ __all__ = [
     "load_mediapipe_face",
     "read_arrays",
     "read_livelink_csv",
-    "resolve_data_dir",
     "retarget_weights",
     "save_obj",
     "to_arkit",

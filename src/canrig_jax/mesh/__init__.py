@@ -6,8 +6,8 @@ rigs; ``canrig_jax.rig`` builds rigs from it.
 Also importable here but not in ``__all__`` (the checks and pieces the other subpackages build
 on): ``SimilarityFit``, ``TriangleCorrespondence``, ``check_mesh``, ``connected_components``,
 ``edge_stretch``, ``fit_landmarks``, ``flip_quad_split``, ``mesh_edges``, ``rigid_residual``,
-``similarity_icp``, ``similarity_transform``, ``transfer_deltas``, ``triangulate_quads``,
-``vertex_adjacency``."""
+``similarity_icp``, ``similarity_transform``, ``subdivide``, ``transfer_deltas``,
+``triangulate_quads``, ``vertex_adjacency``."""
 
 from ._align import SimilarityFit as SimilarityFit
 from ._align import bind_points
@@ -27,8 +27,9 @@ from ._motion import edge_stretch as edge_stretch
 from ._motion import flipped_triangles, self_intersections
 from ._motion import rigid_residual as rigid_residual
 from ._operators import MeshOperators, mesh_operators, pad_vertices, stack_operators
-from ._remesh import Remeshed, SurfaceMap, decimate, subdivide
+from ._remesh import Remeshed, SurfaceMap, decimate
 from ._remesh import flip_quad_split as flip_quad_split
+from ._remesh import subdivide as subdivide
 from ._topology import connected_components as connected_components
 from ._topology import vertex_adjacency as vertex_adjacency
 from ._transfer import TriangleCorrespondence as TriangleCorrespondence
@@ -54,6 +55,5 @@ __all__ = [
     "pad_vertices",
     "self_intersections",
     "stack_operators",
-    "subdivide",
     "weighted_geodesic_distance",
 ]
