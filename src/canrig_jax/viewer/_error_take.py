@@ -40,6 +40,38 @@ class ErrorGlb:
     """(T,) key time of each frame (s)."""
 
 
+def _checked_take(meshes, error_mm, region, neutral):
+    """``export_error_glb``'s arrays, checked (ValueError naming the argument), with the
+    defaults of ``region`` (every vertex) and ``neutral`` (the first frame) filled in."""
+    meshes = np.asarray(meshes)
+    if meshes.ndim != 3 or meshes.shape[2] != 3 or meshes.shape[0] < 1 or meshes.shape[1] < 3:
+        raise ValueError(f"meshes: expected (T, V, 3) with T >= 1 frames, got {meshes.shape}")
+    check_real("meshes", meshes)
+    check_finite("meshes", meshes)
+    t, v = meshes.shape[:2]
+    error_mm = np.asarray(error_mm)
+    if error_mm.shape != (t, v):
+        raise ValueError(
+            f"error_mm: expected shape ({t}, {v}) (frames, vertices), got {error_mm.shape}"
+        )
+    check_real("error_mm", error_mm)
+    check_finite("error_mm", error_mm)
+    if error_mm.min() < 0:
+        raise ValueError(f"error_mm: expected non-negative errors, got {error_mm.min()}")
+    if region is None:
+        region = np.ones(v, bool)
+    region = np.asarray(region)
+    if region.shape != (v,) or region.dtype != bool or not region.any():
+        raise ValueError(f"region: expected a ({v},) bool mask with a True vertex")
+    if neutral is None:
+        neutral = meshes[0]
+    neutral = np.asarray(neutral)
+    if neutral.shape != (v, 3):
+        raise ValueError(f"neutral: expected shape ({v}, 3), got {neutral.shape}")
+    check_finite("neutral", neutral)
+    return meshes, error_mm, region, neutral
+
+
 def export_error_glb(
     path: str | os.PathLike,
     meshes: Float[ArrayLike, "T V 3"],
@@ -82,32 +114,8 @@ def export_error_glb(
     Raises ValueError naming the argument for inconsistent shapes, non-finite values,
     negative errors, an empty region or a zero colour scale.
     """
-    meshes = np.asarray(meshes)
-    if meshes.ndim != 3 or meshes.shape[2] != 3 or meshes.shape[0] < 1 or meshes.shape[1] < 3:
-        raise ValueError(f"meshes: expected (T, V, 3) with T >= 1 frames, got {meshes.shape}")
-    check_real("meshes", meshes)
-    check_finite("meshes", meshes)
+    meshes, error_mm, region, neutral = _checked_take(meshes, error_mm, region, neutral)
     t, v = meshes.shape[:2]
-    error_mm = np.asarray(error_mm)
-    if error_mm.shape != (t, v):
-        raise ValueError(
-            f"error_mm: expected shape ({t}, {v}) (frames, vertices), got {error_mm.shape}"
-        )
-    check_real("error_mm", error_mm)
-    check_finite("error_mm", error_mm)
-    if error_mm.min() < 0:
-        raise ValueError(f"error_mm: expected non-negative errors, got {error_mm.min()}")
-    if region is None:
-        region = np.ones(v, bool)
-    region = np.asarray(region)
-    if region.shape != (v,) or region.dtype != bool or not region.any():
-        raise ValueError(f"region: expected a ({v},) bool mask with a True vertex")
-    if neutral is None:
-        neutral = meshes[0]
-    neutral = np.asarray(neutral)
-    if neutral.shape != (v, 3):
-        raise ValueError(f"neutral: expected shape ({v}, 3), got {neutral.shape}")
-    check_finite("neutral", neutral)
 
     vertex_error = error_mm.mean(axis=0)
     if vmax_mm is None:
