@@ -46,7 +46,6 @@ from canrig_jax.canrig import (
     FitOptions,
     NeuralRig,
     ShapePreservingCANRig,
-    deform,
     dialogue_replacement,
     expression_region,
     interior_vertices,
@@ -54,6 +53,7 @@ from canrig_jax.canrig import (
     pose_a_to_b,
 )
 from canrig_jax.canrig._layout import DENSE
+from canrig_jax.canrig._rig import deform
 from canrig_jax.mesh import farthest_point_vertices
 from canrig_jax.pbs import local_fit_rig, patch_layout, pbs_basis
 from canrig_jax.rig import evaluate_batch, ict_linear_rig, random_sparse_poses

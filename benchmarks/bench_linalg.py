@@ -66,11 +66,11 @@ def measure():
     from canrig_jax.canrig import (
         NeuralRig,
         dialogue_replacement,
-        evaluate_poses,
         influence_mask,
         load_model,
         pose_a_to_b,
     )
+    from canrig_jax.canrig._data import evaluate_poses
     from canrig_jax.data import FACE, load_livelinkface
     from canrig_jax.pbs import PerPatchPBS, local_fit_rig, patch_layout, pbs_basis
     from canrig_jax.pbs._model import patch_means

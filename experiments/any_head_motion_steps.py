@@ -39,7 +39,8 @@ from canrig_jax.autorig import (
     load_makehuman,
     load_rocketbox_head,
 )
-from canrig_jax.data import load_livelinkface, resolve_data_dir
+from canrig_jax.data import load_livelinkface
+from canrig_jax.data._paths import resolve_data_dir
 from canrig_jax.mesh import flipped_triangles
 
 STEPS = {"slits": ("plain", "slits"), "weld": ("slits", "weld_0.1", "weld_0.2", "weld_0.3")}

@@ -46,7 +46,8 @@ from canrig_jax.autorig import (  # noqa: E402
     load_rocketbox_head,
     plot_check_frames,
 )
-from canrig_jax.data import load_livelinkface, resolve_data_dir  # noqa: E402
+from canrig_jax.data import load_livelinkface  # noqa: E402
+from canrig_jax.data._paths import resolve_data_dir
 from canrig_jax.mesh import flipped_triangles, self_intersections  # noqa: E402
 from canrig_jax.rig import UNIT_IN_CM, BlendshapeRig, evaluate_batch  # noqa: E402
 

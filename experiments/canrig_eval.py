@@ -24,7 +24,8 @@ from canrig_jax._checkpoint import parameter_count
 from canrig_jax._io import save_json, save_text
 from canrig_jax._metrics import CM_TO_MM
 from canrig_jax._provenance import experiment_command, provenance
-from canrig_jax.canrig import CLAMP, NeuralRig, evaluate_poses, influence_mask, load_model
+from canrig_jax.canrig import CLAMP, NeuralRig, influence_mask, load_model
+from canrig_jax.canrig._data import evaluate_poses
 from canrig_jax.data import load_livelinkface
 from canrig_jax.mesh import farthest_point_vertices
 from canrig_jax.papers.canrig import EVAL_FALLOFF_PER_CM, RADII_CM, held_out_poses, split_capture

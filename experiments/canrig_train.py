@@ -23,7 +23,8 @@ import numpy as np
 from canrig_jax._checkpoint import parameter_count
 from canrig_jax._io import save_json
 from canrig_jax._provenance import experiment_command, provenance
-from canrig_jax.canrig import DataOptions, TrainOptions, train
+from canrig_jax.canrig import TrainOptions, train
+from canrig_jax.canrig._data import DataOptions
 from canrig_jax.data import load_livelinkface
 from canrig_jax.distributed import add_process_options, initialize_from_args
 from canrig_jax.papers.canrig import add_training_options, split_capture, training_options_from_args

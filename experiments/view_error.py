@@ -49,12 +49,12 @@ from canrig_jax._provenance import experiment_command, provenance, record_comman
 from canrig_jax.canrig import (
     NeuralRig,
     dialogue_replacement,
-    evaluate_poses,
     expression_region,
     influence_reach,
     interior_vertices,
     load_model,
 )
+from canrig_jax.canrig._data import evaluate_poses
 from canrig_jax.data import load_livelinkface
 from canrig_jax.inverse import summarize
 from canrig_jax.mesh import DeformationGradientBlend, farthest_point_vertices

@@ -27,7 +27,8 @@ if TYPECHECK:
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from canrig_jax.data import load_livelinkface, resolve_data_dir  # noqa: E402
+from canrig_jax.data import load_livelinkface  # noqa: E402
+from canrig_jax.data._paths import resolve_data_dir  # noqa: E402
 
 LONGEST_FILES = ("test_deadlock.py", "test_local_fit.py", "test_pbs_model.py")
 """Test files of a minute or more: collected first, so that pytest-xdist (``--dist loadfile``)

@@ -203,7 +203,7 @@ def test_the_test_run_checks_shapes_and_dtypes_at_run_time():
     on a shared axis, a wrong dtype, a dataclass field of the wrong shape; the same values in
     agreement pass."""
     from canrig_jax._metrics import per_vertex_distance
-    from canrig_jax.data import HeadMesh
+    from canrig_jax.data._head_file import HeadMesh
     from canrig_jax.mesh import mesh_edges
 
     a = np.zeros((4, 3))

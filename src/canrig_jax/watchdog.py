@@ -134,7 +134,10 @@ def _dump_stacks() -> None:
 def watchdog(
     seconds: float | None, what: str = "this run"
 ) -> "Watchdog | contextlib.nullcontext[None]":
-    """Context: ``Watchdog(seconds, what)``; ``None`` or 0 watches nothing (yields None)."""
+    """A context that watches its block: when ``seconds`` pass without ``progress``, it prints
+    ``what`` and the last step reported, dumps every thread's stack and exits with
+    ``EXIT_STATUS`` (module docstring). It yields the block's timer, whose ``progress(step)``
+    is ``progress`` for this block. ``None`` or 0 watches nothing (yields None)."""
     if not seconds:
         return contextlib.nullcontext()
     return Watchdog(seconds, what)
@@ -173,4 +176,4 @@ def run_watched(main: Callable[..., _T], what: str, *args, **kwargs) -> _T:
         return main(*args, **kwargs)
 
 
-__all__ = ["EXIT_STATUS", "Watchdog", "progress", "run_watched", "watchdog"]
+__all__ = ["EXIT_STATUS", "progress", "run_watched", "watchdog"]

@@ -11,14 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from canrig_jax.canrig import (
-    CLAMP,
-    CANRig,
-    NeuralRig,
-    ShapePreservingCANRig,
-    deform,
-    influence_mask,
-)
+from canrig_jax.canrig import CLAMP, CANRig, NeuralRig, ShapePreservingCANRig, influence_mask
+from canrig_jax.canrig._rig import deform
 
 VARIANTS = [
     (CANRig, {}),

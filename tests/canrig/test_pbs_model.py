@@ -14,7 +14,6 @@ from canrig_jax.canrig import influence_mask
 from canrig_jax.mesh import edge_graph
 from canrig_jax.pbs import (
     PBSTrainOptions,
-    ShapeTransformer,
     build_pbs_training_set,
     local_pbs_fit,
     patch_layout,
@@ -24,7 +23,7 @@ from canrig_jax.pbs import (
     seed_distances,
     train_pbs,
 )
-from canrig_jax.pbs._model import PBS_VARIANTS, patch_means
+from canrig_jax.pbs._model import PBS_VARIANTS, ShapeTransformer, patch_means
 from canrig_jax.pbs._train import predict_pbs_weights
 from canrig_jax.rig import evaluate_batch, random_sparse_poses
 

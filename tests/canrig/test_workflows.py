@@ -17,7 +17,6 @@ from canrig_jax.canrig import (
     NeuralRig,
     ShapePreservingCANRig,
     clip_edit,
-    deform,
     dialogue_replacement,
     expression_region,
     influence_mask,
@@ -28,6 +27,7 @@ from canrig_jax.canrig import (
 )
 from canrig_jax.canrig._attention_fit import apply_jacobian, displacement_jacobian, normal_matrix
 from canrig_jax.canrig._layout import DENSE, PartsLayout
+from canrig_jax.canrig._rig import deform
 from canrig_jax.canrig._workflows import smoothstep_fade
 from canrig_jax.mesh import farthest_point_vertices
 from canrig_jax.rig import evaluate_batch

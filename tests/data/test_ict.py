@@ -12,9 +12,9 @@ import pytest
 import trimesh
 
 import canrig_jax.data._paths as paths_module  # patched: the default folder
-from canrig_jax.data import FACE, ict_identity, load_ict, load_ict_obj_folder, resolve_data_dir
+from canrig_jax.data import FACE, ict_identity, load_ict, load_ict_obj_folder
 from canrig_jax.data._ict import ICT_PARTS, load_identity_modes
-from canrig_jax.data._paths import ENV_VAR
+from canrig_jax.data._paths import ENV_VAR, resolve_data_dir
 
 RAW = "ict-facekit/raw"
 

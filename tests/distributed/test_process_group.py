@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from canrig_jax import distributed
-from canrig_jax.distributed._process_group import process_group
+from canrig_jax.distributed._process_group import ProcessGroup, process_group
 from canrig_jax.distributed._share import process_share
 
 SLURM = {
@@ -25,7 +25,7 @@ SLURM = {
 
 def test_resolution_order():
     env = {"CANRIG_COORDINATOR": "h:1234", "CANRIG_PROCESSES": "3", "CANRIG_PROCESS_ID": "1"}
-    assert process_group(environ={}) == distributed.ProcessGroup(1, 0, None, "one process")
+    assert process_group(environ={}) == ProcessGroup(1, 0, None, "one process")
     group = process_group(environ=env)
     assert (group.processes, group.process_id, group.coordinator) == (3, 1, "h:1234")
     assert group.source == "CANRIG_* environment" and not group.is_main

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from canrig_jax import inverse
-from canrig_jax.inverse import frame_metrics, roughness
+from canrig_jax.inverse import roughness
+from canrig_jax.inverse._metrics import frame_metrics
 from canrig_jax.rig import evaluate
 
 

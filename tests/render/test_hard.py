@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 
 from canrig_jax.render import (
-    Fragments,
     RasterSettings,
     antialias,
     interpolate,
@@ -24,6 +23,7 @@ from canrig_jax.render import (
     ray_cast,
     silhouette,
 )
+from canrig_jax.render._hard import Fragments
 
 from .test_raster import front_camera
 

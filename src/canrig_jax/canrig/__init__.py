@@ -6,17 +6,15 @@ blendshapes (PBS) for the whole head are ``canrig_jax.pbs``; the paper's evaluat
 splits, the workflow tables, the training script's options) is ``canrig_jax.papers.canrig``.
 """
 
-from ._data import DataOptions, ExampleOptions, TrainingSet, build_training_set, evaluate_poses
-from ._handle_rig import AbstractHandleRig, FitOptions, HandleEdit, Handles
+from ._data import ExampleOptions, build_training_set
+from ._handle_rig import AbstractHandleRig, FitOptions, HandleEdit
 from ._layout import influence_reach
 from ._masks import CLAMP, correlation_edge_factor, influence_mask
 from ._model import CANRig, ShapePreservingCANRig
-from ._rig import NeuralRig, deform
-from ._train import TrainOptions, TrainResult, load_model, train
+from ._rig import NeuralRig
+from ._train import TrainOptions, load_model, train
 from ._workflows import (
-    ClipEdit,
     FitSolution,
-    LayerResult,
     clip_edit,
     dialogue_replacement,
     expression_region,
@@ -27,32 +25,24 @@ from ._workflows import (
 
 HANDLE_RIGS = (CANRig, ShapePreservingCANRig)
 """The final handle rigs of this subpackage (``AbstractHandleRig``); ``canrig_jax.pbs``
-adds ``LocalFitRig`` and ``PBSRig`` (``canrig_jax.pbs.HANDLE_RIGS``, public, lists all
-four)."""
+adds ``LocalFitRig`` and ``PBSRig`` (``canrig_jax.pbs.HANDLE_RIGS`` lists all four, for the
+family's contract test)."""
 
 __all__ = [
     "CLAMP",
     "AbstractHandleRig",
     "CANRig",
-    "ClipEdit",
-    "DataOptions",
     "ExampleOptions",
     "FitOptions",
     "FitSolution",
     "HandleEdit",
-    "Handles",
-    "LayerResult",
     "NeuralRig",
     "ShapePreservingCANRig",
     "TrainOptions",
-    "TrainResult",
-    "TrainingSet",
     "build_training_set",
     "clip_edit",
     "correlation_edge_factor",
-    "deform",
     "dialogue_replacement",
-    "evaluate_poses",
     "expression_region",
     "influence_mask",
     "influence_reach",

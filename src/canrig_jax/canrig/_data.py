@@ -58,19 +58,8 @@ def evaluate_poses(
 
 
 class TrainingSet(eqx.Module):
-    """Device arrays a jitted training step gathers from.
-
-    Attributes:
-        neutral: (V, 3) canonical shape S_0.
-        shapes: (N, V, 3) training targets.
-        nearby: (N, V, 3) a nearby pose of each target.
-        pool: (P,) handle candidate vertices.
-        pool_distance: (V, P) weighted geodesic distance of each vertex to each candidate
-            (inf beyond the limit).
-        handle_sets: (S, n) farthest-point handle sets as indices into ``pool`` (each a
-            farthest-point order, so any prefix is itself a farthest-point set), or None.
-        n_capture: the first ``n_capture`` shapes are capture frames, the rest random poses.
-    """
+    """Device arrays a jitted training step gathers from (``build_training_set`` lists the
+    fields)."""
 
     neutral: Float[Array, "V 3"]
     shapes: Float[Array, "N V 3"]
@@ -99,12 +88,22 @@ def build_training_set(
     """Evaluate the rig at the capture's training frames and ``n_random`` random sparse poses
     (seed ``seed``, ``n_active`` active weights each), their nearby poses, and the distances
     from ``n_pool`` handle candidates (edge lengths times ``edge_factor`` if given, e.g.
-    ``masks.correlation_edge_factor``). With ``farthest_sets`` > 0, that many farthest-point
+    ``correlation_edge_factor``). With ``farthest_sets`` > 0, that many farthest-point
     orders of ``farthest_size`` vertices (from random start vertices other than 0, the start
     of the evaluation's handles; geodesic distances with ``farthest_geodesic``) are added to
     the pool and kept as ``handle_sets``. With ``capture_mixes`` > 0, that many more poses are
     appended, each a convex combination of two random training capture frames
-    (``capture_mixes_of``; drawn after everything else, so the other shapes are unchanged)."""
+    (``capture_mixes_of``; drawn after everything else, so the other shapes are unchanged).
+
+    Returns:
+        The device arrays ``train`` gathers from (a ``TrainingSet``): ``neutral`` (V, 3), the
+        canonical shape S_0; ``shapes`` (N, V, 3), the training targets, the first
+        ``n_capture`` of them capture frames, the rest random poses; ``nearby`` (N, V, 3), a
+        nearby pose of each; ``pool`` (P,), the handle candidates, and ``pool_distance``
+        (V, P), the weighted geodesic distance of each vertex to each (inf beyond the limit);
+        ``handle_sets`` (S, n), the farthest-point handle sets as indices into ``pool`` (each
+        a farthest-point order, so any prefix is itself a farthest-point set), or None.
+    """
     if capture_mixes < 0:
         raise ValueError(f"capture_mixes: expected >= 0, got {capture_mixes}")
     rng = np.random.default_rng(seed)

@@ -39,9 +39,7 @@ from ._masks import influence_mask
 
 @dataclasses.dataclass(frozen=True)
 class Handles:
-    """Handle vertices, the (V, H) weighted geodesic distance of every vertex to them (kept on
-    the device, so repeated edits do not copy it) and the (B, H) distance of each handle to
-    the nearest vertex of each of the rig's vertex blocks (on the host)."""
+    """Handle vertices and their distances (``NeuralRig.handles`` lists the fields)."""
 
     index: Int[np.ndarray, " H"]
     distance: Float[Array, "V H"]

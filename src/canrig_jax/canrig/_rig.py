@@ -185,7 +185,13 @@ class NeuralRig(eqx.Module):
         self, index: Int[ArrayLike, " H"] | Sequence[int], *, limit: float = np.inf
     ) -> Handles:
         """Place handles at vertex ``index`` (H,), distinct vertices: computes their geodesic
-        distances (Dijkstra, once per placement)."""
+        distances (Dijkstra, once per placement), within ``limit`` (cm; farther: inf).
+
+        Returns the placement (a ``Handles``) that the workflows and ``edit`` take: ``index``
+        (H,), the handle vertices, and ``n_handles``; ``distance`` (V, H), the weighted
+        geodesic distance of every vertex to them (kept on the device, so repeated edits do
+        not copy it); ``block_distance`` (B, H), the distance of each handle to the nearest
+        vertex of each of the rig's vertex blocks (on the host)."""
         index = np.asarray(index)
         if index.ndim != 1 or index.size == 0:
             raise ValueError(
@@ -295,8 +301,10 @@ class NeuralRig(eqx.Module):
         )
 
     def deform(self, edit: HandleEdit, layout: Layout = DENSE) -> Float[Array, "V 3"]:
-        """``deform`` with this rig's model, queries and neutral (and, for one of its block
-        layouts, the queries already gathered into the blocks)."""
+        """The shape of ``edit`` (built by ``edit``): the one jitted forward pass that the
+        workflows, training, the fits and ``jax.vmap`` share, with this rig's model, queries
+        and neutral (and, for one of its block layouts, the queries already gathered into the
+        blocks). ``layout`` (from ``layout``) only changes where the work runs, not the result."""
         cached = None
         if isinstance(layout, BlockLayout) and layout.blocks is self.device_blocks[0]:
             cached = self.block_queries

@@ -271,8 +271,7 @@ def load_model(
 
 @dataclasses.dataclass
 class TrainResult:
-    """``train``'s result: the trained model, its step count, the accumulated training time
-    (s) and the logged history (one dict per ``log_every`` steps)."""
+    """What ``train`` returns (its docstring lists the fields)."""
 
     model: AbstractCANRig
     step: int
@@ -296,15 +295,22 @@ def train(
     same options, except the budget (steps, max_minutes), which may be extended. ``stop_after``
     ends this call early after that many steps (a simulated interruption, for tests).
 
-    ``data_options`` (JSON-able, e.g. ``DataOptions.to_dict()`` and the data seed) describe how
-    ``data`` was built; they are stored in the checkpoint, and a resume with other data options
-    is refused (a checkpoint written before they were stored resumes with any).
+    ``data_options`` (JSON-able, e.g. ``build_training_set``'s keyword arguments and its seed)
+    describe how ``data`` was built; they are stored in the checkpoint, and a resume with
+    other data options is refused (a checkpoint written before they were stored resumes with
+    any).
 
     ``devices`` (default: all): data-parallel over that many devices (``canrig_jax.
     data_parallel``), each step's examples split over them, parameters replicated; the
     trajectory equals the single-device one to float tolerance, and a checkpoint resumes on
     any device count. Across processes (``canrig_jax.distributed.initialize`` first), the
-    devices of every process; process 0 writes the checkpoint."""
+    devices of every process; process 0 writes the checkpoint.
+
+    Returns:
+        A ``TrainResult``: ``model``, the trained network (also in the checkpoint, which
+        ``load_model`` reads); ``step``, its step count; ``seconds``, the accumulated training
+        time (s); ``history``, the logged history (one dict per ``log_every`` steps).
+    """
     if not isinstance(options, TrainOptions):
         raise TypeError(f"options: expected TrainOptions, got {type(options).__name__}")
     placement = data_parallel(devices, options.examples.batch, "examples.batch")

@@ -261,7 +261,7 @@ def _direct_solution(rig, edit, target, region, layout) -> FitSolution:
 
 @dataclasses.dataclass(frozen=True)
 class LayerResult:
-    """``iterative_layers``: per layer, its solution (shape, error, displacements)."""
+    """What ``iterative_layers`` returns (its docstring lists the fields)."""
 
     solutions: tuple[FitSolution, ...]
 
@@ -290,7 +290,12 @@ def iterative_layers(
     """Layered edits (section 7.4): layer i places ``schedule[i] = (handles, radius)`` on the
     previous layer's output (the first on ``source``) and moves them towards ``target``.
     With ``fit`` each layer's error is <= the previous one's, exactly (zero displacements
-    reproduce the base, and the fit returns the best of fitted, direct and zero)."""
+    reproduce the base, and the fit returns the best of fitted, direct and zero).
+
+    Returns:
+        A ``LayerResult``: ``solutions``, each layer's ``FitSolution`` in order; ``errors``
+        (L,), each layer's error (cm); ``shape`` (V, 3), the last layer's shape.
+    """
     schedule = list(schedule)
     if not schedule:
         raise ValueError("schedule: expected at least one (handles, radius) layer")
@@ -340,7 +345,7 @@ def _edit_frames(model, queries, canonical, edit, bases, displacements, layout):
 
 @dataclasses.dataclass(frozen=True)
 class ClipEdit:
-    """``clip_edit``: the edited clip (F, V, 3) and the fade weight per frame (F,)."""
+    """What ``clip_edit`` returns (its docstring lists the fields)."""
 
     clip: Float32[np.ndarray, "F V 3"]
     fade: Float32[np.ndarray, " F"]
@@ -361,7 +366,13 @@ def clip_edit(
 ) -> ClipEdit:
     """Edit ``clip`` at ``frame`` with ``displacements`` at the handles, faded in and out
     over ``half_window`` frames on each side (``smoothstep_fade``), each frame its own base
-    shape (section 7.2). Frames outside the window are the input frames, untouched."""
+    shape (section 7.2). Frames outside the window are the input frames, untouched.
+
+    Returns:
+        A ``ClipEdit``: ``clip`` (F, V, 3) float32, the edited clip; ``fade`` (F,), each
+        frame's fade weight (0 outside the window, 1 at ``frame``); ``window``, the first and
+        the last frame of the window.
+    """
     clip = _check_clip(rig, clip, "clip")
     n = len(clip)
     if isinstance(frame, bool) or not isinstance(frame, int | np.integer) or not 0 <= frame < n:

@@ -105,16 +105,7 @@ class FbxMesh:
 @dataclasses.dataclass(frozen=True)
 class FbxScene:
     """Every mesh of an FBX file with its skin, and the file's node tree (its skeleton), all
-    in the package's frame (cm, y up, facing +z).
-
-    Attributes:
-        meshes: the meshes, in file order (``FbxMesh.node`` indexes ``node_names``).
-        node_names: N node names (the scene's root node first, usually named ``""``).
-        node_parents: (N,) int the parent of each node, -1 for the root.
-        node_to_world: (N, 4, 4) float64 each node's world matrix in the scene's own pose,
-            converted like ``FbxSkin.bind_to_world``.
-        path: the file.
-    """
+    in the package's frame (cm, y up, facing +z); ``load_fbx_scene`` lists the fields."""
 
     meshes: tuple[FbxMesh, ...]
     node_names: tuple[str, ...]
@@ -276,8 +267,17 @@ def _read_skin(path, raw: dict, i: int, name: str, n: int, axes_map, unit_cm) ->
 
 
 def load_fbx_scene(path: str | os.PathLike) -> FbxScene:
-    """Every mesh of an FBX file with its skin weights, and the file's node tree, in cm, y
-    up, facing +z (``FbxScene``; the conversion and errors of ``load_fbx``)."""
+    """Every mesh of an FBX file with its skin weights, and the file's node tree (its
+    skeleton), in cm, y up, facing +z (the conversion and errors of ``load_fbx``).
+
+    Returns:
+        An ``FbxScene``: ``meshes``, every mesh in file order (each as ``load_fbx`` returns
+        it, with its ``skin`` and its ``node``, an index into ``node_names``); ``node_names``,
+        the N node names (the scene's root node first, usually named ``""``);
+        ``node_parents`` (N,) int, the parent of each node, -1 for the root;
+        ``node_to_world`` (N, 4, 4) float64, each node's world matrix in the scene's own pose
+        (converted like the skin's ``bind_to_world``); ``path``, the file.
+    """
     path = _check_fbx_path(path)
     raw = _read_raw(path)
     meshes, axes_map, unit_cm = _convert_meshes(path, raw)

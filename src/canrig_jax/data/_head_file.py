@@ -39,16 +39,7 @@ _UNIT_WORDS = {"mm": "millimetres", "cm": "centimetres", "dm": "decimetres", "m"
 
 @dataclasses.dataclass(frozen=True)
 class HeadMesh:
-    """A triangle mesh read from a file.
-
-    Attributes:
-        vertices: (V, 3) float32 positions in ``units`` (as stored in the file; an FBX
-            file's are turned y up, facing +z, and in cm unless ``units`` was given).
-        faces: (F, 3) int32 triangles (polygons fan-split by trimesh or ``load_fbx``).
-        units: "mm", "cm", "dm" or "m".
-        inferred: True when ``units`` was inferred from the bounding box.
-        path: the file it came from.
-    """
+    """A triangle mesh read from a file (``load_head`` lists the fields)."""
 
     vertices: Float32[np.ndarray, "V 3"]
     faces: Int32[np.ndarray, "F 3"]
@@ -88,6 +79,14 @@ def load_head(path: str | os.PathLike, units: str | None = None) -> HeadMesh:
             bounding box (a ValueError when no unit gives a head's size), or for FBX takes
             the file's own unit (given, it overrides the file's: its numbers are read in
             ``units``, after the axes and node transforms).
+
+    Returns:
+        A ``HeadMesh``: ``vertices`` (V, 3) float32 positions in ``units`` (as stored in the
+        file; an FBX file's are turned y up, facing +z, and in cm unless ``units`` was given);
+        ``faces`` (F, 3) int32 triangles (polygons fan-split by trimesh or ``load_fbx``);
+        ``units``, "mm", "cm", "dm" or "m"; ``inferred``, True when ``units`` was inferred
+        from the bounding box; ``path``, the file; ``size_cm``, the longest bounding-box side
+        in centimetres; ``vertices_in(units)``, the vertices converted to ``units``.
 
     Raises FileNotFoundError for a missing file and ValueError naming the file for an empty
     file, an unknown extension, a file that holds no triangle mesh, or non-finite positions;

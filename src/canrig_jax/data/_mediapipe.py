@@ -12,14 +12,7 @@ from ._paths import data_file, read_arrays
 
 @dataclasses.dataclass(frozen=True)
 class MediaPipeFace:
-    """The canonical face as host NumPy arrays.
-
-    Attributes:
-        neutral: (468, 3) float32 vertex positions, cm.
-        faces: (898, 3) int32 triangles indexing ``neutral``.
-        uv: (468, 2) float32 texture coordinates.
-        face_uv_idx: (898, 3) int32 triangles indexing ``uv``.
-    """
+    """The canonical face as host NumPy arrays (``load_mediapipe_face`` lists the fields)."""
 
     neutral: Float32[np.ndarray, "V 3"]
     faces: Int32[np.ndarray, "F 3"]
@@ -32,6 +25,12 @@ def load_mediapipe_face(data_dir: str | os.PathLike | None = None) -> MediaPipeF
 
     Args:
         data_dir: data folder (else ``$CANRIG_DATA``, else ``../shared/data``).
+
+    Returns:
+        The canonical face as host NumPy arrays (a ``MediaPipeFace``): ``neutral`` (468, 3)
+        float32 vertex positions, cm; ``faces`` (898, 3) int32 triangles indexing
+        ``neutral``; ``uv`` (468, 2) float32 texture coordinates; ``face_uv_idx`` (898, 3)
+        int32 triangles indexing ``uv``.
     """
     path = data_file("mediapipe/canonical_face.npz", data_dir)
     z = read_arrays(path, ("neutral", "faces", "uv", "face_uv_idx"))

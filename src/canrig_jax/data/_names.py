@@ -107,14 +107,8 @@ def to_arkit(name: str) -> str:
 
 @dataclasses.dataclass(frozen=True)
 class RetargetReport:
-    """What a name-based retarget could not carry over.
-
-    Attributes:
-        unused_source: source channels no target channel reads (e.g. ``TongueOut`` for ICT).
-        missing_target: target channels with no source; zero-filled when ``missing="zero"``.
-        averaged: groups of source channels averaged into one ARKit channel (e.g. ICT's
-            ``browInnerUp_L``/``_R`` read by a rig with a single ``browInnerUp``).
-    """
+    """What a name-based retarget could not carry over (``retarget_weights`` lists the
+    fields)."""
 
     unused_source: tuple[str, ...]
     missing_target: tuple[str, ...]
@@ -143,7 +137,12 @@ def retarget_weights(
             (such channels get weight 0 and are listed in the report).
 
     Returns:
-        ``(weights_out, report)``: (..., K_target) float32 and a ``RetargetReport``.
+        ``(weights_out, report)``: (..., K_target) float32 and a ``RetargetReport`` of what
+        could not be carried over: ``unused_source``, the source channels no target channel
+        reads (e.g. ``TongueOut`` for ICT); ``missing_target``, the target channels with no
+        source (zero-filled when ``missing="zero"``); ``averaged``, the groups of source
+        channels averaged into one ARKit channel (e.g. ICT's ``browInnerUp_L``/``_R`` read by
+        a rig with a single ``browInnerUp``).
     """
     if missing not in ("raise", "zero"):
         raise ValueError(f"missing: expected 'raise' or 'zero', got {missing!r}")

@@ -1,7 +1,7 @@
 """Runs beyond one process: JAX's multi-controller runtime (``jax.distributed``), started from
 the arguments or the environment a launcher sets, and work shared across its processes.
 
-- ``initialize()`` first in every process (it returns the ``ProcessGroup``;
+- ``initialize()`` first in every process (it returns this process's place in the run;
   ``add_process_options``/``initialize_from_args`` for scripts). Afterwards the trainers
   (``canrig.train``, ``pbs.train_pbs``, ``autorig.train_riganyface``) run data-parallel over
   every process's devices, process 0 writing the checkpoint.
@@ -14,13 +14,11 @@ the arguments or the environment a launcher sets, and work shared across its pro
 The guide ``docs/guides/distributed.md`` shows each with the environment it needs.
 """
 
-from ._launch import LaunchResult, launch
-from ._process_group import ProcessGroup, add_process_options, initialize, initialize_from_args
+from ._launch import launch
+from ._process_group import add_process_options, initialize, initialize_from_args
 from ._share import gather_frames, map_items
 
 __all__ = [
-    "LaunchResult",
-    "ProcessGroup",
     "add_process_options",
     "gather_frames",
     "initialize",

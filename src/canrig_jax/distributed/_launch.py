@@ -33,14 +33,7 @@ def free_port() -> int:
 
 @dataclasses.dataclass(frozen=True)
 class LaunchResult:
-    """How a launched run ended.
-
-    Attributes:
-        returncodes: each process's exit status (negative: killed by that signal).
-        first_failure: the process that failed first, or None when all succeeded.
-        seconds: wall-clock time from the start to the last process's end.
-        stopped: processes ``launch`` had to stop after the grace period.
-    """
+    """How a launched run ended (``launch`` lists the fields)."""
 
     returncodes: tuple[int, ...]
     first_failure: int | None
@@ -101,7 +94,16 @@ def launch(
     (module docstring) and wait for them. ``port``: the coordinator's (default: a free one);
     ``env``: the environment (default: this one's) to which the ``CANRIG_*`` variables are
     added; ``stdout``/``stderr``: where the prefixed lines go (default: this process's).
-    Returns a ``LaunchResult``; never raises for a failed process."""
+    Never raises for a failed process.
+
+    Returns:
+        How the run ended, a ``LaunchResult``: ``returncodes``, each process's exit status
+        (negative: killed by that signal); ``first_failure``, the process that failed first,
+        or None when all succeeded; ``seconds``, the wall-clock time from the start to the
+        last process's end; ``stopped``, the processes ``launch`` had to stop after the grace
+        period; ``returncode``, 0 when every process succeeded, else the first failure's
+        status (1 for a signal); ``describe()``, what happened in words.
+    """
     command = [str(c) for c in command]
     if not command:
         raise ValueError("command: expected a command to launch, got nothing")

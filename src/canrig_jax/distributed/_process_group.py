@@ -35,16 +35,7 @@ _SLURM = ("SLURM_JOB_ID", "SLURM_STEP_NODELIST", "SLURM_NTASKS", "SLURM_PROCID",
 
 @dataclasses.dataclass(frozen=True)
 class ProcessGroup:
-    """This process's place in a run.
-
-    Attributes:
-        processes: how many processes run the same program.
-        process_id: this one's index, ``0 <= process_id < processes``.
-        coordinator: ``host:port`` of process 0's coordination service; None for one process
-            or when the cluster's detection finds it (SLURM).
-        source: where the values came from (``"arguments"``, ``"CANRIG_* environment"``,
-            ``"SLURM"``, ``"Kubernetes indexed Job"``, ``"one process"``).
-    """
+    """This process's place in a run (``initialize`` lists the fields)."""
 
     processes: int
     process_id: int
@@ -146,7 +137,17 @@ def initialize(
     message); ``timeout_s``: how long to wait for every process to join. Afterwards
     ``jax.devices()`` lists every process's devices (``jax.local_devices()`` this one's), and
     the trainers and ``gather_frames``/``map_items`` work across processes. Calling it again
-    with the same values returns the group; other values raise ValueError."""
+    with the same values returns the group; other values raise ValueError.
+
+    Returns:
+        This process's place in the run, a ``ProcessGroup``: ``processes``, how many run the
+        same program; ``process_id``, this one's index (``0 <= process_id < processes``);
+        ``coordinator``, ``host:port`` of process 0's coordination service (None for one
+        process or when the cluster's detection finds it, SLURM); ``source``, where the values
+        came from (``"arguments"``, ``"CANRIG_* environment"``, ``"SLURM"``, ``"Kubernetes
+        indexed Job"``, ``"one process"``); ``is_main``, True in process 0 (the one that
+        writes outputs and checkpoints and prints progress); ``describe()``, one line.
+    """
     group = process_group(coordinator, processes, process_id)
     for value, name in ((heartbeat_s, "heartbeat_s"), (timeout_s, "timeout_s")):
         if _integer(value, name) < 1:

@@ -13,8 +13,7 @@ multipliers and offsets) with ``Constrained`` (``rig.exclusive_pairs``, ``left_r
 ``pair_indices``, ``both_active``), read from an Audio2Face-3D solver configuration with
 ``from_audio2face_config``; whole takes with ``solve_sequence`` (jointly and smooth in time
 with ``TemporalNewton``); a take carried onto another control set of the same mesh with
-``retarget``; live capture with ``Stream``; metrics (``summarize``, ``frame_metrics``,
-``roughness``).
+``retarget``; live capture with ``Stream``; metrics (``summarize``, ``roughness``).
 
 The paper's evaluation (the alpha and smoothness rules, the sparsity protocol, the NumPy
 reference of Algorithm 1, the timing harnesses) is ``canrig_jax.papers.inverse_rig``.
@@ -32,7 +31,7 @@ from ._coordinate_descent import ORDERS, LinearCD, QuarticCD, Seol
 from ._jaxopt_solver import JaxoptLBFGSB
 from ._least_squares import Cetinaslan, Joshi
 from ._lmmm import LMMM
-from ._metrics import CARDINALITY_TOL, frame_metrics, roughness, summarize
+from ._metrics import CARDINALITY_TOL, roughness, summarize
 from ._problem import InverseProblem, prepare
 from ._projected_newton import QuarticNewton
 from ._retarget import retarget
@@ -76,7 +75,6 @@ __all__ = [
     "Stream",
     "TemporalNewton",
     "both_active",
-    "frame_metrics",
     "from_audio2face_config",
     "left_right_pairs",
     "pair_indices",

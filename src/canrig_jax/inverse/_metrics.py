@@ -58,8 +58,11 @@ def roughness(weights: Float[ArrayLike, "T K"]) -> float:
 def summarize(
     rig: BlendshapeRig, weights: Float[ArrayLike, "T K"], clean: Float[ArrayLike, "T V 3"]
 ) -> dict[str, float]:
-    """Means over frames of ``frame_metrics``, with ``rmse_mean_mm`` (mean of per-frame RMSE)
-    and ``rmse_p95_mm`` (mean of per-frame p95 error), as in the paper's tables."""
+    """Metrics of weights (T, K) against clean meshes (T, V, 3) in rig units, as in the paper's
+    tables, each a mean over the frames, in mm whatever the rig's unit: ``rmse_mean_mm``, the
+    per-frame RMSE sqrt(||f(w) - b||^2 / V); ``rmse_p95_mm``, the per-frame 95th percentile of
+    the per-vertex error; ``cardinality``, the number of weights above ``CARDINALITY_TOL``;
+    ``l1``, the sum of the weights."""
     m = frame_metrics(rig, weights, clean)
     return {
         "rmse_mean_mm": float(m["rmse_mm"].mean()),

@@ -4,10 +4,15 @@ The layer above ``data``: it knows arrays (vertices, faces, per-vertex data) and
 rigs; ``canrig_jax.rig`` builds rigs from it.
 
 Also importable here but not in ``__all__`` (the checks and pieces the other subpackages build
-on): ``check_mesh``, ``connected_components``, ``mesh_edges``, ``rigid_residual``,
-``similarity_transform``, ``triangulate_quads``, ``vertex_adjacency``."""
+on): ``SimilarityFit``, ``TriangleCorrespondence``, ``check_mesh``, ``connected_components``,
+``edge_stretch``, ``fit_landmarks``, ``flip_quad_split``, ``mesh_edges``, ``rigid_residual``,
+``similarity_icp``, ``similarity_transform``, ``subdivide``, ``transfer_deltas``,
+``triangulate_quads``, ``vertex_adjacency``."""
 
-from ._align import SimilarityFit, bind_points, fit_landmarks, similarity_icp
+from ._align import SimilarityFit as SimilarityFit
+from ._align import bind_points
+from ._align import fit_landmarks as fit_landmarks
+from ._align import similarity_icp as similarity_icp
 from ._checks import check_mesh as check_mesh
 from ._deformation_gradient import DeformationGradientBlend
 from ._geodesic import (
@@ -18,40 +23,37 @@ from ._geodesic import (
     weighted_geodesic_distance,
 )
 from ._geodesic import mesh_edges as mesh_edges
-from ._motion import edge_stretch, flipped_triangles, self_intersections
+from ._motion import edge_stretch as edge_stretch
+from ._motion import flipped_triangles, self_intersections
 from ._motion import rigid_residual as rigid_residual
 from ._operators import MeshOperators, mesh_operators, pad_vertices, stack_operators
-from ._remesh import Remeshed, SurfaceMap, decimate, flip_quad_split, subdivide
+from ._remesh import Remeshed, SurfaceMap, decimate
+from ._remesh import flip_quad_split as flip_quad_split
+from ._remesh import subdivide as subdivide
 from ._topology import connected_components as connected_components
 from ._topology import vertex_adjacency as vertex_adjacency
-from ._transfer import TriangleCorrespondence, closest_point_correspondence, transfer_deltas
+from ._transfer import TriangleCorrespondence as TriangleCorrespondence
+from ._transfer import closest_point_correspondence
 from ._transfer import similarity_transform as similarity_transform
+from ._transfer import transfer_deltas as transfer_deltas
 from ._triangulate import triangulate_quads as triangulate_quads
 
 __all__ = [
     "DeformationGradientBlend",
     "MeshOperators",
     "Remeshed",
-    "SimilarityFit",
     "SurfaceMap",
-    "TriangleCorrespondence",
     "attached_edge_graph",
     "bind_points",
     "bridged_edge_graph",
     "closest_point_correspondence",
     "decimate",
     "edge_graph",
-    "edge_stretch",
     "farthest_point_vertices",
-    "fit_landmarks",
-    "flip_quad_split",
     "flipped_triangles",
     "mesh_operators",
     "pad_vertices",
     "self_intersections",
-    "similarity_icp",
     "stack_operators",
-    "subdivide",
-    "transfer_deltas",
     "weighted_geodesic_distance",
 ]

@@ -252,8 +252,11 @@ def bind_points(
             exceeds this (head units); default 2 % of the points' bounding-box diagonal.
 
     Returns:
-        (the binding, the ``SimilarityFit``); ``binding.distance`` is each moved point's
-        distance to the surface.
+        (the binding, the similarity): the binding a ``SurfaceMap`` whose ``distance`` is each
+        moved point's distance to the surface; the similarity a ``SimilarityFit``, target ~
+        ``scale * rotation @ source + translation`` (``rotation`` (3, 3), ``translation``
+        (3,)), with ``rms``, the root mean square distance of the kept (trimmed) pairs after
+        the last iteration (the target's units), ``iterations`` run, and ``apply(points)``.
     """
     tv, tf = check_mesh(target_vertices, target_faces)
     keep = np.ones(tf.shape[0], bool) if target_triangles is None else np.asarray(target_triangles)

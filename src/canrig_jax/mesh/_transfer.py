@@ -264,6 +264,15 @@ def closest_point_correspondence(
             point of side s >= 0 never lands on a triangle whose corners all lie on another
             side >= 0, in the alignment's refinement nor in the map (a triangle's side: its
             corners' when they share one, else -1). Both or neither.
+
+    Returns:
+        A ``TriangleCorrespondence`` for ``rig.deformation_transfer``: ``source_triangle``
+        (T,), the source face that drives each target face, or (T, S), S source faces sampled
+        inside each target face (their gradients are averaged, weighted by source area);
+        ``vertex_map``, the ``SurfaceMap`` of the target vertices on the source mesh;
+        ``target_faces`` (T, 3); ``method``, "closest_point"; ``component_match``, the source
+        connected component matched to each target component (None without
+        ``match_components``).
     """
     sv, sf = check_mesh(source_vertices, source_faces)
     tv, tf = check_mesh(target_vertices, target_faces)

@@ -44,6 +44,12 @@ from ._model import (
 )
 
 PBS_MODELS = (*PBS_VARIANTS, "shape_transformer")
+"""The networks ``PBSTrainOptions.model`` names: ``per_patch`` (``PerPatchPBS``, the paper's
+CANRig-PBS), Figure 8's ablations ``base_multiplied`` (one shared output MLP on the same
+base-multiplied input) and ``no_modulation`` (one shared output MLP on the attended vector
+alone), all three final ``AbstractCANRigPBS``; and ``shape_transformer``, the Shape Transformer
+baseline ([CZG*22]: a transformer encoder over handle tokens, a cross-attention decoder
+queried per patch; no base shape, no masks)."""
 PBS_CHECKPOINT_FORMAT = "canrig-pbs-checkpoint-1"
 
 
@@ -106,18 +112,8 @@ class PBSTrainOptions:
 
 
 class PBSTrainingSet(eqx.Module):
-    """Whole-head training data (device arrays).
-
-    Attributes:
-        neutral: (N, 3) canonical shape; shapes: (M, N, 3) training shapes (cm).
-        weights: (M, P, B - 1) their PBS fits; basis: (B - 1, N, 3) the PBS offsets.
-        layout: the patch layout; seeds: (P, 3) the seeds' canonical positions.
-        pool: (Q,) candidate handle vertices; pool_distance: (P, Q) geodesic distance from
-            each patch seed to each pool vertex (cm; inf beyond the limit).
-        moving: (A,) the vertices the loss samples (those some training shape moves).
-        patch_base: (M + 1, P, 3) ``patch_means`` of each training shape, then the neutral's
-            (the base modulation, precomputed for training).
-    """
+    """Whole-head training data, device arrays (``build_pbs_training_set`` lists the
+    fields)."""
 
     neutral: Float[Array, "N 3"]
     shapes: Float[Array, "M N 3"]
@@ -147,7 +143,19 @@ def build_pbs_training_set(
     pool: Int[ArrayLike, " Q"],
 ) -> PBSTrainingSet:
     """The training set: PBS fits of ``shapes`` and the seed-to-pool distances (``distances``
-    from ``seed_distances``)."""
+    from ``seed_distances``).
+
+    Returns:
+        The whole-head training data for ``train_pbs`` (a ``PBSTrainingSet``, device arrays):
+        ``neutral`` (N, 3), the canonical shape; ``shapes`` (M, N, 3), the training shapes
+        (cm); ``weights`` (M, P, B - 1), their PBS fits; ``basis`` (B - 1, N, 3), the PBS
+        offsets; ``layout``; ``seeds`` (P, 3), the seeds' canonical positions; ``pool`` (Q,),
+        the candidate handle vertices, and ``pool_distance`` (P, Q), the geodesic distance
+        from each patch seed to each of them (cm; inf beyond the limit); ``moving`` (A,), the
+        vertices the loss samples (those some training shape moves); ``patch_base``
+        (M + 1, P, 3), each training shape's mean base position per patch, then the
+        neutral's (the base modulation, precomputed for training).
+    """
     neutral = np.asarray(neutral, np.float32)
     shapes = np.asarray(shapes, np.float32)
     if shapes.ndim != 3 or shapes.shape[1:] != neutral.shape:

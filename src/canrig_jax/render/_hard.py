@@ -44,15 +44,7 @@ _AREA_EPS = 1e-9  # |twice the signed screen area| (pixels^2) below which a tria
 
 
 class Fragments(eqx.Module):
-    """Visibility of a mesh through one camera (``rasterise_hard``; no gradients).
-
-    Attributes:
-        triangle: (H, W) int32 index of the triangle seen at each pixel centre, -1 where
-            none (background).
-        depth: (H, W) its depth along the viewing axis (world units), 0 on the background.
-        overflow: () int32 number of screen chunks beyond the budget (> 0: some triangles
-            were not, or only partly, rasterised; raise ``chunk_budget``).
-    """
+    """Visibility of a mesh through one camera (``rasterise_hard`` lists the fields)."""
 
     triangle: Int[Array, "H W"]
     depth: Float[Array, "H W"]
@@ -65,15 +57,7 @@ class Fragments(eqx.Module):
 
 
 class Interpolation(eqx.Module):
-    """Differentiable per-pixel values of ``interpolate`` (zero on the background).
-
-    Attributes:
-        barycentric: (H, W, 3) perspective-correct barycentric coordinates of the pixel
-            centre in its visible triangle (they sum to 1 on covered pixels).
-        depth: (H, W) interpolated depth (world units along the viewing axis).
-        attributes: (H, W, C) interpolated per-vertex attributes, or None.
-        mask: (H, W) hard coverage, 1.0 or 0.0 (no gradient: ``antialias`` gives one).
-    """
+    """Differentiable per-pixel values of ``interpolate`` (it lists the fields)."""
 
     barycentric: Float[Array, "H W 3"]
     depth: Float[Array, "H W"]
@@ -198,7 +182,15 @@ def rasterise_hard(
             (static).
         chunk_budget: chunks available, in units of the image's area (static): the budget
             is F + chunk_budget x H x W / chunk_size^2. A mesh whose triangles' screen boxes
-            add up to more than chunk_budget x the image overflows (``Fragments.overflow``).
+            add up to more than chunk_budget x the image overflows (``overflow`` below).
+
+    Returns:
+        The mesh's visibility (``Fragments``) for ``interpolate``, ``silhouette`` and
+        ``antialias``: ``triangle`` (H, W) int32, the index of the triangle seen at each pixel
+        centre, -1 where none (background); ``depth`` (H, W), its depth along the viewing axis
+        (world units), 0 on the background; ``covered`` (H, W) bool, a triangle is seen there;
+        ``overflow`` () int32, the number of screen chunks beyond the budget (> 0: some
+        triangles were not, or only partly, rasterised; raise ``chunk_budget``).
 
     jit- and vmap-safe. Concrete inputs are checked first (ValueError naming the argument:
     empty meshes, non-finite values, face indices out of range, a bad camera, vertices at or
@@ -264,6 +256,14 @@ def interpolate(
     triangles stay valid: visibility is then held fixed (first-order exact inside triangles).
     Values are 0 on the background. jit-, vmap- and grad-safe; concrete inputs are checked
     first (ValueError naming the argument).
+
+    Returns:
+        The differentiable per-pixel values (an ``Interpolation``): ``barycentric``
+        (H, W, 3), the perspective-correct barycentric coordinates of the pixel centre in its
+        visible triangle (they sum to 1 on covered pixels); ``depth`` (H, W), the interpolated
+        depth (world units along the viewing axis); ``attributes`` (H, W, C), the
+        interpolated ``attributes``, or None; ``mask`` (H, W), the hard coverage, 1.0 or 0.0
+        (no gradient: ``antialias`` gives one).
     """
     vertices, faces, attributes = _check_inputs(vertices, faces, camera, attributes)
     check_fragments(fragments, camera)

@@ -462,8 +462,8 @@ def _to_metres(matrices: np.ndarray) -> np.ndarray:
 
 
 def avatar_from_fbx(scene: FbxScene) -> GltfAvatar:
-    """A ``GltfAvatar`` (metres, y up) of a ``data.FbxScene``: its nodes, meshes and skins
-    (module docstring). Vertex order is the FBX's control points'."""
+    """A ``GltfAvatar`` (metres, y up) of an FBX scene (``data.load_fbx_scene``): its nodes,
+    meshes and skins (module docstring). Vertex order is the FBX's control points'."""
     out = _Appender(GltfAvatar({"asset": {"version": "2.0"}}, b""))
     document = out.document
     document["asset"] = {"version": "2.0", "generator": "canrig_jax (from FBX)"}

@@ -20,18 +20,14 @@ three.js is vendored in ``static/three.min.js`` (MIT, ``static/three.LICENSE``):
         --outfile=three.min.js
 """
 
-from ._browser import BrowserError, find_chromium
+from ._browser import find_chromium
 from ._colors import error_colors
-from ._error_take import ErrorGlb, export_error_glb, save_error_legend
-from ._glb import GlbSummary, inspect_glb
-from ._page import Screenshot, screenshot_glb
+from ._error_take import export_error_glb, save_error_legend
+from ._glb import inspect_glb
+from ._page import screenshot_glb
 from ._server import ViewerServer
 
 __all__ = [
-    "BrowserError",
-    "ErrorGlb",
-    "GlbSummary",
-    "Screenshot",
     "ViewerServer",
     "error_colors",
     "export_error_glb",

@@ -23,7 +23,7 @@ from ._colors import error_colors
 
 @dataclasses.dataclass(frozen=True)
 class ErrorGlb:
-    """What ``export_error_glb`` wrote."""
+    """What ``export_error_glb`` wrote (its docstring lists the fields)."""
 
     path: Path
     vertex_error_mm: Float[np.ndarray, " V"]
@@ -38,6 +38,38 @@ class ErrorGlb:
     """(V, 3) the linear RGB written as ``COLOR_0``."""
     times: Float[np.ndarray, " T"]
     """(T,) key time of each frame (s)."""
+
+
+def _checked_take(meshes, error_mm, region, neutral):
+    """``export_error_glb``'s arrays, checked (ValueError naming the argument), with the
+    defaults of ``region`` (every vertex) and ``neutral`` (the first frame) filled in."""
+    meshes = np.asarray(meshes)
+    if meshes.ndim != 3 or meshes.shape[2] != 3 or meshes.shape[0] < 1 or meshes.shape[1] < 3:
+        raise ValueError(f"meshes: expected (T, V, 3) with T >= 1 frames, got {meshes.shape}")
+    check_real("meshes", meshes)
+    check_finite("meshes", meshes)
+    t, v = meshes.shape[:2]
+    error_mm = np.asarray(error_mm)
+    if error_mm.shape != (t, v):
+        raise ValueError(
+            f"error_mm: expected shape ({t}, {v}) (frames, vertices), got {error_mm.shape}"
+        )
+    check_real("error_mm", error_mm)
+    check_finite("error_mm", error_mm)
+    if error_mm.min() < 0:
+        raise ValueError(f"error_mm: expected non-negative errors, got {error_mm.min()}")
+    if region is None:
+        region = np.ones(v, bool)
+    region = np.asarray(region)
+    if region.shape != (v,) or region.dtype != bool or not region.any():
+        raise ValueError(f"region: expected a ({v},) bool mask with a True vertex")
+    if neutral is None:
+        neutral = meshes[0]
+    neutral = np.asarray(neutral)
+    if neutral.shape != (v, 3):
+        raise ValueError(f"neutral: expected shape ({v}, 3), got {neutral.shape}")
+    check_finite("neutral", neutral)
+    return meshes, error_mm, region, neutral
 
 
 def export_error_glb(
@@ -71,35 +103,19 @@ def export_error_glb(
             slider reads as that frame); default the first frame.
         units: the meshes' length unit (recorded in the file).
 
-    Returns an ``ErrorGlb``. Raises ValueError naming the argument for inconsistent shapes,
-    non-finite values, negative errors, an empty region or a zero colour scale.
+    Returns:
+        An ``ErrorGlb``: the ``path`` written; ``vertex_error_mm`` (V,), the coloured error
+        (each vertex's mean over the frames, mm); ``vmax_mm``, the error drawn pure red (and
+        everything above it); ``worst_vertex``, the vertex with the largest mean error (within
+        ``region`` when given) and ``worst_frame``, the frame where its error is largest;
+        ``colors`` (V, 3), the linear RGB written as ``COLOR_0``; ``times`` (T,), the key time
+        of each frame (s).
+
+    Raises ValueError naming the argument for inconsistent shapes, non-finite values,
+    negative errors, an empty region or a zero colour scale.
     """
-    meshes = np.asarray(meshes)
-    if meshes.ndim != 3 or meshes.shape[2] != 3 or meshes.shape[0] < 1 or meshes.shape[1] < 3:
-        raise ValueError(f"meshes: expected (T, V, 3) with T >= 1 frames, got {meshes.shape}")
-    check_real("meshes", meshes)
-    check_finite("meshes", meshes)
+    meshes, error_mm, region, neutral = _checked_take(meshes, error_mm, region, neutral)
     t, v = meshes.shape[:2]
-    error_mm = np.asarray(error_mm)
-    if error_mm.shape != (t, v):
-        raise ValueError(
-            f"error_mm: expected shape ({t}, {v}) (frames, vertices), got {error_mm.shape}"
-        )
-    check_real("error_mm", error_mm)
-    check_finite("error_mm", error_mm)
-    if error_mm.min() < 0:
-        raise ValueError(f"error_mm: expected non-negative errors, got {error_mm.min()}")
-    if region is None:
-        region = np.ones(v, bool)
-    region = np.asarray(region)
-    if region.shape != (v,) or region.dtype != bool or not region.any():
-        raise ValueError(f"region: expected a ({v},) bool mask with a True vertex")
-    if neutral is None:
-        neutral = meshes[0]
-    neutral = np.asarray(neutral)
-    if neutral.shape != (v, 3):
-        raise ValueError(f"neutral: expected shape ({v}, 3), got {neutral.shape}")
-    check_finite("neutral", neutral)
 
     vertex_error = error_mm.mean(axis=0)
     if vmax_mm is None:

@@ -12,7 +12,7 @@ _JSON_CHUNK = 0x4E4F534A
 
 @dataclasses.dataclass(frozen=True)
 class GlbSummary:
-    """A ``.glb``'s contents as the viewer shows them."""
+    """A ``.glb``'s contents as the viewer shows them (``inspect_glb`` lists the fields)."""
 
     path: Path
     n_meshes: int
@@ -38,7 +38,12 @@ class GlbSummary:
 
 
 def inspect_glb(path: str | os.PathLike) -> GlbSummary:
-    """The summary of the binary glTF 2.0 file ``path``.
+    """The summary of the binary glTF 2.0 file ``path``, as the viewer shows it: a
+    ``GlbSummary`` with the ``path``, ``n_meshes``, ``n_vertices`` (POSITION counts summed
+    over every primitive), ``morph_names`` (every mesh's morph target names,
+    ``extras.targetNames`` or ``target_i``, each once, in mesh order), ``animations`` (their
+    names), ``has_colors`` (whether any primitive has a ``COLOR_0`` attribute) and
+    ``describe()``, the one-line summary ``canrig view`` prints.
 
     Raises ValueError naming ``path`` when it is missing, not a binary glTF 2.0 file, or holds
     no mesh with triangles to show."""

@@ -52,7 +52,7 @@ class ViewerPage:
 
 @dataclasses.dataclass(frozen=True)
 class Screenshot:
-    """What ``screenshot_glb`` wrote: the file, the time shown and the page's report."""
+    """What ``screenshot_glb`` wrote (its docstring lists the fields)."""
 
     path: Path
     time: float
@@ -83,8 +83,14 @@ def screenshot_glb(
     ``morphs`` holds targets at fixed weights over the animation; ``colors`` shows COLOR_0
     when the file has it; ``face`` frames the camera on the vertices the morph targets move
     (a whole avatar's face) instead of the whole model. Raises ValueError naming the file
-    (``inspect_glb``) or ``morphs`` (an unknown target name) and BrowserError when Chromium
-    is missing or fails."""
+    (``inspect_glb``) or ``morphs`` (an unknown target name), and a RuntimeError
+    (``BrowserError``) when Chromium is missing or fails.
+
+    Returns:
+        A ``Screenshot``: the ``path`` written, the animation ``time`` shown (s), the page's
+        report ``info`` (a dict) and its ``console`` messages ``(level, text)``; ``errors``
+        lists the console's error texts.
+    """
     out = Path(out)
     if out.suffix.lower() != ".png":
         raise ValueError(f"--screenshot {out}: expected a .png file name")

@@ -13,30 +13,17 @@ The paper's evaluation (held-out frames, probes, Table 1's timings) is
 """
 
 from ._fsm import coactivation_pairs, fix_shape_rig
-from ._layers import LayeredEdits, apply_layered, fit_layered
+from ._layers import apply_layered, fit_layered
 from ._metric import blendshape_metric
-from ._pse import (
-    EditData,
-    PoseSpaceEdit,
-    apply,
-    fit_pose_space_edit,
-    fit_prepared,
-    prepare_edits,
-)
-from ._reuse import ReuseResult, reuse_edits
-from ._search import SearchResult, search_edits
-from ._sigma import SigmaFit, fit_sigma, sigma_from_gui
+from ._pse import PoseSpaceEdit, apply, fit_pose_space_edit, fit_prepared, prepare_edits
+from ._reuse import reuse_edits
+from ._search import search_edits
+from ._sigma import fit_sigma, sigma_from_gui
 from ._temporal import temporal_change
-from ._width import WidthFit, fit_width
+from ._width import fit_width
 
 __all__ = [
-    "EditData",
-    "LayeredEdits",
     "PoseSpaceEdit",
-    "ReuseResult",
-    "SearchResult",
-    "SigmaFit",
-    "WidthFit",
     "apply",
     "apply_layered",
     "blendshape_metric",

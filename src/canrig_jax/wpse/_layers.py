@@ -30,12 +30,8 @@ from ._pse import (
 
 
 class LayeredEdits(eqx.Module):
-    """Independent pose-space edits whose corrections add.
-
-    Attributes:
-        layers: one ``PoseSpaceEdit`` per layer, in fitting order.
-        assignment: the layer of each input edit (static).
-    """
+    """Independent pose-space edits whose corrections add (``fit_layered`` lists the
+    fields)."""
 
     layers: tuple[PoseSpaceEdit, ...]
     assignment: tuple[int, ...] = eqx.field(static=True)
@@ -83,6 +79,11 @@ def fit_layered(
         layer_sigma: width of layers 1, 2, ... (one value for all, or one per layer; default
             ``sigma``).
         **options: passed to ``fit_pose_space_edit`` (metric, local_frames, ridge, ...).
+
+    Returns:
+        A ``LayeredEdits`` for ``apply_layered``: ``layers``, one ``PoseSpaceEdit`` per layer
+        in fitting order (``n_layers`` of them), and ``assignment``, the layer of each input
+        edit.
     """
     poses, edits = check_edits(rig, poses, edits)
     check_sigma(sigma)

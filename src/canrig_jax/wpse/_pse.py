@@ -166,8 +166,7 @@ def fit_pose_space_edit(
 
 
 class EditData(eqx.Module):
-    """Edits made ready for the RBF solve: restricted to the edited vertices, with their
-    metric, and in local frames when asked (what training and the sigma fit share)."""
+    """Edits made ready for the RBF solve (``prepare_edits`` lists the fields)."""
 
     poses: Float[Array, "P K"]
     vertices: Int[Array, " S"]
@@ -190,7 +189,14 @@ def prepare_edits(
     rest_pose: bool = False,
 ) -> EditData:
     """Validate edits, restrict them to their support, pick the metric, rotate into local
-    frames (arguments as ``fit_pose_space_edit``)."""
+    frames (arguments as ``fit_pose_space_edit``).
+
+    Returns:
+        An ``EditData`` for ``fit_prepared``, ``fit_width`` and ``fit_sigma`` (what training
+        and the width fits share): ``poses`` (P, K), the edited ``vertices`` (S,), their
+        ``metric`` (S or 1, K), the ``displacements`` (S, P, 3) (in local frames when asked,
+        ``frames``, else None) and the mesh's ``n_vertices``.
+    """
     if not isinstance(rig, BlendshapeRig):
         raise ValueError(f"rig: expected a BlendshapeRig, got {type(rig).__name__}")
     poses, edits = check_edits(rig, poses, edits)
@@ -209,7 +215,7 @@ def prepare_edits(
             raise ValueError(
                 f"poses: edits {repeated} are at the same pose (within {DUPLICATE_DISTANCE}), "
                 "which makes the RBF system singular; pass duplicates='merge' to average them, "
-                "or add the later edit to a new layer (canrig_jax.wpse.LayeredEdits)"
+                "or add the later edit to a new layer (canrig_jax.wpse.fit_layered)"
             )
         poses = np.stack([poses[g].mean(axis=0) for g in groups])
         edits = np.stack([edits[g].mean(axis=0) for g in groups])

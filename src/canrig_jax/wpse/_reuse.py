@@ -20,8 +20,7 @@ from ._search import search_edits
 
 @dataclasses.dataclass(frozen=True)
 class ReuseResult:
-    """``corrections`` (T, V, 3): world-space correction of every query frame by the edits
-    found for it; ``found``: the library indices used at each frame (best first)."""
+    """Result of ``reuse_edits`` (its docstring lists the fields)."""
 
     corrections: Float[np.ndarray, "T V 3"]
     found: tuple[Int[np.ndarray, " _n"], ...]
@@ -48,6 +47,11 @@ def reuse_edits(
         tau: search threshold on E (eq. 7; > 0).
         sigma: Gaussian width of the models built from the found edits.
         fit_kwargs: passed to ``fit_pose_space_edit`` (``support_tol``, ``rest_pose``, ...).
+
+    Returns:
+        A ``ReuseResult``: ``corrections`` (T, V, 3), the world-space correction of every
+        query frame by the edits found for it, and ``found``, the library indices used at
+        each frame (best first).
     """
     if not isinstance(rig, BlendshapeRig):
         raise ValueError(f"rig: expected a BlendshapeRig, got {type(rig).__name__}")

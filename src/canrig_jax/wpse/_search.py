@@ -28,8 +28,7 @@ def region_energy(
 
 @dataclasses.dataclass(frozen=True)
 class SearchResult:
-    """Candidates below the threshold: ``indices`` into the library, best first, and their
-    ``energies``."""
+    """Result of ``search_edits`` (its docstring lists the fields)."""
 
     indices: Int[np.ndarray, " M"]
     energies: Float[np.ndarray, " M"]
@@ -50,6 +49,10 @@ def search_edits(
         query: (K,) the current pose.
         roi: (R,) distinct vertex indices, R >= 1.
         tau: energy threshold (> 0; default keeps every candidate).
+
+    Returns:
+        A ``SearchResult``: the candidates below the threshold, ``indices`` (M,) into the
+        library, best first, and their ``energies`` (M,).
     """
     metric = np.asarray(metric, np.float32)
     library = np.asarray(library, np.float32)

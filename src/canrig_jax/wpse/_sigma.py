@@ -95,15 +95,7 @@ def loo_error(
 
 @dataclasses.dataclass(frozen=True)
 class SigmaFit:
-    """Result of ``fit_sigma``.
-
-    Attributes:
-        sigma: the LOO-optimal width.
-        loo_rms: root mean squared LOO error at ``sigma`` (units of the edits).
-        grid: (G,) widths of the starting grid and ``grid_rms`` their LOO RMS errors.
-        successful: whether optimistix reported success.
-        steps: BFGS steps taken.
-    """
+    """Result of ``fit_sigma`` (its docstring lists the fields)."""
 
     sigma: float
     loo_rms: float
@@ -138,6 +130,12 @@ def fit_sigma(
     The LOO error uses the ``max_vertices`` vertices with the largest edits. ``grid``
     (default 16 widths log-spaced over [0.02, 5] times the median pairwise pose distance under
     the metric) picks the starting point; BFGS then minimises over log sigma.
+
+    Returns:
+        A ``SigmaFit`` with ``sigma``, the LOO-optimal width; ``loo_rms``, the root mean
+        squared LOO error at ``sigma`` (units of the edits); ``grid`` (G,) the starting
+        grid's widths and ``grid_rms`` their LOO RMS errors; ``successful``, whether
+        optimistix reported success; ``steps``, the BFGS steps taken.
     """
     if data.poses.shape[0] < 2:
         raise ValueError("data: leave-one-out needs at least 2 edits")

@@ -33,16 +33,7 @@ from ._sigma import loo_residuals
 
 @dataclasses.dataclass(frozen=True)
 class WidthFit:
-    """Result of ``fit_width``.
-
-    Attributes:
-        sigma: the chosen width (smallest within ``se_factor`` standard errors of the minimum).
-        loo_min_sigma: the grid width with the smallest mean LOO error.
-        grid: (G,) widths; ``loo_mean`` (G,) their mean LOO error (units of the edits, mean
-            distance per vertex) and ``loo_per_edit`` (G, P) the error of each left-out edit.
-        standard_error: standard error of the mean LOO error at ``loo_min_sigma``.
-        se_factor: the rule's multiple of the standard error.
-    """
+    """Result of ``fit_width`` (its docstring lists the fields)."""
 
     sigma: float
     loo_min_sigma: float
@@ -116,6 +107,14 @@ def fit_width(
         grid: widths to search (default ``default_width_grid``).
         ridge: diagonal added to every basis matrix.
         max_vertices: vertices scored (every k-th of the edited vertices).
+
+    Returns:
+        A ``WidthFit`` with ``sigma``, the chosen width (the smallest within ``se_factor``
+        standard errors of the minimum); ``loo_min_sigma``, the grid width with the smallest
+        mean LOO error; ``grid`` (G,) the widths, ``loo_mean`` (G,) their mean LOO error
+        (units of the edits, mean distance per vertex) and ``loo_per_edit`` (G, P) the error
+        of each left-out edit; ``standard_error``, the standard error of the mean LOO error at
+        ``loo_min_sigma``; ``se_factor``, the rule's multiple of it.
     """
     scored = _scored(data)
     if scored.size < 3:
