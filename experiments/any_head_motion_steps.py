@@ -23,7 +23,6 @@ from any_head_motion import HARD, artist_rig, distances, frames_of, load_heads
 import canrig_jax.autorig._slits as slits
 from canrig_jax._io import save_text
 from canrig_jax.autorig import (
-    SculptedHead,
     Transfer,
     auto_rig,
     check_rig,
@@ -33,6 +32,7 @@ from canrig_jax.autorig import (
 )
 from canrig_jax.data import load_livelinkface, resolve_data_dir
 from canrig_jax.mesh import flipped_triangles
+from canrig_jax.papers.riganyface import SculptedHead
 
 VARIANTS = ("plain", "slits")
 

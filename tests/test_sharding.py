@@ -100,6 +100,7 @@ TRAINERS = r"""
 import dataclasses, json, warnings
 import jax, numpy as np
 from canrig_jax import canrig, autorig
+from canrig_jax.autorig._data import head_rig, make_head, pose_displacements, quartic_pose_set
 from canrig_jax.data import load_ict, load_livelinkface
 from canrig_jax.rig import ict_quartic_rig
 
@@ -116,10 +117,10 @@ for n in (1, 2):
     result = canrig.train(data, options, progress=False, devices=n)
     out["canrig"][str(n)] = [h["loss"] for h in result.history]
 
-poses = autorig.quartic_pose_set(rig)
+poses = quartic_pose_set(rig)
 ict_head = load_ict(parts=None)
-displacements = autorig.pose_displacements(autorig.head_rig(rig, ict_head), poses)
-head = autorig.make_head(
+displacements = pose_displacements(head_rig(rig, ict_head), poses)
+head = make_head(
     ict_head, displacements, np.random.default_rng(3).standard_normal(100), "decimate_600",
     name="decimate_600",
 )
