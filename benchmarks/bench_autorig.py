@@ -45,17 +45,14 @@ from canrig_jax._checkpoint import parameter_count
 from canrig_jax._io import save_text
 from canrig_jax.autorig import (
     DEFAULT_CHECKPOINT,
-    DEFAULT_POSE_CHUNK,
     RigAnyFaceNetwork,
     RigAnyFaceTrainOptions,
-    head_inputs,
     head_orientation,
     load_riganyface,
-    make_model,
-    pad_to_bucket,
-    predict_displacements,
-    quartic_pose_set,
 )
+from canrig_jax.autorig._data import quartic_pose_set
+from canrig_jax.autorig._rig import DEFAULT_POSE_CHUNK, pad_to_bucket, predict_displacements
+from canrig_jax.autorig._train import head_inputs, make_model
 from canrig_jax.data import load_ict
 from canrig_jax.mesh import decimate
 from canrig_jax.rig import ict_quartic_rig

@@ -7,14 +7,15 @@ Heads (each as stored: +y up, facing +z, centimetres; ``auto_rig`` decides the o
 held-out ICT identities (``ict_autorig_dataset`` test heads, the unseen 1,300-vertex
 remeshing; validation), the two Rocketbox heads (validation) and the MakeHuman head
 (evaluation only: nothing is chosen on it). Every generated ARKit shape is compared with the
-artist's (ICT's for ICT identities) by ``autorig.sculpted_target_errors`` on the skin (the
-largest component), in mm.
+artist's (ICT's for ICT identities) by ``papers.riganyface.sculpted_head_errors`` on the skin
+(the largest component), in mm.
 
 Protocols:
 - ``heads``: every method at k = 0 on all 52 shapes the truth has (tongueOut, which ICT
   lacks, is left out for every method alike), beside no motion.
-- ``few_shot``: k = 0, 1, 3, 5 example shapes given in ``autorig.EXAMPLE_ORDER`` (never chosen
-  by error), each k scored on the shapes not given, beside no motion on the same shapes.
+- ``few_shot``: k = 0, 1, 3, 5 example shapes given in ``papers.riganyface.EXAMPLE_ORDER``
+  (never chosen by error), each k scored on the shapes not given, beside no motion on the same
+  shapes.
 - ``template_loo``: Rocketbox female carried onto the male with ``Template`` and vice versa.
 - ``orientation``: the 24 axis-aligned rotations and their mirror images of an ICT head,
   MakeHuman, both Rocketbox heads and the face crops of each: recovered, refused or wrong.
@@ -44,18 +45,20 @@ from canrig_jax._provenance import experiment_command, provenance, record_comman
 from canrig_jax.autorig import (  # noqa: E402
     AUTO_RIG_METHODS,
     DEFAULT_METHOD,
+    auto_rig,
+    ict_pose_source,
+    load_makehuman,
+    load_rocketbox_head,
+)
+from canrig_jax.papers.riganyface import (  # noqa: E402
     EXAMPLE_ORDER,
     SculptedHead,
     any_head_table,
-    auto_rig,
     choose_default_method,
     face_crop,
     face_crop_fit,
     few_shot_rows,
-    ict_pose_source,
     ict_sculpted_heads,
-    load_makehuman,
-    load_rocketbox_head,
     mean_few_shot,
     measure_cli_seconds,
     orientation_cases,

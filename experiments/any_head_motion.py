@@ -10,7 +10,7 @@ files (``rig.load_fbx_rig(crop="head")``: the skinned mesh with the artist's sha
 the neck; validation), MakeHuman (evaluation only: nothing is chosen on it).
 
 For every method of ``autorig.AUTO_RIG_METHODS`` and k = 0, 1, 3 examples (the first k of
-``autorig.EXAMPLE_ORDER``): skin distance to the artist's animation (mean, p95, max over
+``papers.riganyface.EXAMPLE_ORDER``): skin distance to the artist's animation (mean, p95, max over
 frames and skin vertices, mm) beside no motion's, flipped skin triangles per frame (and the
 artist rig's), new self-intersections per frame, and the checks. The default method is
 chosen by ``RULE.md`` (committed before this ran), on the validation heads at k = 0.
@@ -35,12 +35,9 @@ from canrig_jax.autorig import (  # noqa: E402
     AUTO_RIG_METHODS,
     CHECK_LIMITS,
     DEFAULT_METHOD,
-    EXAMPLE_ORDER,
-    SculptedHead,
     auto_rig,
     check_rig,
     ict_pose_source,
-    ict_sculpted_heads,
     load_makehuman,
     load_rocketbox_head,
     plot_check_frames,
@@ -48,6 +45,11 @@ from canrig_jax.autorig import (  # noqa: E402
 from canrig_jax.data import load_livelinkface  # noqa: E402
 from canrig_jax.data._paths import resolve_data_dir
 from canrig_jax.mesh import flipped_triangles, self_intersections  # noqa: E402
+from canrig_jax.papers.riganyface import (  # noqa: E402
+    EXAMPLE_ORDER,
+    SculptedHead,
+    ict_sculpted_heads,
+)
 from canrig_jax.rig import (  # noqa: E402
     UNIT_IN_CM,
     BlendshapeRig,

@@ -31,7 +31,6 @@ import canrig_jax.autorig._slits as slits
 import canrig_jax.autorig._weld as weld
 from canrig_jax._io import save_text
 from canrig_jax.autorig import (
-    SculptedHead,
     Transfer,
     auto_rig,
     check_rig,
@@ -42,6 +41,7 @@ from canrig_jax.autorig import (
 from canrig_jax.data import load_livelinkface
 from canrig_jax.data._paths import resolve_data_dir
 from canrig_jax.mesh import flipped_triangles
+from canrig_jax.papers.riganyface import SculptedHead
 
 STEPS = {"slits": ("plain", "slits"), "weld": ("slits", "weld_0.1", "weld_0.2", "weld_0.3")}
 VALIDATION = ("ict_heldout_0", "ict_heldout_1", "rocketbox_female", "rocketbox_male")

@@ -1,7 +1,7 @@
 """How long does ``canrig autorig`` take on a head from another source? Re-measures, with the
 library's default method now, the command end to end in fresh processes on the any-head
 experiment's heads (a held-out ICT identity, both Rocketbox heads, MakeHuman; warm, and on
-MakeHuman once with an empty cache: ``autorig.measure_cli_seconds``).
+MakeHuman once with an empty cache: ``papers.riganyface.measure_cli_seconds``).
 
     python experiments/any_head_seconds.py --out experiments/results/any_head
 
@@ -20,13 +20,11 @@ from pathlib import Path
 
 from canrig_jax._io import save_json, save_text
 from canrig_jax._provenance import experiment_command, provenance, record_command
-from canrig_jax.autorig import (
-    DEFAULT_METHOD,
+from canrig_jax.autorig import DEFAULT_METHOD, load_makehuman, load_rocketbox_head
+from canrig_jax.papers.riganyface import (
     SculptedHead,
     any_head_table,
     ict_sculpted_heads,
-    load_makehuman,
-    load_rocketbox_head,
     measure_cli_seconds,
 )
 from canrig_jax.watchdog import run_watched

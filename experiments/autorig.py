@@ -8,13 +8,13 @@ class, the worst poses) and on the MakeHuman hm08 head against its person-made A
     python experiments/autorig.py --out /tmp/autorig --quick                   # tests
 
 Every model is trained (or resumed: a finished checkpoint trains no further) with the recipe
-of ``canrig_jax.autorig.recipe_options``, then evaluated. ``--residual-gate TAU`` gates the
-residual model's correction by the DT motion (``RigAnyFace(residual_gate=)``: what DT leaves
-still stays still), ``--residual-static-weight`` sets its static-vertex term. ``--raf-loss``
-(``autorig.RAF_LOSSES``), ``--raf-width`` and ``--raf-conditional-blocks`` set the pure
-models' loss and size. ``--anchor MODE`` adds a second anchored-DT base
-(``transfer_poses(anchor=)``: "part", or "skin_vertex": per vertex on the skin, per part
-elsewhere) and, with ``--anchored-residual``, its residual model
+of ``canrig_jax.papers.riganyface.recipe_options``, then evaluated. ``--residual-gate TAU``
+gates the residual model's correction by the DT motion (``RigAnyFace(residual_gate=)``: what DT
+leaves still stays still), ``--residual-static-weight`` sets its static-vertex term.
+``--raf-loss`` (``papers.riganyface.RAF_LOSSES``), ``--raf-width`` and
+``--raf-conditional-blocks`` set the pure models' loss and size. ``--anchor MODE`` adds a
+second anchored-DT base (``transfer_poses(anchor=)``: "part", or "skin_vertex": per vertex on
+the skin, per part elsewhere) and, with ``--anchored-residual``, its residual model
 ``raf_anchored_<mode>_dt_residual``.
 
 The other questions have their own scripts, on checkpoints this one (or autorig_train.py)
@@ -46,7 +46,8 @@ from pathlib import Path
 
 from canrig_jax._io import save_json, save_text
 from canrig_jax._provenance import experiment_command, provenance, record_command
-from canrig_jax.autorig import (
+from canrig_jax.autorig import RigAnyFaceNetwork, ict_autorig_dataset
+from canrig_jax.papers.riganyface import (
     ANCHOR_CM,
     ANCHOR_MODES,
     ANCHORED_RESIDUAL_MODELS,
@@ -54,7 +55,6 @@ from canrig_jax.autorig import (
     PURE_MODELS,
     RESIDUAL_MODEL,
     STATIC_MM,
-    RigAnyFaceNetwork,
     add_recipe_arguments,
     anchored_base_key,
     autorig_table,
@@ -63,7 +63,6 @@ from canrig_jax.autorig import (
     evaluate_splits,
     evaluation_rows,
     gltf_round_trip,
-    ict_autorig_dataset,
     makehuman_shapes,
     plot_pose_examples,
     plot_training_history,

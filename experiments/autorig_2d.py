@@ -31,12 +31,11 @@ import numpy as np
 
 from canrig_jax._io import save_json, save_text
 from canrig_jax._provenance import experiment_command, provenance, record_command
-from canrig_jax.autorig import (
+from canrig_jax.autorig import RigAnyFaceNetwork, ict_autorig_dataset, training_set
+from canrig_jax.papers.riganyface import (
     SUPERVISION_2D_RUNS,
-    RigAnyFaceNetwork,
     chunk_overflow,
     evaluate_2d,
-    ict_autorig_dataset,
     padded_faces,
     parse_supervision_2d_args,
     rasteriser_checks,
@@ -44,7 +43,6 @@ from canrig_jax.autorig import (
     supervision_2d_options,
     supervision_2d_table,
     train_2d_run,
-    training_set,
 )
 from canrig_jax.render import displacement_field, lambert_image, look_at, save_figure
 from canrig_jax.watchdog import run_watched

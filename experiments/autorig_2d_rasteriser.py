@@ -2,7 +2,7 @@
 head decimated to ~1,750 vertices: the soft rasteriser's gradient against finite differences,
 its hard limit and the fast path (``rasterise_hard`` + ``interpolate`` + ``silhouette``)
 against NumPy ray casting, the fast path's gradients in float64, and forward + backward frames
-per second at 256^2 (``autorig.rasteriser_checks``).
+per second at 256^2 (``papers.riganyface.rasteriser_checks``).
 
     python experiments/autorig_2d_rasteriser.py --out experiments/results/autorig_2d
 
@@ -19,7 +19,7 @@ from pathlib import Path
 
 from canrig_jax._io import save_json, save_text
 from canrig_jax._provenance import experiment_command, provenance
-from canrig_jax.autorig import rasteriser_checks, supervision_2d_table
+from canrig_jax.papers.riganyface import rasteriser_checks, supervision_2d_table
 from canrig_jax.watchdog import run_watched
 
 

@@ -14,16 +14,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from canrig_jax.autorig import (
+from canrig_jax.autorig import ict_autorig_dataset, training_set
+from canrig_jax.papers.riganyface import (
     SUPERVISION_2D_RUNS,
     chunk_overflow,
-    ict_autorig_dataset,
     padded_faces,
     parse_supervision_2d_args,
     rigged_heads,
     supervision_2d_options,
     train_2d_run,
-    training_set,
 )
 from canrig_jax.watchdog import run_watched
 

@@ -26,7 +26,8 @@ from pathlib import Path
 
 from canrig_jax._io import save_json, save_text
 from canrig_jax._provenance import experiment_command, provenance
-from canrig_jax.autorig import (
+from canrig_jax.autorig import ict_autorig_dataset
+from canrig_jax.papers.riganyface import (
     ANCHOR_CM,
     HELDOUT_SPLIT,
     STATIC_MM,
@@ -38,7 +39,6 @@ from canrig_jax.autorig import (
     evaluation_rows,
     heldout_predictions,
     heldout_shapes,
-    ict_autorig_dataset,
     load_checkpoint_rows,
     makehuman_shapes,
     plot_pose_examples,

@@ -1,6 +1,6 @@
 """Do the generated rigs push teeth, gums or eyeballs through the skin where the ground truth
 does not? With the standard run's checkpoints, every held-out row's penetration on the pose
-set where the ground truth has none (``autorig.clean_penetration``: per head, the inner
+set where the ground truth has none (``papers.riganyface.clean_penetration``: per head, the inner
 vertices inside the skin at rest and the poses whose ground truth pushes none of them out),
 and the plain penetration re-measured next to it. Nothing is trained; no training data is
 built.
@@ -22,7 +22,8 @@ from pathlib import Path
 
 from canrig_jax._io import save_json, save_text
 from canrig_jax._provenance import experiment_command, provenance
-from canrig_jax.autorig import (
+from canrig_jax.autorig import ict_autorig_dataset, load_riganyface
+from canrig_jax.papers.riganyface import (
     ANCHORED_RESIDUAL_MODELS,
     PURE_MODELS,
     RESIDUAL_MODEL,
@@ -30,8 +31,6 @@ from canrig_jax.autorig import (
     clean_penetration,
     evaluation_rows,
     heldout_predictions,
-    ict_autorig_dataset,
-    load_riganyface,
 )
 from canrig_jax.watchdog import run_watched
 

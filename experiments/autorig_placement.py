@@ -18,12 +18,8 @@ from pathlib import Path
 
 from canrig_jax._io import save_json, save_text
 from canrig_jax._provenance import experiment_command, provenance
-from canrig_jax.autorig import (
-    autorig_table,
-    ict_autorig_dataset,
-    load_riganyface,
-    placement_errors,
-)
+from canrig_jax.autorig import ict_autorig_dataset, load_riganyface
+from canrig_jax.papers.riganyface import autorig_table, placement_errors
 from canrig_jax.watchdog import run_watched
 
 

@@ -36,7 +36,6 @@ from canrig_jax.autorig import (  # noqa: E402
     CHECK_LIMITS,
     DEFAULT_METHOD,
     RigAnyFaceNetwork,
-    SculptedHead,
     Transfer,
     auto_rig,
     check_rig,
@@ -49,6 +48,7 @@ from canrig_jax.autorig import (  # noqa: E402
 from canrig_jax.data import load_livelinkface  # noqa: E402
 from canrig_jax.data._paths import resolve_data_dir
 from canrig_jax.mesh import flipped_triangles, self_intersections  # noqa: E402
+from canrig_jax.papers.riganyface import SculptedHead  # noqa: E402
 from canrig_jax.rig import UNIT_IN_CM, BlendshapeRig, evaluate_batch  # noqa: E402
 
 HARD = {name for name, (_, _, hard) in CHECK_LIMITS.items() if hard}

@@ -1,6 +1,6 @@
 """How long does generating a rig take? Re-measures the rig generation time of the standard
 run's ``raf`` checkpoint on the generic ICT head decimated to ~1,750 vertices: cold (compile
-+ operators + network) and warm (a new head of similar size), ``autorig.rig_timing``.
++ operators + network) and warm (a new head of similar size), ``papers.riganyface.rig_timing``.
 
     python experiments/autorig_timing.py --out experiments/results/autorig
 
@@ -17,8 +17,9 @@ from pathlib import Path
 
 from canrig_jax._io import save_json, save_text
 from canrig_jax._provenance import experiment_command, provenance
-from canrig_jax.autorig import autorig_table, load_riganyface, rig_timing
+from canrig_jax.autorig import load_riganyface
 from canrig_jax.data import load_ict
+from canrig_jax.papers.riganyface import autorig_table, rig_timing
 from canrig_jax.watchdog import run_watched
 
 

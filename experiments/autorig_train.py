@@ -7,8 +7,8 @@ a chunk of a long run, or the models of one folder in parallel processes.
 MODEL is a pure model (``raf``, ``raf_no_global_encoder``), the DT + learned residual model
 (``raf_dt_residual``) or a residual model on anchored deformation transfer
 (``raf_anchored_<mode>_dt_residual``); its options come from the same flags as
-``experiments/autorig.py``'s (``canrig_jax.autorig.recipe_options``), so the standard command
-then resumes the finished checkpoint (training no further) and evaluates it. Writes
+``experiments/autorig.py``'s (``canrig_jax.papers.riganyface.recipe_options``), so the standard
+command then resumes the finished checkpoint (training no further) and evaluates it. Writes
 DIR/checkpoint_<MODEL>.eqx only (no results); a rerun resumes it. ``--cache DIR`` keeps the
 training heads' transferred poses (a residual model's base) between runs.
 """
@@ -18,15 +18,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from canrig_jax.autorig import (
+from canrig_jax.autorig import ict_autorig_dataset
+from canrig_jax.distributed import add_process_options, initialize_from_args
+from canrig_jax.papers.riganyface import (
     RECIPE_MODELS,
     add_recipe_arguments,
-    ict_autorig_dataset,
     recipe_options,
     recipe_training_set,
     train_checkpoint,
 )
-from canrig_jax.distributed import add_process_options, initialize_from_args
 from canrig_jax.watchdog import run_watched
 
 

@@ -23,7 +23,8 @@ import numpy as np
 
 from canrig_jax._io import save_json
 from canrig_jax._provenance import experiment_command, provenance
-from canrig_jax.autorig import (
+from canrig_jax.autorig import ict_autorig_dataset
+from canrig_jax.papers.riganyface import (
     ANCHOR_CM,
     ANCHOR_MODES,
     HELDOUT_SPLIT,
@@ -32,7 +33,6 @@ from canrig_jax.autorig import (
     class_errors,
     heldout_predictions,
     heldout_shapes,
-    ict_autorig_dataset,
     load_checkpoint_rows,
 )
 from canrig_jax.watchdog import run_watched

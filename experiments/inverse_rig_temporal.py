@@ -38,8 +38,9 @@ The protocol, fixed before measuring:
 
 ``--validation-split`` runs an earlier variant, added after the first rule (smoothness on
 synthetic training takes, since replaced by the held-out rule above) missed its RMSE target;
-its key is kept as it was measured. The variant writes only the ``temporal_validation_split`` key and chooses
-smoothness on real motion held apart from the test frames. Its rule, fixed before measuring:
+its key is kept as it was measured. The variant writes only the
+``temporal_validation_split`` key and chooses smoothness on real motion held apart from the
+test frames. Its rule, fixed before measuring:
 
   ICT: the take is split into validation frames 0-89 and test frames 90-179 (its first and
   second halves; the same noise protocol and seed handling as the ``temporal`` run, so the noisy

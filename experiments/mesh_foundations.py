@@ -24,7 +24,7 @@ import scipy.sparse.linalg as spla
 from canrig_jax._io import save_json, save_text
 from canrig_jax._metrics import CM_TO_MM
 from canrig_jax._provenance import experiment_command, provenance, record_command
-from canrig_jax.autorig import LearnedDiffusion
+from canrig_jax.autorig._diffusion import LearnedDiffusion
 from canrig_jax.data import ict_identity, load_ict, load_mediapipe_face
 from canrig_jax.mesh import MeshOperators, closest_point_correspondence, decimate, flip_quad_split
 from canrig_jax.mesh._operators import mesh_geometry

@@ -30,9 +30,9 @@ from canrig_jax.autorig import (
     RigAnyFaceNetwork,
     load_makehuman,
     load_riganyface,
-    shared_shape_matrix,
 )
 from canrig_jax.data import load_livelinkface
+from canrig_jax.papers.riganyface import shared_shape_matrix
 from canrig_jax.rig import export_animated_gltf
 from canrig_jax.viewer import error_colors, find_chromium, screenshot_glb
 from canrig_jax.watchdog import run_watched

@@ -39,6 +39,7 @@ def run(out: Path, steps: int) -> None:
     import numpy as np
 
     from canrig_jax import autorig, canrig, distributed, inverse, pbs
+    from canrig_jax.autorig._data import head_rig, make_head, pose_displacements, quartic_pose_set
     from canrig_jax.data import ict_identity, load_ict, load_livelinkface
     from canrig_jax.mesh import edge_graph
     from canrig_jax.rig import evaluate_batch, ict_linear_rig, ict_quartic_rig, random_sparse_poses
@@ -88,10 +89,10 @@ def run(out: Path, steps: int) -> None:
     result["pbs_losses"] = np.array([h["loss"] for h in history])
 
     # RigAnyFace on one decimated ICT identity, 2 heads per step
-    pose_set = autorig.quartic_pose_set(rig)
+    pose_set = quartic_pose_set(rig)
     ict_head = load_ict(parts=None)
-    displacements = autorig.pose_displacements(autorig.head_rig(rig, ict_head), pose_set)
-    head = autorig.make_head(
+    displacements = pose_displacements(head_rig(rig, ict_head), pose_set)
+    head = make_head(
         ict_head, displacements, np.random.default_rng(3).standard_normal(100), "decimate_600",
         name="decimate_600",
     )  # fmt: skip

@@ -25,7 +25,7 @@ ISSUE = re.compile(r"\bissues?\s*#?\d+", re.IGNORECASE)
 SEED_PAGES = ("inverse-rig", "wpse", "canrig", "riganyface")
 API_PAGES = ("rig", "mesh", "inverse", "wpse", "canrig", "pbs", "autorig", "data", "render")
 API_PAGES += ("viewer", "watchdog", "distributed")
-PAPER_PAGES = ("inverse_rig", "wpse", "canrig")
+PAPER_PAGES = ("inverse_rig", "wpse", "canrig", "riganyface")
 """The reference pages of ``canrig_jax.papers``, apart from the toolkit's."""
 
 

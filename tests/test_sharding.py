@@ -100,14 +100,16 @@ TRAINERS = r"""
 import dataclasses, json, warnings
 import jax, numpy as np
 from canrig_jax import canrig, autorig
+from canrig_jax.autorig._data import head_rig, make_head, pose_displacements, quartic_pose_set
 from canrig_jax.data import load_ict, load_livelinkface
+from canrig_jax.papers.canrig import split_capture
 from canrig_jax.rig import ict_quartic_rig
 
 rig, _ = ict_quartic_rig(progress=False)
 with warnings.catch_warnings():
     warnings.filterwarnings("ignore", category=UserWarning)
     capture = load_livelinkface().weights_for(rig.names, missing="zero")
-capture_train, _ = canrig.split_capture(capture[:12])
+capture_train, _ = split_capture(capture[:12])
 data = canrig.build_training_set(rig, capture_train, n_random=6, n_pool=40, seed=0)
 examples = canrig.ExampleOptions(batch=4, n_vertices=48, n_handles=(3, 12), handle_bucket=12)
 options = canrig.TrainOptions(steps=3, log_every=1, examples=examples)
@@ -116,10 +118,10 @@ for n in (1, 2):
     result = canrig.train(data, options, progress=False, devices=n)
     out["canrig"][str(n)] = [h["loss"] for h in result.history]
 
-poses = autorig.quartic_pose_set(rig)
+poses = quartic_pose_set(rig)
 ict_head = load_ict(parts=None)
-displacements = autorig.pose_displacements(autorig.head_rig(rig, ict_head), poses)
-head = autorig.make_head(
+displacements = pose_displacements(head_rig(rig, ict_head), poses)
+head = make_head(
     ict_head, displacements, np.random.default_rng(3).standard_normal(100), "decimate_600",
     name="decimate_600",
 )

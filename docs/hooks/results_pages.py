@@ -95,6 +95,7 @@ SEEDS = (
         "`mesh_foundations` checks the geometry the network stands on. `any_head`, where "
         "present, compares the methods of `auto_rig` on heads from other sources.",
         "guides/autorig.md",
+        "reference/papers/riganyface.md",
     ),
     Seed(
         "distributed",

@@ -8,22 +8,25 @@ import numpy as np
 import pytest
 
 from canrig_jax.autorig import (
-    STYLE_GRID,
     OrientationError,
     RigAnyFaceNetwork,
     Style,
     Template,
     Transfer,
     auto_rig,
-    axis_rotations,
-    decide_orientation,
     fit_style,
     ict_pose_source,
     load_makehuman,
-    sculpted_target_errors,
+)
+from canrig_jax.autorig._any_head import STYLE_GRID
+from canrig_jax.autorig._evaluation import sculpted_target_errors
+from canrig_jax.autorig._orientation import (
+    CUE_MARGIN_CM,
+    axis_rotations,
+    decide_orientation,
+    face_cues,
     stated_orientation,
 )
-from canrig_jax.autorig._orientation import CUE_MARGIN_CM, face_cues
 from canrig_jax.data import ARKIT_NAMES, FACE, load_ict
 from canrig_jax.rig import BlendshapeRig
 
@@ -498,7 +501,7 @@ def test_a_template_carried_onto_its_own_head_gives_its_shapes_back(
 def test_the_packaged_orientation_template_is_the_ict_inner_face(source):
     """The points packaged for ``decide_orientation`` are the ones computed from the data
     folder's ICT head (so a wheel without the data decides alike)."""
-    from canrig_jax.autorig import orientation_points
+    from canrig_jax.autorig._orientation import orientation_points
 
     np.testing.assert_array_equal(orientation_points(), orientation_points(source))
 

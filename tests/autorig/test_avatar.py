@@ -25,6 +25,7 @@ from scipy.spatial import cKDTree
 
 from canrig_jax import autorig, run_command
 from canrig_jax.autorig import Check, RigCheck
+from canrig_jax.autorig._avatar import find_head_node
 from canrig_jax.data import data_file, load_fbx, load_fbx_scene, read_arrays
 from canrig_jax.rig import (
     EXTRA_SHAPES,
@@ -370,9 +371,7 @@ def test_whole_avatar_rigged_in_place_everything_else_kept(avatar_file, stand_in
     _validate(tmp_path / "out.glb")
 
 
-def test_only_the_default_scene_is_rigged_and_every_scene_kept(
-    tmp_path, data_dir, stand_in
-):
+def test_only_the_default_scene_is_rigged_and_every_scene_kept(tmp_path, data_dir, stand_in):
     """A file of two scenes: the head and face meshes of the default scene are rigged (a second
     scene's head is not "another head", its meshes get no targets) and the scenes stay."""
     build_avatar(tmp_path / "two.glb", data_dir, extra_head=True)
@@ -397,7 +396,7 @@ def test_only_the_default_scene_is_rigged_and_every_scene_kept(
     # the spare scene made the default: its head is the one found, and it has no face
     document["scene"] = 1
     write_gltf_avatar(avatar, tmp_path / "spare.glb")
-    assert autorig.find_head_node(read_gltf_avatar(tmp_path / "spare.glb")) == spare
+    assert find_head_node(read_gltf_avatar(tmp_path / "spare.glb")) == spare
 
 
 def test_a_face_rig_failing_a_hard_check_is_flagged_or_with_strict_not_written(
@@ -659,7 +658,7 @@ def test_a_standing_body_without_a_skeleton_gives_its_head_by_geometry(
     trimesh.Trimesh(layout.world, layout.faces, process=False).export(path)
     bare = read_gltf_avatar(path)
     assert not bare.document.get("skins") and standing_body(bare)
-    [(_, bone)] = _face_selection(skinned, autorig.find_head_node(skinned))
+    [(_, bone)] = _face_selection(skinned, find_head_node(skinned))
     [(found, geometric)] = _face_selection(bare, None)
     np.testing.assert_allclose(found.world, layout.world, atol=1e-6)  # same vertices, order
     assert (bone & geometric).sum() >= 0.7 * bone.sum()

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from canrig_jax import CorruptFileError, autorig
+from canrig_jax.autorig._train import DEFAULT_CHECKPOINT_SHA256
 
 UPPER_FACE = ("brow", "eye", "cheekSquint")
 COMMITTED = Path(__file__).resolve().parents[2] / "experiments/results/autorig/checkpoint_raf.eqx"
@@ -31,7 +32,7 @@ def test_packaged_default_model_is_the_documented_one(monkeypatch):
     recorded one is refused, naming the file."""
     path = autorig.DEFAULT_CHECKPOINT
     assert path.parent.parent == Path(autorig.__file__).parent and path.is_file()
-    assert hashlib.sha256(path.read_bytes()).hexdigest() == autorig.DEFAULT_CHECKPOINT_SHA256
+    assert hashlib.sha256(path.read_bytes()).hexdigest() == DEFAULT_CHECKPOINT_SHA256
     assert path.stat().st_size < 1_000_000
     model, poses, state = autorig.load_riganyface(path)
     assert sum(a.size for a in _arrays(model)) == 159_747
@@ -66,12 +67,11 @@ def test_default_model_beats_no_motion_and_dt_and_moves_the_eyes(data_dir):
     from canrig_jax.autorig import (
         DEFAULT_CHECKPOINT,
         RigAnyFaceNetwork,
-        class_errors,
         ict_autorig_dataset,
         load_riganyface,
-        sculpted_shape_errors,
         transfer_poses,
     )
+    from canrig_jax.autorig._evaluation import class_errors, sculpted_shape_errors
 
     dataset = ict_autorig_dataset(data_dir, n_train=1, n_test=1, progress=False)
     head = dataset.test["unseen_topology"][0]

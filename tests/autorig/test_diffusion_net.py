@@ -11,15 +11,9 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from canrig_jax.autorig import (
-    DiffusionNet,
-    LearnedDiffusion,
-    heat_kernel_signature,
-    hks_times,
-    implicit_diffusion,
-    mass_weighted_mean,
-    spectral_diffusion,
-)
+from canrig_jax.autorig import DiffusionNet, heat_kernel_signature, hks_times
+from canrig_jax.autorig._diffusion import LearnedDiffusion, implicit_diffusion, spectral_diffusion
+from canrig_jax.autorig._features import mass_weighted_mean
 from canrig_jax.data import FACE, load_ict, load_mediapipe_face
 from canrig_jax.mesh import MeshOperators, decimate, flip_quad_split, pad_vertices, stack_operators
 from canrig_jax.mesh._operators import mesh_geometry

@@ -11,27 +11,27 @@ import numpy as np
 import pytest
 
 from canrig_jax.autorig import (
-    STATIC_CM,
-    STATIC_MM,
-    PoseSet,
-    RigAnyFace,
     RigAnyFaceNetwork,
     RigAnyFaceTrainOptions,
     TransferResidual,
-    class_errors,
-    head_inputs,
     load_makehuman,
     load_riganyface,
+    train_riganyface,
+    training_set,
+)
+from canrig_jax.autorig._data import PoseSet
+from canrig_jax.autorig._evaluation import (
+    STATIC_MM,
+    class_errors,
     pose_classes,
     sculpted_shape_errors,
     sculpted_target_errors,
     shared_shape_matrix,
     static_mask,
-    static_vertex_error,
-    train_riganyface,
-    training_set,
     worst_poses,
 )
+from canrig_jax.autorig._model import RigAnyFace
+from canrig_jax.autorig._train import STATIC_CM, head_inputs, static_vertex_error
 from canrig_jax.data import load_ict
 from canrig_jax.mesh import decimate, fit_landmarks
 
@@ -291,7 +291,7 @@ def test_fitted_landmarks_recover_a_known_similarity(ict_head):
 def test_residual_training_improves_on_its_base_and_resumes(small_head, tiny_poses, tmp_path):
     """A residual model trained on one head lowers the error of a biased base (the base
     here: ground truth scaled by 0.7 plus a constant drift of the static vertices)."""
-    from canrig_jax.autorig import RiggedHead
+    from canrig_jax.autorig._data import RiggedHead
 
     mesh, *_ = small_head
     rng = np.random.default_rng(4)
@@ -333,7 +333,7 @@ def test_residual_training_improves_on_its_base_and_resumes(small_head, tiny_pos
 def _one_head_and_small_model(mesh, truth, poses):
     """The training set of one head with ground truth ``truth`` (P, V, 3), and a small random
     model: what the loss tests evaluate ``batch_loss`` on."""
-    from canrig_jax.autorig import RiggedHead
+    from canrig_jax.autorig._data import RiggedHead
 
     n = mesh.vertices.shape[0]
     head = RiggedHead(
@@ -428,7 +428,8 @@ def test_anchor_modes_label_the_ict_parts_and_refuse_bad_input(ict_head):
     a threshold are refused, naming the argument."""
     from types import SimpleNamespace
 
-    from canrig_jax.autorig import ANCHOR_MODES, anchor_parts, transfer_poses
+    from canrig_jax.autorig import transfer_poses
+    from canrig_jax.autorig._data import ANCHOR_MODES, anchor_parts
     from canrig_jax.mesh import connected_components
 
     assert ANCHOR_MODES == ("vertex", "part", "skin_vertex")
@@ -456,7 +457,8 @@ def test_transfer_poses_needs_only_the_head(data_dir):
     is as good as with the true landmarks and far better than no motion."""
     from types import SimpleNamespace
 
-    from canrig_jax.autorig import ict_pose_source, make_head, transfer_poses
+    from canrig_jax.autorig import ict_pose_source, transfer_poses
+    from canrig_jax.autorig._data import make_head
 
     source = ict_pose_source(data_dir, progress=False)
     assert source.train == [] and source.test == {}
@@ -494,7 +496,7 @@ def test_transfer_poses_needs_only_the_head(data_dir):
     assert mae(anchored) <= mae(with_landmarks)
     # per-part anchoring: each of the head's parts is held exactly when the ICT part it is
     # matched to is still in that pose, as a whole, and never while that part moves
-    from canrig_jax.autorig import head_correspondence
+    from canrig_jax.autorig._data import head_correspondence
     from canrig_jax.mesh import connected_components
 
     correspondence = head_correspondence(source, truth.vertices, truth.faces, truth.landmarks)

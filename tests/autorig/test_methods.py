@@ -25,12 +25,11 @@ from canrig_jax.autorig import (
     Template,
     Transfer,
     TransferResidual,
-    UprightHead,
     auto_rig,
     ict_pose_source,
-    place_landmarks,
-    skin_of,
 )
+from canrig_jax.autorig._landmarks import place_landmarks, skin_of
+from canrig_jax.autorig._methods import UprightHead
 from canrig_jax.autorig._weld import WELD_TAU, clumps, weld
 from canrig_jax.data import ARKIT_NAMES, ict_identity, load_ict
 from canrig_jax.mesh import decimate

@@ -9,13 +9,9 @@ import jax
 import numpy as np
 import pytest
 
-from canrig_jax.autorig import (
-    PoseSet,
-    RigAnyFace,
-    RigAnyFaceNetwork,
-    head_orientation,
-    load_makehuman,
-)
+from canrig_jax.autorig import RigAnyFaceNetwork, head_orientation, load_makehuman
+from canrig_jax.autorig._data import PoseSet
+from canrig_jax.autorig._model import RigAnyFace
 from canrig_jax.data import ict_identity, load_ict
 from canrig_jax.mesh import connected_components, decimate
 
@@ -199,7 +195,8 @@ def test_face_placement_does_not_move_with_the_crop(ict_heads, data_dir):
     """The placement from a fit of the ICT face: on the generic head it is the bounding-box
     placement the model was trained with; cutting the neck off changes the box by > 20 %
     and the face placement by < 1 %."""
-    from canrig_jax.autorig import AutorigDataset, face_placement, normalise
+    from canrig_jax.autorig._data import AutorigDataset, face_placement
+    from canrig_jax.autorig._model import normalise
 
     head = load_ict(data_dir, parts=None)
     dataset = AutorigDataset(None, head, None, [], {})  # face_placement uses the head only

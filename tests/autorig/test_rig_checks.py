@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from canrig_jax import autorig
+from canrig_jax.autorig._landmarks import skin_of
 from canrig_jax.autorig._rig_checks import _head
 from canrig_jax.mesh import flipped_triangles
 from canrig_jax.rig import BlendshapeRig, evaluate_batch
@@ -68,7 +69,7 @@ def test_flipped_triangles_are_counted_per_frame_against_an_independent_count(ar
     )
     result = autorig.check_rig(crumpled, n_random=8)
     frames = np.asarray(evaluate_batch(crumpled, result.poses))
-    skin = autorig.skin_of(np.asarray(crumpled.neutral), np.asarray(crumpled.faces))
+    skin = skin_of(np.asarray(crumpled.neutral), np.asarray(crumpled.faces))
     mask = skin[np.asarray(crumpled.faces)].all(axis=1)
     expected = flipped_triangles(frames, crumpled.neutral, crumpled.faces, mask=mask).sum(1)
     np.testing.assert_array_equal(result.flips, expected)

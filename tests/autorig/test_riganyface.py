@@ -10,28 +10,30 @@ import pytest
 import trimesh
 
 from canrig_jax.autorig import (
-    PoseSet,
-    RigAnyFace,
     RigAnyFaceNetwork,
     RigAnyFaceTrainOptions,
-    head_inputs,
-    head_rig,
-    inner_outside,
     load_riganyface,
-    make_head,
-    outside_fraction,
-    pad_to_bucket,
-    penetration,
-    penetration_free_set,
-    pose_displacements,
-    quartic_pose_set,
-    rig_from_poses,
-    spectral_diffusion,
-    spectral_diffusion_and_gradient,
     train_riganyface,
     training_set,
+)
+from canrig_jax.autorig._data import (
+    PoseSet,
+    head_rig,
+    make_head,
+    pose_displacements,
+    quartic_pose_set,
+)
+from canrig_jax.autorig._diffusion import spectral_diffusion, spectral_diffusion_and_gradient
+from canrig_jax.autorig._metrics import (
+    inner_outside,
+    outside_fraction,
+    penetration,
+    penetration_free_set,
     winding_numbers,
 )
+from canrig_jax.autorig._model import RigAnyFace
+from canrig_jax.autorig._rig import pad_to_bucket, rig_from_poses
+from canrig_jax.autorig._train import head_inputs
 from canrig_jax.data import INNER_PARTS, load_ict
 from canrig_jax.rig import evaluate, export_gltf, load_gltf_rig
 
@@ -130,7 +132,8 @@ def test_remeshed_heads_carry_the_ground_truth_and_the_parts(heads, ict_head):
 def test_deformation_transfer_baseline_follows_the_ground_truth(
     ict_quartic, ict_head, head_displacements, poses, heads
 ):
-    from canrig_jax.autorig import AutorigDataset, transfer_poses
+    from canrig_jax.autorig import transfer_poses
+    from canrig_jax.autorig._data import AutorigDataset
 
     dataset = AutorigDataset(poses, ict_head, head_displacements, [], {})
     head = heads[0]

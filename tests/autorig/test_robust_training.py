@@ -10,17 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from canrig_jax.autorig import (
-    DEFAULT_CHECKPOINT,
-    RigAnyFaceTrainOptions,
-    RiggedHead,
-    SmoothWarp,
-    flip_penalty,
-    random_warp,
-    stretch_penalty,
-    warp_head,
-    warped_heads,
-)
+from canrig_jax.autorig import DEFAULT_CHECKPOINT, RigAnyFaceTrainOptions
+from canrig_jax.autorig._data import RiggedHead, SmoothWarp, random_warp, warp_head, warped_heads
+from canrig_jax.autorig._train import flip_penalty, stretch_penalty
 from canrig_jax.mesh import flipped_triangles
 
 

@@ -10,18 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from canrig_jax.autorig import (
-    RigAnyFaceTrainOptions,
-    Supervision2DOptions,
-    head_rig,
-    loss_2d,
-    make_head,
-    padded_faces,
-    pose_displacements,
-    quartic_pose_set,
-    train_2d,
-    training_set,
-)
+from canrig_jax.autorig import RigAnyFaceTrainOptions, training_set
+from canrig_jax.autorig._data import head_rig, make_head, pose_displacements, quartic_pose_set
+from canrig_jax.autorig._supervision_2d import Supervision2DOptions, loss_2d, padded_faces, train_2d
 from canrig_jax.data import load_ict
 
 

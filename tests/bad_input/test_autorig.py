@@ -14,21 +14,23 @@ import canrig_jax.autorig._any_head as any_head_module  # patched: the work afte
 import canrig_jax.autorig._data as data_module  # patched: the ICT source
 import canrig_jax.autorig._methods as methods_module  # patched: every method's work
 from canrig_jax.autorig import (
-    AutorigDataset,
-    PoseSet,
     RigAnyFaceNetwork,
     RigAnyFaceTrainOptions,
     Template,
     Transfer,
     TransferResidual,
     auto_rig,
-    fit_head_landmarks,
     heat_kernel_signature,
     hks_times,
-    make_model,
+)
+from canrig_jax.autorig._data import (
+    AutorigDataset,
+    PoseSet,
+    fit_head_landmarks,
     pose_displacements,
     quartic_pose_set,
 )
+from canrig_jax.autorig._train import make_model
 from canrig_jax.data import load_ict, load_mediapipe_face
 from canrig_jax.mesh import decimate, fit_landmarks, mesh_operators
 from canrig_jax.rig import BlendshapeRig, Corrective

@@ -1,374 +1,102 @@
-"""RigAnyFace: DiffusionNet in equinox, the FACS-conditioned auto-rigger, its data and metrics."""
+"""RigAnyFace auto-rigging: an ARKit blendshape rig with correctives for any neutral head.
 
-from ._any_head import (
-    EXAMPLE_ORDER,
-    STYLE_GRID,
-    AutoRig,
-    Style,
-    auto_rig,
-    auto_rig_heads,
-    fit_style,
-)
-from ._any_head_protocols import (
-    FEW_SHOT_KS,
-    SculptedHead,
-    any_head_table,
-    choose_default_method,
-    face_crop_fit,
-    few_shot_rows,
-    ict_sculpted_heads,
-    load_rocketbox_head,
-    mean_few_shot,
-    measure_cli_seconds,
-    orientation_cases,
-    sculpted_head_errors,
-    template_row,
-)
-from ._avatar import (
-    AVATAR_FORMATS,
-    HEAD_WEIGHT,
-    MAX_FACE_VERTICES,
-    AvatarRig,
-    auto_rig_avatar,
-    find_head_node,
-)
-from ._data import (
-    ANCHOR_MODES,
-    MULTIPIE_REGIONS,
-    AutorigDataset,
-    PoseSet,
-    RiggedHead,
-    SmoothWarp,
-    anchor_parts,
-    copy_poses,
-    face_placement,
-    fit_head_landmarks,
-    head_correspondence,
-    head_rig,
-    ict_autorig_dataset,
-    ict_pose_source,
-    make_head,
-    pose_displacements,
-    quartic_pose_set,
-    random_warp,
-    transfer_poses,
-    warp_head,
-    warped_heads,
-)
-from ._diffusion import (
-    LearnedDiffusion,
-    implicit_diffusion,
-    spectral_diffusion,
-    spectral_diffusion_and_gradient,
-)
-from ._diffusion_net import DiffusionNet, DiffusionNetBlock, SpatialGradientFeatures
-from ._evaluation import (
-    ACTIVE_MM,
-    STATIC_MM,
-    class_errors,
-    pose_classes,
-    sculpted_shape_errors,
-    sculpted_target_errors,
-    shared_shape_matrix,
-    static_mask,
-    worst_poses,
-)
-from ._evaluation_protocols import (
-    HELDOUT_SPLIT,
-    clean_penetration,
-    evaluate_splits,
-    evaluation_rows,
-    gltf_round_trip,
-    heldout_predictions,
-    heldout_shapes,
-    load_checkpoint_rows,
-    makehuman_shapes,
-    placement_errors,
-    rig_timing,
-)
-from ._features import heat_kernel_signature, hks_times, mass_weighted_mean
-from ._landmarks import place_landmarks, skin_of
-from ._makehuman import MakeHumanHead, load_makehuman
+- ``auto_rig`` (one head), ``auto_rig_heads`` (many, or across processes) and
+  ``auto_rig_avatar`` (a whole-body FBX, GLB or VRM): the head's orientation decided from its
+  face (``OrientationError`` when it cannot be), the ICT landmarks placed, the rig built by a
+  method and the blinks closed; a ``Style`` fitted to a few example shapes (``fit_style``).
+- The methods, one family (``AbstractAutoRigMethod``, every one in ``AUTO_RIG_METHODS``):
+  ``Transfer`` (the default, ``DEFAULT_METHOD``; a ``Template`` of your own),
+  ``RigAnyFaceNetwork`` and ``TransferResidual`` (``AbstractNetworkMethod``: ``generate``
+  runs the network on a head in its convention, a ``GeneratedRig``).
+- The rigger's checks of a rig under motion: ``check_rig`` (``RigCheck`` of ``Check`` rows
+  against ``CHECK_LIMITS``) and ``plot_check_frames``; ``head_orientation`` reports which way
+  a head faces.
+- Heads sculpted by other people, with their artists' ARKit shapes: ``load_makehuman``,
+  ``load_rocketbox_head``; the ICT source the methods carry (``ict_pose_source``).
+- The network and its training: ``DiffusionNet`` (with ``heat_kernel_signature`` and
+  ``hks_times`` as intrinsic inputs), the packaged model (``DEFAULT_CHECKPOINT``,
+  ``load_riganyface``, ``export_riganyface``), ``train_riganyface`` on a ``training_set`` of
+  ICT identities (``ict_autorig_dataset``) with ``RigAnyFaceTrainOptions``, and
+  ``transfer_poses``, the deformation-transfer base of a residual network.
+
+The evaluation of the paper (held-out splits, recipes, tables) is ``canrig_jax.papers.riganyface``.
+"""
+
+from ._any_head import AutoRig, Style, auto_rig, auto_rig_heads, fit_style
+from ._avatar import AvatarRig, auto_rig_avatar
+from ._data import ict_autorig_dataset, ict_pose_source, transfer_poses
+from ._diffusion_net import DiffusionNet
+from ._features import heat_kernel_signature, hks_times
+from ._makehuman import load_makehuman
 from ._methods import (
-    ANCHOR_CM,
     AUTO_RIG_METHODS,
     DEFAULT_METHOD,
     AbstractAutoRigMethod,
     AbstractNetworkMethod,
-    PoseDisplacements,
     RigAnyFaceNetwork,
     Template,
     Transfer,
     TransferResidual,
-    UprightHead,
 )
-from ._metrics import (
-    error_stats,
-    inner_outside,
-    outside_fraction,
-    penetration,
-    penetration_free_set,
-    winding_numbers,
-)
-from ._model import ConditionalBlock, RigAnyFace, normalise
-from ._orientation import (
-    ORIENTATION_TEMPLATE,
-    HeadOrientation,
-    OrientationDecision,
-    OrientationError,
-    axis_rotations,
-    decide_orientation,
-    head_orientation,
-    inner_face,
-    orientation_points,
-    stated_orientation,
-)
-from ._protocols import (
-    CHIN_LANDMARK,
-    FACE_PLACED,
-    anchored_base_key,
-    cached_transfer,
-    crop_below_chin,
-    evaluate_makehuman,
-    face_crop,
-    generate_rows,
-    transfer_bases,
-)
-from ._recipes import (
-    ANCHORED_RESIDUAL_MODELS,
-    PURE_MODELS,
-    RAF_LOSSES,
-    RECIPE_MODELS,
-    RESIDUAL_MODEL,
-    add_recipe_arguments,
-    checkpoint_record,
-    recipe_base,
-    recipe_options,
-    recipe_training_set,
-    train_checkpoint,
-)
-from ._report import autorig_table, plot_pose_examples, plot_shape_ratios, plot_training_history
-from ._rig import (
-    DEFAULT_POSE_CHUNK,
-    GeneratedRig,
-    pad_to_bucket,
-    predict_displacements,
-    rig_from_poses,
-)
+from ._orientation import HeadOrientation, OrientationError, head_orientation
+from ._rig import GeneratedRig
 from ._rig_checks import LIMITS as CHECK_LIMITS
 from ._rig_checks import Check, RigCheck, check_rig, plot_check_frames
+from ._rocketbox import load_rocketbox_head
 from ._train import (
     DEFAULT_CHECKPOINT,
-    DEFAULT_CHECKPOINT_SHA256,
-    RESIDUAL_CHECKPOINT,
-    STATIC_CM,
     RigAnyFaceTrainOptions,
     RigAnyFaceTrainResult,
-    augmented_heads,
     export_riganyface,
-    flip_penalty,
-    head_inputs,
     load_riganyface,
-    make_model,
-    static_vertex_error,
-    stretch_penalty,
     train_riganyface,
     training_set,
 )
 
 __all__ = [
-    "MULTIPIE_REGIONS",
-    "SmoothWarp",
-    "augmented_heads",
-    "flip_penalty",
-    "random_warp",
-    "stretch_penalty",
-    "warp_head",
-    "warped_heads",
+    # auto-rigging a head, many heads, an avatar
+    "AutoRig",
+    "AvatarRig",
+    "Style",
+    "auto_rig",
+    "auto_rig_avatar",
+    "auto_rig_heads",
+    "fit_style",
+    "ict_pose_source",
+    # the methods
+    "AUTO_RIG_METHODS",
+    "DEFAULT_METHOD",
+    "AbstractAutoRigMethod",
+    "AbstractNetworkMethod",
+    "GeneratedRig",
+    "RigAnyFaceNetwork",
+    "Template",
+    "Transfer",
+    "TransferResidual",
+    # orientation
+    "HeadOrientation",
+    "OrientationError",
+    "head_orientation",
+    # checking a rig
     "CHECK_LIMITS",
     "Check",
     "RigCheck",
     "check_rig",
     "plot_check_frames",
-    "AVATAR_FORMATS",
-    "HEAD_WEIGHT",
-    "MAX_FACE_VERTICES",
-    "AvatarRig",
-    "auto_rig_avatar",
-    "find_head_node",
-    "ANCHOR_CM",
-    "CHIN_LANDMARK",
-    "FACE_PLACED",
-    "anchored_base_key",
-    "cached_transfer",
-    "crop_below_chin",
-    "face_crop",
-    "evaluate_makehuman",
-    "generate_rows",
-    "transfer_bases",
-    "HELDOUT_SPLIT",
-    "clean_penetration",
-    "evaluate_splits",
-    "evaluation_rows",
-    "gltf_round_trip",
-    "heldout_predictions",
-    "heldout_shapes",
-    "load_checkpoint_rows",
-    "makehuman_shapes",
-    "placement_errors",
-    "rig_timing",
-    "ANCHORED_RESIDUAL_MODELS",
-    "PURE_MODELS",
-    "RAF_LOSSES",
-    "RECIPE_MODELS",
-    "RESIDUAL_MODEL",
-    "add_recipe_arguments",
-    "checkpoint_record",
-    "recipe_base",
-    "recipe_options",
-    "recipe_training_set",
-    "train_checkpoint",
-    "autorig_table",
-    "plot_pose_examples",
-    "plot_shape_ratios",
-    "plot_training_history",
-    "FEW_SHOT_KS",
-    "SculptedHead",
-    "any_head_table",
-    "choose_default_method",
-    "face_crop_fit",
-    "few_shot_rows",
-    "ict_sculpted_heads",
-    "load_rocketbox_head",
-    "mean_few_shot",
-    "measure_cli_seconds",
-    "orientation_cases",
-    "sculpted_head_errors",
-    "template_row",
-    "DEFAULT_METHOD",
-    "EXAMPLE_ORDER",
-    "AUTO_RIG_METHODS",
-    "AbstractAutoRigMethod",
-    "AbstractNetworkMethod",
-    "PoseDisplacements",
-    "RigAnyFaceNetwork",
-    "Transfer",
-    "TransferResidual",
-    "UprightHead",
-    "STYLE_GRID",
-    "AutoRig",
-    "Style",
-    "Template",
-    "auto_rig",
-    "auto_rig_heads",
-    "fit_style",
-    "place_landmarks",
-    "skin_of",
-    "OrientationDecision",
-    "OrientationError",
-    "axis_rotations",
-    "decide_orientation",
-    "inner_face",
-    "orientation_points",
-    "ORIENTATION_TEMPLATE",
-    "stated_orientation",
-    "RESIDUAL_CHECKPOINT",
-    "DEFAULT_CHECKPOINT",
-    "DEFAULT_CHECKPOINT_SHA256",
-    "export_riganyface",
-    "ACTIVE_MM",
-    "ANCHOR_MODES",
-    "anchor_parts",
-    "MakeHumanHead",
+    # heads sculpted by other people
     "load_makehuman",
-    "STATIC_CM",
-    "STATIC_MM",
-    "class_errors",
-    "copy_poses",
-    "fit_head_landmarks",
-    "face_placement",
-    "head_correspondence",
-    "pose_classes",
-    "sculpted_shape_errors",
-    "sculpted_target_errors",
-    "shared_shape_matrix",
-    "static_mask",
-    "static_vertex_error",
-    "worst_poses",
-    "DEFAULT_POSE_CHUNK",
-    "head_inputs",
-    "head_rig",
-    "make_model",
-    "pad_to_bucket",
-    "AutorigDataset",
-    "ConditionalBlock",
+    "load_rocketbox_head",
+    # the network, its model and its training
+    "DEFAULT_CHECKPOINT",
     "DiffusionNet",
-    "DiffusionNetBlock",
-    "GeneratedRig",
-    "LearnedDiffusion",
-    "PoseSet",
-    "RigAnyFace",
-    "RiggedHead",
-    "SpatialGradientFeatures",
     "RigAnyFaceTrainOptions",
     "RigAnyFaceTrainResult",
-    "error_stats",
-    "predict_displacements",
+    "export_riganyface",
     "heat_kernel_signature",
     "hks_times",
     "ict_autorig_dataset",
-    "ict_pose_source",
-    "implicit_diffusion",
     "load_riganyface",
-    "make_head",
-    "mass_weighted_mean",
-    "normalise",
-    "outside_fraction",
-    "penetration",
-    "penetration_free_set",
-    "inner_outside",
-    "HeadOrientation",
-    "head_orientation",
-    "pose_displacements",
-    "quartic_pose_set",
-    "rig_from_poses",
-    "spectral_diffusion",
-    "spectral_diffusion_and_gradient",
     "train_riganyface",
     "training_set",
     "transfer_poses",
-    "winding_numbers",
-]
-
-# 2D supervision (issue 25)
-from ._supervision_2d import (  # noqa: E402
-    Supervision2DOptions,
-    load_model_2d,
-    loss_2d,
-    padded_faces,
-    train_2d,
-)
-from ._supervision_2d_protocols import (  # noqa: E402
-    SUPERVISION_2D_RUNS,
-    chunk_overflow,
-    evaluate_2d,
-    parse_supervision_2d_args,
-    rasteriser_checks,
-    rigged_heads,
-    supervision_2d_options,
-    supervision_2d_table,
-    train_2d_run,
-)
-
-__all__ += ["Supervision2DOptions", "load_model_2d", "loss_2d", "padded_faces", "train_2d"]
-__all__ += [
-    "SUPERVISION_2D_RUNS",
-    "chunk_overflow",
-    "evaluate_2d",
-    "parse_supervision_2d_args",
-    "rasteriser_checks",
-    "rigged_heads",
-    "supervision_2d_options",
-    "supervision_2d_table",
-    "train_2d_run",
 ]

@@ -489,7 +489,8 @@ def transfer_poses(
         correspondence: a precomputed ``head_correspondence`` (else computed here).
         static_below: anchored transfer (``deformation_transfer(static_below=)``): per pose,
             the vertices whose carried ICT displacement is shorter than this (cm; e.g.
-            ``STATIC_MM / 10``, the static threshold) stay exactly still. None: plain DT.
+            0.001, the evaluation's static threshold of 0.01 mm) stay exactly still. None:
+            plain DT.
         anchor: with ``static_below``, what is held (``ANCHOR_MODES``): "vertex" (default)
             each vertex by its own carried displacement; "part" a vertex only when the whole
             ICT connected component it is matched to is still in that pose (a part is held as

@@ -45,7 +45,9 @@ class MakeHumanHead:
 
 
 def load_makehuman(data_dir: str | os.PathLike | None = None) -> MakeHumanHead:
-    """Load ``makehuman/hm08_face.npz``: the 52 ARKit targets (not the visemes), in cm."""
+    """Load ``makehuman/hm08_face.npz``: the 52 ARKit targets (not the visemes), in cm, as a
+    ``MakeHumanHead`` (``neutral``, ``faces``, ``deltas`` and ``names`` of the targets,
+    ``component_labels``, ``skin``)."""
     path = data_file("makehuman/hm08_face.npz", data_dir)
     z = read_arrays(path, ("neutral", "faces", "deltas", "names", "component_labels"))
     names = [str(n) for n in z["names"]]

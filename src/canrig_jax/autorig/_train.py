@@ -99,8 +99,8 @@ class RigAnyFaceTrainOptions:
             and output scale start this run (fine-tuning), instead of a fresh model of
             ``seed``; its architecture must be these options'. None: from scratch.
 
-    Geometry beyond ICT's identity space (``augmented_heads``, applied by
-    ``recipe_training_set``; 0 copies by default):
+    Geometry beyond ICT's identity space (``augmented_heads``, which the evaluation's training
+    recipe applies to its heads; 0 copies by default):
         warp_copies: smoothly warped copies of each training head added to the training set
             (``warped_heads``: stylised proportions and a low-frequency displacement field,
             the same warp on the neutral and on every posed shape).

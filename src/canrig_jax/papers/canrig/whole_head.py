@@ -26,7 +26,7 @@ from jaxtyping import ArrayLike, Bool, Float, Float32, Int
 from ..._checkpoint import parameter_count
 from ..._cli import add_dataclass_options, from_args
 from ..._metrics import CM_TO_MM
-from ...autorig import head_rig
+from ...autorig._data import head_rig
 from ...canrig._layout import influence_reach
 from ...canrig._masks import CLAMP, influence_mask
 from ...canrig._workflows import expression_region

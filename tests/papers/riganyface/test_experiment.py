@@ -11,9 +11,11 @@ import numpy as np
 import pytest
 
 from canrig_jax._checkpoint import parameter_count
-from canrig_jax.autorig import FACE_PLACED, RigAnyFaceTrainOptions, make_model
+from canrig_jax.autorig import RigAnyFaceTrainOptions
+from canrig_jax.autorig._train import make_model
+from canrig_jax.papers.riganyface import FACE_PLACED
 
-EXPERIMENTS = Path(__file__).resolve().parents[2] / "experiments"
+EXPERIMENTS = Path(__file__).resolve().parents[3] / "experiments"
 
 
 def _run(argv: list[str], script: str = "autorig.py") -> None:

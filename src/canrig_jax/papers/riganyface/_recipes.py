@@ -14,12 +14,11 @@ from pathlib import Path
 
 from jaxtyping import ArrayLike, Float
 
-from .._checkpoint import parameter_count
-from ._data import ANCHOR_MODES, AutorigDataset, PoseSet
-from ._methods import ANCHOR_CM
-from ._model import RigAnyFace
-from ._protocols import anchored_base_key, cached_transfer
-from ._train import (
+from ..._checkpoint import parameter_count
+from ...autorig._data import ANCHOR_MODES, AutorigDataset, PoseSet
+from ...autorig._methods import ANCHOR_CM
+from ...autorig._model import RigAnyFace
+from ...autorig._train import (
     RigAnyFaceTrainOptions,
     TrainingSet,
     augmented_heads,
@@ -27,6 +26,7 @@ from ._train import (
     train_riganyface,
     training_set,
 )
+from ._bases import anchored_base_key, cached_transfer
 
 PURE_MODELS = {"raf": {}, "raf_no_global_encoder": {"global_size": 0}}
 """The pure RigAnyFace models (no base) by name, with their options apart from the recipe's:

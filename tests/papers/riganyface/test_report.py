@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from canrig_jax.autorig import autorig_table
+from canrig_jax.papers.riganyface import autorig_table
 
-RESULTS = Path(__file__).resolve().parents[2] / "experiments" / "results"
+RESULTS = Path(__file__).resolve().parents[3] / "experiments" / "results"
 FOLDERS = sorted(
     p.name
     for p in RESULTS.glob("autorig*")

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "autorig_2d.py"
+SCRIPT = Path(__file__).resolve().parents[3] / "experiments" / "autorig_2d.py"
 
 
 def _run(argv: list[str]) -> None:

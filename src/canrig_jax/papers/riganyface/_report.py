@@ -12,11 +12,12 @@ import matplotlib.pyplot as plt
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
-from .._metrics import CM_TO_MM
-from ..render import plot_vertex_scalar, save_figure
-from ._data import RiggedHead
-from ._evaluation_protocols import UPPER_FACE, makehuman_shapes
-from ._makehuman import MakeHumanHead
+from ..._metrics import CM_TO_MM
+from ...autorig._data import RiggedHead
+from ...autorig._makehuman import MakeHumanHead
+from ...render import plot_vertex_scalar, save_figure
+from ._heldout import UPPER_FACE
+from ._makehuman import makehuman_shapes
 
 
 def autorig_table(results: Mapping) -> str:

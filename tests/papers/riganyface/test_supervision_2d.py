@@ -13,16 +13,15 @@ import equinox as eqx
 import numpy as np
 import pytest
 
-from canrig_jax.autorig import (
+from canrig_jax.autorig import RigAnyFaceTrainOptions
+from canrig_jax.autorig._data import AutorigDataset, PoseSet, RiggedHead
+from canrig_jax.autorig._supervision_2d import Supervision2DOptions
+from canrig_jax.autorig._train import TrainingSet, make_model
+from canrig_jax.data import ICTFaceModel
+from canrig_jax.papers.riganyface import (
     SUPERVISION_2D_RUNS,
-    AutorigDataset,
-    PoseSet,
-    RigAnyFaceTrainOptions,
-    RiggedHead,
-    Supervision2DOptions,
     chunk_overflow,
     evaluate_2d,
-    make_model,
     parse_supervision_2d_args,
     rasteriser_checks,
     rigged_heads,
@@ -30,11 +29,9 @@ from canrig_jax.autorig import (
     supervision_2d_table,
     train_2d_run,
 )
-from canrig_jax.autorig._train import TrainingSet
-from canrig_jax.data import ICTFaceModel
 
-MODULE = "canrig_jax.autorig._supervision_2d_protocols"
-RESULTS = Path(__file__).resolve().parents[2] / "experiments" / "results" / "autorig_2d"
+MODULE = "canrig_jax.papers.riganyface._supervision_2d"
+RESULTS = Path(__file__).resolve().parents[3] / "experiments" / "results" / "autorig_2d"
 POSES = PoseSet(("jawOpen", "eyeBlink_L"), ((0,), (1,), (0, 1)))
 
 

@@ -12,29 +12,25 @@ import jax
 import numpy as np
 import pytest
 
-from canrig_jax.autorig import (
+from canrig_jax.autorig import DEFAULT_CHECKPOINT, RigAnyFaceTrainOptions, load_riganyface
+from canrig_jax.autorig._data import AutorigDataset, PoseSet, RiggedHead
+from canrig_jax.autorig._train import TrainingSet
+from canrig_jax.data import ICTFaceModel
+from canrig_jax.papers.riganyface import (
     ANCHOR_CM,
     ANCHORED_RESIDUAL_MODELS,
-    DEFAULT_CHECKPOINT,
     PURE_MODELS,
     RAF_LOSSES,
     RECIPE_MODELS,
     RESIDUAL_MODEL,
-    AutorigDataset,
-    PoseSet,
-    RigAnyFaceTrainOptions,
-    RiggedHead,
     add_recipe_arguments,
     checkpoint_record,
-    load_riganyface,
     recipe_base,
     recipe_options,
     recipe_training_set,
 )
-from canrig_jax.autorig._train import TrainingSet
-from canrig_jax.data import ICTFaceModel
 
-MODULE = "canrig_jax.autorig._recipes"
+MODULE = "canrig_jax.papers.riganyface._recipes"
 
 
 def _args(*argv: str) -> argparse.Namespace:

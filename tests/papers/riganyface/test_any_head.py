@@ -1,5 +1,5 @@
-"""The any-head experiment's protocols: heads with their artist's shapes, the scores against
-them (k = 0 and few-shot), the template of the same style, the face-crop fit, the orientation
+"""The any-head experiment's protocols: the scores against the artist's shapes of a head
+(k = 0 and few-shot), the template of the same style, the face-crop fit, the orientation
 cases, the command line's timing, the default-method rule and the committed table. The
 ``auto_rig`` calls and the orientation decision are replaced by recording stand-ins where the
 protocol's bookkeeping is what is tested."""
@@ -13,33 +13,29 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from canrig_jax.autorig import (
-    AUTO_RIG_METHODS,
+from canrig_jax.autorig import AUTO_RIG_METHODS, OrientationError, Style
+from canrig_jax.autorig._data import AutorigDataset, PoseSet
+from canrig_jax.autorig._orientation import axis_rotations
+from canrig_jax.data import ICTFaceModel
+from canrig_jax.papers.riganyface import (
     EXAMPLE_ORDER,
     FEW_SHOT_KS,
-    AutorigDataset,
-    OrientationError,
-    PoseSet,
     SculptedHead,
-    Style,
     any_head_table,
-    axis_rotations,
     choose_default_method,
     face_crop_fit,
     few_shot_rows,
-    load_rocketbox_head,
     mean_few_shot,
     measure_cli_seconds,
     orientation_cases,
     sculpted_head_errors,
     template_row,
 )
-from canrig_jax.data import ICTFaceModel
 from canrig_jax.rig import BlendshapeRig
 
-MODULE = "canrig_jax.autorig._any_head_protocols"
+MODULE = "canrig_jax.papers.riganyface._any_head"
 METHOD_NAMES = [cls.name for cls in AUTO_RIG_METHODS]
-RESULTS = Path(__file__).resolve().parents[2] / "experiments" / "results" / "any_head"
+RESULTS = Path(__file__).resolve().parents[3] / "experiments" / "results" / "any_head"
 NAMES = ("jawOpen", "mouthSmileLeft", "eyeBlinkLeft", "browInnerUp", "mouthFunnel", "cheekPuff")
 
 
@@ -72,14 +68,6 @@ def _rig(head: SculptedHead, factor: float, names=NAMES) -> BlendshapeRig:
 def test_the_table_is_the_committed_one():
     results = json.loads((RESULTS / "results.json").read_text())
     assert any_head_table(results) == (RESULTS / "table.md").read_text()
-
-
-def test_a_sculpted_head_checks_its_shapes_and_finds_its_skin():
-    head = _head()
-    assert head.skin.sum() == 25 and not head.skin[25:].any()
-    np.testing.assert_array_equal(head.shapes(["eyeBlinkLeft"])[0], head.deltas[2])
-    with pytest.raises(ValueError, match="deltas"):
-        SculptedHead("bad", head.vertices, head.faces, head.deltas[:3], NAMES)
 
 
 def test_scores_are_on_the_skin_and_by_name():
@@ -273,12 +261,3 @@ def test_the_rule_takes_the_smallest_worst_ratio_then_the_preference():
     assert choose_default_method(close, cases, 0.02, order)[0] == "transfer-residual"
     assert choose_default_method(close, cases, 0.05, order)[0] == "transfer"
     assert choose_default_method(close, cases, 0.0, order)[0] == "raf"
-
-
-def test_a_rocketbox_head_has_its_artists_shapes(data_dir):
-    head = load_rocketbox_head("Female_Adult_01", data_dir)
-    assert head.deltas.shape == (len(head.names), len(head.vertices), 3)
-    assert {"jawOpen", "eyeBlinkLeft", "browInnerUp"} <= set(head.names)
-    assert 0 < head.skin.sum() < len(head.vertices)
-    jaw = np.linalg.norm(head.shapes(["jawOpen"])[0], axis=-1)
-    assert jaw[head.skin].max() > 0.5  # cm: the jaw opens by more than 5 mm somewhere

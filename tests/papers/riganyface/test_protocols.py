@@ -9,23 +9,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from canrig_jax.autorig import (
+from canrig_jax.autorig import ict_pose_source
+from canrig_jax.autorig._data import AutorigDataset, RiggedHead
+from canrig_jax.papers.riganyface import (
     ANCHOR_CM,
     ANCHOR_MODES,
     CHIN_LANDMARK,
     STATIC_MM,
-    AutorigDataset,
-    RiggedHead,
     anchored_base_key,
     cached_transfer,
     crop_below_chin,
     evaluate_makehuman,
-    ict_pose_source,
     transfer_bases,
 )
 
-ROOT = Path(__file__).resolve().parents[2]
-TRANSFER = "canrig_jax.autorig._protocols.transfer_poses"  # replaced by a recording stand-in
+ROOT = Path(__file__).resolve().parents[3]
+TRANSFER = "canrig_jax.papers.riganyface._bases.transfer_poses"  # replaced by a recording stand-in
 DATASET = object.__new__(AutorigDataset)  # a stand-in of the right type: only passed through
 
 

@@ -21,17 +21,17 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Int
 
-from ..data import load_ict
-from ..mesh import decimate
-from ..render import RasterSettings, look_at, rasterise, rasterise_hard, ray_cast, silhouette
-from ._data import AutorigDataset, PoseSet
-from ._evaluation import sculpted_target_errors, shared_shape_matrix
-from ._makehuman import load_makehuman
-from ._metrics import error_stats
-from ._model import RigAnyFace
-from ._rig import generate_rig
-from ._supervision_2d import Supervision2DOptions, train_2d
-from ._train import RigAnyFaceTrainOptions, TrainingSet, head_inputs
+from ...autorig._data import AutorigDataset, PoseSet
+from ...autorig._evaluation import sculpted_target_errors, shared_shape_matrix
+from ...autorig._makehuman import load_makehuman
+from ...autorig._metrics import error_stats
+from ...autorig._model import RigAnyFace
+from ...autorig._rig import generate_rig
+from ...autorig._supervision_2d import Supervision2DOptions, train_2d
+from ...autorig._train import RigAnyFaceTrainOptions, TrainingSet, head_inputs
+from ...data import load_ict
+from ...mesh import decimate
+from ...render import RasterSettings, look_at, rasterise, rasterise_hard, ray_cast, silhouette
 
 SUPERVISION_2D_RUNS = ("3d_only", "2d_unrigged_plus_3d")
 """The two training runs: 3D loss on the rigged heads only; and 2D loss on every head (stage

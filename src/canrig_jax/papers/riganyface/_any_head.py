@@ -18,62 +18,27 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
-from jaxtyping import ArrayLike, Float, Float32, Int
+from jaxtyping import ArrayLike, Float, Int
 
-from ..data import ARKIT_NAMES, data_file, read_arrays, save_obj
-from ..rig import BlendshapeRig
-from ..watchdog import progress as tick
-from ._any_head import EXAMPLE_ORDER, auto_rig
-from ._data import AutorigDataset, ict_autorig_dataset
-from ._evaluation import sculpted_target_errors, shared_shape_matrix
-from ._landmarks import place_landmarks, skin_of
-from ._methods import AUTO_RIG_METHODS, DEFAULT_METHOD, Template, Transfer
-from ._orientation import OrientationError, axis_rotations, decide_orientation
-from ._protocols import face_crop
+from ...autorig._any_head import auto_rig
+from ...autorig._data import AutorigDataset, ict_autorig_dataset
+from ...autorig._evaluation import sculpted_target_errors, shared_shape_matrix
+from ...autorig._landmarks import place_landmarks
+from ...autorig._methods import AUTO_RIG_METHODS, DEFAULT_METHOD, Template, Transfer
+from ...autorig._orientation import OrientationError, axis_rotations, decide_orientation
+from ...autorig._rocketbox import SculptedHead
+from ...data import ARKIT_NAMES, save_obj
+from ...rig import BlendshapeRig
+from ...watchdog import progress as tick
+from ._crops import face_crop
 
+EXAMPLE_ORDER = ("jawOpen", "mouthSmileLeft", "eyeBlinkLeft", "browInnerUp", "mouthFunnel")
+"""The order in which few-shot examples are asked for (and measured): the largest motions of
+the jaw, the mouth corners, the lids, the brows and the lips."""
 FEW_SHOT_KS = (0, 1, 3, 5)
 """How many example shapes (``EXAMPLE_ORDER``'s first k) the few-shot protocol gives."""
 
 Log = Callable[[str], None]
-
-
-class SculptedHead:
-    """A head with its artist's ARKit shapes: ``vertices`` (V, 3) and ``deltas`` (S, V, 3) in
-    cm (+y up, facing +z), ``faces`` (F, 3), the S ``names``, and ``skin``: (V,) its largest
-    component (``skin_of``)."""
-
-    def __init__(
-        self,
-        name: str,
-        vertices: Float[ArrayLike, "V 3"],
-        faces: Int[ArrayLike, "F 3"],
-        deltas: Float[ArrayLike, "S V 3"],
-        names: Sequence[str],
-    ):
-        self.name = name
-        self.vertices = np.asarray(vertices, np.float32)
-        self.faces = np.asarray(faces, np.int32)
-        self.deltas = np.asarray(deltas, np.float32)
-        self.names = [str(n) for n in names]
-        if self.deltas.shape != (len(self.names), *self.vertices.shape):
-            raise ValueError(
-                f"deltas: expected ({len(self.names)}, {len(self.vertices)}, 3) for the names "
-                f"and vertices, got {self.deltas.shape}"
-            )
-        self.skin = skin_of(self.vertices, self.faces)
-
-    def shapes(self, names: Sequence[str]) -> Float32[np.ndarray, "n V 3"]:
-        """(len(names), V, 3) the artist's shapes of ``names``, cm."""
-        return np.stack([self.deltas[self.names.index(n)] for n in names])
-
-
-def load_rocketbox_head(name: str, data_dir: str | os.PathLike | None = None) -> SculptedHead:
-    """A Rocketbox head (``rocketbox/<name>_head.npz`` in the data folder) with its ARKit
-    shapes."""
-    path = data_file(f"rocketbox/{name}_head.npz", data_dir)
-    z = read_arrays(path, ("neutral", "faces", "deltas", "names"))
-    names = [str(n) for n in z["names"]]
-    return SculptedHead(name, z["neutral"], z["faces"], z["deltas"], names)
 
 
 def ict_sculpted_heads(n: int, data_dir: str | os.PathLike | None = None) -> list[SculptedHead]:

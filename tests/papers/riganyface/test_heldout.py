@@ -1,8 +1,8 @@
 """The held-out evaluation protocols of the auto-rigging experiments, on small synthetic heads:
 which rows models are evaluated as, how each row's predictions are gathered and scored per
-split, the per-shape records, penetration where the truth has none, placement, timing and the
-glTF round trip. The heavy steps (correspondence, transfer, the network) are replaced by
-recording stand-ins where the aggregation is what is tested."""
+split, the per-shape records, penetration where the truth has none and placement. The heavy
+steps (correspondence, transfer, the network) are replaced by recording stand-ins where the
+aggregation is what is tested."""
 
 from __future__ import annotations
 
@@ -13,33 +13,28 @@ import jax
 import numpy as np
 import pytest
 
-from canrig_jax.autorig import (
+from canrig_jax.autorig import RigAnyFaceTrainOptions
+from canrig_jax.autorig._data import AutorigDataset, PoseSet, RiggedHead
+from canrig_jax.autorig._makehuman import MakeHumanHead
+from canrig_jax.autorig._train import make_model
+from canrig_jax.data import ICTFaceModel
+from canrig_jax.mesh import MeshOperators
+from canrig_jax.papers.riganyface import (
     ANCHOR_MODES,
     ANCHORED_RESIDUAL_MODELS,
     HELDOUT_SPLIT,
     RESIDUAL_MODEL,
-    AutorigDataset,
-    MakeHumanHead,
-    PoseSet,
-    RigAnyFaceTrainOptions,
-    RiggedHead,
     clean_penetration,
     evaluate_splits,
     evaluation_rows,
-    gltf_round_trip,
     heldout_predictions,
     heldout_shapes,
     load_checkpoint_rows,
-    make_model,
     makehuman_shapes,
     placement_errors,
-    rig_timing,
 )
-from canrig_jax.data import ICTFaceModel
-from canrig_jax.mesh import MeshOperators
-from canrig_jax.rig import BlendshapeRig
 
-MODULE = "canrig_jax.autorig._evaluation_protocols"
+MODULE = "canrig_jax.papers.riganyface._heldout"
 POSES = PoseSet(("browInnerUp", "eyeBlinkLeft", "jawOpen"), ((0,), (1,), (2,), (0, 2)))
 
 
@@ -344,69 +339,6 @@ def test_placement_compares_whole_and_cut_heads_on_the_same_vertices(monkeypatch
     assert stats["cut/bounding_box"]["mae_mm"] == pytest.approx(expected)
     assert stats["cut/face"]["mae_mm"] != pytest.approx(expected)
     assert protocol["scale_cm"]["cut"]["face_cm"] == 5.0 and protocol["heads"] == 1
-
-
-def test_rig_timing_alternates_two_triangulations_and_takes_medians(monkeypatch):
-    import trimesh
-
-    sphere = trimesh.creation.icosphere(subdivisions=4)  # 2,562 vertices
-    n = len(sphere.vertices)
-    head = ICTFaceModel(
-        neutral=(np.asarray(sphere.vertices) * 10).astype(np.float32),
-        faces=np.asarray(sphere.faces, np.int32),
-        deltas=np.zeros((1, n, 3), np.float32),
-        names=("jawOpen",),
-        part_names=("Face",),
-        part_vertex_range=np.asarray([[0, n]], np.int32),
-        component_labels=np.zeros(n, np.int32),
-        landmarks=np.zeros(68, np.int32),
-        vertex_ids=np.arange(n, dtype=np.int32),
-    )
-    seen, seconds = [], iter(range(100, 0, -1))
-
-    def generate(model, poses, v, f):
-        seen.append(len(v))
-        total = float(next(seconds))
-        return types.SimpleNamespace(
-            seconds={"total": total, "operators": total / 2, "network": total / 4}
-        )
-
-    monkeypatch.setattr(f"{MODULE}.generate_rig", generate)
-    timing = rig_timing(_model(False), POSES, head, repeats=5)
-    cold, warm = seen[0], seen[1:]
-    assert timing["vertices"] == cold and timing["warm_repeats"] == len(warm) == 5
-    # two triangulations of similar size alternate (the decimated head last)
-    other = warm[0]
-    assert other != cold and abs(other - cold) < 0.05 * cold
-    assert warm == [other, cold, other, cold, cold]
-    assert timing["cold"] == 100 and timing["warm"] == np.median([99, 98, 97, 96, 95])
-    assert timing["warm_operators"] == 97 / 2 and timing["warm_orientation"] == 0.0
-    with pytest.raises(ValueError, match="repeats"):
-        rig_timing(_model(False), POSES, head, repeats=0)
-
-
-def test_gltf_round_trip_reports_the_largest_difference(tmp_path, monkeypatch):
-    rng = np.random.default_rng(1)
-    rig = BlendshapeRig(
-        rng.normal(size=(4, 3)).astype(np.float32),
-        rng.normal(size=(2, 4, 3)).astype(np.float32),
-        (),
-        ("jawOpen", "eyeBlinkLeft"),
-        np.asarray([[0, 1, 2], [0, 2, 3]], np.int32),
-    )
-    exact = gltf_round_trip(rig, tmp_path / "rig.glb")
-    assert exact == {
-        "file": "rig.glb",
-        "morph_targets": 2,
-        "max_abs_difference_cm": 0.0,
-        "names_equal": True,
-        "faces_equal": True,
-    }
-    moved = BlendshapeRig(rig.neutral, rig.deltas.at[1, 2, 0].add(0.25), (), rig.names, rig.faces)
-    monkeypatch.setattr(f"{MODULE}.load_gltf_rig", lambda path: moved)
-    assert gltf_round_trip(rig, tmp_path / "again.glb")["max_abs_difference_cm"] == pytest.approx(
-        0.25
-    )
 
 
 def test_load_checkpoint_rows_names_rows_by_folder_and_stem(tmp_path, monkeypatch):

@@ -1,12 +1,11 @@
-"""The auto-rigging experiments' evaluation protocols on held-out ICT identities: which rows a
-set of models is evaluated as, every row's predictions on the held-out heads (the standard
-run's two splits, or the unseen-topology heads alone for checkpoints evaluated apart), the
-per-shape record (does the upper face move?), penetration where the ground truth has none,
-placement by the bounding box against placement from the face, rig-generation time and the
-glTF round trip of a generated rig.
+"""The auto-rigging experiments' evaluation on held-out ICT identities: which rows a set of
+models is evaluated as, every row's predictions on the held-out heads (the standard run's two
+splits, or the unseen-topology heads alone for checkpoints evaluated apart), the per-shape
+record (does the upper face move?), penetration where the ground truth has none, and
+placement by the bounding box against placement from the face.
 
 Displacements are in centimetres, (P, V, 3) per head (P poses of ``dataset.poses``); errors in
-millimetres. The scripts ``experiments/autorig*.py`` call these; the tests call them here.
+millimetres. The scripts ``experiments/autorig*.py`` call these.
 """
 
 import time
@@ -16,10 +15,7 @@ from pathlib import Path
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
-from ..data import ICTFaceModel
-from ..mesh import MeshOperators, decimate
-from ..rig import BlendshapeRig, export_gltf, load_gltf_rig
-from ._data import (
+from ...autorig._data import (
     AutorigDataset,
     PoseSet,
     RiggedHead,
@@ -27,23 +23,30 @@ from ._data import (
     face_placement,
     head_correspondence,
 )
-from ._evaluation import sculpted_shape_errors
-from ._makehuman import MakeHumanHead
-from ._metrics import error_stats, inner_outside, penetration, penetration_free_set
-from ._model import RigAnyFace, normalise
-from ._protocols import anchored_base_key, crop_below_chin, generate_rows, transfer_bases
+from ...autorig._evaluation import sculpted_shape_errors
+from ...autorig._metrics import error_stats, inner_outside, penetration, penetration_free_set
+from ...autorig._model import RigAnyFace, normalise
+from ...autorig._rig import generate_rig
+from ...autorig._train import head_inputs, load_riganyface
+from ...mesh import MeshOperators
+from ._bases import anchored_base_key, generate_rows, transfer_bases
+from ._crops import crop_below_chin
 from ._recipes import ANCHORED_RESIDUAL_MODELS
-from ._rig import generate_rig
-from ._train import head_inputs, load_riganyface
 
 SPLITS = ("same_topology", "unseen_topology")
 """The held-out splits of ``ict_autorig_dataset``: new identities on a training remeshing, and
 on a resolution never trained on."""
+
+
 HELDOUT_SPLIT = "unseen_topology"
 """The split the per-class, per-shape, penetration and placement protocols use."""
+
+
 ANCHORED_ROW = "_anchored"
 """Suffix of a residual model's row evaluated on anchored deformation transfer (trained on
 plain): ``raf_dt_residual_anchored``."""
+
+
 UPPER_FACE = ("brow", "eye", "cheekSquint")
 """ARKit shapes of the upper face (name prefixes), for the per-region summaries."""
 
@@ -211,36 +214,6 @@ def evaluate_splits(
     return out
 
 
-def makehuman_shapes(
-    makehuman_example: tuple[
-        MakeHumanHead,
-        Float[ArrayLike, "S V 3"],
-        Mapping[str, Float[ArrayLike, "S V 3"]],
-        Sequence[str],
-    ],
-) -> dict:
-    """Per shape on the MakeHuman head (``sculpted_shape_errors`` on its skin) of every row in
-    ``evaluate_makehuman``'s example (head, (S, V, 3) targets, row -> (S, V, 3) predictions,
-    S labels): {"labels", "target_peak_mm": (S,), "upper_face": (S,) bool (``UPPER_FACE``),
-    "methods": row -> {"skin_mae_mm", "amplitude_ratio", "peak_mm", "peak_ratio"} (S,) each},
-    as lists; the peak ratio is the row's largest vertex motion over the target's."""
-    mh, truth, predictions, labels = makehuman_example
-    if not predictions:
-        raise ValueError("makehuman_example: expected at least one row of predictions, got none")
-    methods, target_peak = {}, None
-    for name, predicted in predictions.items():
-        errors = sculpted_shape_errors(predicted, truth, mh.skin)
-        target_peak = errors.pop("target_peak_mm")
-        errors["peak_ratio"] = errors["peak_mm"] / target_peak
-        methods[name] = {k: v.tolist() for k, v in errors.items()}
-    return {
-        "labels": [str(n) for n in labels],
-        "target_peak_mm": np.asarray(target_peak).tolist(),
-        "upper_face": [str(n).startswith(UPPER_FACE) for n in labels],
-        "methods": methods,
-    }
-
-
 def heldout_shapes(
     heads: Sequence[RiggedHead],
     predicted: Mapping[str, Sequence[Float[np.ndarray, "P _V 3"]]],
@@ -380,57 +353,3 @@ def placement_errors(
         "seconds_face_fit_median": float(np.median(fit_seconds)),
     }
     return stats, protocol
-
-
-def rig_timing(model: RigAnyFace, poses: PoseSet, head: ICTFaceModel, repeats: int = 9) -> dict:
-    """Seconds to generate the rig of ``head`` (the generic ICT head: ``neutral``, ``faces``)
-    decimated to ~1,750 vertices: cold (the first call: compile + operators + network) and
-    warm (the median over ``repeats`` calls, alternating two triangulations of similar size
-    so no operator is reused), with the warm operators, network and orientation parts."""
-    if repeats < 1:
-        raise ValueError(f"repeats: expected >= 1, got {repeats}")
-    timing_head = decimate(head.neutral, head.faces, 1600)
-    timing_other = decimate(head.neutral, head.faces, 1620)
-    cold = generate_rig(model, poses, timing_head.vertices, timing_head.faces)  # compile + ops
-    warm = [
-        generate_rig(model, poses, mesh.vertices, mesh.faces).seconds
-        for mesh in [timing_other, timing_head] * (repeats // 2) + [timing_head]
-    ]
-    return {
-        "vertices": timing_head.n_vertices,
-        "poses": poses.n_poses,
-        "cold": cold.seconds["total"],
-        "warm": float(np.median([w["total"] for w in warm])),
-        "warm_operators": float(np.median([w["operators"] for w in warm])),
-        "warm_network": float(np.median([w["network"] for w in warm])),
-        "warm_orientation": float(np.median([w.get("orientation", 0.0) for w in warm])),
-        "warm_repeats": len(warm),
-    }
-
-
-def gltf_round_trip(rig: BlendshapeRig, path: str | Path) -> dict:
-    """Export ``rig`` as glTF 2.0 to ``path`` (``export_gltf``) and read it back
-    (``load_gltf_rig``): the file's name, its morph targets (blendshapes and corrective
-    terms), the largest absolute difference of neutral, deltas and dense correctives after
-    the reload (the rig's units), and whether the names and faces came back equal."""
-    path = Path(path)
-    export_gltf(rig, path)
-    reloaded = load_gltf_rig(path)
-    differences = [
-        np.abs(np.asarray(reloaded.neutral) - np.asarray(rig.neutral)).max(),
-        np.abs(np.asarray(reloaded.deltas) - np.asarray(rig.deltas)).max(),
-        *(
-            np.abs(
-                np.asarray(a.to_dense(rig.n_vertices)) - np.asarray(b.to_dense(rig.n_vertices))
-            ).max()
-            for a, b in zip(reloaded.correctives, rig.correctives, strict=True)
-        ),
-    ]
-    return {
-        "file": path.name,
-        "morph_targets": len(reloaded.names)
-        + sum(c.indices.shape[0] for c in reloaded.correctives),
-        "max_abs_difference_cm": float(max(differences)),
-        "names_equal": tuple(reloaded.names) == tuple(rig.names),
-        "faces_equal": bool(np.array_equal(np.asarray(reloaded.faces), np.asarray(rig.faces))),
-    }
