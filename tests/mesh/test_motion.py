@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+import canrig_jax.mesh._motion as motion
 from canrig_jax.mesh import edge_stretch, flipped_triangles, rigid_residual, self_intersections
 
 
@@ -65,7 +66,9 @@ def _crossings_by_solving(frame, edges, faces):
     return out
 
 
-def test_self_intersections_of_a_crumpled_sheet_are_every_new_crossing():
+@pytest.mark.parametrize("bound_from", [1, 10**6], ids=["motion-bound", "no-bound"])
+def test_self_intersections_of_a_crumpled_sheet_are_every_new_crossing(bound_from, monkeypatch):
+    monkeypatch.setattr(motion, "MOTION_BOUND_FRAMES", bound_from)
     # a 6 x 6 grid sheet crumpled by random bumps about a cell wide (a third of the pairs
     # are then too far apart for their relative motion to meet): the pairs
     # the broad phase and the motion bound leave out must be pairs that never cross

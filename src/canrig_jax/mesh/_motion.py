@@ -80,6 +80,12 @@ def edge_stretch(
     return now / rest[keep]
 
 
+MOTION_BOUND_FRAMES = 64
+"""``self_intersections`` bounds each pair's relative motion first (``_could_meet``) from
+this many frames on; the bound costs about as much as testing every pair in this many
+frames."""
+
+
 def self_intersections(
     frames: Float[ArrayLike, "T V 3"],
     neutral: Float[ArrayLike, "V 3"],
@@ -122,19 +128,23 @@ def self_intersections(
             e_all.append(e_bin[pairs["i"]])
             f_all.append(f_bin[pairs["j"]])
     e, f = np.concatenate(e_all), np.concatenate(f_all)
+    # a segment's (a triangle's) points move no further than its farthest-moving corner; a
+    # pair of which nothing moves keeps its neutral relation
+    reach = np.linalg.norm(x - neutral, axis=-1).max(axis=0)  # (V,)
+    moves = (reach[edges[e]].max(axis=1) > 0) | (reach[faces[f]].max(axis=1) > 0)
+    e, f = e[moves], f[moves]
     keep = ~(edges[e, :, None] == faces[f, None, :]).any(axis=(1, 2))
     keep &= np.linalg.norm(seg_centre[e] - tri_centre[f], axis=-1) <= seg_size[e] + tri_size[f]
     e, f = e[keep], f[keep]
     before = _segment_crosses_triangle(neutral[edges[e]], neutral[faces[f]])
     e, f = e[~before], f[~before]
-    # a pair can cross only if its points move towards each other by their neutral gap: a
-    # segment's (a triangle's) points move no further than its farthest-moving corner
-    reach = np.linalg.norm(x - neutral, axis=-1).max(axis=0)  # (V,)
+    # a pair can cross only if its points move towards each other by their neutral gap
     gap = np.linalg.norm(seg_centre[e] - tri_centre[f], axis=-1) - 0.5 * seg_length[e]
     movable = gap - tri_size[f] <= reach[edges[e]].max(axis=1) + reach[faces[f]].max(axis=1)
     e, f = e[movable], f[movable]
-    meet = _could_meet(neutral, x, edges[e], faces[f])
-    e, f = e[meet], f[meet]
+    if x.shape[0] >= MOTION_BOUND_FRAMES:  # fewer frames: the exact test costs less
+        meet = _could_meet(neutral, x, edges[e], faces[f])
+        e, f = e[meet], f[meet]
     if e.size == 0:
         return np.zeros(x.shape[0], np.int64)
     # one compiled shape per size class of the pair list (padded with a pair that cannot cross)
