@@ -20,6 +20,7 @@ from canrig_jax.autorig import (
 )
 from canrig_jax.autorig._any_head import STYLE_GRID
 from canrig_jax.autorig._evaluation import sculpted_target_errors
+from canrig_jax.autorig._landmarks import skin_of
 from canrig_jax.autorig._orientation import (
     CUE_MARGIN_CM,
     axis_rotations,
@@ -27,6 +28,7 @@ from canrig_jax.autorig._orientation import (
     face_cues,
     stated_orientation,
 )
+from canrig_jax.autorig._weld import WELD_TAU, clumps, weld
 from canrig_jax.data import ARKIT_NAMES, FACE, load_ict
 from canrig_jax.rig import BlendshapeRig
 
@@ -492,10 +494,19 @@ def test_a_template_carried_onto_its_own_head_gives_its_shapes_back(
     assert result.orientation.source == "stated"
     assert result.style == Style()
     got = np.asarray(result.rig.deltas, np.float64)
-    want = z_up_head["deltas"]
+    # the template's own shapes, with the head's clumps moving as one (``_weld``)
+    skin = skin_of(z_up_head["vertices"], z_up_head["faces"])
+    labels = clumps(z_up_head["vertices"], z_up_head["faces"], skin, WELD_TAU)
+    want = weld(z_up_head["deltas"], labels)
+    for name in z_up_head["examples"]:  # the examples are taken as sculpted
+        want[names.index(name)] = z_up_head["deltas"][names.index(name)]
     error = np.linalg.norm(got - want, axis=-1).max(axis=1)
     peak = np.linalg.norm(want, axis=-1).max(axis=1)
-    assert np.all(error <= 0.05 * peak + 1e-4)
+    # the blinks are closed on the lid (close_blinks may scale the welded blink), as in the
+    # method contract (tests/autorig/test_methods.py)
+    bad = [(n, e, p) for n, e, p in zip(names, error, peak, strict=True)
+           if e > 0.05 * p + 1e-4 and not n.startswith("eyeBlink")]  # fmt: skip
+    assert not bad, bad
 
 
 def test_the_packaged_orientation_template_is_the_ict_inner_face(source):
