@@ -2,8 +2,10 @@
 
 ``solve`` validates its inputs in plain Python and then calls one jit-compiled function
 that takes the prepared problem, the target and the method as arguments, so it compiles once
-per (problem shape, method type and static settings) and is reused by every later call, by
-``solve_sequence`` and by ``Stream``. Inside a caller's ``jit``/``vmap`` it is traced inline.
+per (problem shape, method type and static settings) and is reused by every later call and
+by ``solve_sequence``. A ``Stream`` frame is one call of the same body compiled with the
+stream's state (``_compiled_call``): its key, frame counter and window live on the device.
+Inside a caller's ``jit``/``vmap`` ``solve`` is traced inline.
 """
 
 import functools
