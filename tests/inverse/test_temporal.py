@@ -11,7 +11,11 @@ import numpy as np
 import pytest
 
 from canrig_jax import inverse
-from canrig_jax.inverse._temporal import block_banded_solve, difference_bands
+from canrig_jax.inverse._temporal import (
+    block_banded_solve,
+    dense_banded_solve,
+    difference_bands,
+)
 from canrig_jax.papers import inverse_rig
 from canrig_jax.rig import evaluate
 
@@ -48,8 +52,11 @@ def _energy(rig, targets, weights, alpha, smoothness, velocity=0.0):
     return data + alpha * weights.sum() + time
 
 
+@pytest.mark.parametrize("solver", [block_banded_solve, dense_banded_solve])
 @pytest.mark.parametrize("frames", [1, 2, 5, 6])
-def test_block_banded_solve_equals_a_dense_solve(frames):
+def test_block_banded_solve_equals_a_dense_solve(frames, solver):
+    """Both solvers of the block-banded system (the scan over frame pairs, and the one dense
+    matrix of a short window) against NumPy's solve of the matrix built here."""
     rng = np.random.default_rng(frames)
     k = 3
     dense = np.zeros((frames * k, frames * k))
@@ -80,7 +87,7 @@ def test_block_banded_solve_equals_a_dense_solve(frames):
         ]
         return jnp.asarray(np.stack(blocks) if blocks else np.zeros((0, k, k)), jnp.float32)
 
-    x = block_banded_solve(band(0), band(1), band(2), jnp.asarray(rhs, jnp.float32))
+    x = solver(band(0), band(1), band(2), jnp.asarray(rhs, jnp.float32))
     expected = np.linalg.solve(dense, rhs.ravel()).reshape(frames, k)
     np.testing.assert_allclose(np.asarray(x), expected, atol=1e-5)
 

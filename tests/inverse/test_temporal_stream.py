@@ -6,7 +6,10 @@ default smoothness."""
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
+
+import jax
 
 import jax.numpy as jnp
 import numpy as np
@@ -144,6 +147,60 @@ def test_blocks_carried_from_entry_reach_the_exact_blocks_window_minimum(synthet
         np.testing.assert_allclose(weights["on_entry"], weights["exact"], atol=atol)
 
 
+@pytest.mark.slow
+def test_the_full_step_first_reaches_the_searched_window_minimum(synthetic_rig):
+    """``stream_steps="newton_first"`` (the default: the full Newton step taken when it
+    passes Armijo's test, the line search only when it does not) against ``"searched"``
+    (every step length scored in every iteration) on a rig with correctives, lag 2 and lag 0:
+    the same weights within 1e-4 at a tight tolerance, and at the default tolerance the same
+    energies within 1e-5 relative (the float64 take objective of the streamed weights)."""
+    rig = synthetic_rig
+    rng = np.random.default_rng(4)
+    seconds = np.linspace(0.0, 1.0, 12)[:, None]
+    truth = 0.45 + 0.4 * np.sin(2 * np.pi * (seconds + np.arange(rig.n_blendshapes) / 8))
+    targets = np.asarray(evaluate_batch(rig, truth))
+    targets = (targets + rng.normal(0, np.sqrt(0.03), targets.shape)).astype(np.float32)
+    problem = inverse.prepare(rig)
+    offsets = (targets - np.asarray(problem.neutral)).reshape(len(targets), -1)
+    assert inverse.TemporalNewton().stream_steps == "newton_first"
+    for lag, tol in ((2, 1e-9), (0, 1e-9), (2, 1e-5)):
+        weights = {
+            steps: _streamed(
+                problem,
+                targets,
+                inverse.TemporalNewton(
+                    alpha=ALPHA, smoothness=SMOOTHNESS, tol=tol, stream_steps=steps
+                ),  # fmt: skip
+                lag,
+            )
+            for steps in ("newton_first", "searched")
+        }
+        if tol < 1e-6:
+            np.testing.assert_allclose(weights["newton_first"], weights["searched"], atol=1e-4)
+        energy = {
+            steps: float(inverse_rig.take_objective(problem, w, offsets, ALPHA, SMOOTHNESS))
+            for steps, w in weights.items()
+        }
+        assert energy["newton_first"] == pytest.approx(energy["searched"], rel=1e-5)
+
+
+def test_two_lagged_streams_share_one_compiled_call(take, caplog):
+    """Each frame is one call of one compiled function (dispatch, key and frame counter
+    inside it): a second stream with another alpha compiles nothing, and the frames come
+    back numbered across ``flush`` and a second take."""
+    problem, targets = take
+    caplog.set_level(logging.WARNING, logger="jax")
+    with jax.log_compiles():
+        for alpha in (ALPHA, 2 * ALPHA):
+            stream = inverse.Stream(problem, inverse.TemporalNewton(alpha=alpha), lag=2)
+            first = [s for s in map(stream, targets[:5]) if s is not None] + stream.flush()
+            second = [s for s in map(stream, targets[5:6]) if s is not None] + stream.flush()
+            frames = [int(s.stats["frame"]) for s in first + second]
+            assert frames == list(range(6)) and stream.frame == 6
+    compiled = [r for r in caplog.records if "Compiling jit(stream_lagged_call)" in r.getMessage()]
+    assert len(compiled) == 1
+
+
 def test_the_default_smoothness_is_the_value_the_rule_chose():
     results = json.loads(RESULTS.read_text())
     protocol = results["temporal_protocol"]["ict"]
@@ -207,5 +264,7 @@ def test_bad_lag_input_is_named_before_compiling(take):
             inverse.Stream(problem, method, **kwargs)
     with pytest.raises(ValueError, match="stream_blocks"):
         inverse.TemporalNewton(stream_blocks="stale")
+    with pytest.raises(ValueError, match=r"stream_steps: expected one of .*newton_first"):
+        inverse.TemporalNewton(stream_steps="armijo")
     with pytest.raises(ValueError, match="flush"):
         inverse.Stream(problem, temporal).flush()

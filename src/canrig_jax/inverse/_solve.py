@@ -2,10 +2,13 @@
 
 ``solve`` validates its inputs in plain Python and then calls one jit-compiled function
 that takes the prepared problem, the target and the method as arguments, so it compiles once
-per (problem shape, method type and static settings) and is reused by every later call, by
-``solve_sequence`` and by ``Stream``. Inside a caller's ``jit``/``vmap`` it is traced inline.
+per (problem shape, method type and static settings) and is reused by every later call and
+by ``solve_sequence``. A ``Stream`` frame is one call of the same body compiled with the
+stream's state (``_compiled_call``): its key, frame counter and window live on the device.
+Inside a caller's ``jit``/``vmap`` ``solve`` is traced inline.
 """
 
+import functools
 from typing import Any
 
 import equinox as eqx
@@ -120,7 +123,6 @@ def _solution(problem, offset, method, init, run, projection=None) -> Solution:
 
 
 _solve_jit = eqx.filter_jit(_solve_one)
-_stream_jit = eqx.filter_jit(_stream_one)
 
 
 def _traced_floats(method: AbstractInverseMethod) -> AbstractInverseMethod:
@@ -303,9 +305,6 @@ FRAMES_PER_CALL = 32
 """Frames per compiled call when ``solve_sequence`` shares a take across processes."""
 
 
-# one compiled call instead of the eager threefry primitives (0.13 ms per frame)
-_fold_in = jax.jit(jax.random.fold_in)
-
 HISTORY_FRAMES = 2
 """Frames before a lagged ``Stream``'s window that enter its time terms, held fixed (the
 second difference reaches two frames back)."""
@@ -343,7 +342,47 @@ def _lagged_one(problem, target, method, state, present_new, key) -> tuple[Solut
     return solution, (offsets, projections, solved, present, carry)
 
 
-_lagged_jit = eqx.filter_jit(_lagged_one)
+def _plain_call(problem, method, warm_start, key, target, state):
+    """One call of a ``Stream`` without ``lag``, keyed by its frame counter: the Solution and
+    the next state (the weights and carry the next frame starts from; with ``warm_start``
+    False, the same start every frame)."""
+    init, carry, frame = state
+    solution, moved = _stream_one(
+        problem, target, method, init, jax.random.fold_in(key, frame), carry
+    )
+    if warm_start:
+        init, carry = solution.weights, moved
+    return solution, (init, carry, frame + 1)
+
+
+def _lagged_call(problem, method, key, target, state, present_new, emit):
+    """One call of a lagged ``Stream`` (``_lagged_one``), keyed by its frame counter; the
+    Solution's ``stats["frame"]`` is the index of the next frame to return, which moves on
+    when ``emit``."""
+    window, frame, returned = state
+    solution, window = _lagged_one(
+        problem, target, method, window, present_new, jax.random.fold_in(key, frame)
+    )
+    stats = {**solution.stats, "frame": returned}
+    solution = Solution(solution.weights, solution.objective, solution.history,
+                        solution.result, stats)  # fmt: skip
+    moved = (window, frame + present_new.astype(frame.dtype), returned + emit.astype(frame.dtype))
+    return solution, moved
+
+
+@functools.lru_cache(maxsize=64)
+def _compiled_call(body, static, *options):
+    """``body`` compiled once per (static part of the problem and method, ``options``): a
+    ``jax.jit`` of the array leaves alone, the state argument donated, so that a ``Stream``
+    call is one dispatch with no Python-side tree work (``eqx.filter_jit`` partitions its
+    arguments on every call: ~0.3 ms, a tenth of the projection floor on ict-quartic)."""
+
+    def call(dynamic, key, target, state, *flags):
+        problem, method = eqx.combine(dynamic, static)
+        return body(problem, method, *options, key, target, state, *flags)
+
+    call.__name__ = call.__qualname__ = f"stream{body.__name__}"  # in jax.log_compiles
+    return jax.jit(call, donate_argnums=3)
 
 
 def _check_lag(lag, method, warm_start) -> None:
@@ -418,52 +457,54 @@ class Stream:
         self.warm_start = bool(warm_start) or self.lag is not None
         self.key = _key(key)
         self.frame = 0
-        self.zeros: Array = jnp.zeros(self.problem.n_blendshapes, self.problem.columns.dtype)
-        self.previous: Array = self.zeros
-        self.start = self.carry = self.method.initial_carry(self.problem)
-        if self.lag is not None:
-            self._empty_window()
+        self._dynamic, static = eqx.partition((self.problem, self.method), eqx.is_array)
+        if self.lag is None:
+            self._call = _compiled_call(_plain_call, static, self.warm_start)
+            init = jnp.zeros(self.problem.n_blendshapes, self.problem.columns.dtype)
+            frame = jnp.asarray(0, jnp.int32)
+            state = (init, self.method.initial_carry(self.problem), frame)
+            self.state = jax.tree.map(jnp.array, state)  # own buffers: the state is donated
+        else:
+            self._call = _compiled_call(_lagged_call, static)
+            self._flags = {flag: jnp.asarray(flag) for flag in (False, True)}
+            self._empty_window(0)
 
-    def _empty_window(self) -> None:
+    def _empty_window(self, frame: int) -> None:
         n = HISTORY_FRAMES + self.lag + 1
         dtype = self.problem.columns.dtype
-        self.window = (
+        window = (
             jnp.zeros((n, self.problem.columns.shape[1]), dtype),
             jnp.zeros((n, self.problem.columns.shape[0]), dtype),
             jnp.zeros((n, self.problem.n_blendshapes), dtype),
             jnp.zeros(n, bool),
             self.method.initial_window_carry(self.problem, self.lag + 1),
         )
+        # (window, next frame, next frame to return), in buffers of its own: it is donated
+        counters = jnp.asarray(frame, jnp.int32), jnp.asarray(frame, jnp.int32)
+        self.state = jax.tree.map(jnp.array, (window, *counters))
         self.pending = 0  # frames in the window not returned yet
-        self.returned = self.frame  # index of the next frame to return
 
     def __call__(self, target: Float[ArrayLike, "V 3"]) -> Solution | None:
         _check_target(self.problem, "target", target, batched=False)
-        key = _fold_in(self.key, self.frame)
         if self.lag is not None:
-            return self._lagged(target, True, key)
-        init, carry = (self.previous, self.carry) if self.warm_start else (self.zeros, self.start)
-        solution, carry = _stream_jit(self.problem, target, self.method, init, key, carry)
+            return self._lagged(target, True)
+        solution, self.state = self._call(self._dynamic, self.key, target, self.state)
         self.frame += 1
-        if self.warm_start:
-            self.previous, self.carry = solution.weights, carry
         return solution
 
-    def _lagged(self, target, present, key) -> Solution | None:
+    def _lagged(self, target, present: bool, emit: bool = True) -> Solution | None:
         """Move the window on by one call; the Solution of the frame it finalises, or None
         while the frame it returns is not there yet."""
-        solution, self.window = _lagged_jit(
-            self.problem, target, self.method, self.window, present, key
-        )
         if present:
             self.frame += 1
             self.pending += 1
-            if self.pending <= self.lag:
-                return None
+            emit = self.pending > self.lag
+        flags = self._flags[present], self._flags[emit]
+        solution, self.state = self._call(self._dynamic, self.key, target, self.state, *flags)
+        if not emit:
+            return None
         self.pending -= 1
-        done, self.returned = self.returned, self.returned + 1
-        stats = {**solution.stats, "frame": jnp.asarray(done, jnp.int32)}
-        return eqx.tree_at(lambda s: s.stats, solution, stats)
+        return solution
 
     def flush(self) -> list[Solution]:
         """A lagged stream's last frames (up to ``lag`` of them, in frame order): the window
@@ -475,13 +516,11 @@ class Stream:
         neutral = self.problem.neutral
         # a take shorter than the lag: move its first frame to the returned slot first
         for _ in range(self.lag - self.pending if self.pending else 0):
-            self.window = _lagged_jit(
-                self.problem, neutral, self.method, self.window, False, _fold_in(self.key, 0)
-            )[1]
+            self._lagged(neutral, False, emit=False)
         out = []
         while self.pending:
-            out.append(self._lagged(neutral, False, _fold_in(self.key, self.frame)))
-        self._empty_window()
+            out.append(self._lagged(neutral, False))
+        self._empty_window(self.frame)
         return out
 
 

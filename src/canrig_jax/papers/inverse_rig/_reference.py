@@ -206,7 +206,7 @@ def time_against_projection(
     options = {"warm_start": warm_start} if lag is None else {"lag": lag}
     warmup = Stream(problem, method, **options)
     first = warmup(targets[0])  # compiles
-    jax.block_until_ready(warmup.window if first is None else first.weights)
+    jax.block_until_ready(warmup.state if first is None else first.weights)
     best: dict = {"ms": np.inf}
     for _ in range(repeats):
         stream = Stream(problem, method, **options)
@@ -219,7 +219,7 @@ def time_against_projection(
             start = time.perf_counter()
             solution = stream(target)
             if solution is None:
-                jax.block_until_ready(stream.window)
+                jax.block_until_ready(stream.state)
             else:
                 solution.weights.block_until_ready()
                 solutions.append(solution)

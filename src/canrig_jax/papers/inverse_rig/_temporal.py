@@ -257,6 +257,7 @@ def temporal_table(cases: dict[str, dict]) -> str:
             text += (
                 f"- `{mode}`: `Stream(problem, TemporalNewton(alpha, smoothness"
                 + (f', stream_blocks="{row["stream_blocks"]}"' if "stream_blocks" in row else "")
+                + (f', stream_steps="{row["stream_steps"]}"' if "stream_steps" in row else "")
                 + f"), lag={row['lag']})`, one frame per call, weights {row['lag']} frames late: "
                 f"{row['ms']:.2f} ms per frame against a projection floor of "
                 f"{row['projection_ms']:.2f} ms in the same loop, ratio {row['ratio']:.2f}x "
@@ -274,7 +275,8 @@ def temporal_table(cases: dict[str, dict]) -> str:
             f"{p['subset_objective']['per_frame']:.5g}, squared rig units). Windows of "
             f"{p['window']} frames: max |w - w_whole| = {p['window_max_weight_difference']:.3g} "
             f"(mean {p['window_mean_weight_difference']:.2g}). ms_per_frame: one timed run "
-            f"after compilation (streams: median of one call per frame, best of 3), the "
+            f"after compilation (streams: median of one call per frame, best of 3, the streams "
+            f"interleaved repeat by repeat), the "
             f"machine's two cores shared with other jobs.\n\n"
         )
     return text
