@@ -93,7 +93,9 @@ def test_lmmm_default_reaches_the_fixed_iteration_minimum(frames):
     default = inverse.solve_sequence(problem, targets, inverse.LMMM(alpha=ALPHA))
     fixed = inverse.solve_sequence(problem, targets, inverse.LMMM(alpha=ALPHA, tol=0.0))
     np.testing.assert_allclose(
-        np.asarray(default.objective), np.asarray(fixed.objective), rtol=5e-4  # 1.0e-4 seen
+        np.asarray(default.objective),
+        np.asarray(fixed.objective),
+        rtol=5e-4,  # 1.0e-4 seen
     )
     success = np.asarray(default.stats["converged"])
     steps = np.asarray(default.stats["steps"])
