@@ -115,6 +115,15 @@ def test_lag_zero_without_time_terms_is_the_warm_started_stream(take):
     np.testing.assert_allclose(_streamed(problem, targets, method, 0), expected, atol=1e-5)
 
 
+def _noisy_take(rig, seed: int) -> np.ndarray:
+    """(12, V, 3) float32: the rig at smooth weights (a sine per shape) plus Gaussian noise."""
+    rng = np.random.default_rng(seed)
+    seconds = np.linspace(0.0, 1.0, 12)[:, None]
+    truth = 0.45 + 0.4 * np.sin(2 * np.pi * (seconds + np.arange(rig.n_blendshapes) / 8))
+    targets = np.asarray(evaluate_batch(rig, truth))
+    return (targets + rng.normal(0, np.sqrt(0.03), targets.shape)).astype(np.float32)
+
+
 @pytest.mark.slow
 def test_blocks_carried_from_entry_reach_the_exact_blocks_window_minimum(synthetic_rig):
     """``stream_blocks="on_entry"`` (the default: each frame's Gauss-Newton block computed
@@ -124,11 +133,7 @@ def test_blocks_carried_from_entry_reach_the_exact_blocks_window_minimum(synthet
     two stop at different points; the experiment compares their RMSE and roughness on the
     Live Link take, ``results.json`` ``temporal``: within 0.1 %)."""
     rig = synthetic_rig
-    rng = np.random.default_rng(2)
-    seconds = np.linspace(0.0, 1.0, 12)[:, None]
-    truth = 0.45 + 0.4 * np.sin(2 * np.pi * (seconds + np.arange(rig.n_blendshapes) / 8))
-    targets = np.asarray(evaluate_batch(rig, truth))
-    targets = (targets + rng.normal(0, np.sqrt(0.03), targets.shape)).astype(np.float32)
+    targets = _noisy_take(rig, 2)
     problem = inverse.prepare(rig)
     assert inverse.TemporalNewton().stream_blocks == "on_entry"
     for tol, atol in ((1e-9, 1e-4),):
@@ -154,11 +159,7 @@ def test_the_full_step_first_reaches_the_searched_window_minimum(synthetic_rig):
     the same weights within 1e-4 at a tight tolerance, and at the default tolerance the same
     energies within 1e-5 relative (the float64 take objective of the streamed weights)."""
     rig = synthetic_rig
-    rng = np.random.default_rng(4)
-    seconds = np.linspace(0.0, 1.0, 12)[:, None]
-    truth = 0.45 + 0.4 * np.sin(2 * np.pi * (seconds + np.arange(rig.n_blendshapes) / 8))
-    targets = np.asarray(evaluate_batch(rig, truth))
-    targets = (targets + rng.normal(0, np.sqrt(0.03), targets.shape)).astype(np.float32)
+    targets = _noisy_take(rig, 4)
     problem = inverse.prepare(rig)
     offsets = (targets - np.asarray(problem.neutral)).reshape(len(targets), -1)
     assert inverse.TemporalNewton().stream_steps == "newton_first"
