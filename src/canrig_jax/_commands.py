@@ -1293,10 +1293,35 @@ def _add_launch_parser(sub) -> None:
     p.set_defaults(run=_launch)
 
 
+XLA_CACHE_FOLDER = "xla"
+"""The folder under the cache folder (``CANRIG_CACHE``) where the ``canrig`` console script
+keeps its compiled XLA programs: a second run of a command compiles nothing it compiled
+before (some 2-4 s of ``canrig autorig``)."""
+
+
+def _keep_compiled_programs() -> None:
+    """JAX's persistent compilation cache in ``cache_dir() / XLA_CACHE_FOLDER``, every program
+    kept however fast it compiled; left as it is when the user set one
+    (``JAX_COMPILATION_CACHE_DIR``)."""
+    import jax
+
+    from ._cache import cache_dir
+
+    if jax.config.jax_compilation_cache_dir:
+        return
+    jax.config.update("jax_compilation_cache_dir", str(cache_dir() / XLA_CACHE_FOLDER))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``canrig`` console script; returns the exit status."""
+    """Entry point of the ``canrig`` console script; returns the exit status. Run as the
+    script (``argv`` None: the process's own arguments) it keeps its compiled programs on
+    disk (``_keep_compiled_programs``); called with ``argv`` from Python
+    (``canrig_jax.run_command``) it leaves the caller's JAX configuration alone."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    if argv is None:
+        _keep_compiled_programs()
     with print_warnings("canrig"):
         try:
             status = watchdog.run_watched(args.run, f"canrig {args.command}", args)

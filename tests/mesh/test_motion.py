@@ -66,12 +66,9 @@ def _crossings_by_solving(frame, edges, faces):
     return out
 
 
-@pytest.mark.parametrize("bound_from", [1, 10**6], ids=["motion-bound", "no-bound"])
-def test_self_intersections_of_a_crumpled_sheet_are_every_new_crossing(bound_from, monkeypatch):
-    monkeypatch.setattr(motion, "MOTION_BOUND_FRAMES", bound_from)
-    # a 6 x 6 grid sheet crumpled by random bumps about a cell wide (a third of the pairs
-    # are then too far apart for their relative motion to meet): the pairs
-    # the broad phase and the motion bound leave out must be pairs that never cross
+def test_self_intersections_of_a_crumpled_sheet_are_every_new_crossing():
+    # a 6 x 6 grid sheet crumpled by random bumps about a cell wide: the pairs the broad
+    # phase and the motion filter leave out must be pairs that never cross
     g = np.stack(np.meshgrid(np.arange(6.0), np.arange(6.0), indexing="ij"), -1).reshape(-1, 2)
     neutral = np.c_[g, np.zeros(len(g))]
     i = np.arange(5)[:, None] * 6 + np.arange(5)[None]
@@ -113,3 +110,77 @@ def test_bad_frames_are_named():
         flipped_triangles(np.zeros((2, 4, 3)), neutral, np.array([[0, 1, 2]]))
     with pytest.raises(ValueError, match="frames"):
         edge_stretch(np.full((1, 3, 3), np.nan), neutral, np.array([[0, 1, 2]]))
+
+
+def _crossings_of_every_near_pair(frames, neutral, faces):
+    """(T,) per frame, the near pairs of the neutral's broad phase (every one, nothing left
+    out for not moving) that the NumPy segment-triangle test finds crossing, in float32."""
+    pairs = motion._build_near_pairs(neutral, faces, 0.5)
+    seg, tri = pairs.edges[pairs.e], pairs.faces[pairs.f]
+    x = np.asarray(frames, np.float32)
+    return np.array([motion._segment_crosses_triangle(f[seg], f[tri]).sum() for f in x])
+
+
+def test_self_intersections_of_a_real_head_in_motion_are_every_near_pair_that_crosses(data_dir):
+    # the MakeHuman head under its own shapes at 1.5 and random sparse combinations (lips
+    # and lids through each other): the motion filter and the compiled, frame-batched test
+    # against the NumPy test of every near pair of the broad phase in every frame
+    from canrig_jax.autorig import load_makehuman
+    from canrig_jax.rig import random_sparse_poses
+
+    head = load_makehuman(data_dir)
+    neutral = np.asarray(head.neutral, np.float64)
+    deltas = np.asarray(head.deltas, np.float64)
+    weights = 1.5 * random_sparse_poses(np.random.default_rng(0), 11, list(head.names))
+    frames = neutral + np.einsum("tk,kvc->tvc", weights, deltas)
+    motion._NEAR_PAIRS.clear()
+    counts = self_intersections(frames, neutral, head.faces)
+    want = _crossings_of_every_near_pair(frames, neutral, np.asarray(head.faces, np.int64))
+    assert want.sum() > 0
+    np.testing.assert_array_equal(counts, want)
+
+
+def test_self_intersections_reuse_a_neutral_s_broad_phase_only_for_that_neutral():
+    # one neutral's near pairs are built once; another neutral with the same triangles (the
+    # sheet bent) gets its own, and each gives what a fresh start gives
+    g = np.stack(np.meshgrid(np.arange(6.0), np.arange(6.0), indexing="ij"), -1).reshape(-1, 2)
+    flat = np.c_[g, np.zeros(len(g))]
+    bent = np.c_[g, 0.3 * (g[:, 0] - 2.5) ** 2]
+    quads = (np.arange(5)[:, None] * 6 + np.arange(5)[None]).ravel()
+    faces = np.concatenate(
+        [np.c_[quads, quads + 6, quads + 1], np.c_[quads + 1, quads + 6, quads + 7]]
+    )
+    rng = np.random.default_rng(2)
+    frames = {
+        n: x + rng.normal(scale=0.8, size=(5, *x.shape))
+        for n, x in (("flat", flat), ("bent", bent))
+    }
+    fresh = {}
+    for name, neutral in (("flat", flat), ("bent", bent)):
+        motion._NEAR_PAIRS.clear()
+        fresh[name] = self_intersections(frames[name], neutral, faces, near=3.0)
+    motion._NEAR_PAIRS.clear()
+    for name, neutral in (("flat", flat), ("bent", bent), ("flat", flat)):
+        np.testing.assert_array_equal(
+            self_intersections(frames[name], neutral, faces, near=3.0), fresh[name]
+        )
+    assert len(motion._NEAR_PAIRS) == 2
+    assert sum(fresh["flat"]) > 0
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_compiled_crossing_test_is_the_numpy_test(seed):
+    # random segments and triangles sharing no vertex (what self_intersections passes; the
+    # padding shares one and is not valid): the compiled count per frame is the NumPy test's
+    # in float32. (Cases within rounding of the test's thresholds, a segment ending on the
+    # triangle's plane, may go either way: the compiled program rounds in its own order.)
+    rng = np.random.default_rng(seed)
+    n_vertices, n_pairs = 60, 4000
+    x = rng.normal(size=(10, n_vertices, 3)).astype(np.float32)
+    seg = rng.integers(0, n_vertices, (n_pairs, 2)).astype(np.int32)
+    tri = rng.integers(0, n_vertices, (n_pairs, 3)).astype(np.int32)
+    valid = (rng.random(n_pairs) < 0.9) & ~(seg[:, :, None] == tri[:, None, :]).any(axis=(1, 2))
+    counts = np.asarray(motion._count_crossings(x, seg, tri, valid))
+    want = [(motion._segment_crosses_triangle(f[seg], f[tri]) & valid).sum() for f in x]
+    assert sum(want) > 0
+    np.testing.assert_array_equal(counts, want)

@@ -8,7 +8,7 @@ import pytest
 
 from canrig_jax.data import FACE, load_ict, load_mediapipe_face
 from canrig_jax.mesh import connected_components, decimate, flip_quad_split, subdivide
-from canrig_jax.mesh._remesh import closest_surface_points, quad_pairs
+from canrig_jax.mesh._remesh import _closest_on_triangles, closest_surface_points, quad_pairs
 from canrig_jax.rig import BlendshapeRig, Corrective, evaluate, remesh_rig
 
 
@@ -170,3 +170,42 @@ def test_bad_input(head, decimated):
         flip_quad_split(np.eye(3), np.array([[0, 1, 2]]))
     with pytest.raises(ValueError, match="^values:"):
         decimated.map.carry(np.zeros((7, 3)))
+
+
+def _closest_among_every_candidate(points, vertices, faces, n_candidates=16):
+    """``closest_surface_points`` as it was: every candidate (the nearest centroids' triangles,
+    then the triangles at the nearest vertex, padded with the first) tested, np.argmin."""
+    from scipy.spatial import KDTree
+
+    _, near = KDTree(vertices[faces].mean(axis=1)).query(points, k=n_candidates)
+    _, nearest_vertex = KDTree(vertices).query(points)
+    ring = [np.flatnonzero((faces == v).any(axis=1)) for v in nearest_vertex]
+    width = max(len(r) for r in ring)
+    ring = np.stack(
+        [np.r_[r, np.full(width - len(r), n[0])] for r, n in zip(ring, near, strict=True)]
+    )
+    candidates = np.concatenate([near, ring], axis=1)
+    tri = vertices[faces[candidates]]
+    query = np.broadcast_to(points[:, None], candidates.shape + (3,))
+    bary = _closest_on_triangles(query, tri[..., 0, :], tri[..., 1, :], tri[..., 2, :])
+    distance = np.linalg.norm(np.einsum("nck,nckd->ncd", bary, tri) - query, axis=-1)
+    best = np.argmin(distance, axis=1)
+    pick = np.arange(len(points))
+    return candidates[pick, best], bary[pick, best], distance[pick, best]
+
+
+@pytest.mark.parametrize("spread_cm", [0.0, 0.05, 1.0])
+def test_closest_surface_points_choose_what_testing_every_candidate_chooses(
+    decimated, head, spread_cm
+):
+    # the decimated head's vertices (on the surface, many at its vertices and edges: ties
+    # between neighbouring triangles), and moved off it: the candidates left untested (too
+    # far, or tested already) never change the triangle, the weights or the distance
+    rng = np.random.default_rng(4)
+    points = decimated.vertices + rng.normal(scale=spread_cm, size=decimated.vertices.shape)
+    vertices = np.asarray(head.neutral, np.float64)
+    found = closest_surface_points(points, vertices, head.faces)
+    triangle, barycentric, distance = _closest_among_every_candidate(points, vertices, head.faces)
+    np.testing.assert_array_equal(found.triangle, triangle)
+    np.testing.assert_array_equal(found.barycentric, barycentric)
+    np.testing.assert_array_equal(found.distance, distance)

@@ -316,3 +316,34 @@ def test_sides_keep_closest_points_from_crossing_a_slit():
             source, faces, target, faces, landmarks, landmarks, source_sides=side,
             target_sides=side[:10],
         )  # fmt: skip
+
+
+def test_source_gradients_once_per_source_triangle_are_those_of_every_sample(data_dir, face):
+    # the sampled source triangles of a real correspondence repeat (four samples per target
+    # triangle, neighbours sharing source triangles): computed once per distinct triangle and
+    # gathered, the deformation gradients are those computed sample by sample
+    from canrig_jax.mesh._deformation_gradient import triangle_frames
+    from canrig_jax.mesh._transfer import _source_gradients, _source_samples
+
+    target = ict_identity(np.random.default_rng(3).standard_normal(100), data_dir, model=face)
+    coarse = decimate(target, face.faces, 2000)
+    landmarks = coarse.nearest_vertices(target[face.landmarks])
+    correspondence = closest_point_correspondence(
+        face.neutral, face.faces, coarse.vertices, coarse.faces, face.landmarks, landmarks
+    )
+    neutral = np.asarray(face.neutral, np.float64)
+    triangle = correspondence.source_triangle
+    samples = _source_samples(neutral, face.faces, triangle, 1e-10)
+    assert len(samples.faces) < triangle.size  # shared source triangles
+    posed = neutral + np.asarray(face.deltas[:4], np.float64)
+    gradient = _source_gradients(posed, samples, 1e-10)
+    # sample by sample
+    faces = face.faces[triangle.ravel()]
+    rest, rest_area = triangle_frames(neutral, faces)
+    frame, area = triangle_frames(posed, faces)
+    each = frame @ np.linalg.inv(np.where(rest_area[:, None, None] >= 1e-10, rest, np.eye(3)))
+    each = np.where(((rest_area >= 1e-10) & (area >= 1e-10))[..., None, None], each, np.eye(3))
+    weight = np.where(rest_area >= 1e-10, rest_area, 0.0).reshape(triangle.shape)
+    weight /= weight.sum(axis=1, keepdims=True)
+    want = np.einsum("btsij,ts->btij", each.reshape(4, *triangle.shape, 3, 3), weight)
+    np.testing.assert_array_equal(gradient, want)

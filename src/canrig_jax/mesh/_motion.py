@@ -6,6 +6,10 @@ Frames are (T, V, 3) positions of one mesh (any unit; the counts are unitless). 
 vectorised over frames: NumPy on the host, and the intersection test compiled over the
 candidate pairs of a KD-tree."""
 
+import collections
+import dataclasses
+import hashlib
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -80,36 +84,46 @@ def edge_stretch(
     return now / rest[keep]
 
 
-MOTION_BOUND_FRAMES = 64
-"""``self_intersections`` bounds each pair's relative motion first (``_could_meet``) from
-this many frames on; the bound costs about as much as testing every pair in this many
-frames."""
+CROSSING_FRAMES_PER_STEP = 8
+"""Frames ``_count_crossings`` tests at once (one fused loop over pairs and frames; some 10 ns
+a pair and frame on a CPU core, less than a bound on each pair's motion over the frames
+would cost to leave pairs out)."""
 
 
-def self_intersections(
-    frames: Float[ArrayLike, "T V 3"],
-    neutral: Float[ArrayLike, "V 3"],
-    faces: Int[ArrayLike, "F 3"],
-    *,
-    mask: Bool[ArrayLike, " F"] | None = None,
-    near: float = 0.5,
-) -> Int[np.ndarray, " T"]:
-    """(T,) how many (edge, triangle) pairs cross in each frame that did not cross in the
-    neutral: an edge passes through a triangle it shares no vertex with (the lips through each
-    other, a lid through the other lid). ``mask`` (F,) limits the triangles (and their edges)
-    tested, e.g. to the skin; a part crossing another part is not counted.
+@dataclasses.dataclass(frozen=True)
+class _NearPairs:
+    """The broad phase of ``self_intersections`` on one neutral mesh, what every set of frames
+    shares: the (edge, triangle) pairs near each other that share no vertex and do not cross
+    in the neutral, with the sizes the motion filters read."""
 
-    The pairs tested are those near each other in the neutral (their bounding spheres closer
-    than their radii plus ``near`` times the median edge length: lips, lids, folds; a KD-tree),
-    each exactly in every frame (segment against triangle, Möller-Trumbore; compiled, frame by
-    frame). A surface that travels further than that to cross another is not seen."""
-    neutral = _frames(neutral)[0]
-    faces = np.asarray(faces, np.int64)
-    if mask is not None:
-        faces = faces[np.asarray(mask, bool)]
-    x = _frames(frames, neutral.shape[0])
-    if len(faces) == 0:
-        return np.zeros(x.shape[0], np.int64)
+    edges: Int[np.ndarray, "E 2"]
+    faces: Int[np.ndarray, "F 3"]
+    e: Int[np.ndarray, " N"]
+    f: Int[np.ndarray, " N"]
+    seg_centre: Float64[np.ndarray, "E 3"]
+    seg_length: Float64[np.ndarray, " E"]
+    tri_centre: Float64[np.ndarray, "F 3"]
+    tri_size: Float64[np.ndarray, " F"]
+
+
+_NEAR_PAIRS: collections.OrderedDict[bytes, _NearPairs] = collections.OrderedDict()
+_NEAR_PAIRS_KEPT = 8
+
+
+def _near_pairs(neutral: np.ndarray, faces: np.ndarray, near: float) -> _NearPairs:
+    """``_build_near_pairs``, built once per (neutral, faces, near) content and kept for the
+    last ``_NEAR_PAIRS_KEPT`` meshes (the blink's fit and the rig's checks test one neutral)."""
+    digest = hashlib.blake2b(neutral.tobytes(), digest_size=16)
+    digest.update(faces.tobytes())
+    key = digest.digest() + repr((neutral.shape, faces.shape, float(near))).encode()
+    pairs = _NEAR_PAIRS.pop(key, None) or _build_near_pairs(neutral, faces, near)
+    _NEAR_PAIRS[key] = pairs
+    while len(_NEAR_PAIRS) > _NEAR_PAIRS_KEPT:
+        _NEAR_PAIRS.popitem(last=False)
+    return pairs
+
+
+def _build_near_pairs(neutral: np.ndarray, faces: np.ndarray, near: float) -> _NearPairs:
     edges = mesh_edges(faces)
     tri = neutral[faces]
     tri_centre = tri.mean(axis=1)
@@ -128,23 +142,54 @@ def self_intersections(
             e_all.append(e_bin[pairs["i"]])
             f_all.append(f_bin[pairs["j"]])
     e, f = np.concatenate(e_all), np.concatenate(f_all)
-    # a segment's (a triangle's) points move no further than its farthest-moving corner; a
-    # pair of which nothing moves keeps its neutral relation
-    reach = np.linalg.norm(x - neutral, axis=-1).max(axis=0)  # (V,)
-    moves = (reach[edges[e]].max(axis=1) > 0) | (reach[faces[f]].max(axis=1) > 0)
-    e, f = e[moves], f[moves]
     keep = ~(edges[e, :, None] == faces[f, None, :]).any(axis=(1, 2))
     keep &= np.linalg.norm(seg_centre[e] - tri_centre[f], axis=-1) <= seg_size[e] + tri_size[f]
     e, f = e[keep], f[keep]
     before = _segment_crosses_triangle(neutral[edges[e]], neutral[faces[f]])
     e, f = e[~before], f[~before]
+    for a in (edges, faces, e, f, seg_centre, seg_length, tri_centre, tri_size):
+        a.setflags(write=False)
+    return _NearPairs(edges, faces, e, f, seg_centre, seg_length, tri_centre, tri_size)
+
+
+def self_intersections(
+    frames: Float[ArrayLike, "T V 3"],
+    neutral: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    *,
+    mask: Bool[ArrayLike, " F"] | None = None,
+    near: float = 0.5,
+) -> Int[np.ndarray, " T"]:
+    """(T,) how many (edge, triangle) pairs cross in each frame that did not cross in the
+    neutral: an edge passes through a triangle it shares no vertex with (the lips through each
+    other, a lid through the other lid). ``mask`` (F,) limits the triangles (and their edges)
+    tested, e.g. to the skin; a part crossing another part is not counted.
+
+    The pairs tested are those near each other in the neutral (their bounding spheres closer
+    than their radii plus ``near`` times the median edge length: lips, lids, folds; a KD-tree,
+    built once per neutral and kept for the next call), each exactly in every frame (segment
+    against triangle, Möller-Trumbore; compiled, a few frames at a time). A surface that
+    travels further than that to cross another is not seen."""
+    neutral = _frames(neutral)[0]
+    faces = np.asarray(faces, np.int64)
+    if mask is not None:
+        faces = faces[np.asarray(mask, bool)]
+    x = _frames(frames, neutral.shape[0])
+    if len(faces) == 0:
+        return np.zeros(x.shape[0], np.int64)
+    near_pairs = _near_pairs(neutral, np.ascontiguousarray(faces), near)
+    edges, faces, e, f = near_pairs.edges, near_pairs.faces, near_pairs.e, near_pairs.f
+    # a segment's (a triangle's) points move no further than its farthest-moving corner; a
+    # pair of which nothing moves keeps its neutral relation
+    reach = np.linalg.norm(x - neutral, axis=-1).max(axis=0)  # (V,)
+    seg_reach, tri_reach = reach[edges[e]].max(axis=1), reach[faces[f]].max(axis=1)
     # a pair can cross only if its points move towards each other by their neutral gap
-    gap = np.linalg.norm(seg_centre[e] - tri_centre[f], axis=-1) - 0.5 * seg_length[e]
-    movable = gap - tri_size[f] <= reach[edges[e]].max(axis=1) + reach[faces[f]].max(axis=1)
+    gap = np.linalg.norm(near_pairs.seg_centre[e] - near_pairs.tri_centre[f], axis=-1)
+    gap -= 0.5 * near_pairs.seg_length[e]
+    movable = ((seg_reach > 0) | (tri_reach > 0)) & (
+        gap - near_pairs.tri_size[f] <= seg_reach + tri_reach
+    )
     e, f = e[movable], f[movable]
-    if x.shape[0] >= MOTION_BOUND_FRAMES:  # fewer frames: the exact test costs less
-        meet = _could_meet(neutral, x, edges[e], faces[f])
-        e, f = e[meet], f[meet]
     if e.size == 0:
         return np.zeros(x.shape[0], np.int64)
     # one compiled shape per size class of the pair list (padded with a pair that cannot cross)
@@ -159,46 +204,24 @@ def self_intersections(
     ).astype(np.int64)
 
 
-def _could_meet(neutral: np.ndarray, x: np.ndarray, seg: np.ndarray, tri: np.ndarray) -> np.ndarray:
-    """(N,) bool: segment n (vertices ``seg[n]``) and triangle n (``tri[n]``), apart in the
-    neutral, may meet in some frame of ``x``: two points meet only when their relative
-    motion covers their neutral distance, and the relative motion of a point of the segment
-    and one of the triangle is at most the largest of the six relative motions of their
-    vertices (both are convex combinations). The neutral distance is bounded below by the
-    largest gap along seven separating axes (the triangle's normal, its edges' in-plane
-    normals, the segment's direction across each edge): False only where they cannot meet."""
-    p = neutral[seg]  # (N, 2, 3)
-    t = neutral[tri]  # (N, 3, 3)
-    edge = t[:, [1, 2, 0]] - t  # (N, 3, 3)
-    normal = np.cross(edge[:, 0], edge[:, 1])
-    axes = np.concatenate(
-        [normal[:, None], np.cross(normal[:, None], edge), np.cross(p[:, 1:] - p[:, :1], edge)], 1
-    )  # (N, 7, 3)
-    axes /= np.maximum(np.linalg.norm(axes, axis=-1, keepdims=True), 1e-30)
-    on_seg = np.einsum("nkc,njc->nkj", axes, p)
-    on_tri = np.einsum("nkc,njc->nkj", axes, t)
-    gap = np.maximum(on_seg.min(-1) - on_tri.max(-1), on_tri.min(-1) - on_seg.max(-1))
-    gap = np.maximum(gap.max(-1), 0.0)  # (N,): at most the neutral distance
-    # the largest relative motion of a vertex pair, over the frames, each pair once
-    key = np.repeat(seg, 3, axis=1).astype(np.int64) * len(neutral) + np.tile(tri, (1, 2))
-    unique, where = np.unique(key.reshape(-1), return_inverse=True)
-    first, second = np.divmod(unique, len(neutral))
-    motion = np.zeros(len(unique))
-    for start in range(0, x.shape[0], 32):
-        d = x[start : start + 32] - neutral
-        step = np.linalg.norm(d[:, first] - d[:, second], axis=-1).max(axis=0)
-        motion = np.maximum(motion, step)
-    reach = motion[where.reshape(-1)].reshape(-1, 6).max(axis=1)
-    return reach >= gap * (1 - 1e-6)
-
-
 @jax.jit
 def _count_crossings(x, seg_vertices, tri_vertices, valid):
-    def one(frame):
-        crossing = _segment_crosses_triangle(frame[seg_vertices], frame[tri_vertices], jnp)
+    """(T,) crossing pairs per frame of ``x`` (T, V, 3): every pair's corners gathered
+    coordinate by coordinate, so that the test is one fused loop over the pairs of
+    ``CROSSING_FRAMES_PER_STEP`` frames (no per-pair (3,) temporaries)."""
+
+    def one(coords):  # (3, V): a frame's x, y and z
+        def corner(index):
+            return tuple(coords[k][index] for k in range(3))
+
+        crossing = _crosses(
+            corner(seg_vertices[:, 0]), corner(seg_vertices[:, 1]),
+            corner(tri_vertices[:, 0]), corner(tri_vertices[:, 1]), corner(tri_vertices[:, 2]),
+            jnp,
+        )  # fmt: skip
         return jnp.sum(crossing & valid)
 
-    return jax.lax.map(one, x)
+    return jax.lax.map(one, jnp.swapaxes(x, 1, 2), batch_size=CROSSING_FRAMES_PER_STEP)
 
 
 def _size_bins(index: np.ndarray, radius: np.ndarray) -> list[tuple[np.ndarray, float]]:
@@ -212,21 +235,39 @@ def _size_bins(index: np.ndarray, radius: np.ndarray) -> list[tuple[np.ndarray, 
 def _segment_crosses_triangle(seg, tri, xp=np):
     """(N,) bool: segment n (2, 3) crosses triangle n (3, 3) strictly inside both (NumPy,
     or ``xp=jax.numpy``)."""
-    p, q = seg[:, 0], seg[:, 1]
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    direction = q - p
-    e1, e2 = b - a, c - a
-    h = xp.cross(direction, e2)
-    det = (e1 * h).sum(-1)
-    scale = xp.linalg.norm(e1, axis=-1) * xp.linalg.norm(e2, axis=-1)
-    scale = scale * xp.linalg.norm(direction, axis=-1)
+    corner = lambda a, i: tuple(a[:, i, k] for k in range(3))  # noqa: E731
+    return _crosses(
+        corner(seg, 0), corner(seg, 1), corner(tri, 0), corner(tri, 1), corner(tri, 2), xp
+    )
+
+
+def _crosses(p, q, a, b, c, xp):
+    """Segment p-q crosses triangle a-b-c strictly inside both (Möller-Trumbore): each
+    point a tuple of its x, y, z arrays (any shape), NumPy or ``xp=jax.numpy``. The sums of
+    three products in the order of ``(x * y).sum(-1)``."""
+
+    def minus(u, v):
+        return (u[0] - v[0], u[1] - v[1], u[2] - v[2])
+
+    def dot(u, v):
+        return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+    def cross(u, v):
+        return (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
+
+    direction = minus(q, p)
+    e1, e2 = minus(b, a), minus(c, a)
+    h = cross(direction, e2)
+    det = dot(e1, h)
+    scale = xp.sqrt(dot(e1, e1)) * xp.sqrt(dot(e2, e2))
+    scale = scale * xp.sqrt(dot(direction, direction))
     ok = xp.abs(det) > 1e-6 * scale
     inv = xp.where(ok, 1.0 / xp.where(ok, det, 1.0), 0.0)
-    s = p - a
-    u = inv * (s * h).sum(-1)
-    qv = xp.cross(s, e1)
-    v = inv * (direction * qv).sum(-1)
-    t = inv * (e2 * qv).sum(-1)
+    s = minus(p, a)
+    u = inv * dot(s, h)
+    qv = cross(s, e1)
+    v = inv * dot(direction, qv)
+    t = inv * dot(e2, qv)
     eps = 1e-6
     return ok & (u > eps) & (v > eps) & (u + v < 1 - eps) & (t > eps) & (t < 1 - eps)
 

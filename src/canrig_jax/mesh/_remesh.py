@@ -108,8 +108,23 @@ def _closest_on_triangles(p, a, b, c):
     """Closest points of p on triangles (a, b, c), all (N, 3): barycentrics (N, 3)
     (Ericson, Real-Time Collision Detection, 5.1.5), vectorised; degenerate triangles are
     handled by the vertex and edge regions."""
-    dot = lambda x, y: np.sum(x * y, axis=-1)  # noqa: E731
-    ab, ac, ap, bp, cp = b - a, c - a, p - a, p - b, p - c
+    split = lambda x: tuple(x[..., k] for k in range(3))  # noqa: E731
+    return np.stack(_closest_barycentric(split(p), split(a), split(b), split(c)), axis=-1)
+
+
+def _closest_barycentric(p, a, b, c):
+    """``_closest_on_triangles`` with each point a tuple of its x, y, z arrays (any shape,
+    broadcast): the barycentric weights of a, b and c, three arrays. Coordinate by
+    coordinate, so no small (..., 3) axis is reduced; sums of three products in the order
+    of ``(x * y).sum(-1)``."""
+
+    def minus(u, v):
+        return (u[0] - v[0], u[1] - v[1], u[2] - v[2])
+
+    def dot(u, v):
+        return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+    ab, ac, ap, bp, cp = minus(b, a), minus(c, a), minus(p, a), minus(p, b), minus(p, c)
     d1, d2, d3, d4, d5, d6 = (
         dot(ab, ap),
         dot(ac, ap),
@@ -135,26 +150,28 @@ def _closest_on_triangles(p, a, b, c):
         (vb <= 0) & (d2 >= 0) & (d6 <= 0),  # edge ac
         (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),  # edge bc
     ]
-    bary = np.stack(
-        [
-            np.select(regions, [1.0, 0.0, 1 - v_ab, 0.0, 1 - w_ac, 0.0], 1 - v - w),
-            np.select(regions, [0.0, 1.0, v_ab, 0.0, 0.0, 1 - w_bc], v),
-            np.select(regions, [0.0, 0.0, 0.0, 1.0, w_ac, w_bc], w),
-        ],
-        axis=-1,
-    )
-    bary = np.clip(np.nan_to_num(bary, nan=1.0 / 3.0), 0.0, 1.0)
-    return bary / bary.sum(axis=-1, keepdims=True)
+    bary = [
+        np.select(regions, [1.0, 0.0, 1 - v_ab, 0.0, 1 - w_ac, 0.0], 1 - v - w),
+        np.select(regions, [0.0, 1.0, v_ab, 0.0, 0.0, 1 - w_bc], v),
+        np.select(regions, [0.0, 0.0, 0.0, 1.0, w_ac, w_bc], w),
+    ]
+    bary = [np.clip(np.nan_to_num(x, nan=1.0 / 3.0), 0.0, 1.0) for x in bary]
+    total = bary[0] + bary[1] + bary[2]
+    return bary[0] / total, bary[1] / total, bary[2] / total
 
 
 @dataclasses.dataclass(frozen=True)
 class _SurfaceIndex:
     """What closest-point queries on one mesh share: KD-trees of its triangle centroids and
-    vertices, and each vertex's incident triangles (V, width), padded with -1."""
+    vertices, each vertex's incident triangles (V, width), padded with -1, each triangle's
+    radius about its centroid (F,) (its farthest corner) and the largest coordinate
+    magnitude (the scale of rounding errors)."""
 
     centroids: KDTree
     vertices: KDTree
     ring: Int[np.ndarray, "V W"]
+    radius: Float[np.ndarray, " F"]
+    extent: float
 
 
 _INDEXES: collections.OrderedDict[bytes, _SurfaceIndex] = collections.OrderedDict()
@@ -169,7 +186,10 @@ def _build_index(vertices: np.ndarray, faces: np.ndarray) -> _SurfaceIndex:
     slot = np.arange(order.size) - np.repeat(starts, degree)
     ring = np.full((vertices.shape[0], max(int(degree.max()), 1)), -1, np.int64)
     ring[corner_vertex, slot] = order // 3
-    return _SurfaceIndex(KDTree(vertices[faces].mean(axis=1)), KDTree(vertices), ring)
+    centroids = vertices[faces].mean(axis=1)
+    radius = np.linalg.norm(vertices[faces] - centroids[:, None], axis=-1).max(axis=1)
+    extent = float(np.abs(vertices).max(initial=0.0))
+    return _SurfaceIndex(KDTree(centroids), KDTree(vertices), ring, radius, extent)
 
 
 def _surface_index(vertices: np.ndarray, faces: np.ndarray) -> _SurfaceIndex:
@@ -203,27 +223,48 @@ def closest_surface_points(
     vertices, faces = check_mesh(vertices, faces)
     index = _surface_index(vertices, faces)
     n_candidates = min(n_candidates, faces.shape[0])
-    _, near = index.centroids.query(points, k=n_candidates)
+    centroid_distance, near = index.centroids.query(points, k=n_candidates)
+    centroid_distance = centroid_distance.reshape(points.shape[0], -1)
     near = near.reshape(points.shape[0], -1)
-    # Triangles at the nearest vertex (padded with the nearest centroid's triangle).
-    _, nearest_vertex = index.vertices.query(points)
-    ring = index.ring[nearest_vertex]
-    ring = np.where(ring >= 0, ring, near[:, :1])
-    candidates = np.concatenate([near, ring], axis=1)  # (N, C)
-    tri = vertices[faces[candidates]]  # (N, C, 3 corners, 3)
-    query = np.broadcast_to(points[:, None, :], candidates.shape + (3,))
-    bary = _closest_on_triangles(query, tri[..., 0, :], tri[..., 1, :], tri[..., 2, :])
-    closest = np.einsum("nck,nckd->ncd", bary, tri)
-    distance = np.linalg.norm(closest - query, axis=-1)
-    best = np.argmin(distance, axis=1)
-    pick = np.arange(points.shape[0])
+    vertex_distance, nearest_vertex = index.vertices.query(points)
+    ring = index.ring[nearest_vertex]  # the triangles at the nearest vertex
+    # Which candidates to test: a triangle at the nearest vertex is no farther than that
+    # vertex, so a centroid's triangle whose bounding sphere is farther is never the closest;
+    # and a triangle at the nearest vertex already among the centroids' is tested there, once.
+    # np.argmin over every candidate (centroids' first, then the ring) picks the first at the
+    # least distance, and that one is always kept: the same triangle as testing them all.
+    bound = np.where(ring[:, 0] >= 0, vertex_distance, np.inf)
+    slack = 1e-9 * (index.extent + bound)  # rounding of both distances
+    near_kept = centroid_distance - index.radius[near] <= (bound + slack)[:, None]
+    tested = np.where(near_kept, near, -1)
+    ring_kept = (ring >= 0) & ~(ring[:, :, None] == tested[:, None, :]).any(axis=-1)
+    row, column = np.nonzero(np.concatenate([near_kept, ring_kept], axis=1))  # row by row
+    candidate = np.concatenate([near, ring], axis=1)[row, column]
+    # coordinate by coordinate: (M,) arrays of each corner's x, y and z
+    corners = faces[candidate]  # (M, 3)
+    coords = [np.ascontiguousarray(vertices[:, k]) for k in range(3)]
+    tri = [tuple(coords[k][corners[:, j]] for k in range(3)) for j in range(3)]
+    query = tuple(points[row, k] for k in range(3))
+    bary = _closest_barycentric(query, *tri)
+    gap = [_sum_of_products(bary, [t[k] for t in tri]) - query[k] for k in range(3)]
+    distance = np.sqrt(gap[0] * gap[0] + gap[1] * gap[1] + gap[2] * gap[2])
+    # each point's first candidate at its least distance (rows are contiguous in ``row``)
+    starts = np.flatnonzero(np.r_[True, row[1:] != row[:-1]])
+    least = np.flatnonzero(distance == np.minimum.reduceat(distance, starts)[row])
+    best = least[np.r_[True, row[least][1:] != row[least][:-1]]]
     return SurfaceMap(
-        triangle=candidates[pick, best].astype(np.int64),
-        barycentric=bary[pick, best],
+        triangle=candidate[best].astype(np.int64),
+        barycentric=np.stack([x[best] for x in bary], axis=-1),
         source_faces=faces,
         n_source=int(vertices.shape[0]),
-        distance=distance[pick, best],
+        distance=distance[best],
     )
+
+
+def _sum_of_products(weights, values):
+    """weights[0] * values[0] + weights[1] * values[1] + weights[2] * values[2], in that
+    order (``np.einsum`` over a corner axis of three)."""
+    return weights[0] * values[0] + weights[1] * values[1] + weights[2] * values[2]
 
 
 def vertex_surface_map(

@@ -436,7 +436,7 @@ def transfer_deltas(
     part_of_target, part_members = _static_parts(
         static_parts, static_below, correspondence.vertex_map, source_neutral.shape[0]
     )
-    source_faces, sample_weight, rest_ok, inverse_rest = _source_samples(
+    samples = _source_samples(
         source_neutral, source_faces_all, correspondence.source_triangle, min_area
     )
     target_edges = np.stack(
@@ -456,10 +456,7 @@ def transfer_deltas(
     deltas = np.zeros((source_deltas.shape[0], n_vertices, 3))
     for start in range(0, source_deltas.shape[0], batch_size):
         chunk = source_deltas[start : start + batch_size]
-        gradient = _source_gradients(
-            source_neutral[None] + chunk, source_faces, inverse_rest, rest_ok, sample_weight,
-            min_area,
-        )  # fmt: skip
+        gradient = _source_gradients(source_neutral[None] + chunk, samples, min_area)
         gradient = rotation @ gradient @ rotation.T  # in the target's orientation
         edges = gradient @ target_edges  # (B, T, 3 coords, 3 edges)
         wanted = np.moveaxis(edges, -1, 1).reshape(chunk.shape[0], -1, 3)  # (B, 3T, 3)
@@ -528,21 +525,39 @@ def _check_transfer(
     return source_neutral, source_faces_all, source_deltas, tv, target_faces
 
 
+@dataclasses.dataclass(frozen=True)
+class _SourceSamples:
+    """The source triangles sampled for each target triangle, each distinct one once (target
+    triangles share source triangles: the gradients are computed once per source triangle
+    and gathered per sample).
+
+    Attributes:
+        faces: (U, 3) the distinct source triangles; of_sample: (T * S,) which of them each
+            sample is; weight: (T, S) area weights summing to 1 (0 for degenerate ones);
+        rest_ok: (U,) which are not degenerate; inverse_rest: (U, 3, 3) inverse rest frames.
+    """
+
+    faces: np.ndarray
+    of_sample: np.ndarray
+    weight: np.ndarray
+    rest_ok: np.ndarray
+    inverse_rest: np.ndarray
+
+
 def _source_samples(source_neutral, source_faces_all, source_triangle, min_area):
-    """The source triangles sampled for each target triangle: ((T * S, 3) their faces,
-    (T, S) area weights summing to 1 (0 for degenerate ones), (T * S,) which are not
-    degenerate, (T * S, 3, 3) inverse rest frames)."""
+    """The ``_SourceSamples`` of ``source_triangle`` (T,) or (T, S)."""
     source_triangle = np.asarray(source_triangle, np.int64)
     source_triangle = source_triangle.reshape(source_triangle.shape[0], -1)  # (T, S)
     n_samples = source_triangle.shape[1]
-    source_faces = source_faces_all[source_triangle.ravel()]
+    distinct, of_sample = np.unique(source_triangle.ravel(), return_inverse=True)
+    source_faces = source_faces_all[distinct]
 
     rest_frame, rest_area = triangle_frames(source_neutral, source_faces)
     rest_ok = rest_area >= min_area
-    sample_weight = np.where(rest_ok, rest_area, 0.0).reshape(-1, n_samples)
+    sample_weight = np.where(rest_ok, rest_area, 0.0)[of_sample].reshape(-1, n_samples)
     sample_weight /= np.maximum(sample_weight.sum(axis=1, keepdims=True), 1e-300)
     inverse_rest = np.linalg.inv(np.where(rest_ok[:, None, None], rest_frame, np.eye(3)))
-    return source_faces, sample_weight, rest_ok, inverse_rest
+    return _SourceSamples(source_faces, of_sample, sample_weight, rest_ok, inverse_rest)
 
 
 def _screened_system(target_faces, n_vertices: int, screening: float):
@@ -555,14 +570,15 @@ def _screened_system(target_faces, n_vertices: int, screening: float):
     return difference, system, solve, ridge
 
 
-def _source_gradients(posed, source_faces, inverse_rest, rest_ok, sample_weight, min_area):
+def _source_gradients(posed, samples: _SourceSamples, min_area):
     """(B, T, 3, 3) deformation gradient of each target triangle: the area-weighted mean
     over its sampled source triangles of ``posed`` (B, Vs, 3) (identity where degenerate)."""
+    sample_weight = samples.weight
     n_samples = sample_weight.shape[1]
-    frame, area = triangle_frames(posed, source_faces)
-    gradient = frame @ inverse_rest  # (B, T, 3, 3)
-    keep = rest_ok[None] & (area >= min_area)
-    gradient = np.where(keep[..., None, None], gradient, np.eye(3))
+    frame, area = triangle_frames(posed, samples.faces)
+    gradient = frame @ samples.inverse_rest  # (B, U, 3, 3)
+    keep = samples.rest_ok[None] & (area >= min_area)
+    gradient = np.where(keep[..., None, None], gradient, np.eye(3))[:, samples.of_sample]
     gradient = gradient.reshape(posed.shape[0], -1, n_samples, 3, 3)
     gradient = np.einsum("btsij,ts->btij", gradient, sample_weight)
     no_weight = sample_weight.sum(axis=1) == 0
