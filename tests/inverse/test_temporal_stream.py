@@ -5,6 +5,7 @@ default smoothness."""
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 from pathlib import Path
@@ -17,7 +18,13 @@ from scipy.optimize import minimize
 
 from canrig_jax import inverse
 from canrig_jax.inverse._solve import HISTORY_FRAMES
-from canrig_jax.inverse._temporal import difference_bands, weighted_difference_bands
+from canrig_jax.inverse._temporal import (
+    _decreases,
+    _residuals,
+    _take_terms,
+    difference_bands,
+    weighted_difference_bands,
+)
 from canrig_jax.papers import inverse_rig
 from canrig_jax.rig import BlendshapeRig, evaluate_batch
 
@@ -182,6 +189,61 @@ def test_the_full_step_first_reaches_the_searched_window_minimum(synthetic_rig):
             for steps, w in weights.items()
         }
         assert energy["newton_first"] == pytest.approx(energy["searched"], rel=1e-5)
+
+
+def test_a_window_from_carried_projections_and_norms_is_the_window_from_offsets(synthetic_rig):
+    """A lagged ``Stream`` keeps each frame's M^T o_t and ||o_t||^2, not o_t: its window solve
+    (``offsets=None``) against the same window solved from the offsets themselves."""
+    problem = inverse.prepare(synthetic_rig)
+    targets = _noisy_take(synthetic_rig, seed=4)[:5]
+    offsets = (jnp.asarray(targets) - problem.neutral).reshape(len(targets), -1)
+    init = jnp.asarray(np.random.default_rng(2).uniform(0, 1, (5, problem.n_blendshapes)))
+    init = init.astype(jnp.float32)
+    present = jnp.asarray([False, True, True, True, True])  # the oldest frame not there yet
+    held = (jnp.arange(5) < HISTORY_FRAMES) | ~present
+    method = inverse.TemporalNewton(alpha=ALPHA, smoothness=SMOOTHNESS, velocity=VELOCITY)
+    carry = method.initial_window_carry(problem, 5 - HISTORY_FRAMES)
+
+    @jax.jit
+    def both(offsets, init):
+        solve = functools.partial(method.solve_window, problem, init=init, held=held,
+                                  present=present, history=HISTORY_FRAMES, carry=carry)  # fmt: skip
+        from_offsets, _ = solve(offsets=offsets)
+        carried, _ = solve(offsets=None, projections=offsets @ problem.columns.T,
+                           offset_sq=jnp.sum(offsets * offsets, axis=1))  # fmt: skip
+        return from_offsets, carried
+
+    from_offsets, carried = both(offsets, init)
+    assert int(from_offsets.steps) > 1 and int(carried.steps) == int(from_offsets.steps)
+    np.testing.assert_allclose(np.asarray(carried.weights), np.asarray(from_offsets.weights),
+                               atol=1e-5)  # fmt: skip
+    np.testing.assert_allclose(np.asarray(carried.history), np.asarray(from_offsets.history),
+                               rtol=1e-5)  # fmt: skip
+    np.testing.assert_array_equal(np.asarray(carried.weights[:HISTORY_FRAMES]),
+                                  np.asarray(init[:HISTORY_FRAMES]))  # fmt: skip
+
+
+def test_the_carried_residuals_of_a_trial_are_its_residuals(synthetic_rig):
+    """The iteration carries each accepted trial's coefficients and residuals Q a - p from
+    ``_decreases`` (W's residuals plus Q (a_trial - a_W)) instead of recomputing them: they
+    equal the trial's own, computed from its weights (``_residuals``)."""
+    problem = inverse.prepare(synthetic_rig)
+    offsets = (jnp.asarray(_noisy_take(synthetic_rig, seed=6)[:4]) - problem.neutral).reshape(4, -1)
+    rng = np.random.default_rng(8)
+    weights = jnp.asarray(rng.uniform(0, 1, (4, problem.n_blendshapes)), jnp.float32)
+    trials = jnp.clip(weights + jnp.asarray(rng.normal(0, 0.2, (3, *weights.shape)), jnp.float32),
+                      0.0, 1.0)  # fmt: skip
+    method = inverse.TemporalNewton(alpha=ALPHA, smoothness=SMOOTHNESS)
+    held = jnp.asarray([True, False, False, False])
+    terms = _take_terms(method, problem, offsets, held, None, None, 1)
+    a, residual = _residuals(terms, weights)
+    _, (coefficients, residuals) = _decreases(terms, weights, trials, a, residual)
+    for trial, carried_a, carried_residual in zip(trials, coefficients, residuals, strict=True):
+        own_a, own_residual = _residuals(terms, trial)
+        np.testing.assert_array_equal(np.asarray(carried_a), np.asarray(own_a))
+        scale = float(jnp.max(jnp.abs(terms.projections)))
+        np.testing.assert_allclose(np.asarray(carried_residual), np.asarray(own_residual),
+                                   atol=1e-5 * scale)  # fmt: skip
 
 
 def test_two_lagged_streams_share_one_compiled_call(take, caplog):

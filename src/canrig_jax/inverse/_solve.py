@@ -98,15 +98,17 @@ def _stream_one(problem, target, method, init, key, carry) -> tuple[Solution, An
     return _solution(problem, offset, method, init, run), carry
 
 
-def _solution(problem, offset, method, init, run, projection=None) -> Solution:
+def _solution(problem, offset, method, init, run, projection=None, offset_sq=None) -> Solution:
     """The Solution of a method's Iterate: objective under the full rig, finite or the start.
-    ``projection``: the frame's M^T (b - b0) when the caller has it (else computed)."""
+    ``projection`` and ``offset_sq``: the frame's M^T (b - b0) and ||b - b0||^2 when the
+    caller has them (else computed from ``offset``, which is otherwise not read)."""
     l1 = method.alpha if method.penalises_l1 else 0.0
     if projection is None:
         projection = problem.projection(offset)
     elif problem.linear_term is not None:
         projection = projection + problem.linear_term
-    offset_sq = offset @ offset
+    if offset_sq is None:
+        offset_sq = offset @ offset
     value = problem.objective(run.weights, projection, offset_sq, l1)
     finite = jnp.all(jnp.isfinite(run.weights)) & jnp.isfinite(value)
     weights = jnp.where(finite, run.weights, init)
@@ -313,11 +315,13 @@ second difference reaches two frames back)."""
 def _lagged_one(problem, target, method, state, present_new, key) -> tuple[Solution, Any]:
     """One call of a lagged ``Stream``: the window (history, then lag + 1 frames) moves on by
     a frame, is solved jointly with the history held, and the Solution of its oldest solved
-    frame comes back with the moved state. ``present_new`` False: no new frame (``flush``)."""
-    offsets, projections, weights, present, carry = state
+    frame comes back with the moved state. ``present_new`` False: no new frame (``flush``).
+    The window keeps each frame's M^T o_t and ||o_t||^2, computed once as the frame enters,
+    not its (3V,) offset o_t."""
+    offset_sq, projections, weights, present, carry = state
     dtype = problem.columns.dtype
     offset = jnp.where(present_new, (jnp.asarray(target, dtype) - problem.neutral).reshape(-1), 0)
-    offsets = jnp.concatenate([offsets[1:], offset[None]])
+    offset_sq = jnp.concatenate([offset_sq[1:], (offset @ offset)[None]])
     projections = jnp.concatenate([projections[1:], (problem.columns @ offset)[None]])
     newest = jnp.where(present_new, weights[-1], 0.0)  # warm start from the last estimate
     weights = jnp.concatenate([weights[1:], newest[None]])
@@ -325,21 +329,23 @@ def _lagged_one(problem, target, method, state, present_new, key) -> tuple[Solut
     held = (jnp.arange(weights.shape[0]) < HISTORY_FRAMES) | ~present
     run, carry = method.solve_window(
         problem,
-        offsets,
+        None,
         weights,
         held,
         present,
         projections,
         history=HISTORY_FRAMES,
         carry=method.shift_window_carry(carry),
+        offset_sq=offset_sq,
     )
     finite = jnp.all(jnp.isfinite(run.weights))
     solved = jnp.where(finite, run.weights, weights)
     out = HISTORY_FRAMES  # the oldest solved frame: final after this call
     frame = Iterate(run.weights[out], run.history, run.steps, run.converged & finite)
-    solution = _solution(problem, offsets[out], method, weights[out], frame, projections[out])
+    solution = _solution(problem, None, method, weights[out], frame, projections[out],
+                         offset_sq[out])  # fmt: skip
     solved = solved.at[out].set(solution.weights)
-    return solution, (offsets, projections, solved, present, carry)
+    return solution, (offset_sq, projections, solved, present, carry)
 
 
 def _plain_call(problem, method, warm_start, key, target, state):
@@ -371,14 +377,16 @@ def _lagged_call(problem, method, key, target, state, present_new, emit):
 
 
 @functools.lru_cache(maxsize=64)
-def _compiled_call(body, static, *options):
-    """``body`` compiled once per (static part of the problem and method, ``options``): a
-    ``jax.jit`` of the array leaves alone, the state argument donated, so that a ``Stream``
-    call is one dispatch with no Python-side tree work (``eqx.filter_jit`` partitions its
-    arguments on every call: ~0.3 ms, a tenth of the projection floor on ict-quartic)."""
+def _compiled_call(body, static, treedef, *options):
+    """``body`` compiled once per (static part of the problem and method, the structure
+    ``treedef`` of their array leaves, ``options``): a ``jax.jit`` of the array leaves alone,
+    passed as a flat tuple, the state argument donated, so that a ``Stream`` call is one
+    dispatch with no Python-side tree work (``eqx.filter_jit`` partitions its arguments on
+    every call: ~0.3 ms, a tenth of the projection floor on ict-quartic; flattening the
+    problem's Modules on every call, ~10 us)."""
 
-    def call(dynamic, key, target, state, *flags):
-        problem, method = eqx.combine(dynamic, static)
+    def call(leaves, key, target, state, *flags):
+        problem, method = eqx.combine(jax.tree.unflatten(treedef, leaves), static)
         return body(problem, method, *options, key, target, state, *flags)
 
     call.__name__ = call.__qualname__ = f"stream{body.__name__}"  # in jax.log_compiles
@@ -457,15 +465,17 @@ class Stream:
         self.warm_start = bool(warm_start) or self.lag is not None
         self.key = _key(key)
         self.frame = 0
-        self._dynamic, static = eqx.partition((self.problem, self.method), eqx.is_array)
+        dynamic, static = eqx.partition((self.problem, self.method), eqx.is_array)
+        leaves, treedef = jax.tree.flatten(dynamic)
+        self._leaves = tuple(leaves)
         if self.lag is None:
-            self._call = _compiled_call(_plain_call, static, self.warm_start)
+            self._call = _compiled_call(_plain_call, static, treedef, self.warm_start)
             init = jnp.zeros(self.problem.n_blendshapes, self.problem.columns.dtype)
             frame = jnp.asarray(0, jnp.int32)
             state = (init, self.method.initial_carry(self.problem), frame)
             self.state = jax.tree.map(jnp.array, state)  # own buffers: the state is donated
         else:
-            self._call = _compiled_call(_lagged_call, static)
+            self._call = _compiled_call(_lagged_call, static, treedef)
             self._flags = {flag: jnp.asarray(flag) for flag in (False, True)}
             self._empty_window(0)
 
@@ -473,7 +483,7 @@ class Stream:
         n = HISTORY_FRAMES + self.lag + 1
         dtype = self.problem.columns.dtype
         window = (
-            jnp.zeros((n, self.problem.columns.shape[1]), dtype),
+            jnp.zeros(n, dtype),
             jnp.zeros((n, self.problem.columns.shape[0]), dtype),
             jnp.zeros((n, self.problem.n_blendshapes), dtype),
             jnp.zeros(n, bool),
@@ -488,7 +498,7 @@ class Stream:
         _check_target(self.problem, "target", target, batched=False)
         if self.lag is not None:
             return self._lagged(target, True)
-        solution, self.state = self._call(self._dynamic, self.key, target, self.state)
+        solution, self.state = self._call(self._leaves, self.key, target, self.state)
         self.frame += 1
         return solution
 
@@ -500,7 +510,7 @@ class Stream:
             self.pending += 1
             emit = self.pending > self.lag
         flags = self._flags[present], self._flags[emit]
-        solution, self.state = self._call(self._dynamic, self.key, target, self.state, *flags)
+        solution, self.state = self._call(self._leaves, self.key, target, self.state, *flags)
         if not emit:
             return None
         self.pending -= 1

@@ -345,13 +345,14 @@ class AbstractTemporalMethod(AbstractInverseMethod):
     def solve_window(
         self,
         problem: InverseProblem,
-        offsets: Float[Array, "W N"],
+        offsets: Float[Array, "W N"] | None,
         init: Float[Array, "W K"],
         held: Bool[Array, " W"],
         present: Bool[Array, " W"],
         projections: Float[Array, "W P"] | None = None,
         history: int = 0,
         carry: Any = None,
+        offset_sq: Float[Array, " W"] | None = None,
     ) -> tuple[Iterate, Any]:
         """Solve a window of frames jointly with some of them held: frames with ``held``
         keep their ``init`` weights (they enter the time terms as constants, their data terms
@@ -359,8 +360,11 @@ class AbstractTemporalMethod(AbstractInverseMethod):
         difference row touching one is left out). ``projections``: the frames' M^T o_t when
         the caller carries them; ``history`` (static): the first frames, held, whose data
         terms are not computed at all; ``carry``: what the previous window's solve handed on
-        (``initial_window_carry``, then moved on by ``shift_window_carry``), None for nothing.
-        Returns the window's (W, K) weights and the carry for the next window."""
+        (``initial_window_carry``, then moved on by ``shift_window_carry``), None for nothing;
+        ``offset_sq``: the frames' ||o_t||^2 when the caller carries them. With both
+        ``projections`` and ``offset_sq`` the offsets themselves are not read (None will do:
+        a lagged ``Stream`` keeps no (W, 3V) window). Returns the window's (W, K) weights and
+        the carry for the next window."""
 
     def initial_window_carry(self, problem: InverseProblem, n_solved: int) -> Any:
         """The carry of an empty window of ``n_solved`` solved frames (None: nothing)."""
@@ -518,13 +522,14 @@ class TemporalNewton(AbstractTemporalMethod):
     def solve_window(
         self,
         problem: InverseProblem,
-        offsets: Float[Array, "W N"],
+        offsets: Float[Array, "W N"] | None,
         init: Float[Array, "W K"],
         held: Bool[Array, " W"],
         present: Bool[Array, " W"],
         projections: Float[Array, "W P"] | None = None,
         history: int = 0,
         carry: WindowCarry | None = None,
+        offset_sq: Float[Array, " W"] | None = None,
     ) -> tuple[Iterate, WindowCarry]:
         """The window's E (held frames' data terms left out, difference rows touching an
         absent frame left out) minimised over the frames not ``held``, the same iteration as
@@ -536,9 +541,8 @@ class TemporalNewton(AbstractTemporalMethod):
         if self.refresh == 1 and self.stream_blocks == "exact":
             carry = None  # every iteration computes the blocks: nothing to start from
         newton_first = self.stream_steps == "newton_first"
-        return self._take(
-            problem, offsets, init, held, present, projections, history, carry, newton_first
-        )
+        return self._take(problem, offsets, init, held, present, projections, history, carry,
+                          newton_first, offset_sq)  # fmt: skip
 
     def initial_window_carry(self, problem: InverseProblem, n_solved: int) -> WindowCarry:
         """(n_solved, K, K) zero blocks, not carried (the first iteration computes them)."""
@@ -562,42 +566,50 @@ class TemporalNewton(AbstractTemporalMethod):
         history=0,
         carry=None,
         newton_first=False,
+        offset_sq=None,
     ) -> tuple[Iterate, WindowCarry]:
         """The iteration. ``history`` (static): that many first frames are held and only enter
         the time terms (their data terms are not computed at all); ``projections`` (T, P):
         M^T o_t when the caller has them already; ``carry``: the solved frames' Gauss-Newton
         blocks to start from (``WindowCarry``), None to compute them; ``newton_first``
         (static): each step tries the full Newton step first (``_newton_first``), else the
-        line search over every length. Returns the Iterate and the blocks last computed."""
-        terms = _take_terms(self, problem, offsets, held_frames, present, projections, history)
+        line search over every length; ``offset_sq`` (T,): ||o_t||^2 when the caller has them
+        (then, with ``projections``, ``offsets`` is not read). Returns the Iterate and the
+        blocks last computed."""
+        terms = _take_terms(
+            self, problem, offsets, held_frames, present, projections, history, offset_sq
+        )
         on_entry = carry is not None and self.stream_blocks == "on_entry"
 
         def iteration(state):
-            i, weights, value, gain, history, blocks, age = state
-            a, residual, grad = _gradient(terms, weights)
+            i, weights, value, gain, history, blocks, age, (a, residual) = state
+            grad = _gradient(terms, weights, residual)
             blocks, age = self._blocks(terms, weights, value, gain, blocks, age, on_entry)
             step = _newton_step(terms, weights, grad, blocks)
             if newton_first:
-                weights, gain = _newton_first(
+                weights, gain, fit = _newton_first(
                     terms, weights, step, a, residual, grad, self.line_steps
                 )
             else:
-                weights, gain = _line_search(terms, weights, step, a, residual, self.line_steps)
+                weights, gain, fit = _line_search(
+                    terms, weights, step, a, residual, self.line_steps
+                )
             value = value - gain
-            return i + 1, weights, value, gain, history.at[i].set(value), blocks, age
+            return i + 1, weights, value, gain, history.at[i].set(value), blocks, age, fit
 
         def keep_going(state):
-            i, _, value, gain, _, _, age = state
+            i, _, value, gain, _, _, age, _ = state
             fresh = jnp.asarray(True) if on_entry else age <= 1
             stop = _small_gain(gain, value, self.tol) & fresh
             return (i < self.iterations) & ((i == 0) | ~stop)
 
-        value0 = _take_value(terms, init, offsets)
+        value0 = _take_value(terms, init)
         history0 = jnp.zeros(self.iterations, terms.dtype)
         blocks0, age0 = self._initial_blocks(terms, init, carry, on_entry)
         gain0 = jnp.asarray(jnp.inf, terms.dtype)
-        state = (jnp.asarray(0), init, value0, gain0, history0, blocks0, age0)
-        i, weights, value, gain, history, blocks, age = jax.lax.while_loop(
+        fit0 = _residuals(terms, init)
+        state = (jnp.asarray(0), init, value0, gain0, history0, blocks0, age0, fit0)
+        i, weights, value, gain, history, blocks, age, _ = jax.lax.while_loop(
             keep_going, iteration, state
         )
         history = jnp.where(jnp.arange(self.iterations) < i, history, value)
@@ -641,13 +653,14 @@ class TemporalNewton(AbstractTemporalMethod):
 
 class _TakeTerms(NamedTuple):
     """What every iteration of one take's solve reads: the problem, the frames' projections
-    M^T o_t, which frames are held (``held``) or solved, the difference rows that count
-    (``rows2``, ``rows1``: all their frames present, one of them solved), the (3, T) bands of
-    the time matrix, the weights of the terms, and ``history`` (static) first frames held
-    with no data terms."""
+    M^T o_t and squared norms ||o_t||^2, which frames are held (``held``) or solved, the
+    difference rows that count (``rows2``, ``rows1``: all their frames present, one of them
+    solved), the (3, T) bands of the time matrix, the weights of the terms, and ``history``
+    (static) first frames held with no data terms."""
 
     problem: InverseProblem
     projections: Float[Array, "T P"]
+    offset_sq: Float[Array, " T"]
     held: Bool[Array, " T"]
     solved: Bool[Array, " T"]
     rows2: Float[Array, " _T2"]
@@ -664,11 +677,13 @@ class _TakeTerms(NamedTuple):
         return self.problem.gram.dtype
 
 
-def _take_terms(method, problem, offsets, held, present, projections, history) -> _TakeTerms:
+def _take_terms(
+    method, problem, offsets, held, present, projections, history, offset_sq=None
+) -> _TakeTerms:
     """``_TakeTerms`` of a take (``held`` None: nothing held; ``present`` None: every frame
-    there; ``projections`` None: computed from ``offsets``)."""
+    there; ``projections`` and ``offset_sq`` None: computed from ``offsets``)."""
     gram = problem.gram
-    n = offsets.shape[0]
+    n = offsets.shape[0] if projections is None else projections.shape[0]
     if held is None:
         held = jnp.zeros(n, bool)
     if present is None:
@@ -680,12 +695,14 @@ def _take_terms(method, problem, offsets, held, present, projections, history) -
     rows2, rows1 = rows2.astype(gram.dtype), rows1.astype(gram.dtype)
     if projections is None:
         projections = offsets @ problem.columns.T  # (T, P) rows p_t = M^T o_t
+    if offset_sq is None:
+        offset_sq = jax.vmap(lambda o: o @ o)(offsets)  # (T,) ||o_t||^2
     smoothness, velocity = method.smoothness_for(problem), method.velocity
     second = weighted_difference_bands(rows2, n, 2)
     first = weighted_difference_bands(rows1, n, 1)
     bands = smoothness * second + velocity * first  # (3, T) of the time matrix
-    return _TakeTerms(problem, projections, held, solved, rows2, rows1, bands, method.alpha,
-                      method.upper, smoothness, velocity, history)  # fmt: skip
+    return _TakeTerms(problem, projections, offset_sq, held, solved, rows2, rows1, bands,
+                      method.alpha, method.upper, smoothness, velocity, history)  # fmt: skip
 
 
 def _time_gradient(terms: _TakeTerms, weights: Float[Array, "T K"]) -> Float[Array, "T K"]:
@@ -697,12 +714,12 @@ def _time_gradient(terms: _TakeTerms, weights: Float[Array, "T K"]) -> Float[Arr
     return g + terms.velocity * _first_difference_adjoint(d1, n)
 
 
-def _take_value(terms: _TakeTerms, weights, offsets) -> Float[Array, ""]:
+def _take_value(terms: _TakeTerms, weights) -> Float[Array, ""]:
     """E at ``weights``: the solved frames' data terms (the history's left out) and the
     counted time terms."""
     h, problem = terms.history, terms.problem
-    data = jax.vmap(lambda w, p, o: problem.objective(w, p, o @ o, terms.alpha))(
-        weights[h:], terms.projections[h:], offsets[h:]
+    data = jax.vmap(lambda w, p, o_sq: problem.objective(w, p, o_sq, terms.alpha))(
+        weights[h:], terms.projections[h:], terms.offset_sq[h:]
     )
     return jnp.sum(jnp.where(terms.held[h:], 0.0, data)) + _weighted_time_penalty(
         weights, terms.smoothness, terms.velocity, terms.rows2, terms.rows1
@@ -710,13 +727,14 @@ def _take_value(terms: _TakeTerms, weights, offsets) -> Float[Array, ""]:
 
 
 def _frame_blocks(problem: InverseProblem, rows: Float[Array, "S K"]) -> Float[Array, "S K K"]:
-    """(S, K, K) Gauss-Newton blocks G_t Q G_t^T at (S, K) weights: one S K x P x P product
-    (the gram is small enough to stay in cache; a product over each weight's support
-    streamed ``support_gram``, 10x the gram, and was slower)."""
+    """(S, K, K) Gauss-Newton blocks G_t Q G_t^T at (S, K) weights: one S K x P x P product,
+    Q G_t^T and then G_t (Q G_t^T) (the gram is small enough to stay in cache; a product over
+    each weight's support streamed ``support_gram``, 10x the gram, and was slower; G_t Q first
+    was about 15 % slower on MakeHuman's one-frame block)."""
     gram = problem.gram
     jacobian = jax.vmap(problem.jacobian)(rows)  # (S, K, P)
-    jacobian_gram = (jacobian.reshape(-1, gram.shape[0]) @ gram).reshape(jacobian.shape)
-    return jnp.matmul(jacobian_gram, jnp.swapaxes(jacobian, 1, 2))
+    gram_jacobian = gram @ jnp.swapaxes(jacobian, 1, 2)  # (S, P, K) Q G_t^T
+    return jnp.matmul(jacobian, gram_jacobian)
 
 
 def _solved_blocks(terms: _TakeTerms, weights) -> Float[Array, "S K K"]:
@@ -724,18 +742,25 @@ def _solved_blocks(terms: _TakeTerms, weights) -> Float[Array, "S K K"]:
     return _frame_blocks(terms.problem, weights[terms.history :])
 
 
-def _gradient(terms: _TakeTerms, weights):
-    """(a, residual, grad) at ``weights``: the solved frames' coefficients a_t (no data terms
-    in the history), their residuals Q a_t - p_t, and E's gradient (zero on held frames)."""
+def _residuals(terms: _TakeTerms, weights):
+    """(a, residual) at ``weights``: the solved frames' coefficients a_t (no data terms in
+    the history) and their residuals Q a_t - p_t. The iteration computes them at its start
+    and then carries them from step to step (``_decreases`` has both at every trial)."""
+    problem, h = terms.problem, terms.history
+    a = jax.vmap(problem.coefficients)(weights[h:])  # (T - h, P)
+    return a, a @ problem.gram - terms.projections[h:]  # rows Q a_t - p_t
+
+
+def _gradient(terms: _TakeTerms, weights, residual):
+    """E's gradient at ``weights`` (zero on held frames), from the solved frames' residuals
+    Q a_t - p_t (``_residuals``)."""
     problem, gram, h = terms.problem, terms.problem.gram, terms.history
     k = weights.shape[1]
-    a = jax.vmap(problem.coefficients)(weights[h:])  # (T - h, P)
-    residual = a @ gram - terms.projections[h:]  # rows Q a_t - p_t
     jacobian = jax.vmap(problem.jacobian)(weights[h:])  # (T - h, K, P) G_t
     data_grad = jnp.einsum("tkp,tp->tk", jacobian, residual)
     data_grad = jnp.concatenate([jnp.zeros((h, k), gram.dtype), data_grad])
     grad = data_grad + terms.alpha + _time_gradient(terms, weights)
-    return a, residual, jnp.where(terms.held[:, None], 0.0, grad)
+    return jnp.where(terms.held[:, None], 0.0, grad)
 
 
 def _newton_step(terms: _TakeTerms, weights, grad, blocks) -> Float[Array, "T K"]:
@@ -766,14 +791,18 @@ def _newton_step(terms: _TakeTerms, weights, grad, blocks) -> Float[Array, "T K"
     return jnp.where(free & jnp.isfinite(step), step, 0.0)
 
 
-def _decreases(terms: _TakeTerms, weights, trials, a, residual) -> Float[Array, " L"]:
-    """E(trial) - E(W) of each of the (L, T, K) ``trials``: data terms in coefficient space
-    (no cancellation against ||b - b0||^2), from W's coefficients ``a`` and residuals
-    Q a_t - p_t, and the time terms exactly."""
+def _decreases(terms: _TakeTerms, weights, trials, a, residual):
+    """(E(trial) - E(W), the trials' (a, residual)) for each of the (L, T, K) ``trials``:
+    data terms in coefficient space (no cancellation against ||b - b0||^2), from W's
+    coefficients ``a`` and residuals Q a_t - p_t, and the time terms exactly; each trial's
+    coefficients, and its residuals as W's plus Q (a_trial - a) (the product the decrease
+    needs anyway), so that the next iteration need not recompute them."""
     problem, gram, h = terms.problem, terms.problem.gram, terms.history
-    change = jax.vmap(jax.vmap(problem.coefficients))(trials[:, h:]) - a
+    coefficients = jax.vmap(jax.vmap(problem.coefficients))(trials[:, h:])
+    change = coefficients - a
+    change_gram = change @ gram
     data_change = jnp.sum(change * residual, axis=(1, 2)) + 0.5 * jnp.sum(
-        (change @ gram) * change, axis=(1, 2)
+        change_gram * change, axis=(1, 2)
     )
     moved = trials - weights
     time_change = jax.vmap(lambda c: jnp.sum(c * _time_gradient(terms, weights)))(moved)
@@ -782,19 +811,21 @@ def _decreases(terms: _TakeTerms, weights, trials, a, residual) -> Float[Array, 
             c, terms.smoothness, terms.velocity, terms.rows2, terms.rows1
         )  # fmt: skip
     )(moved)
-    return data_change + terms.alpha * moved.sum(axis=(1, 2)) + time_change
+    decrease = data_change + terms.alpha * moved.sum(axis=(1, 2)) + time_change
+    return decrease, (coefficients, residual + change_gram)
 
 
 def _line_search(terms: _TakeTerms, weights, step, a, residual, line_steps: int):
-    """(weights, gain): the projected trials W + 2^-j step (j < ``line_steps``), each
-    clipped to the box, scored by E(trial) - E(W) (``_decreases``); the best one if it
-    lowers E (gain its decrease), else W (gain 0)."""
+    """(weights, gain, (a, residual)): the projected trials W + 2^-j step
+    (j < ``line_steps``), each clipped to the box, scored by E(trial) - E(W)
+    (``_decreases``); the best one if it lowers E (gain its decrease), else W (gain 0)."""
     lengths = 0.5 ** jnp.arange(line_steps, dtype=terms.dtype)
     trials = jnp.clip(weights + lengths[:, None, None] * step, 0.0, terms.upper)  # (L, T, K)
-    decrease = _decreases(terms, weights, trials, a, residual)
+    decrease, (coefficients, residuals) = _decreases(terms, weights, trials, a, residual)
     best = jnp.argmin(decrease)
     better = decrease[best] < 0
-    return jnp.where(better, trials[best], weights), jnp.where(better, -decrease[best], 0.0)
+    fit = jnp.where(better, coefficients[best], a), jnp.where(better, residuals[best], residual)
+    return jnp.where(better, trials[best], weights), jnp.where(better, -decrease[best], 0.0), fit
 
 
 ARMIJO = 0.3
@@ -806,16 +837,17 @@ line search (at 1e-4 the lagged stream took 3 % more iterations on ict-quartic).
 
 
 def _newton_first(terms: _TakeTerms, weights, step, a, residual, grad, line_steps: int):
-    """(weights, gain): the full projected step W + step (clipped to the box) when it
-    decreases E enough (``ARMIJO``), scored alone (one trial instead of ``line_steps``);
-    otherwise ``_line_search`` over every length."""
+    """(weights, gain, (a, residual)): the full projected step W + step (clipped to the box)
+    when it decreases E enough (``ARMIJO``), scored alone (one trial instead of
+    ``line_steps``); otherwise ``_line_search`` over every length."""
     trial = jnp.clip(weights + step, 0.0, terms.upper)
-    decrease = _decreases(terms, weights, trial[None], a, residual)[0]
+    decrease, (coefficients, residuals) = _decreases(terms, weights, trial[None], a, residual)
+    decrease = decrease[0]
     slope = jnp.sum(grad * (trial - weights))  # grad . (trial - W), < 0 for a descent step
     sufficient = (decrease < 0) & (decrease <= ARMIJO * slope)
     return jax.lax.cond(
         sufficient,
-        lambda: (trial, -decrease),
+        lambda: (trial, -decrease, (coefficients[0], residuals[0])),
         lambda: _line_search(terms, weights, step, a, residual, line_steps),
     )
 
