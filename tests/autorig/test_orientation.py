@@ -40,12 +40,12 @@ TURNS = [(axis, degrees) for axis in range(3) for degrees in (90, 180, 270)]
 
 @pytest.fixture(scope="module")
 def ict_heads(data_dir):
-    """The generic ICT head and a new identity, decimated (~1,750 and ~1,480 vertices)."""
+    """The generic ICT head and a new identity, decimated (~1,750 and ~1,080 vertices)."""
     head = load_ict(data_dir, parts=None)
     identity = ict_identity(np.random.default_rng(11).standard_normal(100), data_dir, model=head)
     return {
         "generic": decimate(head.neutral, head.faces, 1600),
-        "identity": decimate(identity, head.faces, 1300),
+        "identity": decimate(identity, head.faces, 800),
     }
 
 
