@@ -17,40 +17,53 @@ def _spd(rng, *shape):
     return (m @ np.swapaxes(m, -1, -2) + shape[-1] * np.eye(shape[-1])).astype(np.float32)
 
 
+@jax.jit
+def _every_function(a, b, lower, general):
+    """Every function of the module at once: one compiled program per shape (called op by op,
+    each of the unrolled small-matrix operations would compile on its own)."""
+    return {
+        "cholesky": la.cholesky(a),
+        "spd_solve": la.spd_solve(a, b),
+        "cho_solve": la.cho_solve(lower, b),
+        "forward": la.solve_triangular(lower, b),
+        "backward": la.solve_triangular(lower, b[..., None], transpose=True),
+        "eigvalsh": la.eigvalsh(a),
+        "inv": la.inv(general),
+    }
+
+
 @pytest.mark.parametrize("n", [1, 7, 59])
 def test_values_match_float64_numpy(n):
     rng = np.random.default_rng(n)
     a, b = _spd(rng, 3, n, n), rng.standard_normal((3, n)).astype(np.float32)
     a64, b64 = a.astype(np.float64), b.astype(np.float64)
     lower = np.linalg.cholesky(a64)
-    scale = np.abs(lower).max()
-    np.testing.assert_allclose(la.cholesky(a), lower, atol=1e-5 * scale)
-    x = np.linalg.solve(a64, b64[..., None])[..., 0]
-    np.testing.assert_allclose(la.spd_solve(a, b), x, atol=1e-5 * np.abs(x).max())
-    np.testing.assert_allclose(
-        la.cho_solve(lower.astype(np.float32), b), x, atol=1e-5 * np.abs(x).max()
-    )
-    y = np.linalg.solve(lower, b64[..., None])[..., 0]
-    got = la.solve_triangular(lower.astype(np.float32), b)
-    np.testing.assert_allclose(got, y, atol=1e-5 * np.abs(y).max())
-    z = np.linalg.solve(np.swapaxes(lower, -1, -2), b64[..., None])  # matrix right-hand side
-    got = la.solve_triangular(lower.astype(np.float32), b[..., None], transpose=True)
-    np.testing.assert_allclose(got, z, atol=1e-5 * np.abs(z).max())
-    eig = np.linalg.eigvalsh(a64)
-    np.testing.assert_allclose(la.eigvalsh(a), eig, atol=1e-5 * np.abs(eig).max())
     general = a + rng.standard_normal(a.shape).astype(np.float32)  # not symmetric
+    got = _every_function(a, b, lower.astype(np.float32), general)
+    scale = np.abs(lower).max()
+    np.testing.assert_allclose(got["cholesky"], lower, atol=1e-5 * scale)
+    x = np.linalg.solve(a64, b64[..., None])[..., 0]
+    np.testing.assert_allclose(got["spd_solve"], x, atol=1e-5 * np.abs(x).max())
+    np.testing.assert_allclose(got["cho_solve"], x, atol=1e-5 * np.abs(x).max())
+    y = np.linalg.solve(lower, b64[..., None])[..., 0]
+    np.testing.assert_allclose(got["forward"], y, atol=1e-5 * np.abs(y).max())
+    z = np.linalg.solve(np.swapaxes(lower, -1, -2), b64[..., None])  # matrix right-hand side
+    np.testing.assert_allclose(got["backward"], z, atol=1e-5 * np.abs(z).max())
+    eig = np.linalg.eigvalsh(a64)
+    np.testing.assert_allclose(got["eigvalsh"], eig, atol=1e-5 * np.abs(eig).max())
     inverse = np.linalg.inv(general.astype(np.float64))
-    np.testing.assert_allclose(la.inv(general), inverse, atol=1e-4 * np.abs(inverse).max())
+    np.testing.assert_allclose(got["inv"], inverse, atol=1e-4 * np.abs(inverse).max())
 
 
 def test_not_positive_definite_gives_nan():
     rng = np.random.default_rng(0)
     a = _spd(rng, 2, 5, 5)
     a[1, 2, 2] = -100.0  # the second matrix is indefinite, the first is not
-    lower = np.asarray(la.cholesky(a))
+    lower, solved = jax.jit(lambda a: (la.cholesky(a), la.spd_solve(a, jnp.ones((2, 5)))))(a)
+    lower = np.asarray(lower)
     assert np.isfinite(lower[0]).all()
     assert not np.isfinite(lower[1]).all()
-    assert not np.isfinite(np.asarray(la.spd_solve(a, np.ones((2, 5), np.float32)))[1]).all()
+    assert not np.isfinite(np.asarray(solved)[1]).all()
 
 
 @pytest.mark.slow
@@ -91,8 +104,8 @@ def test_every_lapack_call_holds_one_matrix_however_batched(n):
         x = la.cho_solve(lower, b) + la.solve_triangular(lower, b, transpose=True)
         return jnp.sum(x**2) + jnp.sum(la.inv(a)) + jnp.sum(la.eigvalsh(a))
 
-    program = jax.jit(jax.vmap(jax.vmap(jax.value_and_grad(loss, (0, 1)))))
-    calls = la.lapack_calls(program.lower(a, b).compile().as_text())
+    program = jax.jit(jax.vmap(jax.vmap(jax.value_and_grad(loss, (0, 1))))).lower(a, b).compile()
+    calls = la.lapack_calls(program.as_text())  # the program run below: compiled once
     kernels = {name for name, _ in calls}
     # small factors are batched in lax, larger ones go to LAPACK one at a time
     assert ("lapack_spotrf_ffi" in kernels) == (n > la.SMALL)
@@ -102,8 +115,8 @@ def test_every_lapack_call_holds_one_matrix_however_batched(n):
     batched = jax.jit(jax.vmap(lambda a: jnp.linalg.cholesky(a)))
     assert any(len(s) > 2 for _, s in la.lapack_calls(batched.lower(a[0]).compile().as_text()))
     values, (grad_a, grad_b) = program(a, b)
-    np.testing.assert_allclose(values, jax.vmap(jax.vmap(loss))(a, b), rtol=1e-5)
-    one = jax.value_and_grad(loss, (0, 1))(a[1, 2], b[1, 2])  # unbatched: LAPACK
+    np.testing.assert_allclose(values, jax.jit(jax.vmap(jax.vmap(loss)))(a, b), rtol=1e-5)
+    one = jax.jit(jax.value_and_grad(loss, (0, 1)))(a[1, 2], b[1, 2])  # unbatched: LAPACK
     np.testing.assert_allclose(grad_a[1, 2], one[1][0], rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(grad_b[1, 2], one[1][1], rtol=1e-4, atol=1e-5)
 

@@ -19,6 +19,10 @@ from canrig_jax.wpse import apply, blendshape_metric, fit_pose_space_edit
 from canrig_jax.wpse._frames import frame_matrices, local_frames, local_to_world
 from canrig_jax.wpse._pse import correction, edited_mesh
 
+# compiled once per frame layout (op by op, every ring group's operations compile on their own)
+jit_frame_matrices = jax.jit(frame_matrices)
+jit_local_to_world = jax.jit(local_to_world)
+
 
 def loop_wpse(rig, poses, edits, sigma, weights, metric="weighted", epsilon=1e-3):
     """World-frame (W)PSE at ``weights`` by a per-vertex loop of float64 solves."""
@@ -81,7 +85,7 @@ def test_local_frames_match_reference(tiny_rig):
     vertices = np.array([0, 5, 24, 48])
     frames = local_frames(tiny_rig.faces, vertices, tiny_rig.n_vertices)
     posed = evaluate(tiny_rig, jnp.array([0.3, 0.9, 0.1, 0.5]))
-    got = np.asarray(frame_matrices(frames, posed))
+    got = np.asarray(jit_frame_matrices(frames, posed))
     expected = reference_frames(posed, tiny_rig.faces, vertices, np.asarray(frames.neighbour))
     np.testing.assert_allclose(got, expected, atol=1e-5)
     np.testing.assert_allclose(
@@ -104,14 +108,14 @@ def test_local_frames_all_degrees_match_numpy(tiny_rig, monkeypatch, group_cost)
             assert sorted(r.shape[1] for r in frames.rings) == sorted(set(degree.tolist()))
         if group_cost == 10**9:
             assert [r.shape[1] for r in frames.rings] == [degree.max()]
-        got = np.asarray(frame_matrices(frames, posed))
+        got = np.asarray(jit_frame_matrices(frames, posed))
         expected = reference_vertex_frames(
             posed, tiny_rig.faces, vertices, np.asarray(frames.neighbour)
         )
         np.testing.assert_allclose(got, expected, atol=1e-6)
         offsets = np.random.default_rng(0).normal(size=(len(vertices), 3)).astype(np.float32)
         np.testing.assert_allclose(
-            local_to_world(frames, posed, offsets),
+            jit_local_to_world(frames, posed, offsets),
             np.einsum("sij,sj->si", expected, offsets),
             atol=1e-6,
         )

@@ -64,25 +64,37 @@ def test_frames_match_numpy_on_the_whole_face_with_the_jaw_open(ict_face):
     assert np.median(error) < 1e-6 and error.max() < 1e-5, (np.median(error), error.max())
 
 
-def test_run_time_matches_the_numpy_evaluator(real_models, real_edits):
-    """jit(apply) with local frames against ``NumpyEditEvaluator`` (padded incident rings,
-    the straightforward layout) on real held-out frames."""
-    run = jax.jit(apply)
-    for model in real_models.values():
+@pytest.fixture(scope="module")
+def real_meshes(real_models, real_edits):
+    """{method: (meshes at the edit poses, meshes at the held-out frames)}: jit(vmap(apply))
+    once per model, over the edit and held-out frames together (one compiled program each)."""
+    run = jax.jit(jax.vmap(apply, (None, 0, 0)))
+    poses = np.concatenate([real_edits["poses"], real_edits["test_poses"]])
+    linear = np.concatenate([real_edits["linear"], real_edits["test_linear"]])
+    n = len(real_edits["poses"])
+    out = {}
+    for name, model in real_models.items():
+        meshes = np.asarray(run(model, poses, linear))
+        out[name] = (meshes[:n], meshes[n:])
+    return out
+
+
+def test_run_time_matches_the_numpy_evaluator(real_models, real_edits, real_meshes):
+    """jit(vmap(apply)) with local frames against ``NumpyEditEvaluator`` (padded incident
+    rings, the straightforward layout) on real held-out frames."""
+    for name, model in real_models.items():
         reference = NumpyEditEvaluator(model)
-        for w, base in zip(
-            real_edits["test_poses"][:4], real_edits["test_linear"][:4], strict=True
+        held_out = real_meshes[name][1]
+        for w, base, got in zip(
+            real_edits["test_poses"][:4], real_edits["test_linear"][:4], held_out[:4], strict=True
         ):
-            np.testing.assert_allclose(run(model, w, base), reference(w, base), atol=2e-5)
+            np.testing.assert_allclose(got, reference(w, base), atol=2e-5)
 
 
 @pytest.mark.parametrize("method", ["pse", "wpse"])
-def test_edits_reproduced_and_held_out_frames_improved(method, real_models, real_edits):
-    model = real_models[method]
-    run = jax.jit(jax.vmap(apply, (None, 0, 0)))
-    at_edits = np.asarray(run(model, real_edits["poses"], real_edits["linear"]))
+def test_edits_reproduced_and_held_out_frames_improved(method, real_edits, real_meshes):
+    at_edits, held_out = real_meshes[method]
     assert mean_error_mm(at_edits, real_edits["linear"] + real_edits["edits"]) < 0.01
-    held_out = np.asarray(run(model, real_edits["test_poses"], real_edits["test_linear"]))
     before = mean_error_mm(real_edits["test_linear"], real_edits["test_desired"])
     after = mean_error_mm(held_out, real_edits["test_desired"])
     assert after < 0.9 * before, (before, after)
