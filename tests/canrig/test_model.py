@@ -49,27 +49,27 @@ def placed(neural_rig):
     return neural_rig.handles(index)
 
 
-def _other_shape(ict_face, sparse_poses):
+@pytest.fixture(scope="module")
+def other_shape(ict_face, sparse_poses):
+    """A real ICT expression as the base shape (evaluated once for the module)."""
     from canrig_jax.rig import evaluate
 
     return np.asarray(evaluate(ict_face, sparse_poses[0]))
 
 
-def test_zero_displacements_give_the_base_shape_exactly(neural_rig, placed, ict_face, sparse_poses):
+def test_zero_displacements_give_the_base_shape_exactly(neural_rig, placed, other_shape):
     zeros = np.zeros((placed.n_handles, 3), np.float32)
-    for base in (None, _other_shape(ict_face, sparse_poses)):
+    for base in (None, other_shape):
         expected = neural_rig.canonical if base is None else base
         for radius in (0.5, 2.0, 8.0):
             out = neural_rig(placed, zeros, radius, 3.0, base=base)
             assert np.array_equal(np.asarray(out), np.asarray(expected))
 
 
-def test_vertices_outside_every_clamped_mask_do_not_move(
-    neural_rig, placed, ict_face, sparse_poses
-):
+def test_vertices_outside_every_clamped_mask_do_not_move(neural_rig, placed, other_shape):
     rng = np.random.default_rng(1)
     displacements = rng.normal(0, 0.5, (placed.n_handles, 3)).astype(np.float32)
-    base = _other_shape(ict_face, sparse_poses)
+    base = other_shape
     out = np.asarray(neural_rig(placed, displacements, 1.0, 3.0, base=base, beta=0.5))
     mask = np.asarray(influence_mask(placed.distance, np.ones(60), np.full(60, 3.0), CLAMP))
     outside = mask.max(axis=1) == 0.0
@@ -177,10 +177,10 @@ def test_bad_hyper_parameters(face, kwargs, match):
         CANRig(face[0], key=jax.random.PRNGKey(0), **kwargs)
 
 
-def test_block_sparse_forward_equals_dense(neural_rig, placed, ict_face, sparse_poses):
+def test_block_sparse_forward_equals_dense(neural_rig, placed, other_shape):
     rng = np.random.default_rng(5)
     displacements = rng.normal(0, 0.5, (placed.n_handles, 3)).astype(np.float32)
-    base = _other_shape(ict_face, sparse_poses)
+    base = other_shape
     for radius in (0.7, 3.0):
         blocked = neural_rig(placed, displacements, radius, 3.0, base=base, beta=0.3)
         dense = neural_rig(placed, displacements, radius, 3.0, base=base, beta=0.3, dense=True)
