@@ -18,7 +18,6 @@ from canrig_jax.autorig import (
     ict_pose_source,
     load_makehuman,
 )
-from canrig_jax.autorig._any_head import STYLE_GRID
 from canrig_jax.autorig._evaluation import sculpted_target_errors
 from canrig_jax.autorig._landmarks import skin_of
 from canrig_jax.autorig._orientation import (
@@ -28,6 +27,7 @@ from canrig_jax.autorig._orientation import (
     face_cues,
     stated_orientation,
 )
+from canrig_jax.autorig._style import STYLE_GRID
 from canrig_jax.autorig._weld import WELD_TAU, clumps, weld
 from canrig_jax.data import ARKIT_NAMES, FACE, load_ict
 from canrig_jax.rig import BlendshapeRig

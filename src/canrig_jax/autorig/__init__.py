@@ -22,7 +22,7 @@
 The evaluation of the paper (held-out splits, recipes, tables) is ``canrig_jax.papers.riganyface``.
 """
 
-from ._any_head import AutoRig, Style, auto_rig, auto_rig_heads, fit_style
+from ._any_head import AutoRig, auto_rig, auto_rig_heads
 from ._avatar import AvatarRig, auto_rig_avatar
 from ._data import ict_autorig_dataset, ict_pose_source, transfer_poses
 from ._diffusion_net import DiffusionNet
@@ -43,6 +43,7 @@ from ._rig import GeneratedRig
 from ._rig_checks import LIMITS as CHECK_LIMITS
 from ._rig_checks import Check, RigCheck, check_rig, plot_check_frames
 from ._rocketbox import load_rocketbox_head
+from ._style import Style, fit_style
 from ._train import (
     DEFAULT_CHECKPOINT,
     RigAnyFaceTrainOptions,

@@ -19,99 +19,23 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
-from jaxtyping import ArrayLike, Bool, Float, Float32, Int
+from jaxtyping import ArrayLike, Float, Int
 
 from .._warnings import warn
 from ..data import arkit_name_of
 from ..mesh import check_mesh
-from ..rig import UNIT_IN_CM, BlendshapeRig, arkit_channels, rename_to_arkit
+from ..rig import UNIT_IN_CM, BlendshapeRig
 from . import _weld
+from ._assemble import assemble
 from ._blink_fit import close_blinks
 from ._data import AutorigDataset
 from ._landmarks import place_landmarks, skin_of
 from ._methods import AUTO_RIG_METHODS, DEFAULT_METHOD, AbstractAutoRigMethod, UprightHead
 from ._orientation import OrientationDecision, decide_orientation, stated_orientation
-from ._rig import rig_from_poses
 from ._rig_checks import RigCheck, check_rig
+from ._style import Style, style_from_examples
 
 NAME_STYLES = ("arkit", "source")
-
-
-@dataclasses.dataclass(frozen=True)
-class Style:
-    """An artist's style as amplitude and locality, applied per pose: each vertex's
-    displacement d of length |d| (pose peak p) becomes
-
-        gain * d * (|d| / p) ** falloff * max(0, 1 - floor * p / |d|),
-
-    so ``falloff`` > 0 keeps the peak and thins the tails, ``floor`` zeroes what moves less
-    than that fraction of the peak (soft threshold). ``Style()`` is the identity."""
-
-    gain: float = 1.0
-    falloff: float = 0.0
-    floor: float = 0.0
-
-    def apply(self, displacements: Float[ArrayLike, "P V 3"]) -> Float32[np.ndarray, "P V 3"]:
-        """(P, V, 3) displacements -> the same, styled (float32)."""
-        d = np.asarray(displacements, np.float64)
-        length = np.linalg.norm(d, axis=-1, keepdims=True)
-        peak = length.max(axis=1, keepdims=True)
-        safe_peak, safe = np.maximum(peak, 1e-12), np.maximum(length, 1e-12)
-        factor = (length / safe_peak) ** self.falloff
-        factor = factor * np.maximum(0.0, 1.0 - self.floor * peak / safe)
-        return (self.gain * d * factor).astype(np.float32)
-
-
-STYLE_GRID = {
-    "falloff": (0.0, 0.5, 1.0, 2.0),
-    "floor": (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7),
-    "gain": tuple(np.round(np.linspace(0.3, 1.5, 25), 3)),
-}
-"""The styles ``fit_style`` chooses among (fixed before any measurement on evaluation
-heads)."""
-
-
-def fit_style(
-    generated: Float[ArrayLike, "k V 3"],
-    sculpted: Float[ArrayLike, "k V 3"],
-    skin: Bool[ArrayLike, " V"],
-) -> Style:
-    """The style whose generated shapes best match the artist's, among ``STYLE_GRID``'s (4
-    falloffs, 8 floors and 25 gains from 0.3 to 1.5, fixed before any measurement on evaluation
-    heads).
-
-    Args:
-        generated: (k, V, 3) the method's version of the k example shapes (cm).
-        sculpted: (k, V, 3) the artist's shapes (cm).
-        skin: (V,) bool, the vertices scored (the head's skin).
-
-    The score is the mean over the k shapes of each shape's skin error over what no motion
-    scores on it, so a small shape (a blink) counts as much as a large one (jawOpen)."""
-    generated = np.asarray(generated, np.float64)
-    sculpted = np.asarray(sculpted, np.float64)
-    if generated.shape != sculpted.shape or generated.ndim != 3 or generated.shape[0] < 1:
-        raise ValueError(
-            f"generated, sculpted: expected two (k >= 1, V, 3) arrays, got {generated.shape} "
-            f"and {sculpted.shape}"
-        )
-    skin = np.asarray(skin, bool)
-    if skin.shape != generated.shape[1:2] or not skin.any():
-        raise ValueError(
-            f"skin: expected ({generated.shape[1]},) bools with at least one True, got {skin.shape}"
-        )
-    still = np.linalg.norm(sculpted, axis=-1)[:, skin].mean(axis=1)
-    if not np.all(still > 0):
-        raise ValueError("sculpted: an example shape does not move the skin")
-    best, best_score = Style(), np.inf
-    for falloff in STYLE_GRID["falloff"]:
-        for floor in STYLE_GRID["floor"]:
-            shaped = Style(1.0, falloff, floor).apply(generated).astype(np.float64)
-            for gain in STYLE_GRID["gain"]:
-                error = np.linalg.norm(gain * shaped - sculpted, axis=-1)[:, skin].mean(axis=1)
-                score = float(np.mean(error / still))
-                if score < best_score:
-                    best, best_score = Style(float(gain), falloff, floor), score
-    return best
 
 
 @dataclasses.dataclass(frozen=True)
@@ -254,21 +178,18 @@ def auto_rig(
     displacements = _weld.weld(displacements, _weld.clumps(upright, faces, skin, _weld.WELD_TAU))
     seconds["method"] = time.perf_counter() - t
 
-    style = Style()
+    style, styled = Style(), None
     if sculpted:
-        kept, generated = _shapes_by_arkit(displacements, source_names, sculpted, rotation)
-        style = fit_style(generated, np.stack([sculpted[n] for n in kept]), skin)
+        style, styled = style_from_examples(displacements, source_names, sculpted, rotation, skin)
         _progress(
             progress,
             f"fitted the style of {len(sculpted)} example shapes: gain {style.gain:g}, "
             f"falloff {style.falloff:g}, floor {style.floor:g}",
         )
-        unstyled = _assemble(v, faces, displacements @ rotation, pose_set, source_names, names)
-        displacements = style.apply(displacements)
-    rig = _assemble(v, faces, displacements @ rotation, pose_set, source_names, names)
-    if sculpted:  # the blink's amplitude is the lid's own (close_blinks), not the style's
-        rig = _with_blinks_of(rig, unstyled)
-    rig, taken = _take_sculpted(rig, sculpted)
+        styled = styled @ rotation
+    rig, taken = assemble(
+        v, faces, displacements @ rotation, styled, pose_set, source_names, names, sculpted
+    )
     rig, fit_record["blink_gain"] = close_blinks(
         rig, up=orientation.up, forward=orientation.forward, keep=taken
     )
@@ -396,68 +317,6 @@ def _landmarks(dataset, upright, faces, skin, landmarks, method, progress):
     _progress(progress, "placing the ICT landmarks on the head")
     landmarks, fit, fitted_by = place_landmarks(dataset, upright, faces, region=skin)
     return landmarks, {"by": fitted_by, "rms_cm": float(fit.rms)}
-
-
-def _assemble(vertices, faces, displacements, pose_set, source_names, names) -> BlendshapeRig:
-    """The rig in the head's own frame from its (P, V, 3) displacements (cm): correctives
-    from the combination poses of ``pose_set`` (None: a linear rig of ``source_names``)."""
-    neutral = np.asarray(vertices, np.float32)
-    displacements = np.asarray(displacements, np.float32)
-    if pose_set is not None:
-        rig = rig_from_poses(neutral, faces, displacements, pose_set)
-    else:
-        rig = BlendshapeRig(neutral, displacements, (), source_names, faces)
-    return rename_to_arkit(rig) if names == "arkit" else rig
-
-
-def _shapes_by_arkit(displacements, source_names, wanted: Mapping, rotation):
-    """The method's version of each wanted ARKit shape in the head's frame (ICT's halves
-    summed, as ``rename_to_arkit`` merges them): (names, (k, V, 3)); names the method lacks
-    are left out."""
-    channels, index = arkit_channels(source_names)  # the single poses come first
-    singles = np.asarray(displacements, np.float64)[: len(source_names)]
-    merged = np.zeros((len(channels), *singles.shape[1:]))
-    np.add.at(merged, index, singles)
-    kept = tuple(n for n in wanted if n in channels)
-    if not kept:
-        raise ValueError(
-            f"examples: none of {sorted(wanted)} is a shape of the generated rig "
-            f"({', '.join(sorted(channels)[:6])}, ...)"
-        )
-    return kept, np.stack([merged[channels.index(n)] @ rotation for n in kept])
-
-
-def _with_blinks_of(rig: BlendshapeRig, other: BlendshapeRig) -> BlendshapeRig:
-    """``rig`` with ``other``'s eyeBlink shapes (same names and mesh)."""
-    deltas = np.array(rig.deltas)
-    for i, name in enumerate(rig.names):
-        if arkit_name_of(str(name)) in ("eyeBlinkLeft", "eyeBlinkRight"):
-            deltas[i] = np.asarray(other.deltas[i])
-    return BlendshapeRig(rig.neutral, deltas, rig.correctives, rig.names, rig.faces, rig.units)
-
-
-def _take_sculpted(rig: BlendshapeRig, sculpted: Mapping):
-    """The rig with each example shape replaced by the artist's, matched by ARKit name, and
-    the ARKit names replaced; a channel the rig splits into halves (ICT's
-    ``browInnerUp_L``/``_R``) or lacks keeps the generated shape, with a warning."""
-    if not sculpted:
-        return rig, ()
-    deltas = np.array(rig.deltas, np.float32)
-    scale = 1.0 / UNIT_IN_CM[rig.units]
-    channels = [arkit_name_of(str(name)) for name in rig.names]
-    taken = []
-    for i, arkit in enumerate(channels):
-        if arkit in sculpted and channels.count(arkit) == 1:
-            deltas[i] = np.asarray(sculpted[arkit], np.float32) * scale
-            taken.append(arkit)
-    left = [n for n in sculpted if n not in taken]
-    if left:
-        warn(
-            f"examples: {', '.join(left)} shaped the style but are not in the rig as given "
-            "(no such shape in the method's rig, or a channel it splits into halves)"
-        )
-    rig = BlendshapeRig(rig.neutral, deltas, rig.correctives, rig.names, rig.faces, rig.units)
-    return rig, tuple(n for n in sculpted if n in taken)
 
 
 def check_auto_rig(result: "AutoRig", n_random: int = 48) -> RigCheck:
