@@ -96,6 +96,34 @@ def test_help(command, capsys):
         assert "--names {arkit,ict}" in text and "--up" in text and "--forward" in text
 
 
+def _options(parser):
+    """Each subcommand's (option strings, default, choices), from a parser."""
+    sub = next(a for a in parser._actions if a.dest == "command")
+    return {
+        name: sorted(
+            (tuple(a.option_strings), a.dest, str(a.default), str(a.choices)) for a in p._actions
+        )
+        for name, p in sub.choices.items()
+    }
+
+
+def test_one_subcommands_parser_is_the_whole_parsers_and_imports_only_its_own():
+    from canrig_jax._commands import build_parser
+
+    whole = _options(build_parser())
+    assert set(SUBCOMMANDS) <= set(whole)
+    for command in whole:
+        assert _options(build_parser(command)) == {command: whole[command]}
+    # canrig autorig in a fresh process reads its arguments without the inverse rig's modules
+    code = (
+        "import sys; from canrig_jax._commands import build_parser; "
+        "build_parser('autorig').parse_args(['autorig', 'head.obj', '-o', 'rig.glb']); "
+        "print(sorted(m for m in sys.modules if m.startswith('canrig_jax.inverse')))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout
+
+
 def test_console_script_runs_in_a_fresh_process():
     result = subprocess.run(
         [sys.executable, "-c", "import sys, canrig_jax; sys.exit(canrig_jax.run_command())", "-h"],

@@ -914,20 +914,18 @@ def _view(args) -> None:
 
 
 # ------------------------------------------------------------------------------------ main
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``canrig`` parser; with ``command`` (a subcommand's name), only that subcommand's
+    (so that ``canrig autorig`` does not import what ``canrig invert``'s options are read
+    from)."""
     parser = _Parser(
         prog="canrig",
         description="From a head file and a phone capture to an animated rig (canrig_jax).",
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="SUBCOMMAND")
-    _add_autorig_parser(sub)
-    _add_animate_parser(sub)
-    _add_invert_parser(sub)
-    _add_retarget_parser(sub)
-    _add_correct_parser(sub)
-    _add_check_parser(sub)
-    _add_view_parser(sub)
-    _add_launch_parser(sub)
+    for name, add in _SUBCOMMANDS.items():
+        if command is None or name == command:
+            add(sub)
     return parser
 
 
@@ -1299,6 +1297,19 @@ keeps its compiled XLA programs: a second run of a command compiles nothing it c
 before (some 2-4 s of ``canrig autorig``)."""
 
 
+_SUBCOMMANDS = {
+    "autorig": _add_autorig_parser,
+    "animate": _add_animate_parser,
+    "invert": _add_invert_parser,
+    "retarget": _add_retarget_parser,
+    "correct": _add_correct_parser,
+    "check": _add_check_parser,
+    "view": _add_view_parser,
+    "launch": _add_launch_parser,
+}
+"""Each subcommand's name and the function that adds its parser, in ``--help``'s order."""
+
+
 def _keep_compiled_programs() -> None:
     """JAX's persistent compilation cache in ``cache_dir() / XLA_CACHE_FOLDER``, every program
     kept however fast it compiled; left as it is when the user set one
@@ -1318,8 +1329,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     script (``argv`` None: the process's own arguments) it keeps its compiled programs on
     disk (``_keep_compiled_programs``); called with ``argv`` from Python
     (``canrig_jax.run_command``) it leaves the caller's JAX configuration alone."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    words = sys.argv[1:] if argv is None else list(argv)
+    command = words[0] if words and words[0] in _SUBCOMMANDS else None
+    args = build_parser(command).parse_args(argv)
     if argv is None:
         _keep_compiled_programs()
     with print_warnings("canrig"):
