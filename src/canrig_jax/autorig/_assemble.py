@@ -9,6 +9,7 @@ from jaxtyping import ArrayLike, Float, Int
 from .._warnings import warn
 from ..data import arkit_name_of
 from ..rig import UNIT_IN_CM, BlendshapeRig, rename_to_arkit
+from ._data import PoseSet
 from ._rig import rig_from_poses
 
 
@@ -17,10 +18,10 @@ def assemble(
     faces: Int[ArrayLike, "F 3"],
     displacements: Float[ArrayLike, "P V 3"],
     styled: Float[ArrayLike, "P V 3"] | None,
-    pose_set,
+    pose_set: PoseSet | None,
     source_names: tuple[str, ...],
     names: str,
-    sculpted: Mapping[str, np.ndarray],
+    sculpted: Mapping[str, Float[np.ndarray, "V 3"]],
 ) -> tuple[BlendshapeRig, tuple[str, ...]]:
     """The rig in the head's own frame (cm) and the ARKit names of the example shapes taken as
     sculpted.

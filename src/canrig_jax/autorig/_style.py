@@ -108,7 +108,7 @@ def _shapes_by_arkit(displacements, source_names, wanted: Mapping, rotation):
 def style_from_examples(
     displacements: Float[ArrayLike, "P V 3"],
     source_names: tuple[str, ...],
-    sculpted: Mapping[str, np.ndarray],
+    sculpted: Mapping[str, Float[np.ndarray, "V 3"]],
     rotation: Float[ArrayLike, "3 3"],
     skin: Bool[ArrayLike, " V"],
 ) -> tuple[Style, Float32[np.ndarray, "P V 3"]]:
